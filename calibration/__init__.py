@@ -1,0 +1,1 @@
+"""calibration: sphere-indentation calibration (contact detection, ground truth, light models, LUT)."""

@@ -1,0 +1,53 @@
+"""``iristac bench NAME``: each benchmark is a module ``pipeline.bench.NAME`` with ``run()``.
+
+A benchmark module exposes::
+
+    def add_arguments(parser) -> None      # optional extra flags
+    def run(args) -> dict                  # measures, returns JSON-able results
+    def format_table(result: dict) -> str  # the human-readable side-by-side table
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+from pipeline.cli._common import add_json_flag, make_group, print_json
+
+BENCHMARKS = [
+    ("sim", "ray tracer: rays x sampler, Newton iterations, multi-source methods, effect sets"),
+    ("render", "renderer: frames per second per effect set and image size"),
+    ("capture", "capture: pattern changes per second over the emulator"),
+    ("reconstruct", "normals and depth: time and error per solver, integrator and size"),
+    ("calibration", "calibration: time and cross-validated error per model"),
+]
+
+
+def register(sub, name, help_text):
+    _, group = make_group(sub, name, help_text)
+    for bench_name, text in BENCHMARKS:
+        p = group.add_parser(bench_name, help=text, description=text)
+        add_json_flag(p)
+        p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke test")
+        try:
+            module = importlib.import_module(f"pipeline.bench.{bench_name}")
+        except ModuleNotFoundError:
+            module = None
+        if module is not None and hasattr(module, "add_arguments"):
+            module.add_arguments(p)
+        p.set_defaults(func=_runner(bench_name, module))
+
+
+def _runner(bench_name, module):
+    def run(args) -> int:
+        if module is None:
+            print(f"iristac bench {bench_name}: not implemented yet", file=sys.stderr)
+            return 3
+        result = module.run(args)
+        if args.json:
+            print_json(result)
+        else:
+            print(module.format_table(result))
+        return 0
+
+    return run

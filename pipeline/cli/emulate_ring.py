@@ -1,0 +1,7 @@
+"""CLI command (not implemented yet: the capture issue)."""
+
+from pipeline.cli._common import not_implemented
+
+
+def register(sub, name, help_text):
+    not_implemented(sub, name, help_text, "the capture issue")

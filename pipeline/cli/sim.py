@@ -1,0 +1,10 @@
+"""``iristac sim``: the ray tracer's commands (``sim_optics``) and the renderer's (``sim_render``)."""
+
+from pipeline.cli._common import make_group
+from pipeline.cli import sim_optics, sim_render
+
+
+def register(sub, name, help_text):
+    _, group = make_group(sub, name, help_text)
+    sim_optics.register(group)
+    sim_render.register(group)
