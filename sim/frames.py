@@ -141,12 +141,12 @@ def gradients_to_normals(p, q):
 
     Examples
     --------
-    >>> gradients_to_normals(np.array(0.0), np.array(0.0))
-    array([0., 0., 1.])
+    >>> gradients_to_normals(np.array(0.0), np.array(0.0)).tolist()
+    [0.0, 0.0, 1.0]
     """
     p = np.asarray(p, dtype=float)
     q = np.asarray(q, dtype=float)
-    n = np.stack([-p, -q, np.ones_like(p)], axis=-1)
+    n = np.stack([0.0 - p, 0.0 - q, np.ones_like(p)], axis=-1)  # 0.0 - p avoids -0.0
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
