@@ -1,0 +1,255 @@
+"""JSON Schemas for every HDF5 layout (``stages/*.json``) and every config file (``configs/*.json``).
+
+Stage schemas validate a *description* of an HDF5 file rather than the file itself::
+
+    {"datasets": {"frames": {"dtype": "uint8", "shape": [2, 1, 60, 80, 3]}, ...},
+     "attrs": {"mm_per_px": 0.1, ...}}
+
+Three extension keywords sit beside the JSON Schema keywords of a stage schema:
+
+``x-version``
+    The layout's version, written into every file; bump it when the layout changes.
+``x-dims``
+    Symbolic shapes such as ``{"frames": ["K", "P", "H", "W", "C"]}``: a symbol must take
+    the same value in every dataset it appears in, an integer must match exactly, ``"*"``
+    matches anything. JSON Schema cannot relate one array's shape to another's, so
+    :func:`check_dims` does.
+``x-params``
+    A JSON Schema of the stage's parameters, used to coerce them before hashing (an ``int``
+    where the schema says ``number`` becomes a ``float``, so ``1`` and ``1.0`` give one key).
+
+Config schemas are plain JSON Schemas with ``additionalProperties: false`` everywhere, so an
+unknown or mistyped key is reported with its name and the allowed keys.
+"""
+
+from __future__ import annotations
+
+import json
+from functools import lru_cache
+from importlib import resources
+from pathlib import Path
+from typing import Any, Mapping
+
+import jsonschema
+
+__all__ = [
+    "SchemaError",
+    "stage_schema",
+    "config_schema",
+    "stage_schema_names",
+    "config_schema_names",
+    "schema_version",
+    "validate_description",
+    "check_dims",
+    "validate_config",
+    "load_config_file",
+    "coerce_params",
+]
+
+
+class SchemaError(ValueError):
+    """A document or file does not satisfy its schema. The message names the source and field."""
+
+
+def _schema_dir(kind: str) -> Path:
+    return Path(str(resources.files("data_schemas") / kind))
+
+
+@lru_cache(maxsize=None)
+def _load(kind: str, name: str) -> dict:
+    path = _schema_dir(kind) / f"{name}.json"
+    if not path.is_file():
+        known = ", ".join(_names(kind)) or "none"
+        raise SchemaError(f"no {kind[:-1]} schema named {name!r} (known: {known})")
+    with open(path, encoding="utf-8") as f:
+        schema = json.load(f)
+    jsonschema.Draft202012Validator.check_schema(schema)
+    return schema
+
+
+def _names(kind: str) -> list[str]:
+    d = _schema_dir(kind)
+    return sorted(p.stem for p in d.glob("*.json")) if d.is_dir() else []
+
+
+def stage_schema(name: str) -> dict:
+    """The JSON Schema of the HDF5 layout ``name`` (``capture``, ``normals``, ...)."""
+    return _load("stages", name)
+
+
+def config_schema(name: str) -> dict:
+    """The JSON Schema of config files of kind ``name`` (``scene``, ``pipeline``, ``mode``, ...)."""
+    return _load("configs", name)
+
+
+def stage_schema_names() -> list[str]:
+    """Names of all stage (HDF5 layout) schemas.
+
+    Examples
+    --------
+    >>> {"capture", "calibration", "illumination", "normals", "depth"} <= set(stage_schema_names())
+    True
+    """
+    return _names("stages")
+
+
+def config_schema_names() -> list[str]:
+    """Names of all config-file schemas."""
+    return _names("configs")
+
+
+def schema_version(name: str) -> int:
+    """``x-version`` of a stage schema."""
+    return int(stage_schema(name).get("x-version", 1))
+
+
+def _path_of(error: jsonschema.ValidationError) -> str:
+    parts = [str(p) for p in error.absolute_path]
+    return "/".join(parts) if parts else "(top level)"
+
+
+def _explain(error: jsonschema.ValidationError, root_hint: str = "") -> str:
+    """Turn a jsonschema error into one line a user can act on."""
+    where = _path_of(error)
+    if error.validator == "additionalProperties":
+        allowed = sorted((error.schema.get("properties") or {}).keys())
+        extra = sorted(set(error.instance) - set(allowed)) if isinstance(error.instance, dict) else []
+        key = ", ".join(repr(k) for k in extra) or "?"
+        loc = "top level" if where == "(top level)" else where
+        return f"unknown key {key} at {loc}; allowed keys: {', '.join(allowed)}"
+    if error.validator == "required":
+        return f"{where}: {error.message}"
+    return f"{where}: {error.message}"
+
+
+def validate_description(name: str, description: Mapping[str, Any], source: str = "<memory>") -> None:
+    """Validate a file description against stage schema ``name``; raise :class:`SchemaError`.
+
+    Checks the JSON Schema (required datasets, dtypes, ranks, required attributes) and the
+    symbolic shapes of ``x-dims``.
+    """
+    schema = stage_schema(name)
+    validator = jsonschema.Draft202012Validator(schema)
+    errors = sorted(validator.iter_errors(description), key=lambda e: list(e.absolute_path))
+    if errors:
+        lines = "; ".join(_explain(e) for e in errors[:5])
+        more = f" (+{len(errors) - 5} more)" if len(errors) > 5 else ""
+        raise SchemaError(f"{source}: does not match schema {name!r}: {lines}{more}")
+    check_dims(name, description.get("datasets", {}), source)
+
+
+def check_dims(name: str, datasets: Mapping[str, Mapping[str, Any]], source: str = "<memory>") -> dict[str, int]:
+    """Check the ``x-dims`` shape rules of stage schema ``name``; return the bound symbols.
+
+    Examples
+    --------
+    >>> ds = {"normals": {"shape": [1, 4, 5, 3]}, "mask": {"shape": [1, 4, 5]}}
+    >>> sorted(check_dims("normals", ds).items())
+    [('H', 4), ('K', 1), ('W', 5)]
+    """
+    dims = stage_schema(name).get("x-dims", {})
+    bound: dict[str, int] = {}
+    where: dict[str, str] = {}
+    for ds_name, rule in dims.items():
+        if ds_name not in datasets:
+            continue  # presence is the JSON Schema's business
+        shape = list(datasets[ds_name].get("shape", []))
+        if len(shape) != len(rule):
+            raise SchemaError(
+                f"{source}: dataset {ds_name!r} must have shape {_fmt_rule(rule)} "
+                f"({len(rule)} dimensions), got {tuple(shape)}")
+        for axis, (sym, size) in enumerate(zip(rule, shape)):
+            if sym == "*":
+                continue
+            if isinstance(sym, int):
+                if size != sym:
+                    raise SchemaError(
+                        f"{source}: dataset {ds_name!r} must have shape {_fmt_rule(rule)}, "
+                        f"got {tuple(shape)} (axis {axis} must be {sym})")
+                continue
+            if sym in bound and bound[sym] != size:
+                raise SchemaError(
+                    f"{source}: dataset {ds_name!r} has {sym}={size} (shape {tuple(shape)}) but "
+                    f"{where[sym]} has {sym}={bound[sym]}")
+            bound.setdefault(sym, size)
+            where.setdefault(sym, repr(ds_name))
+    return bound
+
+
+def _fmt_rule(rule) -> str:
+    return "(" + ", ".join(str(s) for s in rule) + ")"
+
+
+def validate_config(kind: str, obj: Any, source: str = "<memory>") -> Any:
+    """Validate a parsed config (YAML/JSON) against ``configs/<kind>.json``; return it.
+
+    Raises
+    ------
+    SchemaError
+        Naming ``source``, the offending key path and, for unknown keys, the allowed keys.
+
+    Examples
+    --------
+    >>> validate_config("pipeline", {"cache": "c", "colour": 1}, "run.yaml")
+    Traceback (most recent call last):
+    ...
+    data_schemas.SchemaError: run.yaml: unknown key 'colour' at top level; allowed keys: ...
+    """
+    schema = config_schema(kind)
+    validator = jsonschema.Draft202012Validator(schema)
+    errors = sorted(validator.iter_errors(obj), key=lambda e: (len(list(e.absolute_path)), list(map(str, e.absolute_path))))
+    if errors:
+        # The most specific error first: unknown keys are the commonest mistake.
+        errors.sort(key=lambda e: e.validator != "additionalProperties")
+        raise SchemaError(f"{source}: {_explain(errors[0])}")
+    return obj
+
+
+def load_config_file(kind: str, path: str | Path) -> Any:
+    """Read a YAML or JSON config file and validate it as ``kind``."""
+    import yaml
+
+    path = Path(path)
+    if not path.is_file():
+        raise SchemaError(f"{path}: no such file")
+    try:
+        with open(path, encoding="utf-8") as f:
+            obj = yaml.safe_load(f)
+    except yaml.YAMLError as exc:
+        raise SchemaError(f"{path}: not valid YAML: {exc}") from None
+    if obj is None:
+        obj = {}
+    return validate_config(kind, obj, str(path))
+
+
+def coerce_params(params: Any, schema: Mapping[str, Any] | None) -> Any:
+    """Coerce parameters to the types their schema declares before hashing.
+
+    Integers where the schema says ``number`` become floats; nested objects and arrays are
+    walked. Values the schema does not describe are left as they are.
+
+    Examples
+    --------
+    >>> coerce_params({"a": 1, "b": [2]}, {"properties": {"a": {"type": "number"},
+    ...     "b": {"type": "array", "items": {"type": "number"}}}})
+    {'a': 1.0, 'b': [2.0]}
+    """
+    if schema is None:
+        return params
+    types = schema.get("type")
+    types = [types] if isinstance(types, str) else (types or [])
+    if isinstance(params, bool):
+        return params
+    if isinstance(params, int) and "number" in types and "integer" not in types:
+        return float(params)
+    if isinstance(params, Mapping):
+        props = schema.get("properties", {})
+        extra = schema.get("additionalProperties")
+        extra = extra if isinstance(extra, Mapping) else None
+        return {k: coerce_params(v, props.get(k, extra)) for k, v in params.items()}
+    if isinstance(params, (list, tuple)):
+        items = schema.get("items")
+        if isinstance(items, Mapping):
+            return [coerce_params(v, items) for v in params]
+        return list(params)
+    return params

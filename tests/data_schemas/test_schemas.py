@@ -1,0 +1,92 @@
+"""Every schema is a valid JSON Schema, round-trips through a real HDF5 file, and rejects bad input."""
+
+import numpy as np
+import pytest
+
+import data_schemas
+from pipeline.store import StoreError, read_record, write_record
+from schema_examples import example_record
+
+STAGES = data_schemas.stage_schema_names()
+
+
+def test_all_five_stage_outputs_have_schemas():
+    assert {"calibration", "illumination", "capture", "normals", "depth"} <= set(STAGES)
+
+
+@pytest.mark.parametrize("name", STAGES)
+def test_stage_schema_round_trip(tmp_path, name):
+    rec = example_record(name)
+    path = write_record(tmp_path / f"{name}.h5", rec)
+    back = read_record(path, schema=name)
+    assert set(back.data) == set(rec.data)
+    for k, v in rec.data.items():
+        assert back.data[k].dtype == v.dtype or (v.dtype.kind == "U" and back.data[k].dtype.kind == "U")
+        np.testing.assert_array_equal(back.data[k], v)
+    assert back.meta == rec.meta
+    assert back.provenance["iristac_schema"] == name
+    assert back.provenance["iristac_schema_version"] == data_schemas.schema_version(name)
+
+
+@pytest.mark.parametrize("name", STAGES)
+def test_stage_schema_requires_its_datasets(tmp_path, name):
+    rec = example_record(name, all_datasets=False)
+    required = data_schemas.stage_schema(name)["properties"]["datasets"]["required"]
+    del rec.data[required[0]]
+    with pytest.raises(StoreError, match=required[0]):
+        write_record(tmp_path / "x.h5", rec)
+    assert not (tmp_path / "x.h5").exists()
+
+
+@pytest.mark.parametrize("name", data_schemas.config_schema_names())
+def test_config_schemas_are_valid_json_schemas(name):
+    import jsonschema
+
+    jsonschema.Draft202012Validator.check_schema(data_schemas.config_schema(name))
+
+
+def test_dims_must_agree_across_datasets(tmp_path):
+    rec = example_record("normals")
+    rec.data["mask"] = np.ones((2, 4, 6), bool)  # W=6 but normals say W=5
+    with pytest.raises(StoreError, match=r"'mask' has W=6 .* 'normals' has W=5"):
+        write_record(tmp_path / "n.h5", rec)
+
+
+def test_wrong_dtype_and_rank_named(tmp_path):
+    rec = example_record("depth")
+    rec.data["height"] = rec.data["height"].astype(np.int32)
+    with pytest.raises(StoreError, match="height"):
+        write_record(tmp_path / "d.h5", rec)
+    rec = example_record("depth")
+    rec.data["height"] = rec.data["height"][0]
+    with pytest.raises(StoreError, match="height"):
+        write_record(tmp_path / "d.h5", rec)
+
+
+def test_missing_required_attribute_named(tmp_path):
+    rec = example_record("capture")
+    del rec.meta["mm_per_px"]
+    with pytest.raises(StoreError, match="mm_per_px"):
+        write_record(tmp_path / "c.h5", rec)
+
+
+def test_config_unknown_key_names_key_and_allowed_keys():
+    with pytest.raises(data_schemas.SchemaError) as e:
+        data_schemas.validate_config("pipeline", {"normals": {"solvr": "lstsq"}}, "run.yaml")
+    msg = str(e.value)
+    assert "run.yaml" in msg and "'solvr'" in msg and "solver" in msg and "ratio" in msg
+
+
+def test_config_wrong_type_names_field():
+    with pytest.raises(data_schemas.SchemaError, match=r"run.yaml: depth/integrator"):
+        data_schemas.validate_config("pipeline", {"depth": {"integrator": "magic"}}, "run.yaml")
+
+
+def test_load_config_file_reports_bad_yaml(tmp_path):
+    p = tmp_path / "bad.yaml"
+    p.write_text("cache: [unclosed\n")
+    with pytest.raises(data_schemas.SchemaError, match="bad.yaml: not valid YAML"):
+        data_schemas.load_config_file("pipeline", p)
+    p.write_text("cache: c\nnormalz: {}\n")
+    with pytest.raises(data_schemas.SchemaError, match="unknown key 'normalz'"):
+        data_schemas.load_config_file("pipeline", p)
