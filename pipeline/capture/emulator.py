@@ -49,7 +49,7 @@ import numpy as np
 from pipeline.capture import protocol as P
 from pipeline.errors import UserError
 
-__all__ = ["FaultSpec", "parse_faults", "ShownState", "EmulatorStats", "RingEmulator"]
+__all__ = ["FaultSpec", "parse_faults", "ShownState", "EmulatorStats", "RingEmulator", "serve_forever"]
 
 
 @dataclass(frozen=True)
@@ -437,3 +437,41 @@ def _flip_bit(raw: bytes, rng: random.Random) -> bytes:
     i = rng.randrange(len(out))
     out[i] ^= 1 << rng.randrange(8)
     return bytes(out)
+
+
+def serve_forever(
+    *,
+    led_count: int = 24,
+    faults: FaultSpec | None = None,
+    baudrate: float | None = None,
+    version: int | None = None,
+    seed: int = 0,
+    duration: float | None = None,
+    announce=print,
+) -> int:
+    """Run an emulator until Ctrl-C, ``duration`` or a fault-injected disconnect.
+
+    Prints the device path first (flushed, on its own line), so a script can read it.
+    Returns 0, or 1 after an injected disconnect.
+    """
+    emu = RingEmulator(
+        led_count,
+        version=P.PROTOCOL_VERSION if version is None else version,
+        faults=faults,
+        baudrate=baudrate,
+        seed=seed,
+    )
+    path = emu.start()
+    announce(path, flush=True)
+    try:
+        emu.wait(duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emu.stop()
+    if emu.disconnected.is_set():
+        import sys
+
+        print(f"emulated ring disconnected after {emu.stats.commands} commands", file=sys.stderr)
+        return 1
+    return 0
