@@ -11,8 +11,8 @@ Faults act on whole frames as they cross the emulated wire, in both directions:
   the receiver's real parser (which must detect it by CRC and resynchronise);
 - ``delay=P``: before handling a command the device stalls for ``delay-s`` seconds
   (default 0.05), as a busy MCU would, so late and duplicate replies reach the host;
-- ``disconnect-after=N``: after handling N commands the device "is unplugged": the pty is
-  closed and the host's next read or write fails.
+- ``disconnect-after=N``: the device handles N commands, then "is unplugged" when the next
+  one arrives: the pty is closed and the host's read fails.
 
 With ``baudrate`` set, every frame also costs its time on a UART line (10 bits per byte), so
 benchmarks can separate the protocol's own overhead from the wire time.
@@ -344,6 +344,12 @@ class RingEmulator:
     def _handle(self, frames: list[P.Frame]) -> None:
         f = self.faults
         for frame in frames:
+            limit = f.disconnect_after
+            if limit is not None and self.stats.commands >= limit:
+                # Unplugged: the command after the N-th finds the device gone, so every reply
+                # to the first N has been delivered.
+                self.disconnected.set()
+                return
             self.stats.commands += 1
             key = (frame.seq, frame.cmd, frame.payload)
             if key == self._last_key:
@@ -355,10 +361,6 @@ class RingEmulator:
                 reply = P.encode_frame(self._execute(frame))
                 self._last_key, self._last_reply = key, reply
             self._send(reply)
-            limit = f.disconnect_after
-            if limit is not None and self.stats.commands >= limit:
-                self.disconnected.set()
-                return
 
     def _send(self, raw: bytes) -> None:
         f = self.faults

@@ -11,13 +11,13 @@ ring reports the CRC of what it latched); then the camera's stale buffered frame
 (wait the settle time, flush, and reject any frame whose exposure began before the ring's
 acknowledgement), and N frames are read and averaged.
 
-Nothing recorded is lost and nothing is recorded twice: each finished step is written to
-``<out>.partial/`` (the frame file first, fsynced and renamed into place, then the journal
-that lists it, replaced the same way), so an interrupted capture (unplugged ring, Ctrl-C)
-restarts after the last completed step. The journal carries a fingerprint of the plan; a rerun
-with different patterns or settings refuses to mix the two. When every step is done the
-final ``capture.h5`` is written atomically through :func:`pipeline.store.write_record` and the
-partial folder is removed.
+Nothing recorded is lost and nothing is recorded twice: each finished step (its frame, label
+and timing) is appended to the journal ``<out>.journal`` and fsynced before the next step
+starts, so an interrupted capture (unplugged ring, Ctrl-C) restarts after the last completed
+step; a record torn by a crash is detected by its CRC and that step is captured again. The
+journal carries a fingerprint of the plan; a rerun with different patterns or settings
+refuses to mix the two. When every step is done the final ``capture.h5`` is written
+atomically through :func:`pipeline.store.write_record`, and only then is the journal removed.
 
 Examples
 --------
@@ -42,10 +42,12 @@ Examples
 from __future__ import annotations
 
 import hashlib
+import io
 import json
 import os
-import shutil
+import struct
 import time
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Sequence
@@ -65,7 +67,7 @@ __all__ = [
     "Step",
     "plan_steps",
     "run_capture",
-    "partial_dir",
+    "journal_path",
     "StaleFrameError",
 ]
 
@@ -222,46 +224,13 @@ class StaleFrameError(UserError):
     """The camera kept delivering frames exposed before the pattern was confirmed."""
 
 
-def partial_dir(out: str | os.PathLike) -> Path:
-    """Where an unfinished capture keeps its journal and finished steps."""
+def journal_path(out: str | os.PathLike) -> Path:
+    """Where an unfinished capture keeps its journal of finished steps (``<out>.journal``)."""
     out = Path(out)
-    return out.with_name(out.name + ".partial")
+    return out.with_name(out.name + ".journal")
 
 
 # ---------------------------------------------------------------------------- the journal
-def _atomic_write_bytes(path: Path, data: bytes) -> None:
-    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    with open(tmp, "wb") as fh:
-        fh.write(data)
-        fh.flush()
-        os.fsync(fh.fileno())
-    os.replace(tmp, path)
-    dir_fd = os.open(path.parent, os.O_RDONLY)
-    try:
-        os.fsync(dir_fd)
-    finally:
-        os.close(dir_fd)
-
-
-def _save_step(folder: Path, step: Step, image: np.ndarray, windows: np.ndarray,
-               t_ack: float, t_wall: float) -> str:
-    import io
-
-    buf = io.BytesIO()
-    np.savez(buf, image=image, windows=windows, t_ack=np.float64(t_ack), t_wall=np.float64(t_wall))
-    name = f"{step.id}.npz"
-    _atomic_write_bytes(folder / name, buf.getvalue())
-    return name
-
-
-def _load_step(folder: Path, name: str) -> dict[str, np.ndarray] | None:
-    try:
-        with np.load(folder / name) as z:
-            return {k: z[k] for k in ("image", "windows", "t_ack", "t_wall")}
-    except (OSError, ValueError, KeyError):
-        return None  # missing or damaged: the step is simply captured again
-
-
 def _fingerprint(patterns: PatternSet, settings: CaptureSettings, shape: tuple[int, int]) -> str:
     h = hashlib.sha256()
     for p in range(len(patterns.names)):
@@ -272,38 +241,113 @@ def _fingerprint(patterns: PatternSet, settings: CaptureSettings, shape: tuple[i
     return h.hexdigest()
 
 
+_MAGIC = b"ITJ1"
+_REC = struct.Struct("<4sII")  # magic, body length, CRC-32 of the body
+
+
 class _Journal:
-    def __init__(self, folder: Path, fingerprint: str, out: Path) -> None:
-        self.folder = folder
-        self.path = folder / "journal.json"
-        self.state: dict[str, Any] = {
-            "version": JOURNAL_VERSION, "fingerprint": fingerprint, "steps": {},
-            "runs": 0, "retries": 0, "seconds": 0.0, "stale_frames_dropped": 0,
-        }
-        if self.path.exists():
-            try:
-                old = json.loads(self.path.read_text())
-            except (OSError, ValueError) as exc:
-                raise UserError(f"capture journal {self.path} is unreadable ({exc}); move the "
-                                f"folder {folder} away to start {out} afresh") from None
-            if old.get("version") != JOURNAL_VERSION or old.get("fingerprint") != fingerprint:
-                raise UserError(
-                    f"capture journal {self.path} belongs to a different capture (other mode, "
-                    f"patterns, frames per pattern, contacts or image size); finish it with its "
-                    f"original settings, or move {folder} away to start {out} afresh"
-                )
-            self.state = old
-        folder.mkdir(parents=True, exist_ok=True)
+    """Append-only log of finished steps in one file, fsynced after every record.
+
+    A record is ``magic, length, CRC-32, body`` where the body is a JSON line, optionally
+    followed by an ``.npz`` with the step's frame and timing. The first record holds the plan's
+    fingerprint; then one record per finished step, and ``{"totals": ...}`` when a run ends.
+    One append and one fsync per step keeps a step's cost O(1); a record torn by a crash fails
+    its length or CRC check, is cut off on reopening, and that step is simply captured again.
+    """
+
+    def __init__(self, path: Path, fingerprint: str, out: Path) -> None:
+        self.path = path
+        self.steps: dict[str, dict] = {}
+        self.state: dict[str, Any] = {"runs": 0, "retries": 0, "seconds": 0.0,
+                                      "stale_frames_dropped": 0}
+        self.torn = 0
+        if path.exists():
+            self._load(fingerprint, out)
+        else:
+            path.parent.mkdir(parents=True, exist_ok=True)
+            self._append({"version": JOURNAL_VERSION, "fingerprint": fingerprint})
+            _fsync_dir(path.parent)
+
+    def _load(self, fingerprint: str, out: Path) -> None:
+        try:
+            raw = self.path.read_bytes()
+        except OSError as exc:
+            raise UserError(f"capture journal {self.path} is unreadable ({exc}); move it away "
+                            f"to start {out} afresh") from None
+        pos, entries = 0, []
+        while pos + _REC.size <= len(raw):
+            magic, length, crc = _REC.unpack_from(raw, pos)
+            body = raw[pos + _REC.size : pos + _REC.size + length]
+            if magic != _MAGIC or len(body) != length or zlib.crc32(body) != crc:
+                break
+            head, _, blob = body.partition(b"\n")
+            entry = json.loads(head)
+            if blob:
+                entry["_offset"] = pos + _REC.size + len(head) + 1
+                entry["_length"] = len(blob)
+            entries.append(entry)
+            pos += _REC.size + length
+        if pos != len(raw):
+            self.torn = 1
+            with open(self.path, "r+b") as fh:  # cut the torn tail so appends stay readable
+                fh.truncate(pos)
+                os.fsync(fh.fileno())
+        head = entries[0] if entries else {}
+        if head.get("version") != JOURNAL_VERSION or head.get("fingerprint") != fingerprint:
+            raise UserError(
+                f"capture journal {self.path} belongs to a different capture (other mode, "
+                f"patterns, frames per pattern, contacts or image size); finish it with its "
+                f"original settings, or move it away to start {out} afresh"
+            )
+        for e in entries[1:]:
+            if "step" in e:
+                self.steps[e["step"]] = e
+            elif "totals" in e:
+                for k, v in e["totals"].items():
+                    self.state[k] = self.state.get(k, 0) + v
+
+    def _append(self, obj: dict, blob: bytes = b"") -> int:
+        body = json.dumps(obj).encode() + (b"\n" + blob if blob else b"")
+        with open(self.path, "ab") as fh:
+            start = fh.tell()
+            fh.write(_REC.pack(_MAGIC, len(body), zlib.crc32(body)) + body)
+            fh.flush()
+            os.fsync(fh.fileno())
+        return start + _REC.size + len(body) - len(blob)
 
     def done(self, step: Step) -> dict | None:
-        return self.state["steps"].get(step.id)
+        return self.steps.get(step.id)
 
-    def record(self, step: Step, entry: dict) -> None:
-        self.state["steps"][step.id] = entry
-        self.save()
+    def record(self, step: Step, entry: dict, image: np.ndarray, windows: np.ndarray,
+               t_ack: float, t_wall: float) -> None:
+        buf = io.BytesIO()
+        np.savez(buf, image=image, windows=windows, t_ack=np.float64(t_ack),
+                 t_wall=np.float64(t_wall))
+        blob = buf.getvalue()
+        entry = {"step": step.id, **entry}
+        offset = self._append(entry, blob)
+        self.steps[step.id] = {**entry, "_offset": offset, "_length": len(blob)}
 
-    def save(self) -> None:
-        _atomic_write_bytes(self.path, json.dumps(self.state, indent=1).encode())
+    def load(self, step: Step) -> dict[str, np.ndarray]:
+        e = self.steps[step.id]
+        with open(self.path, "rb") as fh:
+            fh.seek(e["_offset"])
+            blob = fh.read(e["_length"])
+        with np.load(io.BytesIO(blob)) as z:
+            return {k: z[k] for k in ("image", "windows", "t_ack", "t_wall")}
+
+    def add_totals(self, **totals: float) -> None:
+        self._append({"totals": totals})
+        for k, v in totals.items():
+            self.state[k] = self.state.get(k, 0) + v
+
+
+def _fsync_dir(path: Path) -> None:
+    fd = os.open(path, os.O_RDONLY)
+    try:
+        os.fsync(fd)
+    finally:
+        os.close(fd)
 
 
 # ---------------------------------------------------------------------------- one step
@@ -431,29 +475,25 @@ def run_capture(
         raise UserError(f"mode {patterns.mode!r} drives {patterns.led_count} LEDs but the ring "
                         f"on {ring.port!r} has {ring.info.led_count}")
     shape = tuple(camera.shape)
-    folder = partial_dir(out)
-    journal = _Journal(folder, _fingerprint(patterns, settings, shape), out)
+    jpath = journal_path(out)
+    journal = _Journal(jpath, _fingerprint(patterns, settings, shape), out)
     steps = plan_steps(len(patterns.names), settings)
     resumed = sum(journal.done(s) is not None for s in steps)
-    journal.state["runs"] += 1
-    journal.save()
     settle = _settle_time(camera, settings)
     counters = {"stale": 0}
     retries0 = ring.stats.retries
     t_start = time.monotonic()
 
     def flush_totals() -> None:
-        journal.state["retries"] += ring.stats.retries - retries0
-        journal.state["seconds"] += time.monotonic() - t_start
-        journal.state["stale_frames_dropped"] += counters["stale"]
-        journal.save()
+        journal.add_totals(runs=1, retries=ring.stats.retries - retries0,
+                           seconds=time.monotonic() - t_start,
+                           stale_frames_dropped=counters["stale"])
 
     bar = _progress(len(steps), resumed, progress, out)
     step = None
     try:
         for step in steps:
-            entry = journal.done(step)
-            if entry is not None and _load_step(folder, entry["file"]) is not None:
+            if journal.done(step) is not None:
                 continue
             if step.kind == "contact" and step.p == 0 and on_contact is not None:
                 on_contact(step.k)
@@ -468,15 +508,14 @@ def run_capture(
                                    settings, counters)
             if image.shape[:2] != shape:
                 raise UserError(f"camera frame has shape {image.shape}, expected {shape} + (3,)")
-            name = _save_step(folder, step, image, windows, t_ack, time.time())
             bad = None if truth is None else _mislabeled(truth, windows, levels, b)
-            journal.record(step, {"file": name, "mislabeled": bad})
+            journal.record(step, {"mislabeled": bad}, image, windows, t_ack, time.time())
             bar.update(1)
     except RingError as exc:
         flush_totals()
         done = sum(journal.done(s) is not None for s in steps)
         raise type(exc)(
-            f"{exc}; {done} of {len(steps)} steps are saved in {folder}: rerun the same "
+            f"{exc}; {done} of {len(steps)} steps are saved in {jpath}: rerun the same "
             "command to resume"
         ) from None
     except BaseException:
@@ -490,7 +529,7 @@ def run_capture(
     except RingError:
         pass  # the capture is complete; leaving the LEDs on is not worth failing it
 
-    record = _assemble(patterns, settings, folder, journal, steps, shape, source, camera, ring,
+    record = _assemble(patterns, settings, journal, steps, shape, source, camera, ring,
                        device_info)
     write_record(out, record)
     flags = [journal.done(s).get("mislabeled") for s in steps]
@@ -505,15 +544,15 @@ def run_capture(
         stale_frames_dropped=int(journal.state["stale_frames_dropped"]),
         record=record,
     )
-    shutil.rmtree(folder, ignore_errors=True)
+    jpath.unlink()  # only now that capture.h5 is safely in place
     return result
 
 
-def _assemble(patterns, settings, folder, journal, steps, shape, source, camera, ring,
+def _assemble(patterns, settings, journal, steps, shape, source, camera, ring,
               device_info):
     from pipeline.store import Record
 
-    loaded = {s.id: _load_step(folder, journal.done(s)["file"]) for s in steps}
+    loaded = {s.id: journal.load(s) for s in steps}
     first = loaded[steps[0].id]["image"]
     p_count, k_count = len(patterns.names), settings.contacts
     frames = np.zeros((k_count, p_count, *first.shape), first.dtype)
