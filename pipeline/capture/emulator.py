@@ -292,7 +292,7 @@ class RingEmulator:
                 # While a partial frame is buffered, wait only one frame gap for the rest, as
                 # firmware does with an inter-byte timeout: a corrupted length must not make the
                 # device swallow the host's retransmissions.
-                gap = self.FRAME_GAP_S if self._parser.pending else 0.05
+                gap = self._frame_gap() if self._parser.pending else 0.05
                 ready, _, _ = select.select([master], [], [], gap)
                 if not ready:
                     if self._parser.pending:
@@ -316,18 +316,34 @@ class RingEmulator:
             if self.disconnected.is_set():
                 self._close_fds()
 
-    def _receive(self, raw: bytes) -> None:
-        f = self.faults
-        rng = self._rng
+    def _frame_gap(self) -> float:
+        """Idle time after which a partial frame is dropped: 2 ms or 20 character times."""
+        if self.baudrate:
+            return max(self.FRAME_GAP_S, P.wire_seconds(20, self.baudrate))
+        return self.FRAME_GAP_S
+
+    def _cross_wire(self, raw: bytes, direction: str) -> bytes | None:
+        """One frame crossing the emulated wire (``direction`` "in" or "out"): maybe lost,
+        maybe one bit flipped, and with the baud model its time on the line."""
+        f, rng = self.faults, self._rng
         if f.drop and rng.random() < f.drop:
-            self.stats.dropped_in += 1
-            return
+            setattr(self.stats, f"dropped_{direction}", getattr(self.stats, f"dropped_{direction}") + 1)
+            return None
         if f.corrupt and rng.random() < f.corrupt:
             raw = _flip_bit(raw, rng)
-            self.stats.corrupted_in += 1
+            setattr(self.stats, f"corrupted_{direction}",
+                    getattr(self.stats, f"corrupted_{direction}") + 1)
         if self.baudrate:
             time.sleep(P.wire_seconds(len(raw), self.baudrate))
-        if f.delay and rng.random() < f.delay:
+        return raw
+
+    def _receive(self, raw: bytes) -> None:
+        f = self.faults
+        arrived = self._cross_wire(raw, "in")
+        if arrived is None:
+            return
+        raw = arrived
+        if f.delay and self._rng.random() < f.delay:
             self.stats.delayed += 1
             time.sleep(f.delay_s)
         errors_before = self._parser.crc_errors
@@ -363,18 +379,11 @@ class RingEmulator:
             self._send(reply)
 
     def _send(self, raw: bytes) -> None:
-        f = self.faults
-        rng = self._rng
-        if f.drop and rng.random() < f.drop:
-            self.stats.dropped_out += 1
+        sent = self._cross_wire(raw, "out")
+        if sent is None:
             return
-        if f.corrupt and rng.random() < f.corrupt:
-            raw = _flip_bit(raw, rng)
-            self.stats.corrupted_out += 1
-        if self.baudrate:
-            time.sleep(P.wire_seconds(len(raw), self.baudrate))
-        self.stats.bytes_out += len(raw)
-        os.write(self._master, raw)  # type: ignore[arg-type]
+        self.stats.bytes_out += len(sent)
+        os.write(self._master, sent)  # type: ignore[arg-type]
 
     def _execute(self, frame: P.Frame) -> P.Frame:
         C = P.Command

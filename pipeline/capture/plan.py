@@ -59,6 +59,7 @@ from pipeline.capture.camera_api import Camera, CameraFrame
 from pipeline.capture.client import RingClient, RingError
 from pipeline.capture.emulator import ShownState
 from pipeline.errors import UserError
+from pipeline.store import _fsync_dir
 
 __all__ = [
     "PatternSet",
@@ -340,14 +341,6 @@ class _Journal:
         self._append({"totals": totals})
         for k, v in totals.items():
             self.state[k] = self.state.get(k, 0) + v
-
-
-def _fsync_dir(path: Path) -> None:
-    fd = os.open(path, os.O_RDONLY)
-    try:
-        os.fsync(fd)
-    finally:
-        os.close(fd)
 
 
 # ---------------------------------------------------------------------------- one step

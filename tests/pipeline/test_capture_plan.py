@@ -37,9 +37,10 @@ def decoded_ok(image: np.ndarray, patterns: PatternSet, p: int) -> bool:
     return np.array_equal(image, np.floor(render_led_state(levels, b, image.shape[:2]) + 0.5))
 
 
-def capture_with(emu, patterns, out, settings, timeout=0.005, fps=2000.0, warm_up=0.0):
+def capture_with(emu, patterns, out, settings, timeout=0.005, fps=2000.0, warm_up=0.0,
+                 exposure_s=None):
     with RingClient(emu.path, timeout=timeout, retries=25) as ring:
-        cam = LedStateCamera(emu, shape=SHAPE, fps=fps)
+        cam = LedStateCamera(emu, shape=SHAPE, fps=fps, exposure_s=exposure_s)
         cam.open()
         time.sleep(warm_up)  # let the camera's queue fill, as a webcam left running does
         return run_capture(patterns, ring, cam, out, settings, truth=emu, progress=False,
@@ -70,15 +71,17 @@ def test_skipping_the_stale_frame_flush_is_caught(tmp_path):
     patterns = random_patterns(12, seed=1)
     settings = CaptureSettings(contacts=0, dark=False, stale_frame_guard=False)
     with RingEmulator() as emu:
-        # A camera left running has a full queue, and the ring changes patterns in well under
-        # a frame period, so reads without a flush are stale or mixed.
-        bad = capture_with(emu, patterns, tmp_path / "bad.h5", settings, fps=100.0,
-                           warm_up=0.06)
+        # A camera left running has a full queue of frames from before the capture; once it
+        # is drained, a read waits for the frame being exposed, which (exposure = the whole
+        # frame period) began before the pattern changed. So every unflushed frame is stale
+        # or mixed.
+        cam = dict(fps=100.0, warm_up=0.06, exposure_s=0.01)
+        bad = capture_with(emu, patterns, tmp_path / "bad.h5", settings, **cam)
         good = capture_with(emu, patterns, tmp_path / "good.h5",
-                            CaptureSettings(contacts=0, dark=False), fps=100.0, warm_up=0.06)
-    assert bad.mislabeled >= 6
+                            CaptureSettings(contacts=0, dark=False), **cam)
+    assert bad.mislabeled == 12
     ref = read_record(tmp_path / "bad.h5").data["reference"]
-    assert sum(not decoded_ok(ref[p], patterns, p) for p in range(12)) >= 6
+    assert sum(not decoded_ok(ref[p], patterns, p) for p in range(12)) >= 10
     assert good.mislabeled == 0
     ref = read_record(tmp_path / "good.h5").data["reference"]
     assert all(decoded_ok(ref[p], patterns, p) for p in range(12))
@@ -169,3 +172,29 @@ def test_led_count_mismatch(tmp_path):
     with RingEmulator(led_count=24) as emu:
         with pytest.raises(UserError, match="drives 5 LEDs but the ring .* has 24"):
             capture_with(emu, random_patterns(2, leds=5), tmp_path / "c.h5", CaptureSettings())
+
+
+def test_ctrl_c_between_presses_then_resume(tmp_path):
+    """Ctrl-C while the operator is asked for press 1: the references and press 0 are kept;
+    the rerun asks only for press 1 and completes."""
+    patterns = random_patterns(3, seed=6)
+    settings = CaptureSettings(contacts=2)
+    out = tmp_path / "c.h5"
+    asked = []
+
+    def interrupt_at_1(k):
+        asked.append(k)
+        if k == 1:
+            raise KeyboardInterrupt
+
+    with RingEmulator() as emu, RingClient(emu.path) as ring:
+        cam = LedStateCamera(emu, shape=SHAPE, fps=2000.0)
+        cam.open()
+        with pytest.raises(KeyboardInterrupt):
+            run_capture(patterns, ring, cam, out, settings, truth=emu, on_contact=interrupt_at_1,
+                        progress=False)
+        asked.clear()
+        result = run_capture(patterns, ring, cam, out, settings, truth=emu,
+                             on_contact=asked.append, progress=False)
+    assert asked == [1]
+    assert result.resumed_steps == 1 + 3 + 3 and result.frames == 10 and result.mislabeled == 0
