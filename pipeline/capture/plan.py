@@ -139,9 +139,10 @@ class CaptureSettings:
     dark : bool
         Capture an all-off dark frame first.
     settle_s : float or None
-        Wait after the ring confirms a pattern, before flushing the camera. None: one frame
-        period plus the exposure when the camera states them (``frame_period``,
-        ``exposure_s``), else 0.1 s.
+        Wait after the ring confirms a pattern, before flushing the camera. None: 0 for a
+        camera whose frames carry their exposure window (``reports_exposure``), else the
+        camera's ``settle_s``, else one frame period plus the exposure when the camera states
+        them (``frame_period``, ``exposure_s``), else 0.1 s.
     stale_frame_guard : bool
         Flush the camera and reject frames exposed before the ring's ACK. Only tests turn
         this off, to show that a capture without it stores mislabeled frames.
@@ -368,6 +369,10 @@ def _mislabeled(truth, windows: np.ndarray, levels: np.ndarray, brightness: int)
 def _settle_time(camera: Camera, settings: CaptureSettings) -> float:
     if settings.settle_s is not None:
         return settings.settle_s
+    if getattr(camera, "reports_exposure", False):
+        # Every frame carries its exposure window, so frames begun before the ACK are
+        # rejected one by one; no blind wait is needed.
+        return 0.0
     if getattr(camera, "settle_s", None) is not None:
         return float(camera.settle_s)  # type: ignore[attr-defined]
     period = getattr(camera, "frame_period", None)

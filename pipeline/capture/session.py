@@ -160,7 +160,11 @@ def _open_camera(camera, virtual_camera, emulator, fps, shape, exposure):
     if virtual_camera:
         from pipeline.capture.led_camera import LedStateCamera
 
-        cam = LedStateCamera(emulator, shape=shape, fps=fps, exposure_s=exposure)
+        try:
+            cam = LedStateCamera(emulator, shape=shape, fps=fps, exposure_s=exposure)
+        except ValueError as exc:
+            raise UserError(f"--virtual-camera with --camera-fps {fps} and --exposure "
+                            f"{exposure}: {exc}") from None
     else:
         from pipeline.capture.camera import OpenCVCamera
 

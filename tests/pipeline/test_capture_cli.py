@@ -96,3 +96,9 @@ def test_emulate_ring_wrong_version_is_caught_by_the_host():
     finally:
         proc.terminate()
         proc.wait(timeout=10)
+
+
+def test_virtual_camera_exposure_longer_than_a_frame_is_a_user_error(tmp_path):
+    r = run_cli("capture", *FAST, "--exposure", "0.5", "--out", tmp_path / "c.h5")
+    assert r.returncode == 2
+    assert "--camera-fps 500.0 and --exposure 0.5: exposure must be in [0, 0.002] s" in r.stderr
