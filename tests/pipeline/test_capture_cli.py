@@ -102,3 +102,25 @@ def test_virtual_camera_exposure_longer_than_a_frame_is_a_user_error(tmp_path):
     r = run_cli("capture", *FAST, "--exposure", "0.5", "--out", tmp_path / "c.h5")
     assert r.returncode == 2
     assert "--camera-fps 500.0 and --exposure 0.5: exposure must be in [0, 0.002] s" in r.stderr
+
+
+def test_capture_with_an_opencv_video_file_as_camera(tmp_path):
+    """The OpenCV path end to end: a recorded video stands in for the webcam."""
+    import cv2
+
+    clip = str(tmp_path / "clip.avi")
+    writer = cv2.VideoWriter(clip, cv2.VideoWriter_fourcc(*"FFV1"), 30, (40, 32))
+    for i in range(60):
+        writer.write(np.full((32, 40, 3), (i, 2 * i, 3 * i), np.uint8))  # BGR
+    writer.release()
+    out = tmp_path / "c.h5"
+    r = run_cli("capture", "--emulate", "--camera", clip, "--mode", "point", "--settle", "0",
+                "--timeout", "0.01", "--out", out, "--json", timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["frames"] == 49
+    rec = read_record(out, schema="capture")
+    assert rec.meta["source"] == "camera" and rec.meta["device"]["camera"]["kind"] == "opencv"
+    # Frames are stored in capture order, RGB: dark = video frame 0, reference p = frame 1 + p.
+    assert rec.data["dark"][0, 0].tolist() == [0, 0, 0]
+    assert rec.data["reference"][4][0, 0].tolist() == [15, 10, 5]
+    assert rec.data["frames"][0, 0][0, 0].tolist() == [75, 50, 25]

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from pipeline.capture import protocol as P
 from pipeline.capture.client import (
@@ -122,3 +124,28 @@ def test_state_history_intervals():
 def test_fault_spec_errors(spec, match):
     with pytest.raises(UserError, match=match):
         parse_faults(spec)
+
+
+@settings(max_examples=8, deadline=None)
+@given(
+    seed=st.integers(0, 2**16),
+    drop=st.floats(0, 0.2),
+    corrupt=st.floats(0, 0.2),
+    delay=st.floats(0, 0.1),
+)
+def test_any_fault_mix_shows_each_pattern_exactly_once(seed, drop, corrupt, delay):
+    """Whatever the faults, every confirmed SHOW is one latch of exactly the state sent, in
+    order: retries never execute a command twice and never latch a wrong state."""
+    rng = np.random.default_rng(seed)
+    drives = rng.random((15, 24, 3))
+    faults = FaultSpec(drop=drop, corrupt=corrupt, delay=delay, delay_s=0.01)
+    with RingEmulator(faults=faults, seed=seed) as emu, RingClient(
+        emu.path, timeout=0.004, retries=40, max_timeout=0.05
+    ) as ring:
+        for d in drives:
+            ring.show_pattern(d, 0.5)
+        history = emu.history()[1:]
+    assert len(history) == len(drives)
+    for state, d in zip(history, drives):
+        levels, b = P.quantize_state(d, 0.5)
+        assert state.same_as(levels, b)
