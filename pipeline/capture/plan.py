@@ -459,9 +459,9 @@ def run_capture(
 
     Raises
     ------
-    RingError
-        The ring failed (the message says how many steps are saved and that rerunning
-        resumes).
+    RingError, CameraError
+        The ring or camera failed (the message says how many steps are saved and that
+        rerunning resumes).
     UserError
         The journal belongs to another capture, or the patterns do not fit the ring.
     """
@@ -509,13 +509,16 @@ def run_capture(
             bad = None if truth is None else _mislabeled(truth, windows, levels, b)
             journal.record(step, {"mislabeled": bad}, image, windows, t_ack, time.time())
             bar.update(1)
-    except RingError as exc:
+    except UserError as exc:  # ring or camera failed mid-capture
         flush_totals()
         done = sum(journal.done(s) is not None for s in steps)
-        raise type(exc)(
-            f"{exc}; {done} of {len(steps)} steps are saved in {jpath}: rerun the same "
-            "command to resume"
-        ) from None
+        msg = (f"{exc}; {done} of {len(steps)} steps are saved in {jpath}: rerun the same "
+               "command to resume")
+        try:
+            err = type(exc)(msg)
+        except TypeError:  # an error class with another constructor
+            err = UserError(msg)
+        raise err from None
     except BaseException:
         flush_totals()
         raise

@@ -187,7 +187,8 @@ def json_summary(result: CaptureResult, emulated: bool) -> dict:
         "seconds": round(float(result.seconds), 4),
     }
     if emulated:
-        summary["mislabeled"] = int(result.mislabeled or 0)
+        # None only when part of the capture was resumed from a run without ground truth.
+        summary["mislabeled"] = None if result.mislabeled is None else int(result.mislabeled)
     return summary
 
 

@@ -198,3 +198,35 @@ def test_ctrl_c_between_presses_then_resume(tmp_path):
                              on_contact=asked.append, progress=False)
     assert asked == [1]
     assert result.resumed_steps == 1 + 3 + 3 and result.frames == 10 and result.mislabeled == 0
+
+
+class _DyingCamera(LedStateCamera):
+    """The LED-state camera, unplugged after a number of reads (as a USB camera can be)."""
+
+    def __init__(self, *a, reads_left: int, **kw):
+        super().__init__(*a, **kw)
+        self.reads_left = reads_left
+
+    def read(self):
+        from pipeline.capture.camera import CameraError
+
+        if self.reads_left == 0:
+            raise CameraError("camera 'test': no frame (the device stopped delivering)")
+        self.reads_left -= 1
+        return super().read()
+
+
+def test_camera_lost_mid_capture_keeps_steps_and_says_how_to_resume(tmp_path):
+    from pipeline.capture.camera import CameraError
+
+    patterns = random_patterns(4, seed=7)
+    out = tmp_path / "c.h5"
+    with RingEmulator() as emu, RingClient(emu.path) as ring:
+        cam = _DyingCamera(emu, shape=SHAPE, fps=2000.0, reads_left=3)
+        cam.open()
+        # A settle of 4 frame periods makes every read fresh: one read per step.
+        with pytest.raises(CameraError, match="3 of 9 steps are saved .* rerun the same command"):
+            run_capture(patterns, ring, cam, out, CaptureSettings(settle_s=0.002), truth=emu,
+                        progress=False)
+        result = capture_with(emu, patterns, out, CaptureSettings())
+    assert result.resumed_steps == 3 and result.frames == 9 and result.mislabeled == 0
