@@ -465,7 +465,7 @@ def run_capture(
     UserError
         The journal belongs to another capture, or the patterns do not fit the ring.
     """
-    from pipeline.store import Record, write_record
+    from pipeline.store import write_record
 
     settings = settings or CaptureSettings()
     out = Path(out)

@@ -28,7 +28,7 @@ from pipeline.capture.emulator import RingEmulator, parse_faults
 from pipeline.capture.plan import CaptureResult, CaptureSettings, PatternSet, run_capture
 from pipeline.errors import UserError
 
-__all__ = ["load_patterns", "capture", "json_summary"]
+__all__ = ["load_patterns", "capture", "json_summary", "prompt_contact"]
 
 
 def load_patterns(mode: str) -> PatternSet:
