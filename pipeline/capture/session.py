@@ -28,7 +28,7 @@ from pipeline.capture.emulator import RingEmulator, parse_faults
 from pipeline.capture.plan import CaptureResult, CaptureSettings, PatternSet, run_capture
 from pipeline.errors import UserError
 
-__all__ = ["load_patterns", "capture", "json_summary", "prompt_contact"]
+__all__ = ["load_patterns", "patterns_from_mode", "capture", "json_summary", "prompt_contact"]
 
 
 def load_patterns(mode: str) -> PatternSet:
@@ -42,13 +42,23 @@ def load_patterns(mode: str) -> PatternSet:
     """
     try:
         from sim.modes import load_mode, mode_drive  # type: ignore[import-not-found]
-    except ImportError:
-        load_mode = None
-    if load_mode is not None:
-        m = load_mode(mode)
-        names = [f[0] if isinstance(f, tuple) else f.name for f in m.frames]
-        bright = [f[2] if isinstance(f, tuple) else f.brightness for f in m.frames]
-        return PatternSet(getattr(m, "name", str(mode)), names, np.asarray(mode_drive(m)), bright)
+    except ModuleNotFoundError as exc:
+        if exc.name != "sim.modes":
+            raise  # sim.modes exists but is broken: say so, do not fall back silently
+        return _builtin_mode(mode)
+    m = load_mode(mode)
+    return patterns_from_mode(m, mode_drive(m))
+
+
+def patterns_from_mode(mode, drive: np.ndarray) -> PatternSet:
+    """Adapt a ``sim.modes.LightingMode`` (``.name``, ``.frames`` of (name, drive,
+    brightness)) and its ``mode_drive`` (P, L, 3) to a :class:`PatternSet`."""
+    names = [f[0] for f in mode.frames]
+    bright = [f[2] for f in mode.frames]
+    return PatternSet(str(mode.name), names, np.asarray(drive), bright)
+
+
+def _builtin_mode(mode: str) -> PatternSet:
     if mode != "point":
         raise UserError(f"--mode {mode!r}: lighting modes are not available yet (sim.modes); "
                         "only 'point' is built in")

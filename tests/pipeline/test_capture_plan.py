@@ -230,3 +230,25 @@ def test_camera_lost_mid_capture_keeps_steps_and_says_how_to_resume(tmp_path):
                         progress=False)
         result = capture_with(emu, patterns, out, CaptureSettings())
     assert result.resumed_steps == 3 and result.frames == 9 and result.mislabeled == 0
+
+
+def test_patterns_from_a_lighting_mode_object():
+    """The adapter to sim.modes' contract: frames of (name, drive (L, 3), brightness)."""
+    from typing import NamedTuple
+
+    from pipeline.capture.session import patterns_from_mode
+
+    class Frame(NamedTuple):
+        name: str
+        drive: np.ndarray
+        brightness: float
+
+    class Mode(NamedTuple):
+        name: str
+        frames: list
+
+    drives = [np.eye(24, 3), np.eye(24, 3)[::-1]]
+    mode = Mode("two", [Frame("a", drives[0], 1.0), Frame("b", drives[1], 0.5)])
+    ps = patterns_from_mode(mode, np.stack(drives))
+    assert ps.mode == "two" and ps.names == ["a", "b"] and ps.brightness.tolist() == [1.0, 0.5]
+    assert ps.levels(1)[1] == 128 and ps.drive.shape == (2, 24, 3)
