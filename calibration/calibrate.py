@@ -24,7 +24,11 @@ from calibration.samples import Samples, collect_samples
 from calibration.validate import cross_validate
 from pipeline.errors import UserError
 
-__all__ = ["CalibrationResult", "calibrate", "label_errors"]
+__all__ = ["CalibrationResult", "calibrate", "label_errors", "CIRCLE_COLUMNS"]
+
+#: Columns of the ``circles (K, 8)`` dataset of calibration.h5.
+CIRCLE_COLUMNS = ("center_x", "center_y", "radius_px", "contact_radius_px", "quality", "accepted", "snr",
+                  "residual_px")
 
 
 @dataclass
@@ -64,6 +68,13 @@ class CalibrationResult:
         scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in self.reports.items() if "cv" in r}
         return min(scored, key=scored.get) if scored else None
 
+    @property
+    def best_light_field_model(self) -> str | None:
+        """The best-validated model that exports a light field (far, near, traced)."""
+        scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in self.reports.items()
+                  if "cv" in r and isinstance(self.models.get(k), LightFieldModel)}
+        return min(scored, key=scored.get) if scored else None
+
     def summary(self) -> dict[str, Any]:
         """The stable JSON summary printed by ``iristac calibrate --json``."""
         out: dict[str, Any] = {
@@ -89,16 +100,29 @@ class CalibrationResult:
         return out
 
     def save(self, path: str | Path) -> Path:
-        """Write ``calibration.h5``: circles, every fitted model, the validation report."""
+        """Write ``calibration.h5``: circles, every fitted model, the validation report.
+
+        Layout: ``circles (K, 8)`` (columns :data:`CIRCLE_COLUMNS`); ``light_field (P, C, H, W, 3)``
+        and optional ``flat_field (P, C, H, W)`` of the best light-field model (attribute
+        ``light_field_model``); ``light_vectors (P, C, 3)`` of the far-field model;
+        ``models/<name>/...`` every fitted model's arrays (``to_arrays``; a LUT is
+        ``LookupTable.from_arrays``-ready); attributes ``chosen_model`` (best by CV),
+        ``circle_reasons``, ``validation`` (per model: fit report and CV report), ``summary``.
+        """
         from calibration import h5io
 
-        data: dict[str, np.ndarray] = {
-            "circles/center_xy": np.array([c.center_xy for c in self.circles], dtype=np.float32).reshape(-1, 2),
-            "circles/radius_px": np.array([c.radius_px for c in self.circles], dtype=np.float32),
-            "circles/contact_radius_px": np.array([c.contact_radius_px for c in self.circles], dtype=np.float32),
-            "circles/quality": np.array([c.quality for c in self.circles], dtype=np.float32),
-            "circles/accepted": np.array([c.accepted for c in self.circles], dtype=bool),
-        }
+        # One row per press (the stage schema's (K, *) ``circles``); columns in CIRCLE_COLUMNS.
+        data: dict[str, np.ndarray] = {"circles": np.array(
+            [[*c.center_xy, c.radius_px, c.contact_radius_px, c.quality, float(c.accepted), c.snr, c.residual_px]
+             for c in self.circles], dtype=np.float32).reshape(-1, len(CIRCLE_COLUMNS))}
+        best_lf = self.best_light_field_model
+        if best_lf is not None:
+            data["light_field"] = self.models[best_lf].light_field(self.shape)
+            flat = self.models[best_lf].flat_field()
+            if flat is not None:
+                data["flat_field"] = np.asarray(flat, dtype=np.float32)
+        if "far" in self.models:
+            data["light_vectors"] = self.models["far"].lights.astype(np.float32)
         for name, model in self.models.items():
             for k, v in model.to_arrays().items():
                 data[f"models/{name}/{k}"] = np.asarray(v)
@@ -108,7 +132,9 @@ class CalibrationResult:
             "ball_radius_mm": float(self.ball_radius_mm),
             "mm_per_px": float(self.mm_per_px),
             "models": list(self.models),
-            "best_model": self.best_model or "",
+            "chosen_model": self.best_model or "",
+            "light_field_model": best_lf or "",
+            "circle_columns": list(CIRCLE_COLUMNS),
             "circle_reasons": [c.reason for c in self.circles],
             "validation": {k: r for k, r in self.reports.items()},
             "summary": {k: v for k, v in self.summary().items() if k != "circles"},

@@ -60,8 +60,8 @@ class MLPModel(CalibrationModel):
 
     name = "mlp"
 
-    def __init__(self, hidden: int = 32, layers: int = 3, epochs: int = 300, lr: float = 1e-2, seed: int = 0,
-                 input_scale: float = 255.0, position: bool = True, max_samples: int = 8000, device: str = "cpu"):
+    def __init__(self, hidden: int = 32, layers: int = 3, epochs: int = 200, lr: float = 1e-2, seed: int = 0,
+                 input_scale: float = 255.0, position: bool = True, max_samples: int = 4000, device: str = "cpu"):
         self.hidden, self.layers, self.epochs, self.lr, self.seed = hidden, layers, epochs, lr, seed
         self.input_scale, self.position, self.device = input_scale, position, device
         self.max_samples = max_samples
