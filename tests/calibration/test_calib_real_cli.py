@@ -38,14 +38,14 @@ def test_real_frames_calibrate_end_to_end(tmp_path):
     from calibration.importers import load_gelsight_npz
 
     cap = load_gelsight_npz(DATA)
-    sub = type(cap)(frames=cap.frames[:12], reference=cap.reference, drive=cap.drive, brightness=cap.brightness,
-                    mm_per_px=cap.mm_per_px, labels={k: v[:12] for k, v in cap.labels.items()}, meta=cap.meta)
-    res = calibrate(sub, 2.0, 0.1245, ["near", "lut", "mlp"], folds=3,
-                    model_options={"mlp": {"epochs": 100, "max_samples": 2000}})
+    sub = type(cap)(frames=cap.frames[:20], reference=cap.reference, drive=cap.drive, brightness=cap.brightness,
+                    mm_per_px=cap.mm_per_px, labels={k: v[:20] for k, v in cap.labels.items()}, meta=cap.meta)
+    res = calibrate(sub, 2.0, 0.1245, ["near", "lut", "mlp"], folds=5,
+                    model_options={"mlp": {"epochs": 60, "max_samples": 1500}})
     s = res.summary()
-    assert s["accepted"] >= 11
+    assert s["accepted"] >= 19
     assert s["radius_error_px_median"] < 1.5 and s["center_error_px_median"] < 4.0
-    # Loose bounds on 12 presses and a short MLP schedule; the full figures are in the benchmark.
+    # Loose bounds on 20 presses and a short MLP schedule; the full figures are in the benchmark.
     for name, bound in (("near", 11.0), ("lut", 20.0), ("mlp", 12.0)):
         assert 2.0 < s["models"][name]["cv_mean_angular_error_deg"] < bound, (name, s["models"][name])
     # The radius used for the truth never exceeds the ball.
@@ -54,7 +54,7 @@ def test_real_frames_calibrate_end_to_end(tmp_path):
     from pipeline.store import read_record
 
     rec = read_record(out, "calibration")
-    assert rec.data["circles"].shape == (12, 8) and rec.data["light_field"].shape == (1, 3, 120, 160, 3)
+    assert rec.data["circles"].shape == (20, 8) and rec.data["light_field"].shape == (1, 3, 120, 160, 3)
 
 
 @needs_data
