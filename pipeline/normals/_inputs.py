@@ -1,0 +1,67 @@
+"""Shape checks and conversion of solver inputs (numpy or torch) to flattened tensors."""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pipeline.normals import _torch as T
+
+
+def check_observations(observations, name: str) -> tuple[int, int, int]:
+    """Return ``(N, H, W)`` of observations ``(N, H, W)`` or raise with the shape received."""
+    shape = tuple(observations.shape)
+    if len(shape) != 3 or min(shape) < 1:
+        raise ValueError(f"{name}: observations must have shape (N_obs, H, W), got {shape}")
+    return shape  # type: ignore[return-value]
+
+
+def check_lights(lights, n: int, hw: tuple[int, int] | None, name: str) -> bool:
+    """Validate ``(N, 3)`` or ``(N, H, W, 3)`` lights; return True when they are per pixel."""
+    shape = tuple(lights.shape)
+    if len(shape) == 2 and shape == (n, 3):
+        return False
+    if len(shape) == 4 and shape[0] == n and shape[3] == 3 and (hw is None or shape[1:3] == tuple(hw)):
+        return True
+    want = f"({n}, 3) or ({n}, H, W, 3)" if hw is None else f"({n}, 3) or ({n}, {hw[0]}, {hw[1]}, 3)"
+    raise ValueError(f"{name}: lights must have shape {want}, got {shape}")
+
+
+def check_groups(groups, n: int, name: str, device) -> tuple[torch.Tensor | None, int]:
+    """Albedo group id per observation ``(N,)`` -> (long tensor, number of groups)."""
+    if groups is None:
+        return None, 1
+    g = np.asarray(groups)
+    if g.shape != (n,) or g.dtype.kind not in "iu" or (g.size and g.min() < 0):
+        raise ValueError(f"{name}: groups must be non-negative integers of shape ({n},), got "
+                         f"{g.shape} {g.dtype}")
+    return torch.as_tensor(g.astype(np.int64), device=device), int(g.max()) + 1 if g.size else 1
+
+
+def flatten_observations(observations, dtype, device) -> torch.Tensor:
+    """``(N, H, W)`` -> ``(N, H*W)`` tensor of ``dtype`` on ``device``."""
+    I = T.to_tensor(observations, dtype, device)
+    return I.reshape(I.shape[0], -1)
+
+
+def flatten_lights(lights, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
+    """Lights -> (tensor ``(N, 3)`` or ``(N, M, 3)``, usable mask ``(N,)`` or ``(N, M)``).
+
+    Non-finite light vectors are zeroed and marked unusable, so a hole in a calibration
+    masks pixels instead of spreading NaN.
+    """
+    L = T.to_tensor(lights, dtype, device)
+    if L.dim() == 4:
+        L = L.reshape(L.shape[0], -1, 3)
+    ok = torch.isfinite(L).all(-1)
+    L = torch.where(ok[..., None], L, torch.zeros((), dtype=dtype, device=device))
+    return L, ok
+
+
+def group_counts_ok(groups: torch.Tensor | None, num_groups: int, min_count: int = 3) -> bool:
+    """True when every albedo group has at least ``min_count`` observations (so per-group
+    albedo can be separated from the normal)."""
+    if groups is None or num_groups < 2:
+        return False
+    counts = torch.bincount(groups, minlength=num_groups)
+    return bool((counts >= min_count).all())
