@@ -38,23 +38,38 @@ def check_groups(groups, n: int, name: str, device) -> tuple[torch.Tensor | None
     return torch.as_tensor(g.astype(np.int64), device=device), int(g.max()) + 1 if g.size else 1
 
 
-def flatten_observations(observations, dtype, device) -> torch.Tensor:
-    """``(N, H, W)`` -> ``(N, H*W)`` tensor of ``dtype`` on ``device``."""
+def flatten_observations(observations, dtype, device) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``(N, H, W)`` -> ``(N, H*W)`` tensor, and the finite mask (None when all finite).
+
+    Integer images cannot hold NaN, so they skip the finiteness pass (the real-time path).
+    Non-finite values are replaced by 0; the caller gives them zero weight.
+    """
+    integer = (observations.dtype.is_floating_point is False) if isinstance(observations, torch.Tensor) \
+        else np.asarray(observations).dtype.kind in "iub"
     I = T.to_tensor(observations, dtype, device)
-    return I.reshape(I.shape[0], -1)
+    I = I.reshape(I.shape[0], -1)
+    if integer:
+        return I, None
+    finite = torch.isfinite(I)
+    if bool(finite.all()):
+        return I, None
+    return torch.where(finite, I, torch.zeros((), dtype=dtype, device=device)), finite
 
 
 def flatten_lights(lights, dtype, device) -> tuple[torch.Tensor, torch.Tensor]:
-    """Lights -> (tensor ``(N, 3)`` or ``(N, M, 3)``, usable mask ``(N,)`` or ``(N, M)``).
+    """Lights -> (tensor ``(N, 3)`` or ``(N, 3, H*W)``, usable mask ``(N,)`` or ``(N, H*W)``).
 
     Non-finite light vectors are zeroed and marked unusable, so a hole in a calibration
     masks pixels instead of spreading NaN.
     """
     L = T.to_tensor(lights, dtype, device)
     if L.dim() == 4:
-        L = L.reshape(L.shape[0], -1, 3)
-    ok = torch.isfinite(L).all(-1)
-    L = torch.where(ok[..., None], L, torch.zeros((), dtype=dtype, device=device))
+        L = L.reshape(L.shape[0], -1, 3).permute(0, 2, 1).contiguous()
+        ok = torch.isfinite(L).all(1)
+        L = torch.where(ok[:, None, :], L, torch.zeros((), dtype=dtype, device=device))
+    else:
+        ok = torch.isfinite(L).all(-1)
+        L = torch.where(ok[:, None], L, torch.zeros((), dtype=dtype, device=device))
     return L, ok
 
 

@@ -51,55 +51,20 @@ def to_tensor(x, dtype: torch.dtype, device) -> torch.Tensor:
     return torch.as_tensor(a, device=device).to(dtype)
 
 
-def sanitize(I: torch.Tensor, w: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
-    """Replace NaN/Inf observations by 0 and give them zero weight.
-
-    Returns the cleaned observations and the weights (``1`` where usable unless ``w`` given).
-    """
-    finite = torch.isfinite(I)
-    if w is None:
-        w = finite.to(I.dtype)
-    else:
-        w = w * finite.to(I.dtype)
-    return torch.where(finite, I, torch.zeros((), dtype=I.dtype, device=I.device)), w
-
-
-def gram(L: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Per-pixel weighted Gram matrix ``A = sum_k w_k L_k L_k^T`` of shape ``(M, 3, 3)``.
-
-    ``L`` is ``(N, 3)`` or ``(N, M, 3)``; ``w`` is ``(N, M)``.
-    """
-    if L.dim() == 2:
-        # Shared lights: A_m = L^T diag(w_m) L; the 6 distinct products of light components
-        # weighted by w, computed as one (M, N) @ (N, 9) matmul.
-        outer = (L[:, :, None] * L[:, None, :]).reshape(L.shape[0], 9)
-        return (w.T @ outer).reshape(-1, 3, 3)
-    wl = L * w[..., None]
-    return torch.einsum("nmi,nmj->mij", wl, L)
-
-
-def rhs(I: torch.Tensor, L: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Per-pixel ``r = sum_k w_k I_k L_k`` of shape ``(M, 3)``."""
-    wi = w * I
-    if L.dim() == 2:
-        return wi.T @ L
-    return torch.einsum("nm,nmi->mi", wi, L)
-
-
 def sym3_eigvals(A: torch.Tensor) -> torch.Tensor:
-    """Eigenvalues ``(M, 3)`` (descending) of symmetric ``(M, 3, 3)`` matrices, closed form.
+    """Eigenvalues ``(3, M)`` (descending) of symmetric matrices ``(3, 3, M)``, closed form.
 
     The trigonometric method (Smith 1961): much faster than a batched iterative
     eigensolver for millions of 3x3 matrices, and exact enough to decide conditioning.
 
     Examples
     --------
-    >>> A = torch.diag(torch.tensor([3.0, 1.0, 2.0], dtype=torch.float64))[None]
-    >>> np.round(sym3_eigvals(A).numpy(), 9).tolist()
-    [[3.0, 2.0, 1.0]]
+    >>> A = torch.diag(torch.tensor([3.0, 1.0, 2.0], dtype=torch.float64))[..., None]
+    >>> np.round(sym3_eigvals(A).numpy()[:, 0], 9).tolist()
+    [3.0, 2.0, 1.0]
     """
-    a00, a11, a22 = A[:, 0, 0], A[:, 1, 1], A[:, 2, 2]
-    a01, a02, a12 = A[:, 0, 1], A[:, 0, 2], A[:, 1, 2]
+    a00, a11, a22 = A[0, 0], A[1, 1], A[2, 2]
+    a01, a02, a12 = A[0, 1], A[0, 2], A[1, 2]
     p1 = a01 * a01 + a02 * a02 + a12 * a12
     q = (a00 + a11 + a22) / 3.0
     p2 = (a00 - q) ** 2 + (a11 - q) ** 2 + (a22 - q) ** 2 + 2.0 * p1
@@ -113,17 +78,17 @@ def sym3_eigvals(A: torch.Tensor) -> torch.Tensor:
     e1 = q + 2.0 * p * torch.cos(phi)
     e3 = q + 2.0 * p * torch.cos(phi + 2.0 * math.pi / 3.0)
     e2 = 3.0 * q - e1 - e3
-    return torch.stack([e1, e2, e3], dim=-1)
+    return torch.stack([e1, e2, e3])
 
 
 def condition_from_gram(A: torch.Tensor) -> torch.Tensor:
-    """Condition number ``(M,)`` of the light matrix whose Gram matrix is ``A`` (capped, finite).
+    """Condition number ``(M,)`` of the light matrix whose Gram matrix is ``A`` ``(3, 3, M)``.
 
     ``cond(L) = sqrt(lambda_max(A) / lambda_min(A))``; a zero or negative ``lambda_min`` (a
-    singular or rank-deficient light matrix) reads as :data:`COND_CAP`.
+    singular or rank-deficient light matrix) reads as :data:`COND_CAP`. Always finite.
     """
     ev = sym3_eigvals(A)
-    lmax, lmin = ev[:, 0], ev[:, 2]
+    lmax, lmin = ev[0], ev[2]
     ratio = lmax / torch.where(lmin > 0, lmin, torch.ones_like(lmin))
     cond = torch.sqrt(torch.clamp(ratio, min=1.0))
     bad = (lmin <= 0) | (lmax <= 0) | ~torch.isfinite(cond)
@@ -131,53 +96,74 @@ def condition_from_gram(A: torch.Tensor) -> torch.Tensor:
 
 
 def inverse3(A: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Inverse of ``(M, 3, 3)`` matrices by the adjugate, and a mask of invertible ones.
+    """Inverse of matrices ``(3, 3, M)`` by the adjugate, and a mask ``(M,)`` of invertible ones.
 
     Singular matrices give a zero inverse (never Inf/NaN); the caller masks them.
     """
-    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
-    d, e, f = A[:, 1, 0], A[:, 1, 1], A[:, 1, 2]
-    g, h, i = A[:, 2, 0], A[:, 2, 1], A[:, 2, 2]
+    a, b, c = A[0, 0], A[0, 1], A[0, 2]
+    d, e, f = A[1, 0], A[1, 1], A[1, 2]
+    g, h, i = A[2, 0], A[2, 1], A[2, 2]
     c00, c01, c02 = e * i - f * h, f * g - d * i, d * h - e * g
     det = a * c00 + b * c01 + c * c02
     adj = torch.stack([
-        torch.stack([c00, c * h - b * i, b * f - c * e], -1),
-        torch.stack([c01, a * i - c * g, c * d - a * f], -1),
-        torch.stack([c02, b * g - a * h, a * e - b * d], -1),
-    ], dim=-2)
+        torch.stack([c00, c * h - b * i, b * f - c * e]),
+        torch.stack([c01, a * i - c * g, c * d - a * f]),
+        torch.stack([c02, b * g - a * h, a * e - b * d]),
+    ])
     ok = (det != 0) & torch.isfinite(det)
     inv_det = torch.where(ok, 1.0 / torch.where(ok, det, torch.ones_like(det)), torch.zeros_like(det))
-    inv = adj * inv_det[:, None, None]
-    ok = ok & torch.isfinite(inv).all(dim=(1, 2))
-    return torch.where(ok[:, None, None], inv, torch.zeros_like(inv)), ok
+    inv = adj * inv_det
+    ok = ok & torch.isfinite(inv).all(0).all(0)
+    return torch.where(ok, inv, torch.zeros_like(inv)), ok
+
+
+def matvec3(A: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+    """``A x`` per pixel: ``(3, 3, M)`` or ``(3, 3, 1)`` times ``(3, M)`` -> ``(3, M)``."""
+    return A[:, 0] * x[0] + A[:, 1] * x[1] + A[:, 2] * x[2]
+
+
+def dot3(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Per-pixel dot product of ``(3, M)`` vectors -> ``(M,)``."""
+    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
 
 
 def project(L: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
-    """``s_k = n . L_k`` per observation and pixel, ``(N, M)``; ``n`` is ``(M, 3)``."""
+    """``s_k = n . L_k`` per observation and pixel ``(N, M)``; ``L`` is ``(N, 3)`` or ``(N, 3, M)``,
+    ``n`` is ``(3, M)``."""
     if L.dim() == 2:
-        return L @ n.T
-    return torch.einsum("nmi,mi->nm", L, n)
+        return L @ n
+    return L[:, 0] * n[0] + L[:, 1] * n[1] + L[:, 2] * n[2]
 
 
-def group_albedo(I: torch.Tensor, s: torch.Tensor, w: torch.Tensor, groups: torch.Tensor,
-                 num_groups: int) -> torch.Tensor:
-    """Least-squares albedo per group given the normal: ``rho_g = sum w I s / sum w s^2``.
+class torch_threads:
+    """Context manager: run torch on ``n`` intra-op threads, restoring the old count after.
 
-    ``groups`` is ``(N,)`` int64 group ids (e.g. the camera channel of each observation).
-    Returns ``(M, G)``; a group with no usable light at a pixel gets albedo 0.
+    On a small shared CPU, torch's default of one thread per core collapses when other
+    processes compete for the cores (spinning workers): 1 thread is then many times faster.
+    ``None`` leaves the setting alone.
+
+    Examples
+    --------
+    >>> before = torch.get_num_threads()
+    >>> with torch_threads(1):
+    ...     torch.get_num_threads()
+    1
+    >>> torch.get_num_threads() == before
+    True
     """
-    num = torch.zeros((num_groups, I.shape[1]), dtype=I.dtype, device=I.device)
-    den = torch.zeros_like(num)
-    num.index_add_(0, groups, w * I * s)
-    den.index_add_(0, groups, w * s * s)
-    ok = den > 0
-    rho = torch.where(ok, num / torch.where(ok, den, torch.ones_like(den)), torch.zeros_like(num))
-    return rho.T
 
+    def __init__(self, n: int | None):
+        self.n = n
+        self.old = None
 
-def weighted_rms(r: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Per-pixel weighted RMS ``sqrt(sum w r^2 / sum w)`` of residuals ``(N, M)``; 0 where no weight."""
-    sw = w.sum(0)
-    ok = sw > 0
-    return torch.where(ok, torch.sqrt((w * r * r).sum(0) / torch.where(ok, sw, torch.ones_like(sw))),
-                       torch.zeros_like(sw))
+    def __enter__(self):
+        if self.n is not None:
+            self.old = torch.get_num_threads()
+            if self.old != self.n:
+                torch.set_num_threads(int(self.n))
+        return self
+
+    def __exit__(self, *exc):
+        if self.old is not None and torch.get_num_threads() != self.old:
+            torch.set_num_threads(self.old)
+        return False

@@ -56,17 +56,20 @@ class FarFieldSolver:
         self.dtype = T.torch_dtype(dtype)
         self.n_obs = L.shape[0]
         self.groups, self.num_groups = _inputs.check_groups(groups, self.n_obs, "FarFieldSolver", self.device)
-        self.refine = _inputs.group_counts_ok(self.groups, self.num_groups)
-        self.row_ok = np.isfinite(L).all(axis=1)
-        L = np.where(self.row_ok[:, None], L, 0.0)
+        self.selectors = _lstsq.group_selectors(self.groups, self.num_groups, self.n_obs)
+        self.iterations = int(albedo_iterations) if _inputs.group_counts_ok(self.groups, self.num_groups) else 0
         self.max_condition = float(max_condition)
-        self.albedo_iterations = int(albedo_iterations)
-        # Pseudo-inverse and condition in float64 once; the per-frame work is in self.dtype.
-        sv = np.linalg.svd(L, compute_uv=False)
-        self.cond = float(sv[0] / sv[-1]) if sv.size == 3 and sv[-1] > 0 else T.COND_CAP
-        self.cond = min(self.cond, T.COND_CAP)
-        self.L = torch.as_tensor(L, device=self.device).to(self.dtype)
-        self.pinv = torch.as_tensor(np.linalg.pinv(L), device=self.device).to(self.dtype)  # (3, N)
+        self.L, row_ok = _inputs.flatten_lights(L, self.dtype, self.device)
+        # Rows without a finite light are dropped by weight; all rows good -> unit weights.
+        self.w_rows = None if bool(row_ok.all()) else row_ok.to(self.dtype)[:, None]
+        # The light matrix is the same at every pixel: its moments, inverse and condition are
+        # computed once, in float64, and a frame costs one (3, N) @ (N, M) product per group.
+        L64 = torch.as_tensor(np.where(np.isfinite(L), L, 0.0), device=self.device)
+        Q64 = torch.stack([_lstsq.gram_shared(L64[sel], None) for sel in self.selectors])
+        inv64, _ = T.inverse3(Q64.sum(0))
+        self.Q = Q64.to(self.dtype)
+        self.inv = inv64.to(self.dtype)
+        self.cond = T.condition_from_gram(Q64.sum(0)).to(self.dtype)  # (1,)
 
     def solve(self, observations) -> NormalResult:
         """Normals of one observation stack ``(N_obs, H, W)`` (numpy or torch, any real dtype).
@@ -77,22 +80,20 @@ class FarFieldSolver:
         if N != self.n_obs:
             raise ValueError(f"FarFieldSolver.solve: expected {self.n_obs} observations, got shape "
                              f"{tuple(observations.shape)}")
-        I = _inputs.flatten_observations(observations, self.dtype, self.device)
-        I, w = T.sanitize(I)
-        row_ok = torch.as_tensor(self.row_ok, device=self.device)
-        w = w * row_ok[:, None].to(self.dtype)
-        M = H * W
-        if bool((w == row_ok[:, None].to(self.dtype)).all()):
-            # Fast path: the same pseudo-inverse for every pixel.
-            b = _lstsq.alternate_albedo(I, self.L, w, self.groups if self.refine else None, self.num_groups,
-                                        lambda X: (self.pinv @ X).T, self.albedo_iterations)
-            cond = torch.full((M,), self.cond, dtype=self.dtype, device=self.device)
+        I, finite = _inputs.flatten_observations(observations, self.dtype, self.device)
+        if finite is None and self.w_rows is None:
+            m = _lstsq.moments(I, self.L, None, self.selectors, Q=self.Q)
+            inv, cond = self.inv, self.cond
         else:
-            b = _lstsq.alternate_albedo(I, self.L, w, self.groups if self.refine else None, self.num_groups,
-                                        lambda X: _lstsq.solve_general(X, self.L, w)[0], self.albedo_iterations)
-            cond = T.condition_from_gram(T.gram(self.L, w))
-        return finalize(b, I, self.L, w, cond, (H, W), groups=self.groups, num_groups=self.num_groups,
-                        max_condition=self.max_condition,
+            w = torch.ones_like(I) if finite is None else finite.to(self.dtype)
+            if self.w_rows is not None:
+                w = w * self.w_rows
+            m = _lstsq.moments(I, self.L, w, self.selectors)
+            A = m.Q.sum(0)
+            inv, _ = T.inverse3(A)
+            cond = T.condition_from_gram(A)
+        b = _lstsq.solve(m, inv, self.iterations)
+        return finalize(b, m, cond, (H, W), max_condition=self.max_condition,
                         meta={"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition})
 
 

@@ -62,23 +62,17 @@ class NearFieldSolver:
         self.n_obs, self.H, self.W = (int(s) for s in lights.shape[:3])
         self.method = method
         self.groups, self.num_groups = _inputs.check_groups(groups, self.n_obs, "NearFieldSolver", self.device)
-        self.refine = _inputs.group_counts_ok(self.groups, self.num_groups)
+        self.selectors = _lstsq.group_selectors(self.groups, self.num_groups, self.n_obs)
+        self.iterations = int(albedo_iterations) if _inputs.group_counts_ok(self.groups, self.num_groups) else 0
         self.max_condition = float(max_condition)
-        self.albedo_iterations = int(albedo_iterations)
-        self.L, ok = _inputs.flatten_lights(lights, self.dtype, self.device)  # (N, M, 3)
-        self.w0 = ok.to(self.dtype)
-        A = T.gram(self.L, self.w0)
+        self.L, ok = _inputs.flatten_lights(lights, self.dtype, self.device)  # (N, 3, M)
+        self.w0 = None if bool(ok.all()) else ok.to(self.dtype)
+        # The light field is fixed: per-pixel moments, inverse and condition once per model.
+        self.Q = torch.stack([_lstsq.gram_pixel(self.L[sel], None if self.w0 is None else self.w0[sel])
+                              for sel in self.selectors])
+        A = self.Q.sum(0)
+        self.inv, _ = T.inverse3(A)
         self.cond = T.condition_from_gram(A)
-        inv, _ = T.inverse3(A)
-        # (N, M, 3): b = sum_k I_k pinv_k, the whole per-frame cost of the fast path.
-        self.pinv = torch.einsum("mij,nmj->nmi", inv, self.L * self.w0[..., None])
-
-    def _solve_b(self, I: torch.Tensor, w: torch.Tensor, fast: bool) -> torch.Tensor:
-        if self.method == "qr":
-            return _qr_solve(I, self.L, w)
-        if fast:
-            return (I[..., None] * self.pinv).sum(0)
-        return _lstsq.solve_general(I, self.L, w)[0]
 
     def solve(self, observations) -> NormalResult:
         """Normals of one observation stack ``(N_obs, H, W)``; NaN/Inf observations are ignored."""
@@ -86,24 +80,35 @@ class NearFieldSolver:
         if (N, H, W) != (self.n_obs, self.H, self.W):
             raise ValueError(f"NearFieldSolver.solve: expected observations of shape "
                              f"({self.n_obs}, {self.H}, {self.W}), got {tuple(observations.shape)}")
-        I = _inputs.flatten_observations(observations, self.dtype, self.device)
-        I, w = T.sanitize(I, self.w0)
-        fast = bool((w == self.w0).all())
-        b = _lstsq.alternate_albedo(I, self.L, w, self.groups if self.refine else None, self.num_groups,
-                                    lambda X: self._solve_b(X, w, fast), self.albedo_iterations)
-        cond = self.cond if fast else T.condition_from_gram(T.gram(self.L, w))
-        return finalize(b, I, self.L, w, cond, (H, W), groups=self.groups, num_groups=self.num_groups,
-                        max_condition=self.max_condition,
+        I, finite = _inputs.flatten_observations(observations, self.dtype, self.device)
+        if finite is None:
+            w = self.w0
+            m = _lstsq.moments(I, self.L, w, self.selectors, Q=self.Q)
+            inv, cond = self.inv, self.cond
+        else:
+            w = finite.to(self.dtype) if self.w0 is None else finite.to(self.dtype) * self.w0
+            m = _lstsq.moments(I, self.L, w, self.selectors)
+            A = m.Q.sum(0)
+            inv, _ = T.inverse3(A)
+            cond = T.condition_from_gram(A)
+        if self.method == "qr":
+            b = _qr_solve(I, self.L, torch.ones_like(I) if w is None else w)
+        else:
+            b = _lstsq.solve(m, inv, self.iterations)
+        return finalize(b, m, cond, (H, W), max_condition=self.max_condition,
                         meta={"solver": "nearfield", "method": self.method, "max_condition": self.max_condition})
 
 
 def _qr_solve(I: torch.Tensor, L: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
-    """Per-pixel weighted least squares by QR: ``(M, N, 3)`` systems, rank-deficient -> 0."""
+    """Per-pixel weighted least squares by QR of ``(M, N, 3)`` systems; rank-deficient -> 0.
+
+    One albedo (no per-group alternation): the reference path for the normal equations.
+    """
     sw = torch.sqrt(w).T  # (M, N)
-    A = L.permute(1, 0, 2) * sw[..., None]  # (M, N, 3)
+    A = L.permute(2, 0, 1) * sw[..., None]  # (M, N, 3)
     y = (I.T * sw)[..., None]  # (M, N, 1)
     if A.shape[1] < 3:
-        return torch.zeros((A.shape[0], 3), dtype=I.dtype, device=I.device)
+        return torch.zeros((3, A.shape[0]), dtype=I.dtype, device=I.device)
     Q, R = torch.linalg.qr(A, mode="reduced")
     d = torch.diagonal(R, dim1=-2, dim2=-1).abs()
     tol = d.amax(-1, keepdim=True) * (torch.finfo(I.dtype).eps * 1e3)
@@ -111,7 +116,8 @@ def _qr_solve(I: torch.Tensor, L: torch.Tensor, w: torch.Tensor) -> torch.Tensor
     eye = torch.eye(3, dtype=I.dtype, device=I.device).expand_as(R)
     R = torch.where(ok[:, None, None], R, eye)
     b = torch.linalg.solve_triangular(R, Q.transpose(1, 2) @ y, upper=True)[..., 0]
-    return torch.where(ok[:, None] & torch.isfinite(b).all(-1, keepdim=True), b, torch.zeros_like(b))
+    b = torch.where(ok[:, None] & torch.isfinite(b).all(-1, keepdim=True), b, torch.zeros_like(b))
+    return b.T.contiguous()
 
 
 def solve_nearfield(observations, lights, **kwargs) -> NormalResult:

@@ -8,6 +8,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from pipeline.normals import _lstsq
 from pipeline.normals import _torch as T
 
 __all__ = ["NormalResult", "finalize"]
@@ -26,7 +27,7 @@ class NormalResult:
         Least-squares albedo per albedo group (``G`` = camera channels when the solver was
         given ``groups``, else 1), in units of observation / light. 0 at invalid pixels.
     residual : ndarray, shape (H, W), float
-        RMS of ``I_k - rho n . L_k`` over the observations used, in observation units.
+        Weighted RMS of ``I_k - rho n . L_k`` over the observations used, in observation units.
     condition : ndarray, shape (H, W), float
         Condition number of the (weighted) light matrix at the pixel, capped at 1e12.
     mask : ndarray, shape (H, W), bool
@@ -52,48 +53,43 @@ class NormalResult:
         return float(self.mask.mean()) if self.mask.size else 0.0
 
 
-def finalize(b: torch.Tensor, I: torch.Tensor, L: torch.Tensor, w: torch.Tensor, cond: torch.Tensor,
-             shape: tuple[int, int], *, groups: torch.Tensor | None = None, num_groups: int = 1,
+def finalize(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, shape: tuple[int, int], *,
              max_condition: float = 1e3, min_count: int = 3, meta: dict | None = None) -> NormalResult:
-    """Turn scaled normals ``b = rho n`` ``(M, 3)`` into a :class:`NormalResult`.
+    """Turn scaled normals ``b = rho n`` ``(3, M)`` and the moments they came from into a
+    :class:`NormalResult`.
 
-    ``I`` ``(N, M)`` observations, ``L`` ``(N, 3)`` or ``(N, M, 3)`` lights, ``w`` ``(N, M)``
-    the weights actually used, ``cond`` ``(M,)`` condition numbers. Pixels with fewer than
-    ``min_count`` used observations, ``cond > max_condition``, a zero or non-finite ``b`` or a
-    normal facing away from the camera are masked and get the flat normal.
+    Pixels with fewer than ``min_count`` used observations, ``cond > max_condition``
+    (``cond`` is ``(M,)``), a zero or non-finite ``b`` or a normal facing away from the camera
+    are masked and get the flat normal, zero albedo and zero residual.
     """
     H, W = shape
     out_dtype = np.float64 if b.dtype == torch.float64 else np.float32
-    norm = torch.linalg.vector_norm(b, dim=-1)
-    count = (w > 0).sum(0)
-    finite_b = torch.isfinite(b).all(-1) & torch.isfinite(norm)
-    ok_norm = finite_b & (norm > 0)
-    safe = torch.where(ok_norm, norm, torch.ones_like(norm))
-    n = torch.where(ok_norm[:, None], b / safe[:, None], torch.zeros_like(b))
-    valid = ok_norm & (count >= min_count) & (cond <= max_condition) & (n[:, 2] > 0)
-    flat = torch.zeros_like(n)
-    flat[:, 2] = 1.0
-    n = torch.where(valid[:, None], n, flat)
-    if groups is None:
-        groups = torch.zeros(I.shape[0], dtype=torch.long, device=I.device)
-        num_groups = 1
-    s = T.project(L, n)
-    rho = T.group_albedo(I, s, w, groups, num_groups)
-    pred = rho.T[groups] * s
-    res = T.weighted_rms(I - pred, w)
-    rho = torch.where(valid[:, None], rho, torch.zeros_like(rho))
-    res = torch.where(valid & torch.isfinite(res), res, torch.zeros_like(res))
-    cond = torch.where(torch.isfinite(cond), cond, torch.full_like(cond, T.COND_CAP))
+    finite = torch.isfinite(b).all(0)
+    b = torch.nan_to_num(b, nan=0.0, posinf=0.0, neginf=0.0)
+    n, norm = _lstsq.unit(b)
+    valid = finite & (norm > 0) & (m.count >= min_count) & (cond <= max_condition) & (n[2] > 0)
+    flat = torch.zeros((3, 1), dtype=n.dtype, device=n.device)
+    flat[2] = 1.0
+    n = torch.where(valid, n, flat)
+    rho, p, q = _lstsq.group_albedo(m, n)
+    res = _lstsq.residual_rms(m, p, q)
+    zero = torch.zeros((), dtype=n.dtype, device=n.device)
+    # nan_to_num: moments of huge (but finite) inputs can overflow to Inf in the products.
+    rho = torch.where(valid, torch.nan_to_num(rho, nan=0.0, posinf=0.0, neginf=0.0), zero)
+    res = torch.where(valid, torch.nan_to_num(res, nan=0.0, posinf=0.0, neginf=0.0), zero)
+    cond = torch.nan_to_num(cond, nan=T.COND_CAP, posinf=T.COND_CAP, neginf=T.COND_CAP)
+    cond = cond.expand(H * W) if cond.numel() == 1 else cond
 
-    def out(x, *tail):
-        return x.detach().cpu().numpy().reshape(H, W, *tail)
+    def out(x):  # (..., M) -> (H, W, ...)
+        a = x.detach().cpu().numpy()
+        return np.moveaxis(a.reshape(a.shape[:-1] + (H, W)), tuple(range(a.ndim - 1)), tuple(range(-a.ndim + 1, 0)))
 
     return NormalResult(
-        normals=out(n, 3).astype(out_dtype, copy=False),
-        albedo=out(rho, num_groups).astype(out_dtype, copy=False),
+        normals=out(n).astype(out_dtype, copy=False),
+        albedo=out(rho).astype(out_dtype, copy=False),
         residual=out(res).astype(out_dtype, copy=False),
         condition=out(cond).astype(out_dtype, copy=False),
         mask=out(valid).astype(bool, copy=False),
-        count=out(count).astype(np.int32, copy=False),
+        count=out(m.count).astype(np.int32, copy=False),
         meta=dict(meta or {}),
     )

@@ -96,30 +96,36 @@ def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturatio
     dev = torch.device(device)
     dt = T.torch_dtype(dtype)
     g, num_groups = _inputs.check_groups(groups, N, "solve_robust", dev)
-    I = _inputs.flatten_observations(observations, dt, dev)
+    selectors = _lstsq.group_selectors(g, num_groups, N)
+    iters_albedo = 2 if _inputs.group_counts_ok(g, num_groups) else 0
+    raw = T.to_tensor(observations, dt, dev).reshape(N, -1)
     L, light_ok = _inputs.flatten_lights(lights, dt, dev)
     light_ok = light_ok[:, None].expand(N, H * W) if L.dim() == 2 else light_ok
-    usable = usable_observations(I, dark_threshold, saturation) & light_ok
-    I, _ = T.sanitize(I)
+    usable = usable_observations(raw, dark_threshold, saturation) & light_ok
+    I = torch.where(torch.isfinite(raw), raw, torch.zeros((), dtype=dt, device=dev))
     if method == "trim":
         usable = _trim(I, usable, trim_low, trim_high)
     w = usable.to(dt)
-    b, _ = _lstsq.solve_general(I, L, w)
+    m = _lstsq.moments(I, L, w, selectors)
+    A = m.Q.sum(0)
+    # Conditioning is judged on the usable set (IRLS weights only down-weight within it).
+    cond = T.condition_from_gram(A)
+    inv, _ = T.inverse3(A)
+    b = _lstsq.solve(m, inv, iters_albedo)
     if method == "irls" and iterations > 0:
-        rms = T.weighted_rms(I, w)
+        rms = torch.sqrt((w * I * I).sum(0) / torch.clamp(w.sum(0), min=1.0))
         floor = rms * 1e-3 if noise_floor is None else torch.full_like(rms, float(noise_floor))
         floor = torch.clamp(floor, min=torch.finfo(dt).tiny)
+        nan = torch.full((), float("nan"), dtype=dt, device=dev)
         for _ in range(iterations):
             r = I - T.project(L, b)
-            absr = torch.where(usable, r.abs(), torch.full_like(r, float("nan")))
-            sigma = 1.4826 * torch.nanmedian(absr, dim=0).values
-            sigma = torch.where(torch.isfinite(sigma), sigma, floor)
-            sigma = torch.maximum(sigma, floor)
+            sigma = 1.4826 * torch.nanmedian(torch.where(usable, r.abs(), nan), dim=0).values
+            sigma = torch.maximum(torch.where(torch.isfinite(sigma), sigma, floor), floor)
             w = usable.to(dt) / (1.0 + (r / (_CAUCHY_C * sigma)) ** 2)
-            b, _ = _lstsq.solve_general(I, L, w)
-    # Conditioning is judged on the usable set (the IRLS weights only down-weight within it).
-    cond = T.condition_from_gram(T.gram(L, usable.to(dt)))
-    return finalize(b, I, L, w, cond, (H, W), groups=g, num_groups=num_groups, max_condition=max_condition,
+            m = _lstsq.moments(I, L, w, selectors)
+            inv, _ = T.inverse3(m.Q.sum(0))
+            b = _lstsq.solve(m, inv, iters_albedo)
+    return finalize(b, m, cond, (H, W), max_condition=max_condition,
                     meta={"solver": "robust", "method": method, "dark_threshold": float(dark_threshold),
                           "saturation": float(saturation), "iterations": int(iterations),
                           "max_condition": float(max_condition)})
