@@ -76,6 +76,19 @@ def gram_pixel(L: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
     return torch.stack(rows)
 
 
+def condition(L: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
+    """Condition number ``(M,)`` (or ``(1,)``) of the weighted light matrix, computed in float64.
+
+    Float32 rounding alone puts the smallest eigenvalue of a rank-deficient Gram matrix near
+    ``1e-7`` of the largest, i.e. a condition number of only a few thousand: too close to the
+    masking threshold to tell "rank-deficient" from "merely oblique" reliably.
+    """
+    L64 = L.to(torch.float64)
+    w64 = None if w is None else w.to(torch.float64)
+    A = gram_shared(L64, w64) if L.dim() == 2 else gram_pixel(L64, w64)
+    return T.condition_from_gram(A).to(L.dtype)
+
+
 def moments(I: torch.Tensor, L: torch.Tensor, w: torch.Tensor | None, selectors: list,
             Q: torch.Tensor | None = None) -> Moments:
     """Moments of observations ``I`` ``(N, M)`` with weights ``w`` ``(N, M)`` (None: all 1).

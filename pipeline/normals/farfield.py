@@ -89,9 +89,8 @@ class FarFieldSolver:
             if self.w_rows is not None:
                 w = w * self.w_rows
             m = _lstsq.moments(I, self.L, w, self.selectors)
-            A = m.Q.sum(0)
-            inv, _ = T.inverse3(A)
-            cond = T.condition_from_gram(A)
+            inv, _ = T.inverse3(m.Q.sum(0))
+            cond = _lstsq.condition(self.L, w)
         b = _lstsq.solve(m, inv, self.iterations)
         return finalize(b, m, cond, (H, W), max_condition=self.max_condition,
                         meta={"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition})

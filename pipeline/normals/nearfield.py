@@ -70,9 +70,8 @@ class NearFieldSolver:
         # The light field is fixed: per-pixel moments, inverse and condition once per model.
         self.Q = torch.stack([_lstsq.gram_pixel(self.L[sel], None if self.w0 is None else self.w0[sel])
                               for sel in self.selectors])
-        A = self.Q.sum(0)
-        self.inv, _ = T.inverse3(A)
-        self.cond = T.condition_from_gram(A)
+        self.inv, _ = T.inverse3(self.Q.sum(0))
+        self.cond = _lstsq.condition(self.L, self.w0)
 
     def solve(self, observations) -> NormalResult:
         """Normals of one observation stack ``(N_obs, H, W)``; NaN/Inf observations are ignored."""
@@ -88,9 +87,8 @@ class NearFieldSolver:
         else:
             w = finite.to(self.dtype) if self.w0 is None else finite.to(self.dtype) * self.w0
             m = _lstsq.moments(I, self.L, w, self.selectors)
-            A = m.Q.sum(0)
-            inv, _ = T.inverse3(A)
-            cond = T.condition_from_gram(A)
+            inv, _ = T.inverse3(m.Q.sum(0))
+            cond = _lstsq.condition(self.L, w)
         if self.method == "qr":
             b = _qr_solve(I, self.L, torch.ones_like(I) if w is None else w)
         else:

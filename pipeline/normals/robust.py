@@ -107,10 +107,9 @@ def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturatio
         usable = _trim(I, usable, trim_low, trim_high)
     w = usable.to(dt)
     m = _lstsq.moments(I, L, w, selectors)
-    A = m.Q.sum(0)
     # Conditioning is judged on the usable set (IRLS weights only down-weight within it).
-    cond = T.condition_from_gram(A)
-    inv, _ = T.inverse3(A)
+    cond = _lstsq.condition(L, w)
+    inv, _ = T.inverse3(m.Q.sum(0))
     b = _lstsq.solve(m, inv, iters_albedo)
     if method == "irls" and iterations > 0:
         rms = torch.sqrt((w * I * I).sum(0) / torch.clamp(w.sum(0), min=1.0))

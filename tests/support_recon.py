@@ -25,9 +25,10 @@ def _one_torch_thread():
 
 
 def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Per-pixel angle (degrees) between unit normals ``(..., 3)``."""
-    d = np.clip(np.sum(np.asarray(a, float) * np.asarray(b, float), axis=-1), -1.0, 1.0)
-    return np.degrees(np.arccos(d))
+    """Per-pixel angle (degrees) between unit normals ``(..., 3)`` (atan2: exact near 0)."""
+    from pipeline.evaluate import angular_error_deg as ang
+
+    return ang(a, b)
 
 
 def channel_groups(num_patterns: int) -> np.ndarray:
