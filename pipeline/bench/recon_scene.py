@@ -148,3 +148,38 @@ def render_sphere_scene(shape=(60, 80), mm_per_px: float = 0.1, *, radius: float
     lights = light_matrices(V, drive, exposure=exposure / np.pi).astype(dtype)
     return SphereScene(frames=out[0], reference=out[1], lights=lights, V=V.astype(dtype), drive=drive, height=h,
                        normals=n, albedo=rho, mm_per_px=mm_per_px, depth=depth, exposure=exposure)
+
+
+def scene_records(scene: SphereScene, *, bits: int = 8, num_presses: int = 1):
+    """The scene as stage-store records: ``(capture, illumination, calibration)``.
+
+    The capture holds ``num_presses`` copies of the contact frames (uint8/uint16 when the scene
+    was quantised) with truth; the illumination holds the bare-ring ``V``; the calibration holds
+    the exact light field and the centre-pixel far-field vectors (what a perfect calibration
+    of this scene would give).
+    """
+    from pipeline.store import Record
+
+    P, H, W, C = scene.frames.shape
+    dt = np.uint8 if bits <= 8 else np.uint16
+    k = num_presses
+    capture = Record("capture", {
+        "frames": np.repeat(np.clip(np.round(scene.frames), 0, 2 ** bits - 1).astype(dt)[None], k, 0),
+        "reference": np.clip(np.round(scene.reference), 0, 2 ** bits - 1).astype(dt),
+        "drive": scene.drive.astype(np.float32),
+        "brightness": np.ones(P, np.float32),
+        "truth/height": np.repeat(scene.height.astype(np.float32)[None], k, 0),
+        "truth/normals": np.repeat(scene.normals.astype(np.float32)[None], k, 0),
+        "truth/albedo": scene.albedo.astype(np.float32),
+    }, {"mm_per_px": scene.mm_per_px, "pattern_names": [f"sector{p}" for p in range(P)], "source": "virtual",
+        "mode": "monochromatic", "exposure": float(scene.exposure), "bit_depth": int(bits)})
+    pos, _ = ring_geometry(24, 40.0)
+    illumination = Record("illumination", {"V": scene.V.astype(np.float32), "led_positions": pos},
+                          {"mm_per_px": scene.mm_per_px, "gel_z": 30.0, "scene": "bare-ring"})
+    lf = scene.lights.astype(np.float32)
+    calibration = Record("calibration", {
+        "circles": np.zeros((k, 8), np.float32),
+        "light_field": lf,
+        "light_vectors": lf[:, :, H // 2, W // 2, :].copy(),
+    }, {"mm_per_px": scene.mm_per_px, "ball_radius_mm": 3.0, "models": ["exact"]})
+    return capture, illumination, calibration
