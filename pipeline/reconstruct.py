@@ -320,6 +320,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     cal = None if calibration is None else _read(calibration, "calibration")
     ill = None if illumination is None else _read(illumination, "illumination")
     lights = load_lights(cap, cal, ill)
+    if ratio and cap.meta.get("has_reference", True) is False:
+        raise UserError(f"{cap.path}: --ratio needs no-contact reference frames; this capture has none "
+                        f"(source {cap.meta.get('source')!r})")
     mm_per_px = float(cap.meta["mm_per_px"])
     cap_key = _record_key(cap)
     store = store if isinstance(store, StageStore) else StageStore(store)
