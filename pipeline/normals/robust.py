@@ -64,8 +64,8 @@ def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturatio
     saturation : float
         Observations ``>= saturation`` count as clipped and are excluded (e.g. ``255 - dark``).
     method : {"irls", "trim"}
-        ``"irls"``: least squares on the usable set, then ``iterations`` Cauchy-reweighted
-        solves with a per-pixel MAD scale. ``"trim"``: drop the darkest ``trim_low`` and
+        ``"irls"``: start from the trimmed solve, then ``iterations`` Cauchy-reweighted
+        solves over all usable observations with a per-pixel MAD scale. ``"trim"``: drop the darkest ``trim_low`` and
         brightest ``trim_high`` fraction of the usable observations, then least squares.
     noise_floor : float, optional
         Lower bound of the IRLS residual scale (default ``1e-3`` of the pixel's RMS intensity):
@@ -103,21 +103,30 @@ def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturatio
     light_ok = light_ok[:, None].expand(N, H * W) if L.dim() == 2 else light_ok
     usable = usable_observations(raw, dark_threshold, saturation) & light_ok
     I = torch.where(torch.isfinite(raw), raw, torch.zeros((), dtype=dt, device=dev))
+    # Start from the trimmed solve (darkest and brightest usable observations dropped): a
+    # least-squares start pulled by many outliers can make the reweighting converge to them.
+    trimmed = _trim(I, usable, trim_low, trim_high)
     if method == "trim":
-        usable = _trim(I, usable, trim_low, trim_high)
-    w = usable.to(dt)
+        usable = trimmed
+    w = trimmed.to(dt)
     m = _lstsq.moments(I, L, w, selectors)
     # Conditioning is judged on the usable set (IRLS weights only down-weight within it).
-    cond = _lstsq.condition(L, w)
+    cond = _lstsq.condition(L, usable.to(dt))
     inv, _ = T.inverse3(m.Q.sum(0))
     b = _lstsq.solve(m, inv, iters_albedo)
+    w = usable.to(dt)
     if method == "irls" and iterations > 0:
         rms = torch.sqrt((w * I * I).sum(0) / torch.clamp(w.sum(0), min=1.0))
         floor = rms * 1e-3 if noise_floor is None else torch.full_like(rms, float(noise_floor))
         floor = torch.clamp(floor, min=torch.finfo(dt).tiny)
         nan = torch.full((), float("nan"), dtype=dt, device=dev)
+        gid = torch.zeros(N, dtype=torch.long, device=dev) if g is None else g
         for _ in range(iterations):
-            r = I - T.project(L, b)
+            # Residuals of the full model, albedo per group: with one joint albedo a coloured
+            # gel would leave channel-dependent residuals that inflate the scale estimate.
+            n, _ = _lstsq.unit(b)
+            rho, _, _ = _lstsq.group_albedo(m, n)
+            r = I - rho[gid] * T.project(L, n)
             sigma = 1.4826 * torch.nanmedian(torch.where(usable, r.abs(), nan), dim=0).values
             sigma = torch.maximum(torch.where(torch.isfinite(sigma), sigma, floor), floor)
             w = usable.to(dt) / (1.0 + (r / (_CAUCHY_C * sigma)) ** 2)

@@ -141,3 +141,17 @@ def test_bad_shapes_name_the_shape():
         solve_farfield(np.zeros((2, 2)), np.eye(3))
     with pytest.raises(ValueError, match=r"\(3, 5, 5, 3\)"):
         solve_robust(np.zeros((3, 4, 4)), np.zeros((3, 5, 5, 3)))
+
+
+@pytest.mark.parametrize("kind", ["clipped", "partial shadow"])
+def test_robust_beats_least_squares_when_a_fifth_is_corrupted(kind):
+    from pipeline.bench.reconstruct import _corrupt
+
+    s = render_sphere_scene((30, 40), 0.4, radius=3.0, depth=0.5, num_patterns=8, noise=1.0, bits=8, seed=5)
+    obs = _corrupt(s.frames.astype(np.uint8), kind, np.random.default_rng(0))
+    g = channel_groups(8)
+    ls = NearFieldSolver(s.lights_flat(), groups=g).solve(obs)
+    rb = solve_robust(obs, s.lights_flat(), groups=g, dark_threshold=2.55, saturation=255.0)
+    e_ls = angular_error_deg(ls.normals, s.normals).mean()
+    e_rb = angular_error_deg(rb.normals, s.normals).mean()
+    assert e_rb < 0.5 < 3.0 < e_ls, (e_rb, e_ls)
