@@ -43,12 +43,18 @@ __all__ = [
     "bare_ring_illumination",
     "auto_exposure",
     "EFFECTS",
+    "SURFACE_EFFECTS",
+    "IMAGE_EFFECTS",
     "load_render_settings",
 ]
 
+#: Effects that depend on the surface (computed by :meth:`Renderer.set_surface`), in order.
+SURFACE_EFFECTS = ("depth_field", "attached_shadows", "cast_shadows")
+#: Effects applied to each rendered image (:meth:`Renderer.render`), in order.
+IMAGE_EFFECTS = ("crosstalk", "vignetting", "distortion", "dark_level", "shot_noise", "read_noise", "saturation",
+                 "quantization")
 #: Every optional effect, in the order it is applied.
-EFFECTS = ("depth_field", "attached_shadows", "cast_shadows", "crosstalk", "vignetting", "distortion",
-           "dark_level", "shot_noise", "read_noise", "saturation", "quantization")
+EFFECTS = SURFACE_EFFECTS + IMAGE_EFFECTS
 
 
 @dataclass
@@ -194,7 +200,7 @@ def load_render_settings(path) -> RenderSettings:
 # --------------------------------------------------------------------------------------------
 # Illumination models
 
-def bare_ring_illumination(shape: tuple[int, int], mm_per_px: float, gel_z: float = 30.0, *, count: int = 24,
+def bare_ring_illumination(shape: tuple[int, int], mm_per_px: float, gel_z: float = 35.0, *, count: int = 24,
                            radius: float = 40.0, m: float = 1.0, cone_half_angle_deg: float = 60.0,
                            depth_heights=None, dtype=np.float32) -> IlluminationModel:
     """Illumination model of a bare LED ring (no lens), in closed form.
@@ -207,8 +213,9 @@ def bare_ring_illumination(shape: tuple[int, int], mm_per_px: float, gel_z: floa
     shape : (H, W)
     mm_per_px : float
     gel_z : float
-        Optical ``z`` of the gel (mm). With the default 40 mm ring and 120 degree LED cones
-        the whole gel is lit when ``gel_z`` is at least about 24 mm plus the field of view.
+        Optical ``z`` of the gel (mm). With the 40 mm ring and 120 degree LED cones, every LED
+        lights a pixel at distance ``rho`` from the axis only if
+        ``(40 + rho) / gel_z < tan 60``: the default 35 mm lights a 25 mm wide gel fully.
     count, radius, m, cone_half_angle_deg
         Ring and emitter, as in :func:`sim.point_source.ring_geometry`.
     depth_heights : array_like, shape (D,), optional
@@ -365,19 +372,19 @@ class Renderer:
         if rho.shape != (h, w, 3) or not np.all(np.isfinite(rho)) or np.any(rho < 0):
             raise ValueError(f"Renderer.set_surface: albedo must be finite >= 0, scalar, (H, W) or (H, W, 3); "
                              f"got shape {np.shape(albedo)}")
-        s = self.settings
-        done = []
         n = torch.as_tensor(surface.normals.reshape(h * w, 3), dtype=self.dtype, device=self.device)
-        if s.depth_field:
+        on = self.settings.effects
+        done = []
+        if "depth_field" in on:
             V = self._depth_field(surface.height)
             done.append("depth_field")
         else:
             V = self._V
         shading = torch.einsum("lxk,xk->lx", V, n)  # (L, H*W): n . V_i
-        if s.attached_shadows:
+        if "attached_shadows" in on:
             shading = shading.clamp_min(0.0)
             done.append("attached_shadows")
-        if s.cast_shadows:
+        if "cast_shadows" in on:
             shading = shading * self._cast_visibility(surface)
             done.append("cast_shadows")
         self._shading = shading
@@ -520,47 +527,60 @@ class Renderer:
 
         Returns a (P, H, W, 3) tensor view: float, uint8 (8 bit) or int32 (10-16 bit).
         """
-        s = self.settings
         h, w = self.model.shape
-        done = list(self._surface_effects)
         P = weights.shape[0]
         wt = torch.as_tensor(weights, dtype=self.dtype, device=self.device)
         # (P, 3, L) @ (L, HW) -> (P, 3, HW); the 1/pi of the Lambertian BRDF folded in.
         img = torch.matmul(wt.transpose(1, 2) / math.pi, self._shading) * self._albedo
-        if self._crosstalk is not None:
-            img = torch.einsum("jk,pkx->pjx", self._crosstalk, img)
-            done.append("crosstalk")
-        if self._vignette is not None:
-            img = img * self._vignette
-            done.append("vignetting")
-        if self._grid is not None:
-            img4 = img.reshape(P, 3, h, w)
-            img = torch.nn.functional.grid_sample(img4, self._grid.expand(P, -1, -1, -1), mode="bilinear",
-                                                  padding_mode="border", align_corners=True).reshape(P, 3, h * w)
-            done.append("distortion")
-        if s.dark_level > 0:
-            img = img + s.dark_level
-            done.append("dark_level")
-        if s.shot_noise > 0 or s.read_noise > 0:
-            g = torch.Generator(device=self.device)
-            g.manual_seed(int(s.seed if seed is None else seed) & 0x7FFF_FFFF_FFFF_FFFF)
-            if s.shot_noise > 0:
-                noise = torch.randn(img.shape, generator=g, dtype=self.dtype, device=self.device)
-                img = img + noise * torch.sqrt(img.clamp_min(0.0) * s.shot_noise)
-                done.append("shot_noise")
-            if s.read_noise > 0:
-                img = img + s.read_noise * torch.randn(img.shape, generator=g, dtype=self.dtype, device=self.device)
-                done.append("read_noise")
-        if s.saturation:
-            img = img.clamp(0.0, s.max_dn)
-            done.append("saturation")
-        if s.bit_depth is not None:
-            # Rounding plus the representable range: an integer image cannot hold more.
-            img = torch.round(img).clamp(0.0, s.max_dn)
-            img = img.to(torch.uint8 if s.bit_depth == 8 else torch.int32)
-            done.append("quantization")
+        done = list(self._surface_effects)
+        self._noise_gen = None
+        self._noise_seed = self.settings.seed if seed is None else seed
+        # Only the effects the settings turn on are called: an effect that is off costs nothing.
+        for name in self.settings.effects:
+            if name in IMAGE_EFFECTS:
+                img = getattr(self, f"_fx_{name}")(img)
+                done.append(name)
         self.computed = done
         return img.reshape(P, 3, h, w).permute(0, 2, 3, 1)
+
+    # -- image effects, (P, 3, H*W) -> (P, 3, H*W), in EFFECTS order -------------------------
+    def _fx_crosstalk(self, img):
+        return torch.einsum("jk,pkx->pjx", self._crosstalk, img)
+
+    def _fx_vignetting(self, img):
+        return img * self._vignette
+
+    def _fx_distortion(self, img):
+        h, w = self.model.shape
+        P = img.shape[0]
+        out = torch.nn.functional.grid_sample(img.reshape(P, 3, h, w), self._grid.expand(P, -1, -1, -1),
+                                              mode="bilinear", padding_mode="border", align_corners=True)
+        return out.reshape(P, 3, h * w)
+
+    def _fx_dark_level(self, img):
+        return img + self.settings.dark_level
+
+    def _randn(self, shape):
+        if self._noise_gen is None:
+            self._noise_gen = torch.Generator(device=self.device)
+            self._noise_gen.manual_seed(int(self._noise_seed) & 0x7FFF_FFFF_FFFF_FFFF)
+        return torch.randn(shape, generator=self._noise_gen, dtype=self.dtype, device=self.device)
+
+    def _fx_shot_noise(self, img):
+        # Gaussian approximation of Poisson: variance = gain (DN/e-) x signal (DN).
+        return img + self._randn(img.shape) * torch.sqrt(img.clamp_min(0.0) * self.settings.shot_noise)
+
+    def _fx_read_noise(self, img):
+        return img + self.settings.read_noise * self._randn(img.shape)
+
+    def _fx_saturation(self, img):
+        return img.clamp(0.0, self.settings.max_dn)
+
+    def _fx_quantization(self, img):
+        s = self.settings
+        # Rounding plus the representable range: an integer image cannot hold more.
+        img = torch.round(img).clamp(0.0, s.max_dn)
+        return img.to(torch.uint8 if s.bit_depth == 8 else torch.int32)
 
 
 def render_images(model: IlluminationModel, surface: HeightField | None, drive, brightness=None, albedo=1.0,

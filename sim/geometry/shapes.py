@@ -32,6 +32,15 @@ def _axis_coords(x, y, angle_deg):
     return x * c + y * s, -x * s + y * c, c, s
 
 
+def _pointed(func, shape, mm_per_px, half_angle_deg, depth, center):
+    """Checks and the grid shared by the pointed shapes; returns (cot(alpha), x, y)."""
+    _positive(func, half_angle_deg=half_angle_deg, depth=depth, mm_per_px=mm_per_px)
+    if half_angle_deg >= 90:
+        raise ValueError(f"{func}: half_angle_deg must be < 90, got {half_angle_deg}")
+    x, y = recon_grid(shape, mm_per_px, center)
+    return 1.0 / math.tan(math.radians(half_angle_deg)), x, y
+
+
 def sphere(shape, mm_per_px: float, radius: float, depth: float, center=(0.0, 0.0)) -> HeightField:
     """A ball of ``radius`` pressed ``depth`` into the gel (``0 < depth < radius``).
 
@@ -144,11 +153,7 @@ def cone(shape, mm_per_px: float, half_angle_deg: float, depth: float, center=(0
     >>> round(float(f.height[20, 20]), 12), round(float(f.p[20, 25]), 12)  # falls toward +x
     (1.0, -1.0)
     """
-    _positive("cone", half_angle_deg=half_angle_deg, depth=depth, mm_per_px=mm_per_px)
-    if half_angle_deg >= 90:
-        raise ValueError(f"cone: half_angle_deg must be < 90, got {half_angle_deg}")
-    slope = 1.0 / math.tan(math.radians(half_angle_deg))
-    x, y = recon_grid(shape, mm_per_px, center)
+    slope, x, y = _pointed("cone", shape, mm_per_px, half_angle_deg, depth, center)
     r = np.hypot(x, y)
     h = depth - r * slope
     inside = h > 0
@@ -171,11 +176,7 @@ def wedge(shape, mm_per_px: float, half_angle_deg: float, depth: float, center=(
     >>> round(float(f.height[10, 20]), 12), round(float(f.p[10, 22]), 12)
     (0.5, -1.0)
     """
-    _positive("wedge", half_angle_deg=half_angle_deg, depth=depth, mm_per_px=mm_per_px)
-    if half_angle_deg >= 90:
-        raise ValueError(f"wedge: half_angle_deg must be < 90, got {half_angle_deg}")
-    slope = 1.0 / math.tan(math.radians(half_angle_deg))
-    x, y = recon_grid(shape, mm_per_px, center)
+    slope, x, y = _pointed("wedge", shape, mm_per_px, half_angle_deg, depth, center)
     _, u, c, s = _axis_coords(x, y, angle_deg)
     h = depth - np.abs(u) * slope
     inside = h > 0
