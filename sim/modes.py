@@ -23,8 +23,10 @@ A user mode is any YAML/JSON file with the same layout (schema ``data_schemas/co
         brightness: 0.8
         drive: [[1, 1, 1], [0, 0, 0], ...]   # 24 rows of [R, G, B]
 
-LED 0 sits on ``+x`` and LEDs go counter-clockwise as the camera sees the gel
-(:func:`sim.point_source.ring_geometry`).
+LED ``i`` sits at azimuth ``15 i`` degrees from optical ``+x`` toward optical ``+y``
+(:func:`sim.point_source.ring_geometry`). In an image displayed with row 0 at the top, LED 0
+lights from the right (larger columns) and LED 6 from the bottom (larger rows), so the index
+runs clockwise on screen (:mod:`sim.frames`: optical ``y`` grows with the row).
 
 Examples
 --------
