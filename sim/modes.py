@@ -44,7 +44,7 @@ import numpy as np
 
 from pipeline.errors import UserError
 
-__all__ = ["ModeFrame", "LightingMode", "load_mode", "list_modes", "mode_drive", "mode_brightness", "save_mode",
+__all__ = ["ModeFrame", "LightingMode", "load_mode", "list_modes", "mode_drive", "mode_brightness", "save_mode", "describe_modes",
            "MODES_DIR"]
 
 #: Folder of the built-in mode files.
@@ -206,3 +206,19 @@ def _yaml_str(s: str) -> str:
     import json
 
     return json.dumps(s)  # a JSON string is a valid YAML scalar
+
+
+def describe_modes(names: list | None = None) -> list[dict]:
+    """One summary per mode (default: the built-in ones): what ``iristac sim modes`` prints.
+
+    Examples
+    --------
+    >>> [d["frames"] for d in describe_modes(["point", "trichromatic"])]
+    [24, 1]
+    """
+    out = []
+    for n in names if names is not None else list_modes():
+        m = load_mode(n)
+        out.append({"name": m.name, "frames": len(m.frames), "leds": m.num_leds, "patterns": m.pattern_names,
+                    "description": m.description, "file": m.source})
+    return out

@@ -17,19 +17,17 @@ Examples
 
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 from typing import Sequence
 
 import numpy as np
-import torch
 
 from sim.geometry import HeightField, sphere
 from sim.illumination_model import IlluminationModel
 from sim.modes import LightingMode, load_mode, mode_brightness, mode_drive
 from sim.render import RenderSettings, Renderer, auto_exposure
 
-__all__ = ["render_capture", "write_capture", "sphere_presses"]
+__all__ = ["render_capture", "write_capture", "sphere_presses", "save_png", "render_scene_files"]
 
 
 def sphere_presses(shape: tuple[int, int], mm_per_px: float, radius: float, depths: Sequence[float],
@@ -137,3 +135,90 @@ def write_capture(path, record) -> Path:
     from pipeline.store import write_record
 
     return write_record(path, record)
+
+
+def save_png(path, image: np.ndarray) -> Path:
+    """Write an RGB image (H, W, 3) as PNG: uint8/uint16 as they are, float clipped to 0..255 as uint8."""
+    import cv2
+
+    img = np.asarray(image)
+    if img.ndim != 3 or img.shape[2] != 3:
+        raise ValueError(f"save_png: expected an RGB image (H, W, 3), got {img.shape}")
+    if img.dtype not in (np.uint8, np.uint16):
+        img = np.clip(np.round(img), 0, 255).astype(np.uint8)
+    path = Path(path)
+    if not cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1])):  # OpenCV writes BGR
+        from pipeline.errors import UserError
+
+        raise UserError(f"{path}: could not write PNG")
+    return path
+
+
+def render_scene_files(out_dir, *, mode="monochromatic", height_file=None, height_scale: float = 1.0,
+                       sphere_rd: tuple[float, float] | None = None, center=(0.0, 0.0),
+                       shape: tuple[int, int] | None = None, mm_per_px: float = 0.0625, gel_z: float = 35.0,
+                       settings_file=None, noise_dn: float = 1.0, bit_depth: int | None = 8, seed: int = 0,
+                       name: str = "capture") -> dict:
+    """Render a height map (file or sphere) under a mode to PNGs and a ``capture`` HDF5 file.
+
+    The illumination is the bare-LED ring (:func:`sim.render.bare_ring_illumination`) at
+    ``gel_z``. This is what ``iristac sim render`` runs.
+
+    Parameters
+    ----------
+    out_dir : path
+        Output folder (created).
+    mode : str or path
+        Lighting mode name or file.
+    height_file : path, optional
+        ``.npy`` or 16-bit ``.png`` height map (mm = value x ``height_scale``) at ``mm_per_px``.
+    sphere_rd : (radius, depth), optional
+        A sphere press instead of a file (``center`` in mm); neither: the flat gel.
+    shape : (H, W), optional
+        Image size (default: the file's, or 240 x 320).
+    settings_file : path, optional
+        A render settings YAML (``data_schemas/configs/render.json``); otherwise read noise
+        ``noise_dn`` and ``bit_depth`` quantization with automatic exposure.
+
+    Returns
+    -------
+    dict
+        ``capture`` (path), ``pngs`` (paths), ``mode``, ``patterns``, ``shape``, ``mm_per_px``,
+        ``exposure``, ``effects``.
+    """
+    from sim.geometry import height_from_file
+    from sim.render import bare_ring_illumination, load_render_settings
+
+    from pipeline.errors import UserError
+
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    if height_file is not None and sphere_rd is not None:
+        raise UserError("give either a height file or a sphere, not both")
+    mode_obj = load_mode(mode)
+    if height_file is not None:
+        surface = height_from_file(height_file, mm_per_px, mm_per_unit=height_scale, shape=shape)
+        shape, mm_per_px = surface.shape, surface.mm_per_px
+    else:
+        shape = tuple(shape) if shape is not None else (240, 320)
+        surface = None
+        if sphere_rd is not None:
+            try:
+                surface = sphere(shape, mm_per_px, float(sphere_rd[0]), float(sphere_rd[1]), center=tuple(center))
+            except ValueError as exc:
+                raise UserError(f"--sphere: {exc}") from None
+    model = bare_ring_illumination(shape, mm_per_px, gel_z)
+    settings = load_render_settings(settings_file) if settings_file is not None else None
+    contacts = [surface] if surface is not None else []
+    rec = render_capture(model, mode_obj, contacts, settings=settings, noise_dn=noise_dn, bit_depth=bit_depth,
+                         seed=seed)
+    pngs = []
+    for p, pname in enumerate(mode_obj.pattern_names):
+        if contacts:
+            pngs.append(save_png(out / f"{name}_{pname}.png", rec.data["frames"][0, p]))
+        pngs.append(save_png(out / f"reference_{pname}.png", rec.data["reference"][p]))
+    pngs.append(save_png(out / "dark.png", rec.data["dark"]))
+    h5 = write_capture(out / f"{name}.h5", rec)
+    return {"capture": str(h5), "pngs": [str(p) for p in pngs], "mode": mode_obj.name,
+            "patterns": mode_obj.pattern_names, "shape": list(shape), "mm_per_px": float(mm_per_px),
+            "exposure": rec.meta["exposure"], "effects": list(RenderSettings(**rec.meta["render_settings"]).effects)}

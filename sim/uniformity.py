@@ -124,7 +124,7 @@ def uniformity_report(model: IlluminationModel, modes: Sequence | None = None,
 
 
 def uniformity_figure(model: IlluminationModel, path, modes: Sequence | None = None,
-                      report: dict | None = None) -> Path:
+                      ) -> Path:
     """Figure: per mode, the first frame's colour image and its separated R, G, B channels.
 
     Each channel image is shown on its own scale (0 to its maximum) with its CV and
