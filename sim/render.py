@@ -428,21 +428,36 @@ class Renderer:
         # LED positions relative to the gel plane, reconstruction frame (heights toward the camera).
         leds = optical_to_recon(np.asarray(m.led_positions, np.float64))
         leds[:, 2] += m.gel_z
-        rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
         # pixel -> recon (x, y) in pixel units: x = col - cx, y = -(row - cy)
         cy, cx = (h - 1) / 2, (w - 1) / 2
         dev, dt = self.device, self.dtype
-        H = torch.as_tensor(surface.height, dtype=dt, device=dev)
-        hmap = H[None, None]
-        col = torch.as_tensor(cols.reshape(-1), dtype=dt, device=dev)
-        row = torch.as_tensor(rows.reshape(-1), dtype=dt, device=dev)
-        z0 = H.reshape(-1)
-        vis = ones.clone()
         step = self.settings.cast_shadow_step_px
         # Tolerance against self-occlusion from bilinear interpolation of a curved surface.
         eps = 0.25 * px
+        # Only samples higher than hmin + eps can block a ray (rays start at z0 >= hmin and rise), so only
+        # pixels near the box around those samples need marching: a large saving for one bump.
+        hmin = min(float(surface.height.min()), 0.0)
+        tall = np.argwhere(surface.height > hmin + eps)
+        vis = ones.clone()
+        if len(tall) == 0:
+            return vis
+        r0, c0 = tall.min(0)
+        r1, c1 = tall.max(0)
+        hmap = torch.as_tensor(surface.height, dtype=dt, device=dev)[None, None]
+        rows, cols = np.meshgrid(np.arange(h), np.arange(w), indexing="ij")
         for i in range(L):
             sx, sy, sz = leds[i]
+            # Farthest a ray from the gel plane travels horizontally (pixels) before rising above hmax.
+            far = math.hypot(sx / px, sy / px) + math.hypot(cx, cy)
+            reach = (hmax - hmin) / max(sz - hmax, 1e-9) * far + 1.0
+            near = ((rows >= r0 - reach) & (rows <= r1 + reach) & (cols >= c0 - reach) & (cols <= c1 + reach))
+            idx = np.flatnonzero(near)
+            if idx.size == 0:
+                continue
+            idx_t = torch.as_tensor(idx, device=dev)
+            col = torch.as_tensor(cols.reshape(-1)[idx], dtype=dt, device=dev)
+            row = torch.as_tensor(rows.reshape(-1)[idx], dtype=dt, device=dev)
+            z0 = hmap.reshape(-1)[idx_t]
             dcol = sx / px - (col - cx)  # pixel-unit offset to the LED, column direction
             drow = -(sy / px) - (row - cy)  # rows grow along -y
             dz = sz - z0
@@ -453,16 +468,20 @@ class Renderer:
             if n_steps == 0:
                 continue
             k = torch.arange(1, n_steps + 1, dtype=dt, device=dev) * step
-            t = k[None, :] / horiz.clamp_min(1e-9)[:, None]  # (HW, S)
-            valid = t <= t_top[:, None]
-            cs = col[:, None] + t * dcol[:, None]
-            rs = row[:, None] + t * drow[:, None]
-            zr = z0[:, None] + t * dz[:, None]
-            grid = torch.stack([cs / max(w - 1, 1) * 2 - 1, rs / max(h - 1, 1) * 2 - 1], dim=-1)[None]
-            hs = torch.nn.functional.grid_sample(hmap, grid, mode="bilinear", padding_mode="zeros",
-                                                 align_corners=True)[0, 0]
-            blocked = ((hs > zr + eps) & valid).any(dim=1)
-            vis[i] = (~blocked).to(dt)
+            blocked = torch.zeros(idx.size, dtype=torch.bool, device=dev)
+            chunk = max(1, (1 << 21) // n_steps)  # bound the (pixels x steps) temporaries
+            for a in range(0, idx.size, chunk):
+                sl = slice(a, a + chunk)
+                t = k[None, :] / horiz[sl].clamp_min(1e-9)[:, None]  # (N, S)
+                valid = t <= t_top[sl, None]
+                cs = col[sl, None] + t * dcol[sl, None]
+                rs = row[sl, None] + t * drow[sl, None]
+                zr = z0[sl, None] + t * dz[sl, None]
+                grid = torch.stack([cs / max(w - 1, 1) * 2 - 1, rs / max(h - 1, 1) * 2 - 1], dim=-1)[None]
+                hs = torch.nn.functional.grid_sample(hmap, grid, mode="bilinear", padding_mode="zeros",
+                                                     align_corners=True)[0, 0]
+                blocked[sl] = ((hs > zr + eps) & valid).any(dim=1)
+            vis[i, idx_t] = (~blocked).to(dt)
         return vis
 
     # -- camera effects prepared once -----------------------------------------------------
