@@ -1,0 +1,128 @@
+"""Training and evaluation samples: pixels with their observations and their true normals.
+
+Each accepted press contributes the pixels inside its contact disc shrunk by
+``shrink_px`` (sphere-cap normals, ``contact=True``: the pixels every model is validated on)
+and a sparse set of pixels far outside it (flat, ``contact=False``); the no-contact reference
+adds flat pixels on a grid (``press = -1``, never held out). Saturated observations are
+dropped.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from calibration.detect import Circle
+from calibration.truth import sphere_cap
+
+__all__ = ["Samples", "collect_samples"]
+
+
+@dataclass
+class Samples:
+    """Pixels of a capture with observations and truth.
+
+    Attributes
+    ----------
+    intensities : ndarray, shape (N, P, C), float32
+        Linear observations (dark removed).
+    reference : ndarray, shape (N, P, C), float32
+        The no-contact reference at the same pixel.
+    rows, cols : ndarray, shape (N,), int
+    normals : ndarray, shape (N, 3), float64
+        True unit normals (reconstruction frame).
+    press : ndarray, shape (N,), int
+        Press index, ``-1`` for reference pixels.
+    contact : ndarray, shape (N,), bool
+        Inside a (shrunk) contact disc.
+    shape : (H, W)
+    """
+
+    intensities: np.ndarray
+    reference: np.ndarray
+    rows: np.ndarray
+    cols: np.ndarray
+    normals: np.ndarray
+    press: np.ndarray
+    contact: np.ndarray
+    shape: tuple[int, int]
+
+    def __len__(self) -> int:
+        return int(len(self.rows))
+
+    def subset(self, mask: np.ndarray) -> "Samples":
+        """The samples where ``mask (N,)`` is True."""
+        m = np.asarray(mask, dtype=bool)
+        return Samples(self.intensities[m], self.reference[m], self.rows[m], self.cols[m], self.normals[m],
+                       self.press[m], self.contact[m], self.shape)
+
+    @property
+    def flat_observations(self) -> np.ndarray:
+        """``intensities`` as ``(N, P * C)``."""
+        return self.intensities.reshape(len(self), -1)
+
+
+def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Circle], ball_radius_mm: float,
+                    mm_per_px: float, *, shrink_px: float = 2.0, flat_outside: float = 2.0, flat_step: int = 4,
+                    saturation: float | None = None) -> Samples:
+    """Gather samples from the accepted presses.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (K, P, H, W, C)
+        Linear frames.
+    reference : ndarray, shape (P, H, W, C)
+    circles : list of Circle, length K
+    ball_radius_mm, mm_per_px : float
+    shrink_px : float
+        Contact pixels lie within ``contact_radius - shrink_px`` (the rim is where the truth
+        is least certain).
+    flat_outside : float
+        Flat pixels of a press lie beyond ``flat_outside x`` the ball radius from its centre
+        (the gel bulges around the contact).
+    flat_step : int
+        Grid step of the flat pixels.
+    saturation : float, optional
+        Observations at or above this value are dropped.
+
+    Returns
+    -------
+    Samples
+    """
+    frames = np.asarray(frames, dtype=np.float32)
+    reference = np.asarray(reference, dtype=np.float32)
+    if frames.ndim != 5 or frames.shape[1:] != reference.shape:
+        raise ValueError(f"collect_samples: frames (K, P, H, W, C) and reference (P, H, W, C) expected, got "
+                         f"{frames.shape} and {reference.shape}")
+    if len(circles) != frames.shape[0]:
+        raise ValueError(f"collect_samples: {frames.shape[0]} presses but {len(circles)} circles")
+    k_all, p, h, w, c = frames.shape
+    rows, cols = np.mgrid[:h, :w]
+    grid = (rows % flat_step == 0) & (cols % flat_step == 0)
+    ball_px = ball_radius_mm / mm_per_px
+    parts = []
+    ref_hwm = reference.transpose(1, 2, 0, 3)  # (H, W, P, C)
+
+    def add(mask, normals, press, contact, img):
+        rr, cc = np.nonzero(mask)
+        parts.append((img[rr, cc], ref_hwm[rr, cc], rr, cc, normals[rr, cc], np.full(len(rr), press),
+                      np.full(len(rr), contact)))
+
+    flat_n = np.zeros((h, w, 3))
+    flat_n[..., 2] = 1.0
+    add(grid, flat_n, -1, False, ref_hwm)
+    for k, circ in enumerate(circles):
+        if not circ.accepted:
+            continue
+        img = frames[k].transpose(1, 2, 0, 3)
+        cx, cy = circ.center_xy
+        cap = sphere_cap((h, w), (cy, cx), circ.contact_radius_px, ball_radius_mm, mm_per_px)
+        dist = np.hypot(cols - cx, rows - cy)
+        add(dist < circ.contact_radius_px - shrink_px, cap.normals, k, True, img)
+        add(grid & (dist > flat_outside * ball_px), flat_n, k, False, img)
+    I, R, rr, cc, n, pr, ct = (np.concatenate(x) for x in zip(*parts))
+    s = Samples(I.astype(np.float32), R.astype(np.float32), rr, cc, n, pr, ct.astype(bool), (h, w))
+    if saturation is not None:
+        s = s.subset((s.intensities < saturation).all(axis=(1, 2)))
+    return s

@@ -1,0 +1,96 @@
+"""Ground truth on a sphere cap: heights and normals of a ball pressed into the gel.
+
+A ball of radius ``R`` (mm) pressed into the gel leaves a contact disc of radius ``a < R``
+(mm) in which the gel takes the ball's shape; outside the disc the gel is taken as flat.
+Inside, at reconstruction-frame offset ``(dx, dy)`` from the disc centre (``d^2 = dx^2 +
+dy^2``), the height is ``h = sqrt(R^2 - d^2) - sqrt(R^2 - a^2)`` (a bump toward the camera,
+zero on the rim) and the gradients are ``dh/dx = -dx / sqrt(R^2 - d^2)`` (same for ``y``),
+turned into normals by :func:`sim.frames.gradients_to_normals`. Pixel offsets are mapped to
+mm by :func:`sim.frames.pixel_to_recon`, so the signs follow the project's conventions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from sim.frames import gradients_to_normals, pixel_to_recon
+
+__all__ = ["SphereCap", "sphere_cap"]
+
+
+@dataclass
+class SphereCap:
+    """Truth of one press.
+
+    Attributes
+    ----------
+    height : ndarray, shape (H, W), float64
+        mm, positive toward the camera; 0 outside the contact.
+    normals : ndarray, shape (H, W, 3), float64
+        Unit normals in the reconstruction frame; ``(0, 0, 1)`` outside the contact.
+    gradients : ndarray, shape (H, W, 2), float64
+        ``(dh/dx, dh/dy)`` in the reconstruction frame; 0 outside.
+    contact : ndarray, shape (H, W), bool
+        Pixels whose centre lies inside the contact disc.
+    """
+
+    height: np.ndarray
+    normals: np.ndarray
+    gradients: np.ndarray
+    contact: np.ndarray
+
+
+def sphere_cap(shape: tuple[int, int], center_rc: tuple[float, float], contact_radius_px: float,
+               ball_radius_mm: float, mm_per_px: float) -> SphereCap:
+    """Heights and normals of a ball of radius ``ball_radius_mm`` pressed at ``center_rc``.
+
+    Parameters
+    ----------
+    shape : (H, W)
+        Image size.
+    center_rc : (row, col)
+        Contact centre in pixels (may be fractional).
+    contact_radius_px : float
+        Contact disc radius in pixels; must be below the ball radius in pixels.
+    ball_radius_mm, mm_per_px : float
+        Ball radius and pixel pitch.
+
+    Returns
+    -------
+    SphereCap
+
+    Examples
+    --------
+    The normal on the rim leans away from the centre; the apex is the highest point:
+
+    >>> cap = sphere_cap((9, 9), (4.0, 4.0), 3.0, 2.0, 0.5)
+    >>> cap.normals[4, 4].round(6).tolist(), bool(cap.normals[4, 6, 0] > 0), bool(cap.normals[2, 4, 1] > 0)
+    ([0.0, 0.0, 1.0], True, True)
+    >>> round(float(cap.height[4, 4]), 6), round(2.0 - float(np.sqrt(4.0 - 1.5 ** 2)), 6)
+    (0.677124, 0.677124)
+    """
+    h, w = int(shape[0]), int(shape[1])
+    if ball_radius_mm <= 0 or mm_per_px <= 0:
+        raise ValueError(f"sphere_cap: ball_radius_mm and mm_per_px must be > 0, got {ball_radius_mm}, {mm_per_px}")
+    a_mm = float(contact_radius_px) * mm_per_px
+    if not 0 <= a_mm < ball_radius_mm:
+        raise ValueError(
+            f"sphere_cap: contact radius {contact_radius_px} px = {a_mm:.4f} mm must be in [0, ball radius "
+            f"{ball_radius_mm} mm)")
+    rows, cols = np.meshgrid(np.arange(h, dtype=float), np.arange(w, dtype=float), indexing="ij")
+    # Offsets from the centre in the reconstruction frame: map both through the same camera
+    # model so that the row -> -y flip comes from sim.frames, not from here.
+    x, y = pixel_to_recon(rows, cols, (h, w), mm_per_px)
+    x0, y0 = pixel_to_recon(center_rc[0], center_rc[1], (h, w), mm_per_px)
+    dx, dy = x - x0, y - y0
+    d2 = dx * dx + dy * dy
+    contact = d2 < a_mm * a_mm
+    zc = np.sqrt(np.clip(ball_radius_mm ** 2 - d2, 0.0, None))
+    zc_safe = np.where(contact, zc, 1.0)
+    p = np.where(contact, -dx / zc_safe, 0.0)
+    q = np.where(contact, -dy / zc_safe, 0.0)
+    height = np.where(contact, zc - np.sqrt(ball_radius_mm ** 2 - a_mm ** 2), 0.0)
+    return SphereCap(height=height, normals=gradients_to_normals(p, q), gradients=np.stack([p, q], axis=-1),
+                     contact=contact)

@@ -1,0 +1,439 @@
+"""An MCU emulator of the LED ring behind a real pseudo-terminal, with fault injection.
+
+The emulator opens a pty pair (``os.openpty``), serves the ring protocol on the master side in
+a background thread and hands out the slave's device path, so the host talks to it through
+the real pyserial ``Serial`` class exactly as it would to a USB-serial MCU.
+
+Faults act on whole frames as they cross the emulated wire, in both directions:
+
+- ``drop=P``: the frame is lost (the device never sees a command / the host never sees a reply);
+- ``corrupt=P``: one random bit of the frame is flipped, and the corrupted bytes go through
+  the receiver's real parser (which must detect it by CRC and resynchronise);
+- ``delay=P``: before handling a command the device stalls for ``delay-s`` seconds
+  (default 0.05), as a busy MCU would, so late and duplicate replies reach the host;
+- ``disconnect-after=N``: after handling N commands the device "is unplugged": the pty is
+  closed and the host's next read or write fails.
+
+With ``baudrate`` set, every frame also costs its time on a UART line (10 bits per byte), so
+benchmarks can separate the protocol's own overhead from the wire time.
+
+The emulator keeps the ground truth: every latch (SHOW or OFF) is recorded with its
+``time.monotonic()`` time, so :meth:`RingEmulator.states_during` tells what the LEDs showed
+during any camera exposure.
+
+Examples
+--------
+>>> import serial
+>>> from pipeline.capture.client import RingClient
+>>> with RingEmulator(led_count=24) as emu:
+...     with RingClient(emu.path, timeout=0.2) as ring:
+...         _ = ring.show_pattern(np.eye(24, 3), 1.0)
+...     drive, brightness = emu.led_state()
+>>> drive[:3].tolist(), brightness
+([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], 1.0)
+"""
+
+from __future__ import annotations
+
+import bisect
+import os
+import random
+import select
+import threading
+import time
+import tty
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from pipeline.capture import protocol as P
+from pipeline.errors import UserError
+
+__all__ = ["FaultSpec", "parse_faults", "ShownState", "EmulatorStats", "RingEmulator"]
+
+
+@dataclass(frozen=True)
+class FaultSpec:
+    """Fault probabilities per frame and the disconnect point (see the module docstring)."""
+
+    drop: float = 0.0
+    corrupt: float = 0.0
+    delay: float = 0.0
+    delay_s: float = 0.05
+    disconnect_after: int | None = None
+
+    def __post_init__(self) -> None:
+        for name in ("drop", "corrupt", "delay"):
+            value = getattr(self, name)
+            if not 0.0 <= value <= 1.0:
+                raise UserError(f"--faults: {name}={value} must be a probability in [0, 1]")
+        if self.delay_s < 0:
+            raise UserError(f"--faults: delay-s={self.delay_s} must be >= 0 seconds")
+        if self.disconnect_after is not None and self.disconnect_after < 1:
+            raise UserError(
+                f"--faults: disconnect-after={self.disconnect_after} must be a positive count"
+            )
+
+    @property
+    def any(self) -> bool:
+        """True when any fault is enabled."""
+        return bool(self.drop or self.corrupt or self.delay or self.disconnect_after)
+
+
+def parse_faults(spec: str | None) -> FaultSpec:
+    """Parse ``"drop=0.05,corrupt=0.05,delay=0.02,delay-s=0.05,disconnect-after=N"``.
+
+    Parameters
+    ----------
+    spec : str or None
+        Comma-separated ``key=value`` pairs; empty or None means no faults.
+
+    Returns
+    -------
+    FaultSpec
+
+    Raises
+    ------
+    UserError
+        Naming the key and what was expected when the spec is malformed.
+
+    Examples
+    --------
+    >>> parse_faults("drop=0.05,disconnect-after=40")
+    FaultSpec(drop=0.05, corrupt=0.0, delay=0.0, delay_s=0.05, disconnect_after=40)
+    """
+    if not spec:
+        return FaultSpec()
+    known = {f.name.replace("_", "-"): f.name for f in fields(FaultSpec)}
+    values: dict[str, float | int] = {}
+    for item in spec.split(","):
+        item = item.strip()
+        if not item:
+            continue
+        key, sep, raw = item.partition("=")
+        key = key.strip().lower()
+        if not sep or key not in known:
+            raise UserError(
+                f"--faults: cannot parse {item!r}; expected key=value with key one of "
+                f"{', '.join(sorted(known))}"
+            )
+        try:
+            value: float | int = int(raw) if key == "disconnect-after" else float(raw)
+        except ValueError:
+            kind = "an integer" if key == "disconnect-after" else "a number"
+            raise UserError(f"--faults: {key}={raw!r} is not {kind}") from None
+        values[known[key]] = value
+    return FaultSpec(**values)
+
+
+@dataclass(frozen=True)
+class ShownState:
+    """What the LEDs showed from time ``t`` (``time.monotonic()``) until the next latch."""
+
+    t: float
+    levels: np.ndarray  # (L, 3) uint8
+    brightness: int  # 0..255
+
+    def same_as(self, levels: np.ndarray, brightness: int) -> bool:
+        """True when this state equals the given 8-bit levels and brightness."""
+        return int(self.brightness) == int(brightness) and np.array_equal(self.levels, levels)
+
+
+@dataclass
+class EmulatorStats:
+    """Counters of what crossed the emulated wire (for tests and the benchmark)."""
+
+    commands: int = 0
+    dropped_in: int = 0
+    dropped_out: int = 0
+    corrupted_in: int = 0
+    corrupted_out: int = 0
+    delayed: int = 0
+    duplicates: int = 0
+    crc_errors: int = 0
+    resyncs: int = 0
+    bytes_in: int = 0
+    bytes_out: int = 0
+
+
+class RingEmulator:
+    """The ring MCU, emulated behind a pseudo-terminal.
+
+    The emulated firmware drops a partial frame when the line stays idle for
+    :attr:`FRAME_GAP_S` (an inter-byte timeout), NAKs it, and rescans the bytes it held.
+
+    Parameters
+    ----------
+    led_count : int
+        LEDs on the ring (24 for IrisTac).
+    version : int
+        Protocol version reported by HELLO (change it to test the host's version check).
+    faults : FaultSpec
+        Fault injection (none by default).
+    baudrate : float or None
+        When set, model the UART's time on the wire for every frame in both directions.
+    seed : int
+        Seed of the fault injector's random generator (faults are reproducible).
+    firmware : str
+        Firmware identifier reported by HELLO.
+    """
+
+    FRAME_GAP_S = 0.002
+
+    def __init__(
+        self,
+        led_count: int = 24,
+        *,
+        version: int = P.PROTOCOL_VERSION,
+        faults: FaultSpec | None = None,
+        baudrate: float | None = None,
+        seed: int = 0,
+        firmware: str = "iristac-ring-emulator/1",
+    ) -> None:
+        if not 1 <= led_count <= (P.MAX_PAYLOAD - 1) // 3:
+            raise ValueError(f"led_count must be in 1..{(P.MAX_PAYLOAD - 1) // 3}, got {led_count}")
+        self.led_count = led_count
+        self.version = version
+        self.faults = faults or FaultSpec()
+        self.baudrate = baudrate
+        self.firmware = firmware
+        self.stats = EmulatorStats()
+        self._rng = random.Random(seed)
+        self._lock = threading.Lock()
+        off = np.zeros((led_count, 3), np.uint8)
+        self._pending = off.copy()
+        self._pending_brightness = 0
+        self._history: list[ShownState] = [ShownState(time.monotonic(), off, 0)]
+        self._history_t: list[float] = [self._history[0].t]
+        self._latch_count = 0
+        self._last_key: tuple[int, int, bytes] | None = None
+        self._last_reply = b""
+        self._parser = P.FrameParser()
+        self._wire = P.FrameParser()  # splits the host's bytes into frames before faults act
+        self._master: int | None = None
+        self._slave: int | None = None
+        self._thread: threading.Thread | None = None
+        self._stop = threading.Event()
+        self.disconnected = threading.Event()
+        self.path: str | None = None
+
+    # ------------------------------------------------------------------ lifecycle
+    def start(self) -> str:
+        """Open the pty and start serving; return the device path for the host to open."""
+        if self._thread is not None:
+            return self.path  # type: ignore[return-value]
+        master, slave = os.openpty()
+        # Raw mode: no echo, no newline translation; pyserial sets this too, but the emulator
+        # must not depend on the host doing so.
+        tty.setraw(slave)
+        self._master, self._slave = master, slave
+        self.path = os.ttyname(slave)
+        self._thread = threading.Thread(target=self._serve, name="ring-emulator", daemon=True)
+        self._thread.start()
+        return self.path
+
+    def stop(self) -> None:
+        """Stop serving and close the pty (idempotent)."""
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)
+        self._close_fds()
+
+    def __enter__(self) -> RingEmulator:
+        self.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    def wait(self, timeout: float | None = None) -> bool:
+        """Block until the emulator stops (disconnect or :meth:`stop`); True if it did."""
+        if self._thread is None:
+            return True
+        self._thread.join(timeout)
+        return not self._thread.is_alive()
+
+    def _close_fds(self) -> None:
+        for name in ("_master", "_slave"):
+            fd = getattr(self, name)
+            if fd is not None:
+                setattr(self, name, None)
+                try:
+                    os.close(fd)
+                except OSError:
+                    pass
+
+    # ------------------------------------------------------------------ ground truth
+    def led_state(self) -> tuple[np.ndarray, float]:
+        """What the LEDs show now: drive (L, 3) float32 in [0, 1] and brightness in [0, 1]."""
+        with self._lock:
+            s = self._history[-1]
+        return s.levels.astype(np.float32) / 255.0, s.brightness / 255.0
+
+    def history(self) -> list[ShownState]:
+        """Every latched state since start, oldest first (the first is all-off at start)."""
+        with self._lock:
+            return list(self._history)
+
+    def states_during(self, t0: float, t1: float) -> list[ShownState]:
+        """The states shown at any instant of the closed interval [t0, t1] (monotonic s)."""
+        if t1 < t0:
+            raise ValueError(f"interval end {t1} is before its start {t0}")
+        with self._lock:
+            i0 = max(bisect.bisect_right(self._history_t, t0) - 1, 0)
+            i1 = bisect.bisect_right(self._history_t, t1)
+            return self._history[i0:i1]
+
+    # ------------------------------------------------------------------ the device loop
+    def _serve(self) -> None:
+        master = self._master
+        try:
+            while not self._stop.is_set():
+                # While a partial frame is buffered, wait only one frame gap for the rest, as
+                # firmware does with an inter-byte timeout: a corrupted length must not make the
+                # device swallow the host's retransmissions.
+                gap = self.FRAME_GAP_S if self._parser.pending else 0.05
+                ready, _, _ = select.select([master], [], [], gap)
+                if not ready:
+                    if self._parser.pending:
+                        self.stats.resyncs += 1
+                        self._nak_bad_frame()
+                        self._handle(self._parser.resync())
+                    if self.disconnected.is_set():
+                        return
+                    continue
+                data = os.read(master, 4096)
+                if not data:
+                    break
+                self.stats.bytes_in += len(data)
+                for frame in self._wire.feed(data):
+                    self._receive(P.encode_frame(frame))
+                    if self.disconnected.is_set():
+                        return
+        except OSError:
+            pass  # the pty was closed under us (stop())
+        finally:
+            if self.disconnected.is_set():
+                self._close_fds()
+
+    def _receive(self, raw: bytes) -> None:
+        f = self.faults
+        rng = self._rng
+        if f.drop and rng.random() < f.drop:
+            self.stats.dropped_in += 1
+            return
+        if f.corrupt and rng.random() < f.corrupt:
+            raw = _flip_bit(raw, rng)
+            self.stats.corrupted_in += 1
+        if self.baudrate:
+            time.sleep(P.wire_seconds(len(raw), self.baudrate))
+        if f.delay and rng.random() < f.delay:
+            self.stats.delayed += 1
+            time.sleep(f.delay_s)
+        errors_before = self._parser.crc_errors
+        frames = self._parser.feed(raw)
+        if self._parser.crc_errors != errors_before:
+            self.stats.crc_errors += self._parser.crc_errors - errors_before
+            self._nak_bad_frame()
+        self._handle(frames)
+
+    def _nak_bad_frame(self) -> None:
+        # The sender's SEQ is unknown when a frame is bad: NAK with SEQ 0 so the host resends.
+        self._send(P.encode_frame(P.Frame(0, P.Command.NAK, bytes((0, P.NakCode.BAD_CRC)))))
+
+    def _handle(self, frames: list[P.Frame]) -> None:
+        f = self.faults
+        for frame in frames:
+            self.stats.commands += 1
+            key = (frame.seq, frame.cmd, frame.payload)
+            if key == self._last_key:
+                # A retransmission of the command just executed: answer from the reply cache and
+                # do not execute it again (a repeated SHOW must not add a latch).
+                self.stats.duplicates += 1
+                reply = self._last_reply
+            else:
+                reply = P.encode_frame(self._execute(frame))
+                self._last_key, self._last_reply = key, reply
+            self._send(reply)
+            limit = f.disconnect_after
+            if limit is not None and self.stats.commands >= limit:
+                self.disconnected.set()
+                return
+
+    def _send(self, raw: bytes) -> None:
+        f = self.faults
+        rng = self._rng
+        if f.drop and rng.random() < f.drop:
+            self.stats.dropped_out += 1
+            return
+        if f.corrupt and rng.random() < f.corrupt:
+            raw = _flip_bit(raw, rng)
+            self.stats.corrupted_out += 1
+        if self.baudrate:
+            time.sleep(P.wire_seconds(len(raw), self.baudrate))
+        self.stats.bytes_out += len(raw)
+        os.write(self._master, raw)  # type: ignore[arg-type]
+
+    def _execute(self, frame: P.Frame) -> P.Frame:
+        C = P.Command
+        cmd, data = frame.cmd, frame.payload
+
+        def ack(extra: bytes = b"") -> P.Frame:
+            return P.Frame(frame.seq, C.ACK, bytes((cmd,)) + extra)
+
+        def nak(code: P.NakCode) -> P.Frame:
+            return P.Frame(frame.seq, C.NAK, bytes((cmd, code)))
+
+        if cmd == C.HELLO:
+            return ack(P.encode_hello(P.Hello(self.version, self.led_count, self.firmware)))
+        if cmd == C.SET_ALL:
+            if len(data) != 3 * self.led_count + 1:
+                return nak(P.NakCode.BAD_LENGTH)
+            self._pending, self._pending_brightness = P.parse_state_payload(data, self.led_count)
+            return ack()
+        if cmd == C.SET_ONE:
+            if len(data) != 4:
+                return nak(P.NakCode.BAD_LENGTH)
+            if data[0] >= self.led_count:
+                return nak(P.NakCode.BAD_ARGUMENT)
+            self._pending[data[0]] = np.frombuffer(data[1:], np.uint8)
+            return ack()
+        if cmd == C.SHOW:
+            if data:
+                return nak(P.NakCode.BAD_LENGTH)
+            self._latch(self._pending.copy(), self._pending_brightness)
+            return ack(P.encode_status(self._status()))
+        if cmd == C.OFF:
+            if data:
+                return nak(P.NakCode.BAD_LENGTH)
+            self._pending = np.zeros((self.led_count, 3), np.uint8)
+            self._pending_brightness = 0
+            self._latch(self._pending.copy(), 0)
+            return ack(P.encode_status(self._status()))
+        if cmd == C.STATUS:
+            return ack(P.encode_status(self._status()))
+        return nak(P.NakCode.UNKNOWN_COMMAND)
+
+    def _latch(self, levels: np.ndarray, brightness: int) -> None:
+        with self._lock:
+            state = ShownState(time.monotonic(), levels, int(brightness))
+            self._history.append(state)
+            self._history_t.append(state.t)
+            self._latch_count += 1
+
+    def _status(self) -> P.Status:
+        with self._lock:
+            shown = self._history[-1]
+        return P.Status(
+            latch_count=self._latch_count,
+            shown_crc=P.state_crc(shown.levels, shown.brightness),
+            rx_crc_errors=self.stats.crc_errors,
+            duplicates=self.stats.duplicates,
+        )
+
+
+def _flip_bit(raw: bytes, rng: random.Random) -> bytes:
+    out = bytearray(raw)
+    i = rng.randrange(len(out))
+    out[i] ^= 1 << rng.randrange(8)
+    return bytes(out)
