@@ -49,7 +49,7 @@ def reflect(d: Vec, n: Vec) -> Vec:
     Examples
     --------
     >>> import torch
-    >>> one = lambda v: torch.tensor([v])
+    >>> one = lambda v: torch.tensor([v], dtype=torch.float64)
     >>> [float(c[0]) for c in reflect((one(0.6), one(0.0), one(0.8)), (one(0.0), one(0.0), one(-1.0)))]
     [0.6, 0.0, -0.8]
     """
@@ -71,7 +71,8 @@ def fresnel_transmittance(cos_i, cos_t, n1, n2):
     >>> round(float(fresnel_transmittance(torch.ones(1), torch.ones(1), 1.0, 1.5)[0]), 6)
     0.96
     """
-    instrument.count("fresnel")
+    if not torch.compiler.is_compiling():  # the compiled tracer counts at its call site
+        instrument.count("fresnel")
     a = n1 * cos_i
     b = n2 * cos_t
     c = n2 * cos_i

@@ -37,13 +37,15 @@ class HalfSpaceAbove(ConvexSet):
     def entry(self, o: Vec, d: Vec) -> torch.Tensor:
         t, dz = self._t(o, d)
         inside = o[2] >= self.z0 - self.tol
+        # Moving down (or along the plane) the ray is either inside from the start or never enters.
         flat = torch.where(inside, torch.full_like(t, -INF), torch.full_like(t, INF))
         return torch.where(dz > 0, t, flat)
 
     def exit(self, o: Vec, d: Vec) -> torch.Tensor:
         t, dz = self._t(o, d)
         inside = o[2] >= self.z0 - self.tol
-        flat = torch.where(inside, torch.full_like(t, INF), torch.full_like(t, -INF))
+        # Moving up (or along the plane while inside) the ray never leaves the half-space.
+        flat = torch.where(inside | (dz > 0), torch.full_like(t, INF), torch.full_like(t, -INF))
         return torch.where(dz < 0, t, flat)
 
     def contains(self, p: Vec, tol: float) -> torch.Tensor:

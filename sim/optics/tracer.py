@@ -134,6 +134,8 @@ def lens_kernel(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, 
         out_w = torch.where(ex, w_ex, out_w)
         trap = act & tir
         if k < bounces:
+            if not torch.compiler.is_compiling():
+                instrument.count("internal_bounces")
             tir_bounces = tir_bounces + trap.sum()
             d_cur = _where(trap, reflect(d_cur, inward), d_cur)
             p_cur = _where(trap, q, p_cur)
