@@ -25,7 +25,7 @@ from sim.optics.binning import PixelGrid
 from sim.optics.multisource import METHODS, trace_all
 from sim.scene import Scene, load_scene, scene_to_dict
 
-__all__ = ["STAGE_VERSION", "synthesize", "synthesize_record", "model_from_record", "load_illumination",
+__all__ = ["STAGE_VERSION", "synthesize", "synthesize_to_store", "synthesize_record", "model_from_record", "load_illumination",
            "save_illumination", "default_illumination"]
 
 #: Bump when the computation of the illumination model changes (old store entries stop matching).
@@ -103,9 +103,27 @@ def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, g
               seed=seed, method=method, device=device, dtype=dtype, compile=compile)
     if store is None:
         return model_from_record(synthesize_record(scene, shape, mm_per_px, **kw))
-    key = store.key("synthesize", STAGE_VERSION, _params(scene, shape, mm_per_px, **kw))
-    rec, _cached = store.get_or_compute(key, lambda: synthesize_record(scene, shape, mm_per_px, **kw))
-    return model_from_record(rec)
+    return synthesize_to_store(scene, shape, mm_per_px, store, **kw)[0]
+
+
+def synthesize_to_store(scene, shape, mm_per_px: float, store, **kw):
+    """:func:`synthesize` through ``store``: returns ``(model, key, cached)``.
+
+    ``key`` is the stage key (stage ``synthesize``, schema ``illumination``) over the scene,
+    the grid, the tracing parameters, the patterns and the gains; ``cached`` says whether the
+    entry was read back instead of traced.
+    """
+    scene = _as_scene(scene)
+    full = dict(drive=None, brightness=None, gains=None, exposure=1.0, rays=None, sampler=None, seed=None,
+                method="hits", device="cpu", dtype=torch.float32, compile=False)
+    full.update(kw)
+    if full["method"] not in METHODS:
+        raise UserError(f"synthesize: method must be one of {METHODS}, got {full['method']!r}")
+    _check_inputs(scene, shape, mm_per_px, full["drive"], full["brightness"], full["gains"])
+    shape = (int(shape[0]), int(shape[1]))
+    key = store.key("synthesize", STAGE_VERSION, _params(scene, shape, mm_per_px, **full))
+    rec, cached = store.get_or_compute(key, lambda: synthesize_record(scene, shape, mm_per_px, **full))
+    return model_from_record(rec), key, cached
 
 
 def _params(scene, shape, mm_per_px, *, drive, brightness, gains, exposure, rays, sampler, seed, method, device,

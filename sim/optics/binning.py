@@ -90,8 +90,23 @@ class FieldAccumulator:
         self.device = torch.device(device)
         self.dtype = dtype
         H, W = grid.shape
+        # On a square grid centred on the axis a quarter turn permutes the pixels exactly, so
+        # angles a and a + 90 deg share one binning pass (rot90 of the image): 24 LEDs cost 6.
+        self.quarter = {}
+        self.binned = list(range(len(self.angles)))
+        if H == W and grid.pitch[0] == grid.pitch[1]:
+            self.binned = []
+            for i, a in enumerate(self.angles):
+                for j in self.binned:
+                    k = (a - self.angles[j]) / (math.pi / 2)
+                    if abs(k - round(k)) < 1e-9:
+                        self.quarter[i] = (j, int(round(k)) % 4)
+                        break
+                else:
+                    self.binned.append(i)
         c = 4 if vector else 1
-        self.acc = torch.zeros(len(self.heights), len(self.angles), H * W, c, device=self.device, dtype=dtype)
+        # One spare bin at index H*W takes every off-grid hit, so no per-angle masking is needed.
+        self.acc = torch.zeros(len(self.heights), len(self.angles), H * W + 1, c, device=self.device, dtype=dtype)
         self.on_grid = torch.zeros(len(self.heights), len(self.angles), dtype=torch.float64)
         self._r2 = ((H / 2.0 + 1.0) * grid.pitch[0]) ** 2 + ((W / 2.0 + 1.0) * grid.pitch[1]) ** 2
 
@@ -106,20 +121,18 @@ class FieldAccumulator:
             # A hit lands on the grid under some rotation only within the grid's circumradius:
             # dropping the others once saves every per-angle pass from touching them.
             ok = ok & (w > 0) & (x * x + y * y <= self._r2)
-            if not bool(ok.all()):
-                x, y = x[ok], y[ok]
-                wv = w[ok]
-                dd = (d[0][ok], d[1][ok], d[2][ok])
-            else:
-                wv, dd = w, d
+            x, y = x[ok], y[ok]
+            wv = w[ok]
             e = wv * inv_a
             if self.vector:
                 # V contribution w l / (A |l_z|) with l = -d and |l_z| = d_z > 0 here.
-                s = -e / dd[2]
-                vals = torch.stack([e, s * dd[0], s * dd[1], s * dd[2]], dim=1)
+                dz = d[2][ok]
+                s = -e / dz
+                vals = torch.stack([e, s * d[0][ok], s * d[1][ok], s * dz], dim=1)
             else:
                 vals = e[:, None]
-            for ai, a in enumerate(self.angles):
+            for ai in self.binned:
+                a = self.angles[ai]
                 if a == 0.0:
                     xr, yr = x, y
                 else:
@@ -128,22 +141,30 @@ class FieldAccumulator:
                 col = torch.floor(xr * (1.0 / px) + (cx + 0.5))
                 row = torch.floor(yr * (1.0 / py) + (cy + 0.5))
                 inb = (col >= 0) & (col < W) & (row >= 0) & (row < H)
-                idx = (row * W + col).to(torch.int64)
-                if not bool(inb.all()):
-                    idx, v = idx[inb], vals[inb]
-                else:
-                    v = vals
-                self.acc[hi, ai].index_add_(0, idx, v)
-                self.on_grid[hi, ai] += float(v[:, 0].sum()) / inv_a
+                idx = torch.where(inb, row * W + col, torch.full_like(row, H * W)).to(torch.int64)
+                self.acc[hi, ai].index_add_(0, idx, vals)
+        self._dirty = True
+
+    def _fill_quarters(self):
+        H, W = self.grid.shape
+        for i, (j, k) in self.quarter.items():
+            img = self.acc[:, j, :H * W].reshape(len(self.heights), H, W, -1)
+            # A turn by +90 deg about z maps (x, y) -> (-y, x); x runs along columns and y along
+            # rows, so that is rot90 from the column axis toward the row axis.
+            rot = torch.rot90(img, k, dims=(2, 1))
+            self.acc[:, i, :H * W] = rot.reshape(len(self.heights), H * W, -1)
+            self.acc[:, i, H * W] = self.acc[:, j, H * W]
 
     def images(self):
         """``E`` of shape (D, K, H, W) and ``V`` of shape (D, K, H, W, 3), optical frame, rotated per angle."""
         H, W = self.grid.shape
         D, K = len(self.heights), len(self.angles)
-        E = self.acc[..., 0].reshape(D, K, H, W)
+        if self.quarter:
+            self._fill_quarters()
+        E = self.acc[:, :, :H * W, 0].reshape(D, K, H, W)
         if not self.vector:
             return E, None
-        V = self.acc[..., 1:].reshape(D, K, H, W, 3).clone()
+        V = self.acc[:, :, :H * W, 1:].reshape(D, K, H, W, 3).clone()
         for ai, a in enumerate(self.angles):
             if a != 0.0:
                 ca, sa = math.cos(a), math.sin(a)
@@ -151,3 +172,15 @@ class FieldAccumulator:
                 V[:, ai, ..., 0] = ca * vx - sa * vy
                 V[:, ai, ..., 1] = sa * vx + ca * vy
         return E, V
+
+    @property
+    def on_grid(self):
+        """Power (W per W emitted) landing on the grid per (height, angle), shape (D, K)."""
+        H, W = self.grid.shape
+        if self.quarter:
+            self._fill_quarters()
+        return (self.acc[:, :, :H * W, 0].double().sum(-1) * self.grid.area).cpu()
+
+    @on_grid.setter
+    def on_grid(self, value):  # set once in __init__; the property computes it from the images
+        pass

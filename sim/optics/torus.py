@@ -99,35 +99,53 @@ class SweptArc(ConvexSet):
         tangent rays) are reported as misses and counted, never returned as NaN.
         """
         t_lo, t_hi = self._bracket(o, d, t_lo, t_hi)
-        t = t_lo
-        S, dS = self._S(o, d, t)
+        S, dS = self._S(o, d, t_lo)
         starts_inside = S <= 0
-        dead = torch.zeros_like(starts_inside)
-        for _ in range(self.iterations):
-            move = (S > 0) & (dS < 0)
-            dead = dead | ((S > 0) & (dS >= 0))
-            t = torch.where(move, t - S / torch.where(move, dS, torch.ones_like(dS)), t)
-            S, dS = self._S(o, d, t)
+        t, S, dS, dead = self._newton(o, d, t_lo, S, dS, t_lo <= t_hi, left=True)
         ahead = ~dead & ~starts_inside & (t <= t_hi)
         hit = ahead & (S <= self.tol)
         unconverged = ahead & (S > self.tol) & (dS < 0)
         out = torch.where(hit, t, torch.full_like(t, INF))
         return torch.where(starts_inside, torch.full_like(t, -INF), out), unconverged
 
+    def _newton(self, o, d, t, S, dS, active, left: bool):
+        """Monotone Newton on the rays that need it (compacted once), stopping when all converged.
+
+        Returns ``(t, S, dS, dead)`` for every ray; ``dead`` marks rays whose iteration found no
+        root on its side (``S > 0`` with the slope pointing away).
+        """
+        need = active & (S > 0)
+        dead = torch.zeros_like(need)
+        if not bool(need.any()):
+            return t, S, dS, dead
+        idx = torch.nonzero(need).squeeze(1)
+        oo = tuple(c[idx] for c in o)
+        dd = tuple(c[idx] for c in d)
+        tt, s_, ds_ = t[idx], S[idx], dS[idx]
+        gone = torch.zeros_like(tt, dtype=torch.bool)
+        for it in range(self.iterations):
+            move = (s_ > 0) & ((ds_ < 0) if left else (ds_ > 0))
+            gone = gone | ((s_ > 0) & ((ds_ >= 0) if left else (ds_ <= 0)))
+            step = torch.where(move, s_ / torch.where(move, ds_, torch.ones_like(ds_)), torch.zeros_like(s_))
+            tt = tt - step
+            s_, ds_ = self._S(oo, dd, tt)
+            # Converged rays stop moving; check every few steps (a sync) whether all have.
+            if it % 3 == 2 and float(step.abs().max()) < 1e-7 * (1.0 + float(tt.abs().max())):
+                break
+        t = t.index_put((idx,), tt)
+        S = S.index_put((idx,), s_)
+        dS = dS.index_put((idx,), ds_)
+        dead = dead.index_put((idx,), gone)
+        return t, S, dS, dead
+
     def exit(self, o: Vec, d: Vec, t_lo=None, t_hi=None) -> torch.Tensor:
         """Exit ``t`` by monotone Newton from ``t_hi`` (right end of the bounding box)."""
         t_lo, t_hi = self._bracket(o, d, t_lo, t_hi)
-        t = t_hi
-        S, dS = self._S(o, d, t)
+        S, dS = self._S(o, d, t_hi)
         ends_inside = S <= 0
-        dead = torch.zeros_like(ends_inside)
-        for _ in range(self.iterations):
-            move = (S > 0) & (dS > 0)
-            dead = dead | ((S > 0) & (dS <= 0))
-            t = torch.where(move, t - S / torch.where(move, dS, torch.ones_like(dS)), t)
-            S, dS = self._S(o, d, t)
+        t, S, dS, dead = self._newton(o, d, t_hi, S, dS, t_lo <= t_hi, left=False)
         hit = ~dead & ~ends_inside & (S <= self.tol)
-        return torch.where(hit & ~ends_inside, t, torch.full_like(t, INF))
+        return torch.where(hit, t, torch.full_like(t, INF))
 
     def _bracket(self, o, d, t_lo, t_hi):
         if t_lo is None or t_hi is None:
