@@ -1,7 +1,49 @@
-"""CLI command (not implemented yet: the reconstruction issue)."""
+"""``iristac reconstruct CAPTURE``: normals and depth (calls :func:`pipeline.reconstruct.reconstruct`)."""
 
-from pipeline.cli._common import not_implemented
+from __future__ import annotations
+
+from pipeline.cli._common import add_json_flag, print_json
+
+#: The stable key set of ``--json`` (truth errors only when the capture carries truth).
+JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "outputs")
 
 
 def register(sub, name, help_text):
-    not_implemented(sub, name, help_text, "the reconstruction issue")
+    p = sub.add_parser(name, help=help_text, description=help_text)
+    p.add_argument("capture", metavar="CAPTURE", help="capture.h5")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--calibration", metavar="CAL", help="calibration.h5 (light_field / light_vectors / LUT)")
+    src.add_argument("--illumination", metavar="ILL", help="illumination.h5 (V or light_matrices)")
+    p.add_argument("--solver", choices=["lstsq", "nearfield", "robust", "lut"], default="lstsq")
+    p.add_argument("--integrator", choices=["fc", "dct", "dst", "sparse"], default="dst")
+    p.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
+    p.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
+    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--no-images", action="store_true", help="write only normals.h5 and depth.h5")
+    p.add_argument("--force", action="store_true", help="recompute even if the store has the result")
+    p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
+    p.add_argument("--out", metavar="DIR", required=True, help="output folder")
+    add_json_flag(p)
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    from pipeline.reconstruct import reconstruct
+
+    res = reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
+                      solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
+                      ratio=args.ratio, max_condition=args.max_condition, device=args.device,
+                      images=not args.no_images, force=args.force)
+    s = res.summary
+    if args.json:
+        print_json(s)
+        return 0
+    line = (f"{s['solver']} + {s['integrator']}: {s['valid_fraction']:.1%} valid pixels, {s['seconds']:.3f} s"
+            + (" (cached)" if s["cached"] else ""))
+    if "normal_mean_error_deg" in s:
+        line += f"; normals {s['normal_mean_error_deg']:.3f} deg mean error"
+    if "depth_rmse_mm" in s:
+        line += f"; depth RMSE {s['depth_rmse_mm'] * 1000:.1f} um"
+    print(line)
+    print(f"wrote {len(res.files)} files to {args.out}")
+    return 0

@@ -1,0 +1,174 @@
+"""``iristac bench reconstruct``: time and error of every normal solver and depth integrator.
+
+Scene: a 3 mm ball pressed 0.5 mm into the gel, seen over a 16 x 12 mm field at each image
+size, lit by 8 white sectors of the bare 24-LED ring 30 mm below the gel (closed-form
+near-field light, :mod:`pipeline.bench.recon_scene`), rendered with per-channel albedo,
+Gaussian noise sigma = 1 DN and 8-bit quantisation. The solvers see uint8 frames
+``(P, H, W, 3)`` and the exact light model (per-pixel for near-field, the centre pixel's
+vectors for far-field); timings are per frame with the light model prepared once, the best of
+``--repeats`` runs (the CPU is shared), torch on ``--threads`` threads.
+
+Robust vs least squares: per pixel, a random fifth of the observations is corrupted, either
+clipped (half set to 0 = shadow, half to 255 = saturated) or partially shadowed (scaled by
+0.25, above the dark threshold, so only the reweighting can reject it).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+from pipeline.bench.recon_scene import render_sphere_scene
+
+FOV_MM = 16.0
+RADIUS, DEPTH = 3.0, 0.5
+PATTERNS = 8
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--sizes", nargs="*", default=None, metavar="WxH",
+                        help="image sizes (default 320x240 640x480; --quick: 160x120)")
+    parser.add_argument("--repeats", type=int, default=None, help="timing repeats (best is kept)")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--device", default="cpu")
+
+
+def _best(fn, repeats: int) -> tuple[float, object]:
+    best, out = float("inf"), None
+    for _ in range(repeats):
+        t = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def _obs(frames: np.ndarray) -> np.ndarray:
+    P, H, W, C = frames.shape
+    return frames.transpose(0, 3, 1, 2).reshape(P * C, H, W)
+
+
+def _corrupt(frames: np.ndarray, kind: str, rng) -> np.ndarray:
+    obs = _obs(frames).astype(np.float32)
+    N = obs.shape[0]
+    # A fifth of the observations at every pixel, chosen independently per pixel.
+    pick = np.argsort(rng.random(obs.shape), axis=0) < max(1, N // 5)
+    if kind == "clipped":
+        value = np.where(rng.random(obs.shape) < 0.5, 0.0, 255.0)
+        obs = np.where(pick, value, obs)
+    else:
+        obs = np.where(pick, np.round(obs * 0.25), obs)
+    return obs
+
+
+def measure_size(width: int, height: int, repeats: int, device: str) -> dict:
+    """All measurements at one image size."""
+    from pipeline.depth import integrate
+    from pipeline.evaluate import normal_error_stats
+    from pipeline.normals import FarFieldSolver, NearFieldSolver, ratio_to_reference, solve_robust
+
+    mm = FOV_MM / width
+    s = render_sphere_scene((height, width), mm, radius=RADIUS, depth=DEPTH, num_patterns=PATTERNS, noise=1.0,
+                            bits=8, seed=0)
+    frames = s.frames.astype(np.uint8)
+    groups = np.tile(np.arange(3), PATTERNS)
+    out: dict = {"size": f"{width}x{height}", "mm_per_px": mm, "solvers": {}, "integrators": {}, "robust": {}}
+
+    def err(res):
+        return normal_error_stats(res.normals, s.normals)["mean_deg"]
+
+    far = FarFieldSolver(s.lights_far(), groups=groups, device=device)
+    near = NearFieldSolver(s.lights_flat(), groups=groups, device=device)
+    solvers = {
+        "lstsq (far field)": lambda: far.solve(_obs(frames)),
+        "nearfield": lambda: near.solve(_obs(frames)),
+        "robust (near field)": lambda: solve_robust(_obs(frames), s.lights_flat(), groups=groups, dark_threshold=2.55,
+                                                    saturation=255.0, device=device),
+    }
+    ref_obs = _obs(s.reference.astype(np.uint8)).astype(np.float32)
+    solvers["nearfield + ratio"] = lambda: near_ratio()
+
+    def near_ratio():
+        r, Lr = ratio_to_reference(_obs(frames), ref_obs, s.lights_flat())
+        return NearFieldSolver(Lr, device=device).solve(r)
+
+    results = {}
+    for name, fn in solvers.items():
+        reps = repeats if name.startswith(("lstsq", "nearfield")) and "ratio" not in name else max(1, repeats // 5)
+        sec, res = _best(fn, reps)
+        results[name] = res
+        out["solvers"][name] = {"seconds": sec, "fps": 1.0 / sec, "mean_deg": err(res),
+                                "valid_fraction": res.valid_fraction}
+    for method in ("fc", "dct", "dst", "sparse"):
+        for src in ("nearfield", "lstsq (far field)"):
+            res = results[src]
+            reps = repeats if method != "sparse" else max(1, repeats // 10)
+            sec, d = _best(lambda: integrate(res.normals, mm, res.mask, method=method), reps)
+            rmse = float(np.sqrt(np.mean((d.height.astype(np.float64) - s.height) ** 2)))
+            out["integrators"].setdefault(method, {})[src] = {"seconds": sec, "rmse_mm": rmse,
+                                                            "rmse_pct_depth": 100 * rmse / DEPTH}
+    # Real-time pipelines: far-field least squares + DST or FC, from uint8 frames to heights.
+    for method in ("dst", "fc"):
+        def pipeline(method=method):
+            r = far.solve(_obs(frames))
+            return integrate(r.normals, mm, r.mask, method=method)
+        sec, _ = _best(pipeline, repeats)
+        out[f"lstsq+{method}"] = {"seconds": sec, "fps": 1.0 / sec}
+    rng = np.random.default_rng(1)
+    for kind in ("clipped", "partial shadow"):
+        obs = _corrupt(frames, kind, rng)
+        ls = near.solve(obs)
+        rb = solve_robust(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0, device=device)
+        rt = solve_robust(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0, method="trim",
+                          device=device)
+        out["robust"][kind] = {"lstsq_deg": err(ls), "robust_irls_deg": err(rb), "robust_trim_deg": err(rt)}
+    return out
+
+
+def run(args) -> dict:
+    from pipeline.normals._torch import torch_threads
+
+    sizes = getattr(args, "sizes", None) or (["160x120"] if getattr(args, "quick", False) else ["320x240", "640x480"])
+    repeats = getattr(args, "repeats", None) or (3 if getattr(args, "quick", False) else 20)
+    device = getattr(args, "device", "cpu")
+    per_size = []
+    with torch_threads(getattr(args, "threads", 1)):
+        for spec in sizes:
+            w, h = (int(v) for v in spec.lower().split("x"))
+            per_size.append(measure_size(w, h, repeats, device))
+    rows = []
+    for r in per_size:
+        for name, v in r["solvers"].items():
+            rows.append({"knob": f"normal solver @ {r['size']}", "setting": name, "error": v["mean_deg"],
+                         "error_unit": "deg", "seconds": v["seconds"]})
+        for method, by_src in r["integrators"].items():
+            v = by_src["nearfield"]
+            rows.append({"knob": f"integrator (near-field normals) @ {r['size']}", "setting": method,
+                         "error": v["rmse_mm"], "error_unit": "mm", "seconds": v["seconds"]})
+    return {"scene": {"fov_mm": FOV_MM, "ball_radius_mm": RADIUS, "indentation_mm": DEPTH, "patterns": PATTERNS,
+                      "noise_dn": 1.0, "bits": 8},
+            "repeats": repeats, "threads": getattr(args, "threads", 1), "device": device, "sizes": per_size,
+            "rows": rows}
+
+
+def format_table(result: dict) -> str:
+    lines = [f"reconstruct: sphere R={RADIUS} mm pressed {DEPTH} mm, {PATTERNS} sector patterns x RGB, 8-bit, "
+             f"sigma 1 DN; best of {result['repeats']} runs, {result['threads']} torch thread(s), {result['device']}"]
+    for r in result["sizes"]:
+        lines.append(f"\n== {r['size']} ({r['mm_per_px']:.4f} mm/px)")
+        lines.append(f"{'solver':<22}{'ms':>9}{'fps':>9}{'mean err deg':>14}{'valid':>8}")
+        for name, v in r["solvers"].items():
+            lines.append(f"{name:<22}{v['seconds'] * 1e3:9.2f}{v['fps']:9.1f}{v['mean_deg']:14.3f}"
+                         f"{v['valid_fraction']:8.3f}")
+        lines.append(f"{'integrator':<12}{'ms':>9}{'RMSE um (near)':>16}{'% depth':>9}{'RMSE um (far)':>15}")
+        for method, by_src in r["integrators"].items():
+            n, f = by_src["nearfield"], by_src["lstsq (far field)"]
+            lines.append(f"{method:<12}{n['seconds'] * 1e3:9.2f}{n['rmse_mm'] * 1e3:16.2f}{n['rmse_pct_depth']:9.2f}"
+                         f"{f['rmse_mm'] * 1e3:15.1f}")
+        for key in ("lstsq+dst", "lstsq+fc"):
+            v = r[key]
+            lines.append(f"{key} pipeline (uint8 frames -> heights): {v['seconds'] * 1e3:.2f} ms = {v['fps']:.1f} fps")
+        for kind, v in r["robust"].items():
+            lines.append(f"a fifth of observations {kind}: lstsq {v['lstsq_deg']:.3f} deg, robust irls "
+                         f"{v['robust_irls_deg']:.3f} deg, robust trim {v['robust_trim_deg']:.3f} deg")
+    return "\n".join(lines)

@@ -1,0 +1,28 @@
+"""Photometric stereo solvers: per-pixel normals, albedo, residual, condition and mask.
+
+One module per solver, all batched over pixels in torch (``device=`` picks CPU or CUDA):
+
+- :class:`FarFieldSolver` / :func:`solve_farfield` (``lstsq``): Woodham, one light vector
+  per observation, precomputed pseudo-inverse;
+- :class:`NearFieldSolver` / :func:`solve_nearfield` (``nearfield``): per-pixel light
+  vectors, normal equations or QR;
+- :func:`solve_robust` (``robust``): excludes dark/saturated observations, then IRLS or trim;
+- :class:`LUTSolver` / :func:`solve_lut` (``lut``): the calibration's lookup table;
+- :func:`ratio_to_reference`: optional preprocessing that cancels albedo and vignetting.
+
+Observations are ``(N_obs, H, W)`` (patterns x channels flattened), lights ``(N_obs, 3)`` or
+``(N_obs, H, W, 3)``. Every result is a :class:`NormalResult` with finite arrays.
+"""
+
+from pipeline.normals.farfield import FarFieldSolver, solve_farfield
+from pipeline.normals.lut import LUTSolver, solve_lut
+from pipeline.normals.nearfield import NearFieldSolver, solve_nearfield
+from pipeline.normals.ratio import ratio_to_reference
+from pipeline.normals.result import NormalResult
+from pipeline.normals.robust import solve_robust
+
+__all__ = ["NormalResult", "FarFieldSolver", "solve_farfield", "NearFieldSolver", "solve_nearfield",
+           "solve_robust", "LUTSolver", "solve_lut", "ratio_to_reference", "SOLVERS"]
+
+#: Solver names accepted by the CLI and :func:`pipeline.reconstruct.reconstruct`.
+SOLVERS = ("lstsq", "nearfield", "robust", "lut")

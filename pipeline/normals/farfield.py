@@ -1,0 +1,109 @@
+"""Far-field least squares (Woodham 1980): one light vector per observation for all pixels.
+
+``I_k(x) = rho(x) n(x) . L_k``. The light matrix is the same everywhere, so its
+pseudo-inverse is computed once and a frame costs one ``(3, N) @ (N, H*W)`` matmul.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+from pipeline.normals import _inputs, _lstsq
+from pipeline.normals import _torch as T
+from pipeline.normals.result import NormalResult, finalize
+
+__all__ = ["FarFieldSolver", "solve_farfield"]
+
+
+class FarFieldSolver:
+    """Woodham photometric stereo with a precomputed pseudo-inverse.
+
+    Parameters
+    ----------
+    lights : ndarray, shape (N_obs, 3)
+        Light vector of each observation (reconstruction frame, intensity folded in), e.g.
+        a far-field calibration's ``(P, C, 3)`` reshaped to ``(P*C, 3)``.
+    groups : ndarray, shape (N_obs,), optional
+        Albedo group of each observation (the camera channel): albedo is then estimated per
+        group, and when every group has at least three observations the normal is refined
+        for per-channel albedo.
+    max_condition : float
+        Pixels whose light matrix is worse conditioned are masked.
+    albedo_iterations : int
+        Alternation steps for per-group albedo (see :mod:`pipeline.normals._lstsq`).
+    device, dtype
+        Torch device and float dtype of the computation.
+
+    Examples
+    --------
+    A plane tilted toward +x under four lights, solved exactly:
+
+    >>> L = np.array([[0, 0, 1.0], [0.5, 0, 1], [0, 0.5, 1], [-0.5, -0.5, 1]])
+    >>> n = np.array([0.6, 0.0, 0.8])
+    >>> I = np.broadcast_to((L @ n * 2.0)[:, None, None], (4, 2, 3))
+    >>> res = FarFieldSolver(L, dtype="float64").solve(I)
+    >>> (np.round(res.normals[0, 0], 6) + 0.0).tolist(), round(float(res.albedo[0, 0, 0]), 6), bool(res.mask.all())
+    ([0.6, 0.0, 0.8], 2.0, True)
+    """
+
+    def __init__(self, lights, *, groups=None, max_condition: float = 1e3, albedo_iterations: int = 2,
+                 device="cpu", dtype="float32"):
+        L = np.asarray(lights, dtype=np.float64)
+        if L.ndim != 2 or L.shape[1] != 3 or L.shape[0] < 1:
+            raise ValueError(f"FarFieldSolver: lights must have shape (N_obs, 3), got {L.shape}")
+        self.device = torch.device(device)
+        self.dtype = T.torch_dtype(dtype)
+        self.n_obs = L.shape[0]
+        self.groups, self.num_groups = _inputs.check_groups(groups, self.n_obs, "FarFieldSolver", self.device)
+        self.selectors = _lstsq.group_selectors(self.groups, self.num_groups, self.n_obs)
+        self.iterations = int(albedo_iterations) if _inputs.group_counts_ok(self.groups, self.num_groups) else 0
+        self.max_condition = float(max_condition)
+        self.L, row_ok = _inputs.flatten_lights(L, self.dtype, self.device)
+        # Rows without a finite light are dropped by weight; all rows good -> unit weights.
+        self.w_rows = None if bool(row_ok.all()) else row_ok.to(self.dtype)[:, None]
+        # The light matrix is the same at every pixel: its moments, inverse and condition are
+        # computed once, in float64, and a frame costs one (3, N) @ (N, M) product per group.
+        L64 = torch.as_tensor(np.where(np.isfinite(L), L, 0.0), device=self.device)
+        Q64 = torch.stack([_lstsq.gram_shared(L64[sel], None) for sel in self.selectors])
+        inv64, _ = T.inverse3(Q64.sum(0))
+        self.Q = Q64.to(self.dtype)
+        self.inv = inv64.to(self.dtype)
+        self.cond = T.condition_from_gram(Q64.sum(0)).to(self.dtype)  # (1,)
+
+    def solve(self, observations) -> NormalResult:
+        """Normals of one observation stack ``(N_obs, H, W)`` (numpy or torch, any real dtype).
+
+        NaN/Inf observations are ignored per pixel (a slower per-pixel solve is used then).
+        """
+        N, H, W = _inputs.check_observations(observations, "FarFieldSolver.solve")
+        if N != self.n_obs:
+            raise ValueError(f"FarFieldSolver.solve: expected {self.n_obs} observations, got shape "
+                             f"{tuple(observations.shape)}")
+        I, finite = _inputs.flatten_observations(observations, self.dtype, self.device)
+        if finite is None and self.w_rows is None:
+            m = _lstsq.moments(I, self.L, None, self.selectors, Q=self.Q)
+            inv, cond = self.inv, self.cond
+        else:
+            w = torch.ones_like(I) if finite is None else finite.to(self.dtype)
+            if self.w_rows is not None:
+                w = w * self.w_rows
+            m = _lstsq.moments(I, self.L, w, self.selectors)
+            inv, _ = T.inverse3(m.Q.sum(0))
+            cond = _lstsq.condition(self.L, w)
+        b = _lstsq.solve(m, inv, self.iterations)
+        return finalize(b, m, cond, (H, W), max_condition=self.max_condition,
+                        meta={"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition})
+
+
+def solve_farfield(observations, lights, **kwargs) -> NormalResult:
+    """One-shot :class:`FarFieldSolver` (``observations (N_obs, H, W)``, ``lights (N_obs, 3)``).
+
+    Examples
+    --------
+    >>> L = np.eye(3)
+    >>> res = solve_farfield(np.zeros((3, 1, 1)), L)   # a black pixel has no normal
+    >>> res.mask.tolist(), res.normals[0, 0].tolist()
+    ([[False]], [0.0, 0.0, 1.0])
+    """
+    return FarFieldSolver(lights, **kwargs).solve(observations)

@@ -1,0 +1,95 @@
+"""What every normal solver returns, and the one place that turns a raw solve into it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from pipeline.normals import _lstsq
+from pipeline.normals import _torch as T
+
+__all__ = ["NormalResult", "finalize"]
+
+
+@dataclass
+class NormalResult:
+    """Per-pixel output of a normal solver. Every array is finite.
+
+    Attributes
+    ----------
+    normals : ndarray, shape (H, W, 3), float
+        Unit normals in the reconstruction frame (+z toward the camera). Invalid pixels hold
+        the flat-gel normal ``(0, 0, 1)``.
+    albedo : ndarray, shape (H, W, G), float
+        Least-squares albedo per albedo group (``G`` = camera channels when the solver was
+        given ``groups``, else 1), in units of observation / light. 0 at invalid pixels.
+    residual : ndarray, shape (H, W), float
+        Weighted RMS of ``I_k - rho n . L_k`` over the observations used, in observation units.
+    condition : ndarray, shape (H, W), float
+        Condition number of the (weighted) light matrix at the pixel, capped at 1e12.
+    mask : ndarray, shape (H, W), bool
+        True where the normal is trustworthy: at least three usable observations, a
+        well-conditioned light matrix, a non-zero albedo and a normal facing the camera.
+    count : ndarray, shape (H, W), int32
+        Number of observations used at each pixel.
+    meta : dict
+        Solver name and parameters.
+    """
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    residual: np.ndarray
+    condition: np.ndarray
+    mask: np.ndarray
+    count: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def valid_fraction(self) -> float:
+        """Fraction of pixels whose normal is valid."""
+        return float(self.mask.mean()) if self.mask.size else 0.0
+
+
+def finalize(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, shape: tuple[int, int], *,
+             max_condition: float = 1e3, min_count: int = 3, meta: dict | None = None) -> NormalResult:
+    """Turn scaled normals ``b = rho n`` ``(3, M)`` and the moments they came from into a
+    :class:`NormalResult`.
+
+    Pixels with fewer than ``min_count`` used observations, ``cond > max_condition``
+    (``cond`` is ``(M,)``), a zero or non-finite ``b`` or a normal facing away from the camera
+    are masked and get the flat normal, zero albedo and zero residual.
+    """
+    H, W = shape
+    out_dtype = np.float64 if b.dtype == torch.float64 else np.float32
+    finite = torch.isfinite(b).all(0)
+    b = torch.nan_to_num(b, nan=0.0, posinf=0.0, neginf=0.0)
+    n, norm = _lstsq.unit(b)
+    valid = finite & (norm > 0) & (m.count >= min_count) & (cond <= max_condition) & (n[2] > 0)
+    flat = torch.zeros((3, 1), dtype=n.dtype, device=n.device)
+    flat[2] = 1.0
+    n = torch.where(valid, n, flat)
+    rho, p, q = _lstsq.group_albedo(m, n)
+    res = _lstsq.residual_rms(m, p, q)
+    zero = torch.zeros((), dtype=n.dtype, device=n.device)
+    # nan_to_num: moments of huge (but finite) inputs can overflow to Inf in the products.
+    rho = torch.where(valid, torch.nan_to_num(rho, nan=0.0, posinf=0.0, neginf=0.0), zero)
+    res = torch.where(valid, torch.nan_to_num(res, nan=0.0, posinf=0.0, neginf=0.0), zero)
+    cond = torch.nan_to_num(cond, nan=T.COND_CAP, posinf=T.COND_CAP, neginf=T.COND_CAP)
+    cond = cond.expand(H * W) if cond.numel() == 1 else cond
+
+    def out(x):  # (..., M) -> (H, W, ...)
+        a = x.detach().cpu().numpy()
+        return np.moveaxis(a.reshape(a.shape[:-1] + (H, W)), tuple(range(a.ndim - 1)), tuple(range(-a.ndim + 1, 0)))
+
+    return NormalResult(
+        normals=out(n).astype(out_dtype, copy=False),
+        albedo=out(rho).astype(out_dtype, copy=False),
+        residual=out(res).astype(out_dtype, copy=False),
+        condition=out(cond).astype(out_dtype, copy=False),
+        mask=out(valid).astype(bool, copy=False),
+        count=out(m.count).astype(np.int32, copy=False),
+        meta=dict(meta or {}),
+    )

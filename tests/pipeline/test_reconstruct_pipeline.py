@@ -1,0 +1,86 @@
+"""reconstruct(): capture + lights -> normals.h5 + depth.h5 (+ PNG, PLY) through the store, and its CLI."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+from plyfile import PlyData
+
+from helpers import run_cli
+from pipeline.bench.recon_scene import scene_records
+from pipeline.errors import UserError
+from pipeline.reconstruct import reconstruct
+from pipeline.store import StageStore, read_record, write_record
+from support_recon import _one_torch_thread, render_sphere_scene  # noqa: F401
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory):
+    d = tmp_path_factory.mktemp("recon")
+    s = render_sphere_scene((30, 40), 0.12, radius=2.0, depth=0.3, num_patterns=6, noise=1.0, bits=8, seed=4)
+    cap, ill, cal = scene_records(s, num_presses=2)
+    paths = {"capture": d / "capture.h5", "illumination": d / "illumination.h5", "calibration": d / "calibration.h5"}
+    for name, rec in (("capture", cap), ("illumination", ill), ("calibration", cal)):
+        write_record(paths[name], rec)
+    paths["dir"] = d
+    return paths
+
+
+def test_nearfield_from_illumination_writes_everything(files, tmp_path):
+    store = StageStore(tmp_path / "cache")
+    res = reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield", integrator="dst",
+                      out=tmp_path / "out", store=store)
+    s = res.summary
+    assert set(s) >= {"solver", "integrator", "seconds", "valid_fraction", "normal_mean_error_deg", "depth_rmse_mm"}
+    assert s["valid_fraction"] == 1.0 and s["normal_mean_error_deg"] < 1.0 and s["depth_rmse_mm"] < 0.02
+    n = read_record(tmp_path / "out" / "normals.h5", schema="normals")
+    d = read_record(tmp_path / "out" / "depth.h5", schema="depth")
+    assert n.data["normals"].shape == (2, 30, 40, 3) and n.data["albedo"].shape == (2, 30, 40, 3)
+    assert d.data["height"].shape == (2, 30, 40) and d.meta["integrator"] == "dst"
+    assert d.data["height"].max() > 0.25  # the bump is toward the camera
+    png = cv2.imread(str(tmp_path / "out" / "normals_k000.png"), cv2.IMREAD_UNCHANGED)
+    assert png.shape == (30, 40, 3)
+    # A flat-gel corner pixel encodes n = (0, 0, 1) -> RGB (128, 128, 255), stored BGR on disk.
+    assert png[0, 0, ::-1].tolist() == [128, 128, 255]
+    ply = PlyData.read(str(tmp_path / "out" / "depth_k001.ply"))
+    assert ply["vertex"].count == 30 * 40
+    # Second call: both stages come from the store.
+    again = reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield", integrator="dst",
+                        store=store)
+    assert again.summary["cached"] and not res.summary["cached"]
+    np.testing.assert_array_equal(again.depth.data["height"], d.data["height"])
+
+
+def test_far_field_gap_and_calibration_lights(files, tmp_path):
+    store = StageStore(tmp_path / "cache")
+    near = reconstruct(files["capture"], calibration=files["calibration"], solver="nearfield", store=store)
+    far = reconstruct(files["capture"], calibration=files["calibration"], solver="lstsq", store=store)
+    assert near.summary["normal_mean_error_deg"] < 1.0
+    assert far.summary["normal_mean_error_deg"] > 3 * near.summary["normal_mean_error_deg"]
+
+
+def test_cli_json(files, tmp_path, solver="robust", integrator="sparse"):
+    r = run_cli("reconstruct", files["capture"], "--illumination", files["illumination"], "--solver", solver,
+                "--integrator", integrator, "--out", tmp_path / "o", "--cache", tmp_path / "c", "--json",
+                "--no-images")
+    assert r.returncode == 0, r.stderr
+    out = json.loads(r.stdout)
+    assert out["solver"] == solver and out["integrator"] == integrator
+    assert out["normal_mean_error_deg"] < 1.0 and 0 <= out["valid_fraction"] <= 1
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["depth.h5", "normals.h5"]
+
+
+def test_cli_errors_are_one_line(files, tmp_path):
+    r = run_cli("reconstruct", files["dir"] / "missing.h5", "--out", tmp_path)
+    assert r.returncode == 2 and "missing.h5" in r.stderr and "Traceback" not in r.stderr
+    with pytest.raises(UserError, match="no light model"):
+        reconstruct(files["capture"], store=tmp_path / "c")
+    with pytest.raises(UserError, match="nearfield needs per-pixel lights"):
+        cap, _, cal = scene_records(render_sphere_scene((6, 8), 0.5, num_patterns=3))
+        del cal.data["light_field"]
+        reconstruct(cap, calibration=cal, solver="nearfield", store=tmp_path / "c2")
+    with pytest.raises(UserError, match="lookup table"):
+        reconstruct(files["capture"], calibration=files["calibration"], solver="lut", store=tmp_path / "c3")

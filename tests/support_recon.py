@@ -1,0 +1,57 @@
+"""Test support for the reconstruction tests (normals, depth, reconstruct, DiLiGenT, eval).
+
+One place for: the devices to parametrize over, a single-thread torch fixture (the 2-core CI
+box is shared; torch's spinning worker threads collapse under contention), angular error,
+and a LookupTable-compatible table built from exact data (until calibration's lands).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from scipy.spatial import cKDTree
+
+from pipeline.bench.recon_scene import render_sphere_scene, sphere_cap  # noqa: F401  (re-exported)
+from pipeline.normals._torch import torch_threads
+
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+
+
+@pytest.fixture(autouse=True)
+def _one_torch_thread():
+    with torch_threads(1):
+        yield
+
+
+def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Per-pixel angle (degrees) between unit normals ``(..., 3)`` (atan2: exact near 0)."""
+    from pipeline.evaluate import angular_error_deg as ang
+
+    return ang(a, b)
+
+
+def channel_groups(num_patterns: int) -> np.ndarray:
+    """Albedo group (camera channel) of each of ``P * 3`` observations, pattern-major."""
+    return np.tile(np.arange(3), num_patterns)
+
+
+class NearestColourTable:
+    """A LookupTable-compatible object: nearest RGB among known (colour, gradient) samples.
+
+    Built from exact data (a rendered calibration sphere), it is what the calibration
+    stage's table does in its simplest form: ``lookup(images (N, H, W, 3)) -> (gradients
+    (N, H, W, 2), valid (N, H, W))``. A pixel is valid when its colour lies within
+    ``max_distance`` of a sample.
+    """
+
+    def __init__(self, colours: np.ndarray, gradients: np.ndarray, max_distance: float):
+        self.tree = cKDTree(np.asarray(colours, float).reshape(-1, 3))
+        self.gradients = np.asarray(gradients, float).reshape(-1, 2)
+        self.max_distance = float(max_distance)
+
+    def lookup(self, images):
+        images = np.asarray(images, float)
+        d, i = self.tree.query(images.reshape(-1, 3))
+        g = self.gradients[i].reshape(images.shape[:-1] + (2,))
+        return g, (d <= self.max_distance).reshape(images.shape[:-1])
