@@ -17,6 +17,10 @@ from sim.optics.sphere import Ball
 from sim.optics.torus import SweptArc
 from sim.scene import load_scene
 
+# Two cores shared by several test runs: a second intra-op thread mostly waits on barriers
+# (measured 4-10x slower per op under that load), so the tracer tests run single-threaded.
+torch.set_num_threads(1)
+
 LENS = load_scene("default").lens
 
 

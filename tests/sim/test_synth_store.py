@@ -8,6 +8,11 @@ from pipeline.store import StageStore, StoreError
 from sim.illumination_model import IlluminationModel, light_matrices
 from sim.scene import load_scene
 from sim.synthesize import default_illumination, load_illumination, save_illumination, synthesize
+import torch
+
+# Two cores shared by several test runs: a second intra-op thread mostly waits on barriers
+# (measured 4-10x slower per op under that load), so the tracer tests run single-threaded.
+torch.set_num_threads(1)
 
 
 def _drive(L=24, P=3):

@@ -12,6 +12,10 @@ from sim.optics.tracer import trace_source
 from sim.point_source import point_source_field, ring_geometry
 from sim.scene import load_scene, scene_from_dict, scene_to_dict
 
+# Two cores shared by several test runs: a second intra-op thread mostly waits on barriers
+# (measured 4-10x slower per op under that load), so the tracer tests run single-threaded.
+torch.set_num_threads(1)
+
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
