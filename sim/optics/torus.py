@@ -116,6 +116,15 @@ class SweptArc(ConvexSet):
         """
         need = active & (S > 0)
         dead = torch.zeros_like(need)
+        if torch.compiler.is_compiling():
+            # Inside torch.compile: no data-dependent shapes or syncs; masked fixed iterations
+            # fuse into one loop.
+            for _ in range(self.iterations):
+                move = need & (S > 0) & ((dS < 0) if left else (dS > 0))
+                dead = dead | (need & (S > 0) & ((dS >= 0) if left else (dS <= 0)))
+                t = torch.where(move, t - S / torch.where(move, dS, torch.ones_like(dS)), t)
+                S, dS = self._S(o, d, t)
+            return t, S, dS, dead
         if not bool(need.any()):
             return t, S, dS, dead
         idx = torch.nonzero(need).squeeze(1)
