@@ -21,7 +21,7 @@ import torch
 from sim.optics import instrument
 from sim.optics.interface import fresnel_transmittance, reflect, refract
 from sim.optics.base import Vec
-from sim.optics.lens import BOTTOM, TOP, LensBody
+from sim.optics.lens import BOTTOM, TOP, LensBody, box_interval
 from sim.optics.plane import plane_hit
 from sim.optics.sampling import SquareSampler, actual_rays, emission_directions
 
@@ -79,13 +79,30 @@ def _stopped(lens, p: Vec, sid):
 
 
 def lens_kernel(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, d: Vec, w, paper=None):
-    """Every ray of a chunk through the lens, with masks instead of branches (one fusable graph).
+    """Every ray of a chunk through the lens.
 
     Returns ``(o_out, d_out, w_out, stats)``: the rays leaving the optics (rays that miss the
     lens pass unchanged; absorbed rays leave with ``w = 0``) and a dict of summed tensors
-    ``reflected``, ``absorbed`` and counts ``tir_absorbed``, ``tir_bounces``, ``bounce_limit``,
+    ``reflected``, ``absorbed`` and counts ``tir_lost``, ``tir_bounces``,
     ``aperture_absorbed``, ``numerical_lost``, ``newton_unconverged``.
+
+    Eagerly, only the rays that enter the lens's bounding box go through the (masked) lens
+    code; under ``torch.compile`` every ray does, so the whole chunk is one fused graph.
     """
+    if not torch.compiler.is_compiling():
+        _, _, near = box_interval(o, d, *body.box)
+        if not bool(near.all()):
+            idx = torch.nonzero(near).squeeze(1)
+            so, sd, sw, stats = _lens_masked(body, ng, fresnel, bounces, tuple(c[idx] for c in o),
+                                             tuple(c[idx] for c in d), w[idx], paper)
+            out = (tuple(c.index_put((idx,), x) for c, x in zip(o, so)),
+                   tuple(c.index_put((idx,), x) for c, x in zip(d, sd)), w.index_put((idx,), sw))
+            return (*out, stats)
+    return _lens_masked(body, ng, fresnel, bounces, o, d, w, paper)
+
+
+def _lens_masked(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, d: Vec, w, paper=None):
+    """:func:`lens_kernel` with masks instead of branches (one fusable graph)."""
     zero = torch.zeros_like(w)
     t, sid, hit, unconv = body.enter(o, d)
     p = _along(o, d, t)
