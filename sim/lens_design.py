@@ -52,24 +52,30 @@ def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, 
     if no_lens:
         s = s.with_effects(remove=["lens"])
     t0 = time.perf_counter()
-    res = trace_all(s, PixelGrid.from_plane(s.plane), method=method, rays=rays, sampler=sampler, seed=seed,
-                    vector=False, device=device, dtype=dtype, compile=compile)
+    indices = s.lens.channel_indices() if s.has("dispersion") else (None,)
+    results = [trace_all(s, PixelGrid.from_plane(s.plane), method=method, rays=rays, sampler=sampler, seed=seed,
+                         vector=False, device=device, dtype=dtype, compile=compile, refractive_index=n_ch)
+               for n_ch in indices]
     secs = time.perf_counter() - t0
-    E = res.E[0].double().cpu().numpy()
-    m = image_metrics(E, s.leds.rgb, res.fraction_on_grid)
-    n = sum(t.rays for t in res.traces)
+    Es = [r.E[0].double().cpu().numpy() for r in results]
+    E = np.stack(Es) if len(Es) > 1 else Es[0]
+    res = results[0]
+    traces = [t for r in results for t in r.traces]
+    m = image_metrics(E, s.leds.rgb, np.mean([r.fraction_on_grid for r in results], axis=0))
+    n = sum(t.rays for t in traces)
     counters: dict = {}
-    for t in res.traces:
+    for t in traces:
         for k, v in t.counters.items():
             counters[k] = counters.get(k, 0) + v
     out = {**m, "rays": int(res.traces[0].rays), "seconds": secs, "rays_per_second": n / secs if secs > 0 else 0.0,
-           "energy_residual": max(abs(t.energy.residual) for t in res.traces), "scene": s.name,
+           "energy_residual": max(abs(t.energy.residual) for t in traces), "scene": s.name,
            "lens": s.has("lens"), "sampler": sampler or s.trace.sampler, "method": method, "device": str(device),
            "counters": counters}
     if images:
         from sim.optics.metrics import pattern_image
 
-        out["image"] = pattern_image(E, s.leds.rgb)
+        out["image"] = (np.stack([pattern_image(E[j], s.leds.rgb)[..., j] for j in range(3)], axis=2)
+                        if E.ndim == 4 else pattern_image(E, s.leds.rgb))
     return out
 
 

@@ -64,7 +64,7 @@ def image_metrics(E, rgb, fraction) -> dict:
 
     Parameters
     ----------
-    E : ndarray, shape (L, H, W)
+    E : ndarray, shape (L, H, W), or (3, L, H, W) per camera channel (dispersion effect)
         Per-source flat-gel irradiance on the screen.
     rgb : ndarray, shape (L, 3)
         Per-source RGB weights (the scene's ``leds.rgb``).
@@ -77,7 +77,10 @@ def image_metrics(E, rgb, fraction) -> dict:
     ``uniformity_cv``, ``min_max`` and ``channels`` (per R, G, B after channel separation).
     """
     E = np.asarray(E, dtype=np.float64)
-    img = pattern_image(E, rgb)
+    if E.ndim == 4:  # channel j sees the field traced with channel j's refractive index
+        img = np.stack([pattern_image(E[j], rgb)[..., j] for j in range(3)], axis=2)
+    else:
+        img = pattern_image(E, rgb)
     white = img.mean(axis=2)
     u = uniformity(white)
     chans = {}
