@@ -33,6 +33,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--device", default="cpu", help="torch device")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile measurements")
     parser.add_argument("--no-memory", action="store_true", help="skip the 1e7-ray peak-memory child process")
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
 
 
 def _best(fn, repeats):
@@ -55,12 +56,15 @@ def run(args) -> dict:
     from sim.optics.multisource import trace_all
     from sim.scene import load_scene
 
+    if getattr(args, "threads", None):
+        torch.set_num_threads(int(args.threads))
     quick = bool(getattr(args, "quick", False))
     reps = int(getattr(args, "repeats", 3))
     device = getattr(args, "device", "cpu")
     scene = load_scene("default")
     grid = PixelGrid((60, 60), (1.0, 1.0), scene.plane.z)
-    res: dict = {"device": device, "quick": quick, "repeats": reps, "threads": torch.get_num_threads()}
+    res: dict = {"device": device, "quick": quick, "repeats": reps, "threads": torch.get_num_threads(),
+                 "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
 
     # -- rays x sampler -----------------------------------------------------------------
     ref_rays = 1_000_000 if quick else 4_000_000
@@ -225,6 +229,9 @@ def format_table(result: dict) -> str:
     L = []
     L.append(f"iristac bench sim  (device {result['device']}, {result['threads']} torch threads, best of "
              f"{result['repeats']}{', quick' if result['quick'] else ''})")
+    if result.get("load_average"):
+        L.append("  load average at start: " + ", ".join(f"{x:.2f}" for x in result["load_average"])
+                 + f" on {os.cpu_count()} CPUs (other processes share them: wall times are upper bounds)")
     rs = result["rays_sampler"]
     L.append("")
     L.append(f"rays x sampler: LED 0 image (60x60 px) vs {rs['reference_rays']:,}-ray Sobol reference")
