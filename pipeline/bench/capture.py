@@ -23,7 +23,6 @@ from pipeline.capture.client import RingClient
 from pipeline.capture.emulator import RingEmulator, parse_faults
 from pipeline.capture.plan import CaptureSettings, run_capture
 from pipeline.capture.session import load_patterns
-from pipeline.capture.virtual import VirtualSensorSpec, contact_objects, open_virtual_camera
 
 FAULTS = "drop=0.05,corrupt=0.05,delay=0.02"
 BAUD = 115200
@@ -59,6 +58,8 @@ def _changes(faults: str, baud: float | None, n: int, timeout: float, seed: int)
 def _full_mode(faults: str, baud: float | None, fps: float, timeout: float, seed: int) -> dict:
     patterns = load_patterns("point")
     out = Path(tempfile.mkdtemp(prefix="iristac-bench-capture-")) / "capture.h5"
+    from pipeline.capture.virtual import VirtualSensorSpec, contact_objects, open_virtual_camera
+
     shape, mm = (60, 80), 0.1
     spec = VirtualSensorSpec(shape=shape, mm_per_px=mm, fps=fps,
                              contacts=contact_objects("sphere", 1, shape, mm, seed=seed))

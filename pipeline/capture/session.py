@@ -137,8 +137,6 @@ def capture(
     CaptureResult
         ``mislabeled`` is counted when the ring is emulated.
     """
-    from pipeline.capture.virtual import VirtualSensorSpec
-
     if bool(port) == bool(emulate):
         raise UserError("capture: give exactly one of --port PORT and --emulate")
     if (camera is None) == (virtual_camera is False):
@@ -150,6 +148,8 @@ def capture(
         raise UserError("capture: --faults applies to the emulator; it needs --emulate")
     spec = None
     if virtual_camera is not False:
+        from pipeline.capture.virtual import VirtualSensorSpec  # loads torch: only when needed
+
         if virtual_camera is True:
             spec = virtual_sensor(contacts=contacts, mm_per_px=mm_per_px, seed=seed)
         elif isinstance(virtual_camera, VirtualSensorSpec):

@@ -72,9 +72,6 @@ def test_bad_arguments_are_one_line_errors(tmp_path):
     assert r.returncode == 2
     assert r.stderr.strip().startswith("iristac capture: error: serial port "
                                        "'/dev/ttyIRISTAC-NOPE' does not exist")
-    r = run_cli("capture", "--port", "/dev/null", "--virtual-camera", "--mode", "point",
-                "--out", tmp_path / "c.h5")
-    assert r.returncode == 2 and "needs --emulate" in r.stderr
     r = run_cli("capture", *FAST, "--faults", "drop=7", "--out", tmp_path / "c.h5")
     assert r.returncode == 2 and "--faults: drop=7.0 must be a probability" in r.stderr
 
@@ -113,12 +110,6 @@ def test_emulate_ring_wrong_version_is_caught_by_the_host():
     finally:
         proc.terminate()
         proc.wait(timeout=10)
-
-
-def test_virtual_camera_negative_exposure_is_a_user_error(tmp_path):
-    r = run_cli("capture", *FAST, "--exposure", "-1", "--out", tmp_path / "c.h5")
-    assert r.returncode == 2
-    assert "virtual camera:" in r.stderr and "exposure must be >= 0, got -1.0" in r.stderr
 
 
 def test_capture_with_an_opencv_video_file_as_camera(tmp_path):

@@ -176,3 +176,16 @@ def test_illumination_file_drives_the_virtual_camera(tmp_path):
     assert rec.data["frames"].shape == (1, 1, 20, 30, 3)
     with pytest.raises(UserError, match="--mm-per-px 0.1 differs"):
         capture(tmp_path / "d.h5", mode="trichromatic", emulate=True, virtual_camera=s, mm_per_px=0.1)
+
+
+def test_bad_virtual_camera_requests_are_user_errors(tmp_path):
+    out = tmp_path / "c.h5"
+    with pytest.raises(UserError, match="needs --emulate"):
+        capture(out, mode="point", port="/dev/null", virtual_camera=True)
+    with pytest.raises(UserError, match="virtual camera:.*exposure must be >= 0, got -1"):
+        capture(out, mode="trichromatic", emulate=True, virtual_camera=spec(), exposure=-1.0)
+    with pytest.raises(UserError, match="--contacts 3 but the virtual sensor has 2 contacts"):
+        capture(out, mode="trichromatic", emulate=True, virtual_camera=spec(), contacts=3)
+    with pytest.raises(UserError, match="no such mode|unknown|not found"):
+        capture(out, mode="no-such-mode", emulate=True, virtual_camera=spec())
+    assert not out.exists()
