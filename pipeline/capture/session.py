@@ -245,9 +245,9 @@ def virtual_sensor(
     >>> len(spec.contacts), spec.model().shape, spec.model().mm_per_px
     (3, (20, 30), 0.1)
     """
-    from pipeline.capture.virtual import VirtualSensorSpec, contact_objects, load_illumination
+    from pipeline.capture.virtual import VirtualSensorSpec, contact_objects, illumination_option
 
-    model = load_illumination(illumination) if illumination is not None else None
+    model = illumination_option(illumination) if illumination is not None else None
     if model is not None and mm_per_px is not None and not np.isclose(mm_per_px, model.mm_per_px):
         raise UserError(f"--mm-per-px {mm_per_px} differs from {illumination}'s mm_per_px "
                         f"{model.mm_per_px}")

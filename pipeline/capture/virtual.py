@@ -47,7 +47,7 @@ __all__ = [
     "ContactCamera",
     "open_virtual_camera",
     "contact_objects",
-    "load_illumination",
+    "illumination_option",
     "truth_data",
     "OBJECTS",
 ]
@@ -330,31 +330,22 @@ def contact_objects(kind: str, count: int | None, shape: tuple[int, int], mm_per
     return [_height_field(np.asarray(m, np.float64), mm_per_px) for m in raw]
 
 
-def load_illumination(path) -> IlluminationModel:
-    """Read an ``illumination.h5`` (schema ``illumination``: ``V``, ``led_positions``, optional
-    ``depth_heights`` / ``V_depth``; attributes ``mm_per_px``, ``gel_z``) as an IlluminationModel.
+def illumination_option(path) -> IlluminationModel:
+    """The model of ``--illumination FILE``: :func:`sim.synthesize.load_illumination` (schema
+    ``illumination``, e.g. written by ``iristac sim synthesize``), errors naming the option.
 
     Raises
     ------
     UserError
         Missing or invalid file (the store names the file and the problem).
     """
-    from pipeline.store import StoreError, read_record
+    from pipeline.store import StoreError
+    from sim.synthesize import load_illumination
 
     path = Path(path)
     if not path.is_file():
         raise UserError(f"--illumination {path}: no such file")
     try:
-        rec = read_record(path, schema="illumination")
-    except StoreError as exc:
-        raise UserError(f"--illumination {path}: {exc}") from None
-    d, meta = rec.data, rec.meta
-    try:
-        return IlluminationModel(V=np.asarray(d["V"], np.float32), mm_per_px=float(meta["mm_per_px"]),
-                                 led_positions=np.asarray(d["led_positions"], np.float64),
-                                 gel_z=float(meta["gel_z"]), depth_heights=d.get("depth_heights"),
-                                 V_depth=d.get("V_depth"),
-                                 meta={"source": f"illumination:{path.name}",
-                                       **{k: v for k, v in meta.items() if isinstance(v, (str, int, float))}})
-    except ValueError as exc:
+        return load_illumination(path)
+    except (StoreError, ValueError) as exc:
         raise UserError(f"--illumination {path}: {exc}") from None

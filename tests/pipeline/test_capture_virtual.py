@@ -12,12 +12,12 @@ from pipeline.capture.session import capture, load_patterns
 from pipeline.capture.virtual import (
     VirtualSensorSpec,
     contact_objects,
-    load_illumination,
+    illumination_option,
     open_virtual_camera,
     truth_data,
 )
 from pipeline.errors import UserError
-from pipeline.store import Record, read_record, write_record
+from pipeline.store import Record, read_record
 from sim.frames import normals_to_gradients
 from sim.geometry import HeightField
 from sim.modes import list_modes
@@ -150,32 +150,33 @@ def test_contact_objects_and_illumination_file_errors(tmp_path):
         contact_objects(str(tmp_path / "one.npy"), None, (10, 10), MM)
     with pytest.raises(UserError, match="expected one of sphere, indenters, none or a .npy"):
         contact_objects("cube", 1, SHAPE, MM)
-    with pytest.raises(UserError, match="nope.h5: no such file"):
-        load_illumination(tmp_path / "nope.h5")
+    with pytest.raises(UserError, match="--illumination .*nope.h5: no such file"):
+        illumination_option(tmp_path / "nope.h5")
+    (tmp_path / "bad.h5").write_bytes(b"not hdf5")
+    with pytest.raises(UserError, match="--illumination .*bad.h5"):
+        illumination_option(tmp_path / "bad.h5")
     with pytest.raises(UserError, match="contacts\\[0\\] has shape \\(10, 10\\)"):
         VirtualSensorSpec(shape=SHAPE, mm_per_px=MM, contacts=[np.zeros((10, 10))]).surfaces()
 
 
-def test_illumination_file_drives_the_virtual_camera(tmp_path):
-    """An illumination.h5 (here written from the closed-form ring at another size) is what the
-    virtual camera renders with, and its pitch becomes the capture's."""
-    from sim.render import bare_ring_illumination
+def test_ray_traced_illumination_file_drives_the_virtual_camera(tmp_path):
+    """An illumination.h5 from the ray tracer (sim.synthesize, few rays) is what the virtual
+    camera renders with, through the CLI's option; its size and pitch become the capture's."""
+    from pipeline.capture.session import virtual_sensor
+    from sim.synthesize import default_illumination, save_illumination
 
-    model = bare_ring_illumination((20, 30), 0.2)
-    path = write_record(tmp_path / "illumination.h5", Record(
-        schema="illumination", data={"V": model.V, "led_positions": model.led_positions},
-        meta={"mm_per_px": 0.2, "gel_z": model.gel_z}))
-    loaded = load_illumination(path)
-    assert loaded.shape == (20, 30) and np.array_equal(loaded.V, model.V)
-    s = VirtualSensorSpec(illumination=loaded, contacts=contact_objects("sphere", 1, (20, 30), 0.2),
-                          fps=300.0)
+    model = default_illumination((20, 30), 0.5, rays=10_000)
+    path = save_illumination(model, tmp_path / "illumination.h5")
+    s = virtual_sensor(obj="sphere", contacts=1, illumination=path, fps=300.0, noise_dn=0.0)
+    assert s.model().shape == (20, 30) and np.array_equal(s.model().V, model.V)
     result = capture(tmp_path / "c.h5", mode="trichromatic", emulate=True, virtual_camera=s,
                      timeout=0.01, progress=False)
     rec = read_record(tmp_path / "c.h5", schema="capture")
-    assert result.mislabeled == 0 and rec.meta["mm_per_px"] == 0.2
-    assert rec.data["frames"].shape == (1, 1, 20, 30, 3)
+    assert result.mislabeled == 0 and rec.meta["mm_per_px"] == 0.5
+    assert rec.data["frames"].shape == (1, 1, 20, 30, 3) and rec.data["reference"].max() > 0
+    assert rec.meta["illumination"]["scene"] == model.meta["scene"]
     with pytest.raises(UserError, match="--mm-per-px 0.1 differs"):
-        capture(tmp_path / "d.h5", mode="trichromatic", emulate=True, virtual_camera=s, mm_per_px=0.1)
+        virtual_sensor(illumination=path, mm_per_px=0.1)
 
 
 def test_bad_virtual_camera_requests_are_user_errors(tmp_path):
