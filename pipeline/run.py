@@ -140,8 +140,8 @@ def plan_pipeline(config_path: str | Path, *, cache: str | Path | None = None,
             for ps in planned]
 
 
-def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, force: Sequence[str] = (),
-                 device: str | None = None, progress: bool = True, recompute_bad: bool = False) -> RunReport:
+def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, out: str | Path | None = None,
+                 force: Sequence[str] = (), device: str | None = None, progress: bool = True, recompute_bad: bool = False) -> RunReport:
     """Run the stages of a pipeline config through the stage store.
 
     Parameters
@@ -150,6 +150,8 @@ def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, fo
         The pipeline YAML (schema ``data_schemas/configs/pipeline.json``).
     cache : path, optional
         Stage store folder; overrides the config's ``cache``.
+    out : path, optional
+        Output folder; overrides the config's ``out``.
     force : sequence of str
         Stages to recompute together with everything downstream of them.
     device : str, optional
@@ -176,6 +178,8 @@ def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, fo
 
     t0 = time.perf_counter()
     config = load_pipeline_config(config_path)
+    if out is not None:
+        config["out"] = str(Path(out).resolve())
     store = _store(config, cache)
     stages = build_stages(config, device=device, progress=progress)
     say = (lambda msg: print(f"iristac run: {msg}", file=sys.stderr, flush=True)) if progress else None

@@ -18,6 +18,7 @@ def register(sub, name, help_text):
     p.add_argument("--force", action="append", default=[], metavar="STAGE",
                    help="recompute STAGE and every stage downstream of it (repeatable)")
     p.add_argument("--cache", default=None, help="stage store folder (overrides the config's 'cache')")
+    p.add_argument("--out", default=None, help="output folder (overrides the config's 'out')")
     p.add_argument("--device", default=None, help="torch device (overrides the config's 'device')")
     p.add_argument("--recompute-bad", action="store_true",
                    help="move corrupt store entries aside and recompute them instead of failing")
@@ -39,7 +40,8 @@ def _run(args) -> int:
             print(f"{s['name']:<11} {'cached' if s['cached'] else 'RUN':<7} {s['reason']}")
         return 0
     try:
-        report = run_pipeline(args.config, cache=args.cache, force=args.force, device=args.device,
+        report = run_pipeline(args.config, cache=args.cache, out=args.out, force=args.force,
+                              device=args.device,
                               progress=not (args.quiet or args.json), recompute_bad=args.recompute_bad)
     except StageFailed as exc:
         if args.json:  # what ran before the failure, then the one-line error on stderr
