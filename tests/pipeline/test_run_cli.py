@@ -10,6 +10,7 @@ from pathlib import Path
 import pytest
 import yaml
 
+from pipeline.errors import UserError
 from pipeline.run import plan_pipeline, run_pipeline
 from pipeline.store import StageStore
 from tests.helpers import REPO, run_cli
@@ -126,8 +127,8 @@ def test_force_recomputes_the_stage_and_what_depends_on_it(small):
     assert [line.split()[:2] for line in dry.stdout.splitlines()] == [
         ["synthesize", "cached"], ["calibrate", "cached"], ["capture", "cached"], ["normals", "cached"],
         ["depth", "RUN"]]
-    bad = run_cli("run", small, "--force", "dept")
-    assert bad.returncode == 2 and "unknown stage 'dept'" in bad.stderr
+    with pytest.raises(UserError, match="--force: unknown stage 'dept'"):
+        plan_pipeline(small, force=["dept"])
 
 
 def test_unknown_config_key_is_one_line_naming_key_and_allowed_keys(tmp_path):
