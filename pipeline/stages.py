@@ -339,6 +339,28 @@ def virtual_sensor_capture(model, mode: str, surfaces, *, faults: str | None = N
         Schema ``capture`` with ``truth/height (K, H, W)``, ``truth/normals (K, H, W, 3)``,
         ``truth/albedo (H, W, 3)``, and the exposure ``mu`` the frames were rendered with.
     """
+    try:
+        from pipeline.capture.virtual import VirtualSensorSpec  # type: ignore[import-not-found]
+    except ModuleNotFoundError as exc:
+        if exc.name != "pipeline.capture.virtual":
+            raise
+    else:
+        # The capture package's own virtual sensor (iristac capture --virtual-camera).
+        from pipeline.capture.session import capture
+
+        spec = VirtualSensorSpec(illumination=model, contacts=list(surfaces), noise_dn=float(noise_dn),
+                                 target_dn=float(target_dn), fps=float(fps), seed=int(seed), device=device)
+        with tempfile.TemporaryDirectory(prefix="iristac-capture-") as tmp:
+            res = capture(Path(tmp) / "capture.h5", mode=mode, emulate=True, faults=faults, virtual_camera=spec,
+                          frames_per_pattern=int(frames_per_pattern), seed=int(seed), progress=progress)
+        return res.record
+    return _plan_driven_capture(model, mode, surfaces, faults=faults, fps=fps, frames_per_pattern=frames_per_pattern,
+                                noise_dn=noise_dn, target_dn=target_dn, seed=seed, device=device, progress=progress)
+
+
+def _plan_driven_capture(model, mode, surfaces, *, faults, fps, frames_per_pattern, noise_dn, target_dn, seed, device,
+                         progress):
+    # Until pipeline.capture.virtual is on main: the plan drives sim.virtual_camera directly.
     from pipeline.capture.client import RingClient
     from pipeline.capture.emulator import RingEmulator, parse_faults
     from pipeline.capture.plan import CaptureSettings, run_capture
