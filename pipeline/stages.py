@@ -476,7 +476,15 @@ def _calibrate(p: Mapping[str, Any], inputs: Mapping[str, Any], device: str):
                                                 device))
         else:
             src = p["capture"]
-        res = calibrate(src, float(p["ball_radius_mm"]), p.get("mm_per_px"), p["model"], folds=int(p["folds"]))
+        try:
+            res = calibrate(src, float(p["ball_radius_mm"]), p.get("mm_per_px"), p["model"], folds=int(p["folds"]))
+        except UserError as exc:
+            if "render" not in p:
+                raise
+            # The rendered file is temporary: name the config fields that made it instead.
+            msg = str(exc).replace(str(src), "the sphere capture rendered from calibrate.render")
+            raise UserError(f"{msg} (check calibrate.render: presses, depth_mm, spread_mm, and "
+                            f"calibrate.ball_radius_mm)") from None
         return read_record(res.save(Path(tmp) / "calibration.h5"), schema="calibration")
 
 

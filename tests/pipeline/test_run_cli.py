@@ -194,3 +194,17 @@ def test_missing_section_a_stage_needs_is_named(tmp_path):
     assert r.returncode == 2
     assert "stage 'capture' with a virtual sensor needs the 'synthesize' section" in r.stderr
     assert len(r.stderr.strip().splitlines()) == 1
+
+
+def test_failing_calibration_names_the_config_fields_and_keeps_synthesize(tmp_path):
+    from pipeline.orchestrate import StageFailed
+
+    cfg = {**SMALL, "calibrate": {"render": {"presses": 3, "depth_mm": 0.01}, "ball_radius_mm": 3.0}}
+    config = write_config(tmp_path / "run.yaml", cfg)
+    with pytest.raises(StageFailed) as info:
+        run_pipeline(config, progress=False)
+    msg = str(info.value)
+    assert msg.startswith("stage 'calibrate' failed: the sphere capture rendered from calibrate.render: only")
+    assert "calibrate.render: presses, depth_mm" in msg and "iristac-calibrate-" not in msg
+    assert [(r.name, r.error is None) for r in info.value.results] == [("synthesize", True), ("calibrate", False)]
+    assert [p["cached"] for p in plan_pipeline(config)] == [True, False, False, False, False]
