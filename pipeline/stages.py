@@ -136,6 +136,9 @@ def resolve_config(config: Mapping[str, Any], base_dir: str | os.PathLike = ".",
                             f"'port', got {sources or 'none'}")
         if "file" in cap:
             cap["file"] = _abs(cap["file"], base)
+        cam = cap.get("camera")
+        if isinstance(cam, str) and not cam.isdigit() and (base / cam).exists():
+            cap["camera"] = _abs(cam, base)  # a video file next to the config
         elif cap.get("virtual_camera") and not cap.get("emulate"):
             raise UserError(f"{source}: capture: 'virtual_camera' images the emulated ring; it needs 'emulate: true'")
         elif (cap.get("emulate") or cap.get("port")) and not cap.get("virtual_camera") and "camera" not in cap:
