@@ -190,10 +190,8 @@ def test_example_config_is_valid_and_plans_all_five_stages(tmp_path):
 
 def test_missing_section_a_stage_needs_is_named(tmp_path):
     config = write_config(tmp_path / "run.yaml", {"capture": {"render": True}, "normals": {}})
-    r = run_cli("run", config, "--dry-run")
-    assert r.returncode == 2
-    assert "stage 'capture' with a virtual sensor needs the 'synthesize' section" in r.stderr
-    assert len(r.stderr.strip().splitlines()) == 1
+    with pytest.raises(UserError, match="stage 'capture' with a virtual sensor needs the 'synthesize' section"):
+        plan_pipeline(config)
 
 
 def test_failing_calibration_names_the_config_fields_and_keeps_synthesize(tmp_path):
