@@ -80,6 +80,21 @@ def _abs(path: str, base: Path) -> str:
     return str(p if p.is_absolute() else (base / p).resolve())
 
 
+def _capture_mode(cfg: Mapping[str, Any], base: Path) -> str:
+    """The lighting mode of the capture stage (a capture file's own ``mode`` attribute)."""
+    cap = cfg.get("capture") or {}
+    if cap.get("file"):
+        from pipeline.store import StoreError, read_record
+
+        try:
+            mode = read_record(_abs(cap["file"], base), schema="capture", load=False).meta.get("mode")
+        except StoreError:
+            mode = None  # the capture stage reports the bad file when it runs
+        if mode:
+            return str(mode)
+    return cap.get("mode", DEFAULTS["capture"]["mode"])
+
+
 def resolve_config(config: Mapping[str, Any], base_dir: str | os.PathLike = ".", source: str = "<config>"
                    ) -> dict[str, Any]:
     """Validate a parsed pipeline config, fill defaults and make paths absolute.
@@ -126,8 +141,7 @@ def resolve_config(config: Mapping[str, Any], base_dir: str | os.PathLike = ".",
         if "capture" in cal:
             cal["capture"] = _abs(cal["capture"], base)
         else:
-            mode = cfg.get("capture", {}).get("mode", DEFAULTS["capture"]["mode"])
-            cal["render"] = {**DEFAULTS["calibrate.render"], "mode": mode, **cal["render"]}
+            cal["render"] = {**DEFAULTS["calibrate.render"], "mode": _capture_mode(cfg, base), **cal["render"]}
     cap = cfg.get("capture")
     if cap is not None:
         sources = [k for k in ("file", "render", "emulate", "port") if cap.get(k)]

@@ -206,3 +206,16 @@ def test_failing_calibration_names_the_config_fields_and_keeps_synthesize(tmp_pa
     assert "calibrate.render: presses, depth_mm" in msg and "iristac-calibrate-" not in msg
     assert [(r.name, r.error is None) for r in info.value.results] == [("synthesize", True), ("calibrate", False)]
     assert [p["cached"] for p in plan_pipeline(config)] == [True, False, False, False, False]
+
+
+def test_rendered_calibration_follows_the_capture_files_lighting_mode(tmp_path):
+    from sim.render import bare_ring_illumination
+    from sim.rendered_capture import render_capture, write_capture
+    from pipeline.stages import contact_surfaces, resolve_config
+
+    model = bare_ring_illumination((12, 16), 0.5)
+    write_capture(tmp_path / "c.h5", render_capture(model, "trichromatic", contact_surfaces((12, 16), 0.5)))
+    cfg = resolve_config({"calibrate": {"render": {}}, "capture": {"file": "c.h5"}}, tmp_path)
+    assert cfg["calibrate"]["render"]["mode"] == "trichromatic"
+    cfg = resolve_config({"calibrate": {"render": {}}, "capture": {"render": True, "mode": "point"}}, tmp_path)
+    assert cfg["calibrate"]["render"]["mode"] == "point"
