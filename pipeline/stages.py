@@ -532,6 +532,13 @@ def _depth(p: Mapping[str, Any], inputs: Mapping[str, Any]):
 # ---------------------------------------------------------------------------------------------
 # The graph
 
+def _file_key(path: str, field: str) -> str:
+    try:
+        return file_input_key(path)
+    except UserError as exc:
+        raise UserError(f"config {field}: {exc}") from None
+
+
 def build_stages(config: Mapping[str, Any], *, device: str | None = None, progress: bool = False) -> list[Stage]:
     """The stages of a resolved config (:func:`resolve_config`), in run order.
 
@@ -581,13 +588,13 @@ def build_stages(config: Mapping[str, Any], *, device: str | None = None, progre
             need("calibrate", "synthesize", "with 'render'")
             deps, extra = ["synthesize"], []
         else:
-            deps, extra = [], [file_input_key(p["capture"])]
+            deps, extra = [], [_file_key(p["capture"], "calibrate.capture")]
         stages.append(Stage("calibrate", _VERSIONS["calibrate"], _calibrate_params(p), deps,
                             lambda inputs, p=p: _calibrate(p, inputs, dev), extra))
     if "capture" in config:
         p = config["capture"]
         if p.get("file"):
-            deps, extra = [], [file_input_key(p["file"])]
+            deps, extra = [], [_file_key(p["file"], "capture.file")]
         elif p.get("render") or p.get("virtual_camera"):
             need("capture", "synthesize", "with a virtual sensor")
             deps, extra = ["synthesize"], []
