@@ -56,8 +56,9 @@ STAGE_ORDER = ("synthesize", "calibrate", "capture", "normals", "depth")
 
 #: Defaults filled in by :func:`resolve_config` (per section; ``None`` = no default).
 DEFAULTS: dict[str, dict[str, Any]] = {
-    "synthesize": {"model": "traced", "scene": "default", "rays": 20_000, "sampler": "grid", "method": "hits",
-                   "seed": 0, "gel_z": 35.0, "height": 60, "width": 80, "mm_per_px": 0.5},
+    # rays, sampler and seed of a traced model default to the scene's ``trace`` section.
+    "synthesize": {"model": "traced", "scene": "default", "method": "hits", "gel_z": 35.0, "height": 60,
+                   "width": 80, "mm_per_px": 0.5},
     "calibrate": {"ball_radius_mm": 4.0, "model": "far", "folds": 5},
     "calibrate.render": {"presses": 8, "depth_mm": 0.6, "spread_mm": 4.0, "noise_dn": 1.0, "target_dn": 200.0,
                          "seed": 0},
@@ -130,6 +131,18 @@ def resolve_config(config: Mapping[str, Any], base_dir: str | os.PathLike = ".",
     for name in STAGE_ORDER:
         if name in cfg:
             cfg[name] = {**DEFAULTS[name], **(cfg[name] or {})}
+    syn = cfg.get("synthesize")
+    if syn is not None and (base / syn["scene"]).is_file():
+        syn["scene"] = _abs(syn["scene"], base)  # a scene file next to the config
+    if syn is not None and syn["model"] == "traced" and not all(k in syn for k in ("rays", "sampler", "seed")):
+        from sim.scene import load_scene
+
+        try:
+            trace = load_scene(syn["scene"]).trace
+        except UserError as exc:
+            raise UserError(f"{source}: synthesize.scene: {exc}") from None
+        syn.update({k: v for k, v in (("rays", trace.rays), ("sampler", trace.sampler), ("seed", trace.seed))
+                    if k not in syn})
     for key in ("cache", "out"):
         if key in cfg:
             cfg[key] = _abs(cfg[key], base)
@@ -203,7 +216,7 @@ def illumination_record(model):
 def illumination_model(rec):
     """The :class:`~sim.illumination_model.IlluminationModel` of an ``illumination`` record.
 
-    Uses the ray tracer's reader (``sim.synthesize.model_from_record``) where it exists.
+    The ray tracer's reader, :func:`sim.synthesize.model_from_record`.
 
     Examples
     --------
@@ -212,22 +225,9 @@ def illumination_model(rec):
     >>> m.shape, m.num_leds
     ((4, 6), 24)
     """
-    try:
-        from sim.synthesize import model_from_record  # type: ignore[import-not-found]
-    except ModuleNotFoundError as exc:
-        if exc.name != "sim.synthesize":
-            raise
-    else:
-        return model_from_record(rec)
-    from sim.illumination_model import IlluminationModel
+    from sim.synthesize import model_from_record
 
-    d, m = rec.data, dict(rec.meta)
-    return IlluminationModel(V=np.asarray(d["V"], dtype=np.float32), mm_per_px=float(m.pop("mm_per_px")),
-                             led_positions=np.asarray(d["led_positions"], dtype=np.float64),
-                             gel_z=float(m.pop("gel_z")),
-                             depth_heights=None if "depth_heights" not in d else np.asarray(d["depth_heights"]),
-                             V_depth=None if "V_depth" not in d else np.asarray(d["V_depth"], dtype=np.float32),
-                             meta=m)
+    return model_from_record(rec)
 
 
 def _synthesize(p: Mapping[str, Any], device: str):
@@ -236,13 +236,8 @@ def _synthesize(p: Mapping[str, Any], device: str):
         from sim.render import bare_ring_illumination
 
         return illumination_record(bare_ring_illumination(shape, float(p["mm_per_px"]), float(p["gel_z"])))
-    try:
-        from sim.synthesize import synthesize_record  # type: ignore[import-not-found]
-    except ModuleNotFoundError as exc:
-        if exc.name != "sim.synthesize":
-            raise
-        raise UserError("synthesize: model 'traced' needs the ray tracer (sim.synthesize), which this installation "
-                        "does not have; use 'model: bare_ring' (closed-form bare LED ring)") from None
+    from sim.synthesize import synthesize_record
+
     return synthesize_record(p["scene"], shape, float(p["mm_per_px"]), rays=int(p["rays"]), sampler=p["sampler"],
                              seed=int(p["seed"]), method=p["method"], device=device)
 
@@ -253,17 +248,14 @@ def _synthesize_params(p: Mapping[str, Any]) -> dict:
     out = {k: p[k] for k in keep}
     if p["model"] == "traced":
         # The scene's content, not its name or path, decides the result.
+        from sim.scene import load_scene, scene_to_dict
+
         try:
-            from sim.scene import load_scene, scene_to_dict  # type: ignore[import-not-found]
-        except ModuleNotFoundError as exc:
-            if exc.name not in ("sim.scene",):
-                raise
-            out["scene"] = p["scene"]
-        else:
-            try:
-                out["scene"] = scene_to_dict(load_scene(p["scene"]))
-            except UserError as exc:
-                raise UserError(f"synthesize: scene: {exc}") from None
+            scene = scene_to_dict(load_scene(p["scene"]))
+        except UserError as exc:
+            raise UserError(f"synthesize: scene: {exc}") from None
+        scene.pop("description", None)  # words do not change the light
+        out["scene"] = scene
     return out
 
 
@@ -576,10 +568,7 @@ def build_stages(config: Mapping[str, Any], *, device: str | None = None, progre
         p = config["synthesize"]
         version = 1
         if p["model"] == "traced":
-            try:
-                from sim.synthesize import STAGE_VERSION as version  # type: ignore[import-not-found,no-redef]
-            except ModuleNotFoundError:
-                version = 1  # reported by the stage itself when it runs
+            from sim.synthesize import STAGE_VERSION as version
         stages.append(Stage("synthesize", int(version), _synthesize_params(p), [],
                             lambda inputs, p=p: _synthesize(p, dev)))
     if "calibrate" in config:

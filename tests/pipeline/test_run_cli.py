@@ -219,3 +219,26 @@ def test_rendered_calibration_follows_the_capture_files_lighting_mode(tmp_path):
     assert cfg["calibrate"]["render"]["mode"] == "trichromatic"
     cfg = resolve_config({"calibrate": {"render": {}}, "capture": {"render": True, "mode": "point"}}, tmp_path)
     assert cfg["calibrate"]["render"]["mode"] == "point"
+
+
+def test_traced_synthesize_is_keyed_by_the_scene_content(tmp_path):
+    scene = (REPO / "sim" / "scenes" / "default.yaml").read_text(encoding="utf-8")
+    (tmp_path / "scene.yaml").write_text(scene, encoding="utf-8")
+    cfg = {"cache": "cache", "synthesize": {"model": "traced", "scene": "scene.yaml", "rays": 4096,
+                                            "height": 6, "width": 8, "mm_per_px": 2.0}}
+    config = write_config(tmp_path / "run.yaml", cfg)
+    report = run_pipeline(config, progress=False)
+    from pipeline.store import read_record
+
+    assert report.stages[0]["cached"] is False
+    ill = read_record(report.stages[0]["path"], schema="illumination")
+    assert ill.data["V"].shape == (24, 6, 8, 3) and ill.meta["rays_per_source"] == 4096
+    # Renamed, or reworded: same light, cached. A changed LED ring radius: traced again.
+    (tmp_path / "scene.yaml").rename(tmp_path / "renamed.yaml")
+    (tmp_path / "renamed.yaml").write_text(scene.replace("description: >-", "description: >-\n  Reworded."),
+                                           encoding="utf-8")
+    write_config(config, {**cfg, "synthesize": {**cfg["synthesize"], "scene": "renamed.yaml"}})
+    assert plan_pipeline(config)[0]["cached"]
+    (tmp_path / "renamed.yaml").write_text(scene.replace("radius: 40.0 ", "radius: 39.0 "), encoding="utf-8")
+    plan = plan_pipeline(config)[0]
+    assert not plan["cached"] and plan["reason"].startswith("parameters changed (scene:")
