@@ -60,10 +60,11 @@ def test_second_run_hits_the_cache_for_all_five_stages(tmp_path):
     assert set(first["stages"][0]) >= {"name", "cached", "seconds", "key"}
     stage_first = sum(s["seconds"] for s in first["stages"])
     stage_second = sum(s["seconds"] for s in second["stages"])
-    print(f"\nfirst run {t_first:.2f} s (stages {stage_first:.2f} s), second run {t_second:.2f} s "
-          f"(stages {stage_second:.3f} s): {t_second / t_first:.1%} of the first")
+    print(f"\nfirst run {t_first:.2f} s wall, {first['seconds']:.2f} s in run_pipeline (stages {stage_first:.2f} s); "
+          f"second run {t_second:.2f} s wall, {second['seconds']:.2f} s in run_pipeline (stages {stage_second:.3f} s)")
     assert stage_second < 0.2 * stage_first
-    assert t_second < 0.5 * t_first  # generous: interpreter start-up dominates the cached run
+    # Generous: on a loaded machine imports and interpreter start-up dominate the cached run.
+    assert second["seconds"] < 0.5 * first["seconds"]
     # The emulated capture carries truth, so the run reports real errors, and the outputs exist.
     assert first["summary"]["normal_mean_error_deg"] == second["summary"]["normal_mean_error_deg"]
     assert 0 < first["summary"]["normal_mean_error_deg"] < 45
