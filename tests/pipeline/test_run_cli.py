@@ -149,12 +149,15 @@ def test_corrupt_capture_file_fails_in_one_line_and_keeps_earlier_stages(tmp_pat
     cfg = {"cache": "cache", "synthesize": SMALL["synthesize"], "capture": {"file": "capture.h5"},
            "normals": {"lights": "illumination"}, "depth": {}}
     config = write_config(tmp_path / "run.yaml", cfg)
-    r = run_cli("run", config)
+    r = run_cli("run", config, "--json")
     assert r.returncode == 2
     lines = r.stderr.strip().splitlines()
-    assert lines[-1].startswith("iristac run: error: stage 'capture' failed:"), r.stderr
-    assert str(bad) in lines[-1]
-    assert not any("Traceback" in line for line in lines)
+    assert len(lines) == 1 and lines[0].startswith("iristac run: error: stage 'capture' failed:"), r.stderr
+    assert str(bad) in lines[0]
+    ran = json.loads(r.stdout)  # --json still says what ran before the failure
+    assert [(s["name"], s["cached"], "error" in s) for s in ran["stages"]] == [
+        ("synthesize", False, False), ("capture", False, True)]
+    assert str(bad) in ran["error"]
     plan = {p["name"]: p["cached"] for p in plan_pipeline(config)}
     assert plan == {"synthesize": True, "capture": False, "normals": False, "depth": False}
 
