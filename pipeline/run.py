@@ -182,6 +182,10 @@ def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, ou
         config["out"] = str(Path(out).resolve())
     store = _store(config, cache)
     stages = build_stages(config, device=device, progress=progress)
+    if progress:
+        for s in stages:
+            if s.name != "capture":  # the capture plan draws its own bar, step by step
+                s.compute = _ticking(s.name, s.compute)
     say = (lambda msg: print(f"iristac run: {msg}", file=sys.stderr, flush=True)) if progress else None
     results = run_stages(stages, store, force=force, run_name=_run_name(Path(config_path)), progress=say,
                          recompute_bad=recompute_bad)
@@ -196,6 +200,32 @@ def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, ou
         out.write_text(json.dumps(report.to_json(), indent=2, sort_keys=True), encoding="utf-8")
         report.outputs.append(str(out))
     return report
+
+
+def _ticking(name: str, compute):
+    """``compute`` with an elapsed-time bar on stderr while it runs (stages without steps to count)."""
+    import threading
+
+    def run(inputs):
+        from tqdm import tqdm
+
+        bar = tqdm(desc=f"{name}", bar_format="{desc}: {elapsed} elapsed", leave=False, file=sys.stderr)
+        stop = threading.Event()
+
+        def tick():
+            while not stop.wait(0.5):
+                bar.refresh()
+
+        t = threading.Thread(target=tick, daemon=True)
+        t.start()
+        try:
+            return compute(inputs)
+        finally:
+            stop.set()
+            t.join()
+            bar.close()
+
+    return run
 
 
 def _finish(config: dict, results) -> tuple[dict, list[str]]:
