@@ -20,6 +20,7 @@ from calibration.capture import Capture, read_capture
 from calibration.detect import Circle, DetectOptions, detect_contacts
 from calibration.models import (MODEL_NAMES, CalibrationModel, FarFieldModel, LightFieldModel, LUTModel, MLPModel,
                                 NearFieldModel, TracedModel, check_light_rank)
+from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
 from calibration.validate import cross_validate
 from pipeline.errors import UserError
@@ -28,7 +29,7 @@ __all__ = ["CalibrationResult", "calibrate", "label_errors", "CIRCLE_COLUMNS"]
 
 #: Columns of the ``circles (K, 8)`` dataset of calibration.h5.
 CIRCLE_COLUMNS = ("center_x", "center_y", "radius_px", "contact_radius_px", "quality", "accepted", "snr",
-                  "residual_px")
+                  "residual_px", "shift_x", "shift_y")
 
 
 @dataclass
@@ -113,7 +114,8 @@ class CalibrationResult:
 
         # One row per press (the stage schema's (K, *) ``circles``); columns in CIRCLE_COLUMNS.
         data: dict[str, np.ndarray] = {"circles": np.array(
-            [[*c.center_xy, c.radius_px, c.contact_radius_px, c.quality, float(c.accepted), c.snr, c.residual_px]
+            [[*c.center_xy, c.radius_px, c.contact_radius_px, c.quality, float(c.accepted), c.snr, c.residual_px,
+              *c.shift_xy]
              for c in self.circles], dtype=np.float32).reshape(-1, len(CIRCLE_COLUMNS))}
         best_lf = self.best_light_field_model
         if best_lf is not None:
@@ -144,7 +146,11 @@ class CalibrationResult:
 
 
 def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np.ndarray) -> dict[str, Any]:
-    """Median centre and radius error (px) of the accepted circles against hand labels."""
+    """Median centre and radius error (px) of the accepted circles against hand labels.
+
+    Also the median signed centre offset ``center_offset_px_median = [dx, dy]`` (circle minus
+    label): a bias shared by all presses shows there, not in the error's size alone.
+    """
     acc = np.array([c.accepted for c in circles])
     c = np.array([c.center_xy for c in circles]).reshape(-1, 2)
     r = np.array([c.radius_px for c in circles])
@@ -152,6 +158,8 @@ def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np
     re = np.abs(r - np.asarray(radius_px, float))[acc]
     return {"center_error_px_median": float(np.median(ce)) if ce.size else None,
             "radius_error_px_median": float(np.median(re)) if re.size else None,
+            "center_offset_px_median": np.median((c - np.asarray(center_xy, float))[acc], axis=0).tolist()
+            if ce.size else None,
             "center_error_px": ce.tolist(), "radius_error_px": re.tolist()}
 
 
@@ -187,7 +195,7 @@ def _factories(names, capture: Capture, illumination, saturation, model_options)
 def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: float | None = None,
               models: str | Sequence[str] = "all", *, illumination=None, folds: int = 5, shrink_px: float = 2.0,
               detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
-              seed: int = 0) -> CalibrationResult:
+              refine_iterations: int = 2, seed: int = 0) -> CalibrationResult:
     """Calibrate light models from a sphere-indentation capture.
 
     Parameters
@@ -212,6 +220,9 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
     detect_options : DetectOptions, optional
     model_options : dict, optional
         name -> keyword arguments of that model's constructor (e.g. ``{"near": {"degree": 3}}``).
+    refine_iterations : int
+        Passes of :func:`calibration.refine.refine_centres` (photometric centres from
+        cross-fitted near-field normals); 0 keeps the edge detector's centres.
     seed : int
 
     Returns
@@ -247,7 +258,14 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         reasons = "; ".join(f"press {k}: {c.reason}" for k, c in enumerate(circles) if not c.accepted)
         raise UserError(f"{src}: only {accepted} press(es) accepted, calibration needs at least 2 ({reasons})")
     samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat)
+    # Before any light model is fitted: refinement fits one, which needs three directions.
     rank = check_light_rank(samples.subset(samples.press >= 0), what=src)
+    t0 = time.perf_counter()
+    circles, refine_report = refine_centres(frames, ref, circles, ball_radius_mm, mm, iterations=refine_iterations,
+                                            folds=folds, seed=seed, shrink_px=shrink_px, saturation=sat)
+    refine_report["seconds"] = time.perf_counter() - t0
+    if refine_iterations > 0:
+        samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat)
     factories = _factories(names, cap, illumination, sat, model_options)
     fitted: dict[str, CalibrationModel] = {}
     reports: dict[str, dict[str, Any]] = {}
@@ -270,5 +288,5 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
                              ball_radius_mm=float(ball_radius_mm), mm_per_px=float(mm), shape=cap.shape,
                              num_patterns=int(frames.shape[1]), num_channels=int(frames.shape[4]),
                              light_rank_ratio=rank,
-                             meta={"detect_seconds": t_detect, "samples": len(samples),
+                             meta={"detect_seconds": t_detect, "refine": refine_report, "samples": len(samples),
                                    "contact_samples": int(samples.contact.sum())})

@@ -34,7 +34,7 @@ def test_import_keeps_rgb_and_labels(tmp_path):
 
 @needs_data
 def test_real_frames_calibrate_end_to_end(tmp_path):
-    from calibration.calibrate import calibrate
+    from calibration.calibrate import CIRCLE_COLUMNS, calibrate
     from calibration.importers import load_gelsight_npz
 
     cap = load_gelsight_npz(DATA)
@@ -54,7 +54,7 @@ def test_real_frames_calibrate_end_to_end(tmp_path):
     from pipeline.store import read_record
 
     rec = read_record(out, "calibration")
-    assert rec.data["circles"].shape == (20, 8) and rec.data["light_field"].shape == (1, 3, 120, 160, 3)
+    assert rec.data["circles"].shape == (20, len(CIRCLE_COLUMNS)) and rec.data["light_field"].shape == (1, 3, 120, 160, 3)
 
 
 @needs_data
