@@ -20,12 +20,14 @@ from calibration.capture import Capture, read_capture
 from calibration.detect import Circle, DetectOptions, detect_contacts
 from calibration.models import (MODEL_NAMES, CalibrationModel, FarFieldModel, LightFieldModel, LUTModel, MLPModel,
                                 NearFieldModel, TracedModel, check_light_rank)
+from calibration.models.led_geometry import geometry_basis
 from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
 from calibration.validate import cross_validate
 from pipeline.errors import UserError
+from sim.illumination_model import IlluminationModel
 
-__all__ = ["CalibrationResult", "calibrate", "label_errors", "CIRCLE_COLUMNS"]
+__all__ = ["CalibrationResult", "calibrate", "label_errors", "read_illumination", "CIRCLE_COLUMNS"]
 
 #: Columns of the ``circles (K, 8)`` dataset of calibration.h5.
 CIRCLE_COLUMNS = ("center_x", "center_y", "radius_px", "contact_radius_px", "quality", "accepted", "snr",
@@ -163,6 +165,23 @@ def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np
             "center_error_px": ce.tolist(), "radius_error_px": re.tolist()}
 
 
+def read_illumination(path: str | Path) -> IlluminationModel:
+    """Read an ``illumination`` record (the ray tracer's ``illumination.h5``) for the traced model.
+
+    Goes through :func:`sim.synthesize.load_illumination` (schema-validated by the stage
+    store); a missing or invalid file raises :class:`UserError` naming it.
+    """
+    from sim.synthesize import load_illumination
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such file (expected an 'illumination' HDF5 record from iristac sim trace)")
+    try:
+        return load_illumination(path)
+    except ValueError as exc:  # IlluminationModel's own checks (shapes, NaN)
+        raise UserError(f"{path}: {exc}") from None
+
+
 def _factories(names, capture: Capture, illumination, saturation, model_options) -> dict[str, Callable | str]:
     out: dict[str, Callable | str] = {}
     opts = model_options or {}
@@ -175,9 +194,20 @@ def _factories(names, capture: Capture, illumination, saturation, model_options)
             out[name] = lambda o=o: NearFieldModel(**o)
         elif name == "traced":
             V = getattr(illumination, "V", illumination)
+            o = dict(o)
+            correct = bool(o.pop("correct_geometry", False))
             if V is None:
                 out[name] = "no illumination model (LED fields V) given for this sensor"
             else:
+                if np.asarray(V).shape[1:3] != capture.shape:
+                    raise UserError(f"calibrate: the illumination model is {np.asarray(V).shape[1:3]} pixels (H, W) "
+                                    f"but the capture is {capture.shape}; trace it on the capture's pixel grid")
+                if correct:
+                    if not isinstance(illumination, IlluminationModel):
+                        raise UserError("calibrate: LED geometry corrections need an IlluminationModel (LED "
+                                        "positions, gel_z, mm_per_px), not bare fields")
+                    o["basis"] = geometry_basis(illumination.led_positions, None, illumination.shape,
+                                                illumination.mm_per_px, illumination.gel_z)
                 out[name] = lambda o=o, V=V: TracedModel(V, capture.drive, capture.brightness, **o)
         elif name == "lut":
             if (p, c) != (1, 3):
@@ -212,7 +242,10 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         apply (``traced`` without ``illumination``, ``lut`` with more than one pattern) are
         reported as skipped; asked for by name they raise :class:`UserError`.
     illumination : IlluminationModel or ndarray (L, H, W, 3), optional
-        LED fields for the traced model.
+        LED fields for the traced model (:func:`read_illumination` reads one from a file).
+        With ``model_options={"traced": {"correct_geometry": True}}`` (an IlluminationModel
+        is then needed) the traced fit also corrects LED positions and tilts to first order
+        (:mod:`calibration.models.led_geometry`).
     folds : int
         Cross-validation press groups.
     shrink_px : float
