@@ -268,6 +268,18 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         Missing scale, no usable press, or patterns with fewer than three independent
         light directions.
     """
+    from threadpoolctl import threadpool_limits
+
+    # Small, many solves: a single BLAS thread is several times faster on a loaded machine
+    # than threads that spin waiting for a core (see pyproject.toml).
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _calibrate(capture, ball_radius_mm, mm_per_px, models, illumination=illumination, folds=folds,
+                          shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
+                          refine_iterations=refine_iterations, seed=seed)
+
+
+def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, folds, shrink_px, detect_options,
+               model_options, refine_iterations, seed) -> CalibrationResult:
     src = str(capture) if not isinstance(capture, Capture) else "capture"
     cap = read_capture(capture) if not isinstance(capture, Capture) else capture
     mm = mm_per_px if mm_per_px is not None else cap.mm_per_px
