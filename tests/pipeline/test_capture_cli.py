@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import subprocess
 import sys
 
@@ -57,12 +58,16 @@ def test_disconnect_then_rerun_resumes(tmp_path):
                 timeout=120)
     assert r.returncode == 2
     err = r.stderr.strip().splitlines()[-1]
-    assert "disconnected during" in err and "15 of 49 steps are saved" in err
+    # Without retransmissions the 31st frame on the wire falls in step 16; a reply timeout on a
+    # loaded machine makes the client resend, which uses up frames sooner. Either way, what was
+    # saved must be exactly what the rerun takes over.
+    saved = re.search(r"(\d+) of 49 steps are saved", err)
+    assert "disconnected during" in err and saved and 1 <= int(saved.group(1)) <= 15, err
     assert "rerun the same command to resume" in err and not out.exists()
     r = run_cli("capture", *FAST, "--out", out, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "49 frames" in r.stdout and "0 mislabeled" in r.stdout
-    assert "resumed 15 saved frames" in r.stdout
+    assert f"resumed {saved.group(1)} saved frames" in r.stdout
     assert read_record(out, schema="capture").meta["runs"] == 2
 
 
