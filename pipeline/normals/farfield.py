@@ -26,12 +26,14 @@ class FarFieldSolver:
         a far-field calibration's ``(P, C, 3)`` reshaped to ``(P*C, 3)``.
     groups : ndarray, shape (N_obs,), optional
         Albedo group of each observation (the camera channel): albedo is then estimated per
-        group, and when every group has at least three observations the normal is refined
-        for per-channel albedo.
+        group (given the normal).
     max_condition : float
         Pixels whose light matrix is worse conditioned are masked.
     albedo_iterations : int
-        Alternation steps for per-group albedo (see :mod:`pipeline.normals._lstsq`).
+        Alternation steps that refine the normal for per-group albedo (needs at least three
+        observations per group; see :func:`pipeline.normals._lstsq.solve`). Useful only when
+        the camera channels see different light directions (coloured patterns) and the
+        albedo is coloured; 0 (default) solves one joint albedo, exact for white patterns.
     device, dtype
         Torch device and float dtype of the computation.
 
@@ -47,7 +49,7 @@ class FarFieldSolver:
     ([0.6, 0.0, 0.8], 2.0, True)
     """
 
-    def __init__(self, lights, *, groups=None, max_condition: float = 1e3, albedo_iterations: int = 2,
+    def __init__(self, lights, *, groups=None, max_condition: float = 1e3, albedo_iterations: int = 0,
                  device="cpu", dtype="float32"):
         L = np.asarray(lights, dtype=np.float64)
         if L.ndim != 2 or L.shape[1] != 3 or L.shape[0] < 1:

@@ -51,7 +51,7 @@ class NearFieldSolver:
     """
 
     def __init__(self, lights, *, groups=None, method: str = "normal", max_condition: float = 1e3,
-                 albedo_iterations: int = 2, device="cpu", dtype="float32"):
+                 albedo_iterations: int = 0, device="cpu", dtype="float32"):
         if lights is None or len(getattr(lights, "shape", ())) != 4 or lights.shape[-1] != 3:
             raise ValueError(f"NearFieldSolver: lights must have shape (N_obs, H, W, 3), got "
                              f"{getattr(lights, 'shape', None)}")
