@@ -61,6 +61,27 @@ def group_selectors(groups: torch.Tensor | None, num_groups: int, n: int) -> lis
     return out
 
 
+def channels_share_lights(L: torch.Tensor, selectors: list, rtol: float = 1e-4) -> bool:
+    """True when every group's lights are one scalar multiple of the first group's.
+
+    Then a joint solve is exact whatever the per-group albedo (white patterns: the channels
+    of a pattern see the same light), and the per-group alternation can be skipped.
+    ``L`` is ``(N, 3)`` or ``(N, 3, M)``; groups of different sizes never share.
+    """
+    if len(selectors) < 2:
+        return True
+    ref = L[selectors[0]].to(torch.float64)
+    ref_norm = float((ref * ref).sum())
+    for sel in selectors[1:]:
+        Lg = L[sel].to(torch.float64)
+        if Lg.shape != ref.shape:
+            return False
+        a = float((Lg * ref).sum()) / max(ref_norm, 1e-300)
+        if float(((Lg - a * ref) ** 2).sum()) > (rtol ** 2) * max(float((Lg * Lg).sum()), 1e-300):
+            return False
+    return True
+
+
 def gram_shared(L: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
     """``sum_k w_k L_k L_k^T`` for shared lights ``(N, 3)``: ``(3, 3, 1)`` or ``(3, 3, M)``."""
     outer = (L[:, :, None] * L[:, None, :]).reshape(L.shape[0], 9)

@@ -33,7 +33,8 @@ class FarFieldSolver:
         Alternation steps that refine the normal for per-group albedo (needs at least three
         observations per group; see :func:`pipeline.normals._lstsq.solve`). Useful only when
         the camera channels see different light directions (coloured patterns) and the
-        albedo is coloured; 0 (default) solves one joint albedo, exact for white patterns.
+        albedo is coloured. None (default): 3 when the channels' lights differ (not one
+        scalar multiple of each other), else 0 (the joint solve is exact then).
     device, dtype
         Torch device and float dtype of the computation.
 
@@ -49,7 +50,7 @@ class FarFieldSolver:
     ([0.6, 0.0, 0.8], 2.0, True)
     """
 
-    def __init__(self, lights, *, groups=None, max_condition: float = 1e3, albedo_iterations: int = 0,
+    def __init__(self, lights, *, groups=None, max_condition: float = 1e3, albedo_iterations: int | None = None,
                  device="cpu", dtype="float32"):
         L = np.asarray(lights, dtype=np.float64)
         if L.ndim != 2 or L.shape[1] != 3 or L.shape[0] < 1:
@@ -59,9 +60,10 @@ class FarFieldSolver:
         self.n_obs = L.shape[0]
         self.groups, self.num_groups = _inputs.check_groups(groups, self.n_obs, "FarFieldSolver", self.device)
         self.selectors = _lstsq.group_selectors(self.groups, self.num_groups, self.n_obs)
-        self.iterations = int(albedo_iterations) if _inputs.group_counts_ok(self.groups, self.num_groups) else 0
         self.max_condition = float(max_condition)
         self.L, row_ok = _inputs.flatten_lights(L, self.dtype, self.device)
+        self.iterations = _albedo_iterations(albedo_iterations, self.L, self.selectors, self.groups,
+                                             self.num_groups)
         # Rows without a finite light are dropped by weight; all rows good -> unit weights.
         self.w_rows = None if bool(row_ok.all()) else row_ok.to(self.dtype)[:, None]
         # The light matrix is the same at every pixel: its moments, inverse and condition are
@@ -96,6 +98,16 @@ class FarFieldSolver:
         b = _lstsq.solve(m, inv, self.iterations)
         return finalize(b, m, cond, (H, W), max_condition=self.max_condition,
                         meta={"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition})
+
+
+def _albedo_iterations(requested, L, selectors, groups, num_groups) -> int:
+    """Alternation steps: as requested, or (None) 3 when the channels see different lights
+    and 0 when a joint solve is already exact; never without three observations per group."""
+    if not _inputs.group_counts_ok(groups, num_groups):
+        return 0
+    if requested is None:
+        return 0 if _lstsq.channels_share_lights(L, selectors) else 3
+    return int(requested)
 
 
 def solve_farfield(observations, lights, **kwargs) -> NormalResult:
