@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from sim.frames import normals_to_gradients
 
 __all__ = ["DepthResult", "pixel_gradients", "half_pixel_gradients", "anchor_to_border", "check_mask"]
 
@@ -75,17 +74,25 @@ def pixel_gradients(normals, mask, mm_per_px: float, max_slope: float, name: str
     >>> round(float(gc[0, 0]), 6), float(gr[0, 0]), bool(m[0, 0])
     (0.075, 0.0, True)
     """
-    n = np.asarray(normals, dtype=np.float64)
+    n = np.asarray(normals)
     if n.ndim != 3 or n.shape[-1] != 3 or min(n.shape) < 1:
         raise ValueError(f"{name}: normals must have shape (H, W, 3), got {n.shape}")
     if not (np.isfinite(mm_per_px) and mm_per_px > 0):
         raise ValueError(f"{name}: mm_per_px must be a positive number, got {mm_per_px!r}")
-    m = check_mask(mask, n.shape[:2], name) & np.isfinite(n).all(-1) & (n[..., 2] > 0)
-    n = np.where(m[..., None], n, np.array([0.0, 0.0, 1.0]))
-    p, q = normals_to_gradients(n)
-    mag = np.hypot(p, q)
-    scale = np.where(mag > max_slope, max_slope / np.maximum(mag, 1e-300), 1.0)
-    p, q = p * scale, q * scale
+    nx, ny, nz = (n[..., i].astype(np.float64) for i in range(3))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        m = check_mask(mask, n.shape[:2], name) & (nz > 0) & (nz < np.inf)  # False for NaN too
+        nz = np.where(m, nz, 1.0)
+        p = -nx / nz
+        q = -ny / nz
+        m &= np.isfinite(p) & np.isfinite(q)
+    p = np.where(m, p, 0.0)
+    q = np.where(m, q, 0.0)
+    # Clip slopes (grazing normals) only where needed: the magnitude test is cheap.
+    if np.abs(p).max() > max_slope / 1.5 or np.abs(q).max() > max_slope / 1.5:
+        mag = np.hypot(p, q)
+        scale = np.where(mag > max_slope, max_slope / np.maximum(mag, 1e-300), 1.0)
+        p, q = p * scale, q * scale
     return p * mm_per_px, -q * mm_per_px, m
 
 

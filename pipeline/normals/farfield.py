@@ -85,7 +85,8 @@ class FarFieldSolver:
             raise ValueError(f"FarFieldSolver.solve: expected {self.n_obs} observations, got shape "
                              f"{tuple(observations.shape)}")
         I, finite = _inputs.flatten_observations(observations, self.dtype, self.device)
-        if finite is None and self.w_rows is None:
+        fast = finite is None and self.w_rows is None
+        if fast:
             m = _lstsq.moments(I, self.L, None, self.selectors, Q=self.Q)
             inv, cond = self.inv, self.cond
         else:
@@ -96,7 +97,7 @@ class FarFieldSolver:
             inv, _ = T.inverse3(m.Q.sum(0))
             cond = _lstsq.condition(self.L, w)
         b = _lstsq.solve(m, inv, self.iterations)
-        return finalize(b, m, cond, (H, W), max_condition=self.max_condition,
+        return finalize(b, m, cond, (H, W), max_condition=self.max_condition, finite_inputs=fast,
                         meta={"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition})
 
 

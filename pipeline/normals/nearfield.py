@@ -95,7 +95,7 @@ class NearFieldSolver:
             b = _qr_solve(I, self.L, torch.ones_like(I) if w is None else w)
         else:
             b = _lstsq.solve(m, inv, self.iterations)
-        return finalize(b, m, cond, (H, W), max_condition=self.max_condition,
+        return finalize(b, m, cond, (H, W), max_condition=self.max_condition, finite_inputs=finite is None,
                         meta={"solver": "nearfield", "method": self.method, "max_condition": self.max_condition})
 
 
