@@ -4,11 +4,11 @@ Per press (one ``(P, H, W, C)`` stack against the no-contact reference):
 
 1. **Difference image**: ``sum_{p,c} |I - I_ref|``, lightly blurred; its background level and
    noise are the median and MAD over the image.
-2. **Coarse blob**: the connected region (holes filled: the difference is an annulus, dark at
-   the apex where the gel is flat) above a fraction of the peak that holds the peak.
-3. **Edge points**: rays from the centre; on each, the radius beyond the ray's maximum where the
-   difference falls to ``edge_level`` of the way from that ray's own outer baseline to its
-   peak (per ray, because how bright the rim is depends on which light it faces), linearly
+2. **Coarse blob**: of the connected regions (holes filled: the difference is an annulus, dark
+   at the apex where the gel is flat) above a fraction of the peak, the one holding the most
+   difference.
+3. **Edge points**: rays from the centre; on each, the outermost radius where the difference
+   falls to ``edge_level`` of the way from that ray's own outer baseline to its peak (per ray, because how bright the rim is depends on which light it faces), linearly
    interpolated between samples (sub-pixel).
 4. **Robust circle**: RANSAC over 3-point circles (seeded), then an algebraic fit and
    Gauss-Newton geometric refinement on the inliers; steps 3-4 are repeated from the new
@@ -42,7 +42,7 @@ class Circle:
     contact_radius_px : float
         Radius used for the truth: ``min(radius_px, clamp_fraction * ball radius)``.
     quality : float
-        In [0, 1]: RANSAC inlier fraction times a contrast factor (1 at ``2 * faint_snr``).
+        In [0, 1]: RANSAC inlier fraction (of the rays that found an edge) times a contrast factor (1 at ``2 * faint_snr``).
     accepted : bool
     reason : str
         Why the press was rejected, or notes on an accepted one (e.g. clamped radius).
@@ -165,10 +165,14 @@ def _edge_points(diff, cx, cy, r_max, opt: DetectOptions):
             continue  # the ray leaves the image before its outer baseline: no trustworthy edge
         base = float(np.median(tail))
         level = base + opt.edge_level * (p[im] - base)
-        below = np.nonzero((p[im:] < level) & ok[im:])[0]
-        if len(below) == 0 or below[0] == 0:
+        # The outermost sample above the level (within the rim search range) and the next one
+        # below it bracket the edge; the first crossing after the maximum would stop at a dip
+        # inside the disc (the difference is not monotonic inside: it depends on which light
+        # each tilt faces).
+        above = np.nonzero((p[:peak_lim] >= level) & ok[:peak_lim])[0]
+        j = int(above[-1]) + 1 if len(above) else 0
+        if j <= im or j >= len(rs) or not ok[j] or p[j] >= level:
             continue
-        j = im + below[0]
         t = (p[j - 1] - level) / max(p[j - 1] - p[j], 1e-12)
         r = rs[j - 1] + t * opt.ray_step_px
         xs.append(cx + np.cos(ang[a]) * r)
@@ -221,8 +225,11 @@ def detect_press(frames: np.ndarray, reference: np.ndarray, ball_radius_px: floa
     if snr < opt.faint_snr:
         return reject(f"too faint: peak contrast {snr:.1f} noise sigmas < {opt.faint_snr}")
     blob = diff > med + opt.blob_level * (float(diff[peak_at]) - med)
-    labels, _ = ndimage.label(ndimage.binary_fill_holes(blob))
-    region = labels == labels[peak_at]
+    labels, count = ndimage.label(ndimage.binary_fill_holes(blob))
+    # The press is the component with the most difference in it, not the one holding the
+    # single brightest pixel (a specular glint or a saturated LED spot can outshine the rim).
+    mass = ndimage.sum_labels(diff - med, labels, index=np.arange(1, count + 1))
+    region = labels == (1 + int(np.argmax(mass)))
     cy, cx = ndimage.center_of_mass(region)
     r = float(np.sqrt(region.sum() / np.pi))
     rng = np.random.default_rng(opt.seed)
@@ -232,7 +239,7 @@ def detect_press(frames: np.ndarray, reference: np.ndarray, ball_radius_px: floa
         if len(xs) < max(8, opt.num_rays // 4):
             return reject(f"no clear circle: only {len(xs)} of {opt.num_rays} rays found an edge", cx, cy, r)
         inl = _ransac_circle(xs, ys, opt.ransac_tol_px, opt.ransac_iterations, rng)
-        inl_frac = inl.sum() / opt.num_rays
+        inl_frac = inl.sum() / len(xs)  # rays that left the image found no edge and do not vote
         if inl.sum() < 3:
             return reject("no clear circle: RANSAC found no consensus", cx, cy, r)
         cx, cy, r = _fit_algebraic(xs[inl], ys[inl])

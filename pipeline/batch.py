@@ -63,7 +63,8 @@ def _guarded(task: Callable[[str], Any], recording: str) -> BatchItem:
 
 
 def run_batch(recordings: Sequence[str], task: Callable[[str], Any], *, workers: int = 1,
-              scheduler: str | None = None, progress: bool = False) -> list[BatchItem]:
+              scheduler: str | None = None, progress: bool = False,
+              connect_timeout: float = 10.0) -> list[BatchItem]:
     """Apply ``task`` to every recording and collect the outcomes in input order.
 
     Parameters
@@ -80,6 +81,8 @@ def run_batch(recordings: Sequence[str], task: Callable[[str], Any], *, workers:
         over its workers instead of a local pool.
     progress : bool
         Show a progress bar on stderr.
+    connect_timeout : float
+        Seconds to wait for the Dask scheduler to answer.
     """
     recordings = [str(r) for r in recordings]
     if workers < 1:
@@ -87,7 +90,7 @@ def run_batch(recordings: Sequence[str], task: Callable[[str], Any], *, workers:
     bar = _bar(len(recordings), progress)
     try:
         if scheduler:
-            return _run_dask(recordings, task, scheduler, bar)
+            return _run_dask(recordings, task, scheduler, bar, connect_timeout)
         if workers == 1 or len(recordings) <= 1:
             out = []
             for r in recordings:
@@ -106,13 +109,17 @@ def run_batch(recordings: Sequence[str], task: Callable[[str], Any], *, workers:
         bar.close()
 
 
-def _run_dask(recordings, task, scheduler, bar) -> list[BatchItem]:
+def _run_dask(recordings, task, scheduler, bar, connect_timeout) -> list[BatchItem]:
     try:
         from distributed import Client
     except ImportError as exc:  # pragma: no cover - dask[distributed] is a dependency
         raise UserError("--scheduler needs dask.distributed (pip install 'dask[distributed]')") from exc
+    import dask
+
     try:
-        client = Client(scheduler, timeout="10s")
+        # The comm-level connect timeout governs retries on a refused connection.
+        with dask.config.set({"distributed.comm.timeouts.connect": f"{connect_timeout}s"}):
+            client = Client(scheduler, timeout=f"{connect_timeout}s")
     except OSError as exc:
         raise UserError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there ({exc})") from None
     try:

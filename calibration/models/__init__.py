@@ -1,0 +1,16 @@
+"""Calibration models, one module each: far-field, near-field polynomial, traced gains, LUT, MLP.
+
+``MODEL_NAMES`` lists them in the order ``--model all`` fits them.
+"""
+
+from calibration.models.base import CalibrationModel, LightFieldModel, solve_normals, check_light_rank
+from calibration.models.farfield import FarFieldModel
+from calibration.models.nearfield import NearFieldModel
+from calibration.models.traced import TracedModel
+from calibration.models.lut import LookupTable, LUTModel
+from calibration.models.mlp import MLPModel
+
+MODEL_NAMES = ("far", "near", "traced", "lut", "mlp")
+
+__all__ = ["CalibrationModel", "LightFieldModel", "solve_normals", "check_light_rank", "FarFieldModel",
+           "NearFieldModel", "TracedModel", "LookupTable", "LUTModel", "MLPModel", "MODEL_NAMES"]

@@ -11,8 +11,8 @@ Faults act on whole frames as they cross the emulated wire, in both directions:
   the receiver's real parser (which must detect it by CRC and resynchronise);
 - ``delay=P``: before handling a command the device stalls for ``delay-s`` seconds
   (default 0.05), as a busy MCU would, so late and duplicate replies reach the host;
-- ``disconnect-after=N``: after handling N commands the device "is unplugged": the pty is
-  closed and the host's next read or write fails.
+- ``disconnect-after=N``: the device handles N commands, then "is unplugged" when the next
+  one arrives: the pty is closed and the host's read fails.
 
 With ``baudrate`` set, every frame also costs its time on a UART line (10 bits per byte), so
 benchmarks can separate the protocol's own overhead from the wire time.
@@ -49,7 +49,7 @@ import numpy as np
 from pipeline.capture import protocol as P
 from pipeline.errors import UserError
 
-__all__ = ["FaultSpec", "parse_faults", "ShownState", "EmulatorStats", "RingEmulator"]
+__all__ = ["FaultSpec", "parse_faults", "ShownState", "EmulatorStats", "RingEmulator", "serve_forever"]
 
 
 @dataclass(frozen=True)
@@ -292,7 +292,7 @@ class RingEmulator:
                 # While a partial frame is buffered, wait only one frame gap for the rest, as
                 # firmware does with an inter-byte timeout: a corrupted length must not make the
                 # device swallow the host's retransmissions.
-                gap = self.FRAME_GAP_S if self._parser.pending else 0.05
+                gap = self._frame_gap() if self._parser.pending else 0.05
                 ready, _, _ = select.select([master], [], [], gap)
                 if not ready:
                     if self._parser.pending:
@@ -316,18 +316,34 @@ class RingEmulator:
             if self.disconnected.is_set():
                 self._close_fds()
 
-    def _receive(self, raw: bytes) -> None:
-        f = self.faults
-        rng = self._rng
+    def _frame_gap(self) -> float:
+        """Idle time after which a partial frame is dropped: 2 ms or 20 character times."""
+        if self.baudrate:
+            return max(self.FRAME_GAP_S, P.wire_seconds(20, self.baudrate))
+        return self.FRAME_GAP_S
+
+    def _cross_wire(self, raw: bytes, direction: str) -> bytes | None:
+        """One frame crossing the emulated wire (``direction`` "in" or "out"): maybe lost,
+        maybe one bit flipped, and with the baud model its time on the line."""
+        f, rng = self.faults, self._rng
         if f.drop and rng.random() < f.drop:
-            self.stats.dropped_in += 1
-            return
+            setattr(self.stats, f"dropped_{direction}", getattr(self.stats, f"dropped_{direction}") + 1)
+            return None
         if f.corrupt and rng.random() < f.corrupt:
             raw = _flip_bit(raw, rng)
-            self.stats.corrupted_in += 1
+            setattr(self.stats, f"corrupted_{direction}",
+                    getattr(self.stats, f"corrupted_{direction}") + 1)
         if self.baudrate:
             time.sleep(P.wire_seconds(len(raw), self.baudrate))
-        if f.delay and rng.random() < f.delay:
+        return raw
+
+    def _receive(self, raw: bytes) -> None:
+        f = self.faults
+        arrived = self._cross_wire(raw, "in")
+        if arrived is None:
+            return
+        raw = arrived
+        if f.delay and self._rng.random() < f.delay:
             self.stats.delayed += 1
             time.sleep(f.delay_s)
         errors_before = self._parser.crc_errors
@@ -344,6 +360,12 @@ class RingEmulator:
     def _handle(self, frames: list[P.Frame]) -> None:
         f = self.faults
         for frame in frames:
+            limit = f.disconnect_after
+            if limit is not None and self.stats.commands >= limit:
+                # Unplugged: the command after the N-th finds the device gone, so every reply
+                # to the first N has been delivered.
+                self.disconnected.set()
+                return
             self.stats.commands += 1
             key = (frame.seq, frame.cmd, frame.payload)
             if key == self._last_key:
@@ -355,24 +377,13 @@ class RingEmulator:
                 reply = P.encode_frame(self._execute(frame))
                 self._last_key, self._last_reply = key, reply
             self._send(reply)
-            limit = f.disconnect_after
-            if limit is not None and self.stats.commands >= limit:
-                self.disconnected.set()
-                return
 
     def _send(self, raw: bytes) -> None:
-        f = self.faults
-        rng = self._rng
-        if f.drop and rng.random() < f.drop:
-            self.stats.dropped_out += 1
+        sent = self._cross_wire(raw, "out")
+        if sent is None:
             return
-        if f.corrupt and rng.random() < f.corrupt:
-            raw = _flip_bit(raw, rng)
-            self.stats.corrupted_out += 1
-        if self.baudrate:
-            time.sleep(P.wire_seconds(len(raw), self.baudrate))
-        self.stats.bytes_out += len(raw)
-        os.write(self._master, raw)  # type: ignore[arg-type]
+        self.stats.bytes_out += len(sent)
+        os.write(self._master, sent)  # type: ignore[arg-type]
 
     def _execute(self, frame: P.Frame) -> P.Frame:
         C = P.Command
@@ -437,3 +448,41 @@ def _flip_bit(raw: bytes, rng: random.Random) -> bytes:
     i = rng.randrange(len(out))
     out[i] ^= 1 << rng.randrange(8)
     return bytes(out)
+
+
+def serve_forever(
+    *,
+    led_count: int = 24,
+    faults: FaultSpec | None = None,
+    baudrate: float | None = None,
+    version: int | None = None,
+    seed: int = 0,
+    duration: float | None = None,
+    announce=print,
+) -> int:
+    """Run an emulator until Ctrl-C, ``duration`` or a fault-injected disconnect.
+
+    Prints the device path first (flushed, on its own line), so a script can read it.
+    Returns 0, or 1 after an injected disconnect.
+    """
+    emu = RingEmulator(
+        led_count,
+        version=P.PROTOCOL_VERSION if version is None else version,
+        faults=faults,
+        baudrate=baudrate,
+        seed=seed,
+    )
+    path = emu.start()
+    announce(path, flush=True)
+    try:
+        emu.wait(duration)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        emu.stop()
+    if emu.disconnected.is_set():
+        import sys
+
+        print(f"emulated ring disconnected after {emu.stats.commands} commands", file=sys.stderr)
+        return 1
+    return 0

@@ -99,6 +99,9 @@ class LedStateCamera:
         Driver queue length (frames).
     """
 
+    #: Frames carry ``info["exposure"] = (start, end)`` in ``time.monotonic()`` seconds.
+    reports_exposure = True
+
     def __init__(
         self,
         ring: LedHistory,

@@ -1,7 +1,49 @@
-"""CLI command (not implemented yet: the calibration issue)."""
+"""``iristac calibrate CAPTURE --ball-radius MM --mm-per-px MM --model M --out FILE``.
 
-from pipeline.cli._common import not_implemented
+Calls :func:`calibration.calibrate.calibrate` and :meth:`CalibrationResult.save`.
+"""
+
+from pipeline.cli._common import add_json_flag, print_json
+
+MODEL_CHOICES = ["far", "near", "traced", "lut", "mlp", "all"]
 
 
 def register(sub, name, help_text):
-    not_implemented(sub, name, help_text, "the calibration issue")
+    p = sub.add_parser(name, help=help_text, description=help_text)
+    p.add_argument("capture", help="sphere-indentation capture.h5")
+    p.add_argument("--ball-radius", type=float, required=True, help="ball radius in mm")
+    p.add_argument("--mm-per-px", type=float, default=None, help="pixel pitch (default: the capture's)")
+    p.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
+    p.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
+    p.add_argument("--out", required=True, help="calibration.h5 to write")
+    p.add_argument("--overlay", default=None, help="also write an overlay PNG of the circles")
+    add_json_flag(p)
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    from calibration.calibrate import calibrate
+
+    res = calibrate(args.capture, args.ball_radius, args.mm_per_px, args.model, folds=args.folds)
+    res.save(args.out)
+    if args.overlay:
+        from calibration.capture import read_capture
+        from calibration.overlay import write_overlay
+
+        cap = read_capture(args.capture)
+        write_overlay(args.overlay, cap, res.circles)
+    s = res.summary()
+    if args.json:
+        print_json(s)
+        return 0
+    print(f"{s['accepted']} of {s['presses']} presses accepted; wrote {args.out}")
+    for name, m in s["models"].items():
+        if m.get("skipped"):
+            print(f"  {name:7s} skipped: {m['skipped']}")
+        else:
+            print(f"  {name:7s} CV mean {m['cv_mean_angular_error_deg']:6.2f} deg  median "
+                  f"{m['cv_median_angular_error_deg']:6.2f} deg  {m['seconds']:6.2f} s")
+    if "center_error_px_median" in s:
+        print(f"  vs labels: centre {s['center_error_px_median']:.2f} px, radius {s['radius_error_px_median']:.2f} px "
+              "(medians)")
+    return 0

@@ -1,7 +1,88 @@
-"""CLI command (not implemented yet: the capture issue)."""
+"""``iristac capture``: frames for every pattern of a lighting mode (calls
+:func:`pipeline.capture.session.capture`)."""
 
-from pipeline.cli._common import not_implemented
+from __future__ import annotations
+
+import sys
+
+from pipeline.cli._common import add_json_flag, print_json
 
 
 def register(sub, name, help_text):
-    not_implemented(sub, name, help_text, "the capture issue")
+    p = sub.add_parser(name, help=help_text, description=help_text + ". Rerunning an "
+                       "interrupted capture with the same arguments resumes it.")
+    ring = p.add_mutually_exclusive_group(required=True)
+    ring.add_argument("--port", help="serial port of the LED ring (e.g. /dev/ttyACM0)")
+    ring.add_argument("--emulate", action="store_true", help="use a ring emulator behind a pty")
+    p.add_argument("--faults", help="emulator faults, e.g. drop=0.05,corrupt=0.05,delay=0.02,"
+                   "delay-s=0.05,disconnect-after=N")
+    cam = p.add_mutually_exclusive_group(required=True)
+    cam.add_argument("--camera", help="OpenCV camera index, device path or video file")
+    cam.add_argument("--virtual-camera", action="store_true",
+                     help="a virtual camera imaging the emulated ring's LEDs (needs --emulate)")
+    p.add_argument("--mode", required=True, help="lighting mode name or file")
+    p.add_argument("--frames-per-pattern", type=int, default=1, metavar="N",
+                   help="frames averaged per stored frame (default 1)")
+    p.add_argument("--contacts", type=int, default=1, metavar="K",
+                   help="contact instances (presses) after the references (default 1)")
+    p.add_argument("--settle", type=float, default=None, metavar="S",
+                   help="seconds to wait after a pattern change before flushing the camera")
+    p.add_argument("--exposure", type=float, default=None,
+                   help="camera exposure (virtual: seconds; OpenCV: backend units)")
+    p.add_argument("--mm-per-px", type=float, default=0.1, help="image scale (default 0.1)")
+    p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    p.add_argument("--timeout", type=float, default=0.1,
+                   help="seconds to wait for the ring's first reply (default 0.1)")
+    p.add_argument("--retries", type=int, default=8, help="retransmissions per command")
+    p.add_argument("--emulate-baud", action="store_true",
+                   help="the emulator models the wire time at --baud")
+    p.add_argument("--seed", type=int, default=0, help="seed of the emulator's faults")
+    p.add_argument("--camera-fps", type=float, default=60.0, help="virtual camera frame rate")
+    p.add_argument("--camera-size", type=int, nargs=2, default=(60, 80), metavar=("H", "W"),
+                   help="virtual camera image size (default 60 80)")
+    p.add_argument("--no-prompt", action="store_true",
+                   help="do not wait for Enter before each contact with a real camera")
+    p.add_argument("--out", required=True, help="capture file to write (.h5)")
+    add_json_flag(p)
+    p.set_defaults(func=run)
+    return p
+
+
+def run(args) -> int:
+    from pipeline.capture.session import capture, json_summary, prompt_contact
+
+    prompt = None
+    if args.camera is not None and not args.no_prompt and sys.stdin.isatty():
+        prompt = prompt_contact
+    result = capture(
+        args.out,
+        mode=args.mode,
+        port=args.port,
+        emulate=args.emulate,
+        faults=args.faults,
+        camera=args.camera,
+        virtual_camera=args.virtual_camera,
+        frames_per_pattern=args.frames_per_pattern,
+        contacts=args.contacts,
+        settle_s=args.settle,
+        mm_per_px=args.mm_per_px,
+        exposure=args.exposure,
+        baudrate=args.baud,
+        timeout=args.timeout,
+        retries=args.retries,
+        emulate_baud=args.emulate_baud,
+        seed=args.seed,
+        camera_fps=args.camera_fps,
+        camera_shape=tuple(args.camera_size),
+        on_contact=prompt,
+        progress=not args.json,
+    )
+    summary = json_summary(result, emulated=args.emulate)
+    if args.json:
+        print_json(summary)
+    else:
+        extra = f", {summary['mislabeled']} mislabeled" if "mislabeled" in summary else ""
+        resumed = f" (resumed {result.resumed_steps} saved frames)" if result.resumed_steps else ""
+        print(f"wrote {result.path}: {summary['frames']} frames, {summary['patterns']} patterns, "
+              f"{summary['retries']} retries, {summary['seconds']:.2f} s{extra}{resumed}")
+    return 0

@@ -1,11 +1,100 @@
-"""``iristac sim render|modes`` (not implemented yet: the renderer issue)."""
+"""``iristac sim modes|render|uniformity``: the renderer's commands.
 
-from pipeline.cli._common import not_implemented
+Each calls one documented function: :func:`sim.modes.describe_modes`,
+:func:`sim.rendered_capture.render_scene_files`, :func:`sim.uniformity.uniformity_report`
+(+ :func:`sim.uniformity.uniformity_figure`).
+"""
+
+from __future__ import annotations
+
+from pipeline.cli._common import add_json_flag, print_json
 
 
 def register(group):
-    for name, text in [
-        ("modes", "list the lighting modes"),
-        ("render", "render a height map under a lighting mode"),
-    ]:
-        not_implemented(group, name, text, "the renderer issue")
+    p = group.add_parser("modes", help="list the lighting modes", description="list the lighting modes")
+    p.add_argument("files", nargs="*", metavar="MODE", help="mode names or user mode files (default: built-in)")
+    add_json_flag(p)
+    p.set_defaults(func=_modes)
+
+    text = "render a height map (file or sphere) under a lighting mode to PNGs and a capture file"
+    p = group.add_parser("render", help=text, description=text)
+    p.add_argument("--mode", default="monochromatic", help="mode name or file (default: monochromatic)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--height", metavar="FILE", help="height map: .npy or 16-bit .png")
+    src.add_argument("--sphere", nargs=2, type=float, metavar=("RADIUS", "DEPTH"), help="a ball press (mm)")
+    p.add_argument("--height-scale", type=float, default=1.0, help="mm per stored unit of --height (default 1)")
+    p.add_argument("--center", nargs=2, type=float, default=(0.0, 0.0), metavar=("X", "Y"),
+                   help="sphere centre, mm, reconstruction frame")
+    p.add_argument("--shape", nargs=2, type=int, metavar=("H", "W"), help="image size (default 240 320)")
+    p.add_argument("--mm-per-px", type=float, default=0.0625, help="pixel pitch on the gel (default 0.0625)")
+    p.add_argument("--gel-z", type=float, default=35.0, help="LED plane to gel distance, mm (default 35)")
+    p.add_argument("--settings", metavar="FILE", help="render settings YAML (effects); see docs/renderer.md")
+    p.add_argument("--noise", type=float, default=1.0, help="read noise sigma in DN without --settings (default 1)")
+    p.add_argument("--bit-depth", type=int, default=8, choices=[8, 10, 12, 16], help="without --settings (default 8)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    add_json_flag(p)
+    p.set_defaults(func=_render)
+
+    text = "per-channel uniformity of each lighting mode on a flat gel (numbers and a figure)"
+    p = group.add_parser("uniformity", help=text, description=text)
+    p.add_argument("modes", nargs="*", metavar="MODE", help="modes (default: built-in)")
+    p.add_argument("--shape", nargs=2, type=int, default=(120, 160), metavar=("H", "W"))
+    p.add_argument("--mm-per-px", type=float, default=0.125)
+    p.add_argument("--gel-z", type=float, default=35.0)
+    p.add_argument("--figure", metavar="PNG", help="write the figure here")
+    add_json_flag(p)
+    p.set_defaults(func=_uniformity)
+
+
+def _modes(args) -> int:
+    from sim.modes import describe_modes
+
+    rows = describe_modes(args.files or None)
+    if args.json:
+        print_json({"modes": rows})
+        return 0
+    print(f"{'mode':<15} {'frames':>6} {'leds':>4}  description")
+    for r in rows:
+        print(f"{r['name']:<15} {r['frames']:>6} {r['leds']:>4}  {r['description']}")
+    return 0
+
+
+def _render(args) -> int:
+    from sim.rendered_capture import render_scene_files
+
+    res = render_scene_files(args.out, mode=args.mode, height_file=args.height, height_scale=args.height_scale,
+                             sphere_rd=args.sphere, center=args.center, shape=args.shape,
+                             mm_per_px=args.mm_per_px, gel_z=args.gel_z, settings_file=args.settings,
+                             noise_dn=args.noise, bit_depth=args.bit_depth, seed=args.seed)
+    if args.json:
+        print_json(res)
+    else:
+        print(f"{res['mode']}: {len(res['patterns'])} patterns, {res['shape'][0]}x{res['shape'][1]} px, "
+              f"exposure {res['exposure']:.4g}, effects {', '.join(res['effects']) or 'none'}")
+        print(f"wrote {res['capture']} and {len(res['pngs'])} PNGs in {args.out}")
+    return 0
+
+
+def _uniformity(args) -> int:
+    from sim.render import bare_ring_illumination
+    from sim.uniformity import uniformity_figure, uniformity_report
+
+    model = bare_ring_illumination(tuple(args.shape), args.mm_per_px, args.gel_z)
+    rep = uniformity_report(model, args.modes or None)
+    fig = str(uniformity_figure(model, args.figure, list(rep))) if args.figure else None
+    if args.json:
+        print_json({"modes": {k: v["channels"] for k, v in rep.items()}, "frames": {k: v["frames"] for k, v in rep.items()},
+                    "figure": fig})
+        return 0
+    print(f"{'mode':<15} {'ch':<2} {'lit':>3} {'cv mean':>8} {'cv max':>8} {'min/max':>8}")
+    for name, r in rep.items():
+        for c, s in r["channels"].items():
+            if s["frames_lit"]:
+                print(f"{name:<15} {c:<2} {s['frames_lit']:>3} {s['cv_mean']:>8.4f} {s['cv_max']:>8.4f} "
+                      f"{s['min_over_max_min']:>8.3f}")
+            else:
+                print(f"{name:<15} {c:<2} {0:>3} {'unlit':>8}")
+    if fig:
+        print(f"figure: {fig}")
+    return 0

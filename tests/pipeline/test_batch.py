@@ -53,6 +53,6 @@ def test_dask_local_cluster_matches_serial(recordings, tmp_path):
 
 def test_unreachable_scheduler_and_bad_workers_are_clear_errors():
     with pytest.raises(UserError, match="cannot reach a Dask scheduler"):
-        run_batch(["x"], len, scheduler="tcp://127.0.0.1:9")
+        run_batch(["x"], len, scheduler="tcp://127.0.0.1:9", connect_timeout=1)
     with pytest.raises(UserError, match="--workers must be at least 1"):
         run_batch(["x"], len, workers=0)

@@ -1,0 +1,274 @@
+"""The calibration stage: sphere-indentation capture -> circles, light models, validation.
+
+:func:`calibrate` detects each press's contact circle, builds sphere-cap truth, checks that
+the patterns give three independent light directions, fits every requested model on all
+accepted presses, cross-validates each by leaving presses out, and returns a
+:class:`CalibrationResult` that :meth:`CalibrationResult.save` writes as ``calibration.h5``.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from calibration.capture import Capture, read_capture
+from calibration.detect import Circle, DetectOptions, detect_contacts
+from calibration.models import (MODEL_NAMES, CalibrationModel, FarFieldModel, LightFieldModel, LUTModel, MLPModel,
+                                NearFieldModel, TracedModel, check_light_rank)
+from calibration.samples import Samples, collect_samples
+from calibration.validate import cross_validate
+from pipeline.errors import UserError
+
+__all__ = ["CalibrationResult", "calibrate", "label_errors", "CIRCLE_COLUMNS"]
+
+#: Columns of the ``circles (K, 8)`` dataset of calibration.h5.
+CIRCLE_COLUMNS = ("center_x", "center_y", "radius_px", "contact_radius_px", "quality", "accepted", "snr",
+                  "residual_px")
+
+
+@dataclass
+class CalibrationResult:
+    """Everything :func:`calibrate` found.
+
+    Attributes
+    ----------
+    circles : list of Circle
+    models : dict
+        name -> fitted model (on all accepted presses).
+    reports : dict
+        name -> ``{"fit": ..., "cv": ..., "seconds": ...}`` or ``{"skipped": reason}``.
+    labels : dict or None
+        Comparison with hand labels (``center_error_px_median``, ``radius_error_px_median``, ...).
+    ball_radius_mm, mm_per_px : float
+    shape : (H, W)
+    num_patterns, num_channels : int
+    light_rank_ratio : float
+    """
+
+    circles: list[Circle]
+    models: dict[str, CalibrationModel]
+    reports: dict[str, dict[str, Any]]
+    labels: dict[str, Any] | None
+    ball_radius_mm: float
+    mm_per_px: float
+    shape: tuple[int, int]
+    num_patterns: int
+    num_channels: int
+    light_rank_ratio: float
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def best_model(self) -> str | None:
+        """The fitted model with the lowest cross-validated mean angular error."""
+        scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in self.reports.items() if "cv" in r}
+        return min(scored, key=scored.get) if scored else None
+
+    @property
+    def best_light_field_model(self) -> str | None:
+        """The best-validated model that exports a light field (far, near, traced)."""
+        scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in self.reports.items()
+                  if "cv" in r and isinstance(self.models.get(k), LightFieldModel)}
+        return min(scored, key=scored.get) if scored else None
+
+    def summary(self) -> dict[str, Any]:
+        """The stable JSON summary printed by ``iristac calibrate --json``."""
+        out: dict[str, Any] = {
+            "presses": len(self.circles),
+            "accepted": int(sum(c.accepted for c in self.circles)),
+            "models": {},
+            "best_model": self.best_model,
+            "circles": [c.to_dict() for c in self.circles],
+        }
+        for name, rep in self.reports.items():
+            if "skipped" in rep:
+                out["models"][name] = {"skipped": rep["skipped"], "cv_mean_angular_error_deg": None,
+                                       "cv_median_angular_error_deg": None, "seconds": 0.0}
+                continue
+            out["models"][name] = {
+                "cv_mean_angular_error_deg": rep["cv"]["cv_mean_angular_error_deg"],
+                "cv_median_angular_error_deg": rep["cv"]["cv_median_angular_error_deg"],
+                "seconds": rep["seconds"],
+                "fit": rep["fit"],
+            }
+        if self.labels is not None:
+            out.update(self.labels)
+        return out
+
+    def save(self, path: str | Path) -> Path:
+        """Write ``calibration.h5``: circles, every fitted model, the validation report.
+
+        Layout: ``circles (K, 8)`` (columns :data:`CIRCLE_COLUMNS`); ``light_field (P, C, H, W, 3)``
+        and optional ``flat_field (P, C, H, W)`` of the best light-field model (attribute
+        ``light_field_model``); ``light_vectors (P, C, 3)`` of the far-field model;
+        ``models/<name>/...`` every fitted model's arrays (``to_arrays``; a LUT is
+        ``LookupTable.from_arrays``-ready); attributes ``chosen_model`` (best by CV),
+        ``circle_reasons``, ``validation`` (per model: fit report and CV report), ``summary``.
+        """
+        from calibration import h5io
+
+        # One row per press (the stage schema's (K, *) ``circles``); columns in CIRCLE_COLUMNS.
+        data: dict[str, np.ndarray] = {"circles": np.array(
+            [[*c.center_xy, c.radius_px, c.contact_radius_px, c.quality, float(c.accepted), c.snr, c.residual_px]
+             for c in self.circles], dtype=np.float32).reshape(-1, len(CIRCLE_COLUMNS))}
+        best_lf = self.best_light_field_model
+        if best_lf is not None:
+            data["light_field"] = self.models[best_lf].light_field(self.shape)
+            flat = self.models[best_lf].flat_field()
+            if flat is not None:
+                data["flat_field"] = np.asarray(flat, dtype=np.float32)
+        if "far" in self.models:
+            data["light_vectors"] = self.models["far"].lights.astype(np.float32)
+        for name, model in self.models.items():
+            for k, v in model.to_arrays().items():
+                data[f"models/{name}/{k}"] = np.asarray(v)
+            if isinstance(model, LightFieldModel):
+                data[f"models/{name}/light_field"] = model.light_field(self.shape)
+        meta = {
+            "ball_radius_mm": float(self.ball_radius_mm),
+            "mm_per_px": float(self.mm_per_px),
+            "models": list(self.models),
+            "chosen_model": self.best_model or "",
+            "light_field_model": best_lf or "",
+            "circle_columns": list(CIRCLE_COLUMNS),
+            "circle_reasons": [c.reason for c in self.circles],
+            "validation": {k: r for k, r in self.reports.items()},
+            "summary": {k: v for k, v in self.summary().items() if k != "circles"},
+        }
+        meta = json.loads(json.dumps(meta, default=float))
+        return h5io.write(path, "calibration", data, meta)
+
+
+def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np.ndarray) -> dict[str, Any]:
+    """Median centre and radius error (px) of the accepted circles against hand labels."""
+    acc = np.array([c.accepted for c in circles])
+    c = np.array([c.center_xy for c in circles]).reshape(-1, 2)
+    r = np.array([c.radius_px for c in circles])
+    ce = np.hypot(*(c - np.asarray(center_xy, float)).T)[acc]
+    re = np.abs(r - np.asarray(radius_px, float))[acc]
+    return {"center_error_px_median": float(np.median(ce)) if ce.size else None,
+            "radius_error_px_median": float(np.median(re)) if re.size else None,
+            "center_error_px": ce.tolist(), "radius_error_px": re.tolist()}
+
+
+def _factories(names, capture: Capture, illumination, saturation, model_options) -> dict[str, Callable | str]:
+    out: dict[str, Callable | str] = {}
+    opts = model_options or {}
+    p, c = capture.frames.shape[1], capture.frames.shape[4]
+    for name in names:
+        o = opts.get(name, {})
+        if name == "far":
+            out[name] = lambda o=o: FarFieldModel(**o)
+        elif name == "near":
+            out[name] = lambda o=o: NearFieldModel(**o)
+        elif name == "traced":
+            V = getattr(illumination, "V", illumination)
+            if V is None:
+                out[name] = "no illumination model (LED fields V) given for this sensor"
+            else:
+                out[name] = lambda o=o, V=V: TracedModel(V, capture.drive, capture.brightness, **o)
+        elif name == "lut":
+            if (p, c) != (1, 3):
+                out[name] = f"needs one RGB pattern, the capture has {p} pattern(s) x {c} channel(s)"
+            else:
+                out[name] = lambda o=o: LUTModel(**o)
+        elif name == "mlp":
+            scale = float(saturation) if saturation else 1.0
+            out[name] = lambda o=o, scale=scale: MLPModel(**{"input_scale": scale, **o})
+        else:
+            raise UserError(f"calibrate: unknown model '{name}' (expected one of {', '.join(MODEL_NAMES)} or all)")
+    return out
+
+
+def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: float | None = None,
+              models: str | Sequence[str] = "all", *, illumination=None, folds: int = 5, shrink_px: float = 2.0,
+              detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
+              seed: int = 0) -> CalibrationResult:
+    """Calibrate light models from a sphere-indentation capture.
+
+    Parameters
+    ----------
+    capture : Capture or path
+        Frames ``(K, P, H, W, C)``, reference ``(P, H, W, C)``, drive ``(P, L, 3)`` ...
+        (``capture.h5`` layout).
+    ball_radius_mm : float
+        Radius of the pressed ball.
+    mm_per_px : float, optional
+        Pixel pitch; default: the capture's ``mm_per_px`` attribute.
+    models : "all", a name, or a list of names
+        Among ``far``, ``near``, ``traced``, ``lut``, ``mlp``. With ``all``, models that do not
+        apply (``traced`` without ``illumination``, ``lut`` with more than one pattern) are
+        reported as skipped; asked for by name they raise :class:`UserError`.
+    illumination : IlluminationModel or ndarray (L, H, W, 3), optional
+        LED fields for the traced model.
+    folds : int
+        Cross-validation press groups.
+    shrink_px : float
+        Margin inside each contact circle excluded from fitting and validation.
+    detect_options : DetectOptions, optional
+    model_options : dict, optional
+        name -> keyword arguments of that model's constructor (e.g. ``{"near": {"degree": 3}}``).
+    seed : int
+
+    Returns
+    -------
+    CalibrationResult
+
+    Raises
+    ------
+    UserError
+        Missing scale, no usable press, or patterns with fewer than three independent
+        light directions.
+    """
+    src = str(capture) if not isinstance(capture, Capture) else "capture"
+    cap = read_capture(capture) if not isinstance(capture, Capture) else capture
+    mm = mm_per_px if mm_per_px is not None else cap.mm_per_px
+    if mm is None or not mm > 0:
+        raise UserError(f"{src}: no mm_per_px attribute and no --mm-per-px given (expected a positive pixel pitch)")
+    if not ball_radius_mm > 0:
+        raise UserError(f"calibrate: --ball-radius must be a positive radius in mm, got {ball_radius_mm}")
+    names = [models] if isinstance(models, str) else list(models)
+    explicit = "all" not in names
+    if not explicit:
+        names = list(MODEL_NAMES)
+    frames, ref = cap.linear()
+    sat = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(np.asarray(cap.frames).dtype)
+    if sat is not None and cap.dark is not None:
+        sat = sat - float(np.asarray(cap.dark).min())
+    t0 = time.perf_counter()
+    circles = detect_contacts(frames, ref, ball_radius_mm / mm, detect_options)
+    t_detect = time.perf_counter() - t0
+    accepted = sum(c.accepted for c in circles)
+    if accepted < 2:
+        reasons = "; ".join(f"press {k}: {c.reason}" for k, c in enumerate(circles) if not c.accepted)
+        raise UserError(f"{src}: only {accepted} press(es) accepted, calibration needs at least 2 ({reasons})")
+    samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat)
+    rank = check_light_rank(samples.subset(samples.press >= 0), what=src)
+    factories = _factories(names, cap, illumination, sat, model_options)
+    fitted: dict[str, CalibrationModel] = {}
+    reports: dict[str, dict[str, Any]] = {}
+    for name, make in factories.items():
+        if isinstance(make, str):
+            if explicit:
+                raise UserError(f"calibrate: model '{name}' cannot be fitted: {make}")
+            reports[name] = {"skipped": make}
+            continue
+        t = time.perf_counter()
+        cv = cross_validate(make, samples, ref, folds=folds, seed=seed)
+        model = make()
+        fit = model.fit(samples, ref)
+        reports[name] = {"fit": fit, "cv": cv, "seconds": time.perf_counter() - t}
+        fitted[name] = model
+    labels = None
+    if cap.labels and "center_xy" in cap.labels and "radius_px" in cap.labels:
+        labels = label_errors(circles, cap.labels["center_xy"], cap.labels["radius_px"])
+    return CalibrationResult(circles=circles, models=fitted, reports=reports, labels=labels,
+                             ball_radius_mm=float(ball_radius_mm), mm_per_px=float(mm), shape=cap.shape,
+                             num_patterns=int(frames.shape[1]), num_channels=int(frames.shape[4]),
+                             light_rank_ratio=rank,
+                             meta={"detect_seconds": t_detect, "samples": len(samples),
+                                   "contact_samples": int(samples.contact.sum())})

@@ -1,0 +1,117 @@
+"""``iristac bench capture``: pattern changes per second and seconds per full mode capture.
+
+Measured over the ring emulator behind a real pty (the real pyserial client), with and
+without faults, and with and without the emulator's baud-rate model (which makes every frame
+cost its 10 bits per byte on the wire). The protocol's own overhead per pattern change is the
+measured time minus the wire time of the bytes actually exchanged (with the baud model) or the
+whole measured time (without it, the wire is free). A full mode capture (the ``point`` mode:
+dark, 24 references and 24 contact frames) uses the LED-state virtual camera at a webcam's
+frame rate, to show whether the ring or the camera bounds the capture.
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from pipeline.capture import protocol as P
+from pipeline.capture.client import RingClient
+from pipeline.capture.emulator import RingEmulator, parse_faults
+from pipeline.capture.led_camera import LedStateCamera
+from pipeline.capture.plan import CaptureSettings, run_capture
+from pipeline.capture.session import load_patterns
+
+FAULTS = "drop=0.05,corrupt=0.05,delay=0.02"
+BAUD = 115200
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--changes", type=int, default=500, help="pattern changes per setting")
+    parser.add_argument("--camera-fps", type=float, default=30.0,
+                        help="virtual camera frame rate for the full mode capture")
+    parser.add_argument("--timeout", type=float, default=0.03,
+                        help="client reply timeout in seconds")
+
+
+def _changes(faults: str, baud: float | None, n: int, timeout: float, seed: int) -> dict:
+    rng = np.random.default_rng(seed)
+    drives = rng.random((n, 24, 3))
+    with RingEmulator(faults=parse_faults(faults), baudrate=baud, seed=seed) as emu, \
+            RingClient(emu.path, timeout=timeout, retries=30) as ring:
+        sent0, recv0 = ring.stats.bytes_sent, ring.stats.bytes_received
+        retries0 = ring.stats.retries
+        t = time.perf_counter()
+        for i in range(n):
+            ring.show_pattern(drives[i], 1.0)
+        seconds = time.perf_counter() - t
+        wire_bytes = ring.stats.bytes_sent - sent0 + ring.stats.bytes_received - recv0
+        retries = ring.stats.retries - retries0
+    per = seconds / n
+    wire = P.wire_seconds(wire_bytes / n, baud) if baud else 0.0
+    return {"seconds_per_change": per, "changes_per_s": 1 / per, "wire_ms": wire * 1e3,
+            "overhead_ms": (per - wire) * 1e3, "retries": retries}
+
+
+def _full_mode(faults: str, baud: float | None, fps: float, timeout: float, seed: int) -> dict:
+    patterns = load_patterns("point")
+    out = Path(tempfile.mkdtemp(prefix="iristac-bench-capture-")) / "capture.h5"
+    with RingEmulator(faults=parse_faults(faults), baudrate=baud, seed=seed) as emu, \
+            RingClient(emu.path, timeout=timeout, retries=30) as ring:
+        cam = LedStateCamera(emu, shape=(60, 80), fps=fps)
+        cam.open()
+        t = time.perf_counter()
+        r = run_capture(patterns, ring, cam, out, CaptureSettings(contacts=1), truth=emu,
+                        progress=False, source="virtual")
+        seconds = time.perf_counter() - t
+    out.unlink()
+    out.parent.rmdir()
+    return {"seconds": seconds, "frames": r.frames, "mislabeled": r.mislabeled,
+            "retries": r.retries}
+
+
+def run(args) -> dict:
+    quick = bool(getattr(args, "quick", False))
+    n = 100 if quick else int(getattr(args, "changes", 500))
+    fps = 120.0 if quick else float(getattr(args, "camera_fps", 30.0))
+    timeout = float(getattr(args, "timeout", 0.03))
+    settings = []
+    for faults in ("", FAULTS):
+        for baud in (None, BAUD):
+            c = _changes(faults, baud, n, timeout, seed=1)
+            m = _full_mode(faults, baud, fps, timeout, seed=2)
+            settings.append({"faults": faults or "none", "baud_model": baud or "off", **c,
+                             "mode_seconds": m["seconds"], "mode_frames": m["frames"],
+                             "mode_mislabeled": m["mislabeled"], "mode_retries": m["retries"]})
+    clean = P.wire_seconds(79 + 7 + 6 + 17, BAUD) * 1e3
+    rows = [
+        {"knob": "capture: pattern change", "setting": f"faults {s['faults']}, baud {s['baud_model']}",
+         "seconds": s["seconds_per_change"], "error": s["mode_mislabeled"],
+         "error_unit": "mislabeled frames (full mode)"}
+        for s in settings
+    ]
+    return {"changes": n, "camera_fps": fps, "timeout_s": timeout, "faults_spec": FAULTS,
+            "clean_wire_ms_at_115200": clean, "settings": settings, "rows": rows}
+
+
+def format_table(result: dict) -> str:
+    head = (f"{'faults':<34} {'baud':>6} {'changes/s':>10} {'ms/change':>10} {'wire ms':>8} "
+            f"{'overhead ms':>11} {'retries':>7} {'mode s':>7} {'frames':>6} {'mislabeled':>10}")
+    lines = [
+        f"ring emulator over a pty: {result['changes']} pattern changes (SET_ALL + SHOW) per "
+        f"setting; full mode = point (dark + 24 references + 24 contacts) with a "
+        f"{result['camera_fps']:g} fps virtual camera; client timeout {result['timeout_s']} s",
+        f"clean exchange on the wire at 115200 baud: {result['clean_wire_ms_at_115200']:.2f} ms",
+        head,
+        "-" * len(head),
+    ]
+    for s in result["settings"]:
+        lines.append(
+            f"{s['faults']:<34} {str(s['baud_model']):>6} {s['changes_per_s']:>10.1f} "
+            f"{s['seconds_per_change'] * 1e3:>10.3f} {s['wire_ms']:>8.3f} {s['overhead_ms']:>11.3f} "
+            f"{s['retries']:>7d} {s['mode_seconds']:>7.2f} {s['mode_frames']:>6d} "
+            f"{s['mode_mislabeled']:>10d}"
+        )
+    return "\n".join(lines)

@@ -1,0 +1,163 @@
+"""Every model recovers a synthetic truth; rank-deficient patterns are refused; CV is honest."""
+
+import numpy as np
+import pytest
+
+from calibration.calibrate import calibrate
+from calibration.detect import detect_contacts
+from calibration.models import FarFieldModel, LookupTable, LUTModel, MLPModel, NearFieldModel, TracedModel
+from calibration.models.base import angular_error_deg, check_light_rank, solve_normals
+from calibration.samples import collect_samples
+from calibration.synthetic import synthetic_sphere_capture
+from calibration.validate import cross_validate
+from pipeline.errors import UserError
+
+
+def _samples(cap, tr):
+    f, r = cap.linear()
+    circles = detect_contacts(f, r, tr.ball_radius_mm / cap.mm_per_px)
+    return collect_samples(f, r, circles, tr.ball_radius_mm, cap.mm_per_px, saturation=255), r
+
+
+@pytest.fixture(scope="module")
+def point_far():
+    return synthetic_sphere_capture((60, 80), 6, far_field=True, peak_dn=140, seed=3)
+
+
+@pytest.fixture(scope="module")
+def point_near():
+    return synthetic_sphere_capture((60, 80), 6, peak_dn=140, seed=4)
+
+
+def test_far_field_recovers_led_directions_and_gains(point_far):
+    cap, tr = point_far
+    s, r = _samples(cap, tr)
+    m = FarFieldModel()
+    m.fit(s, r)
+    L = m.lights[:, 0]  # white LEDs: channel 0 of each point pattern
+    true = tr.V[:, 30, 40]
+    ang = angular_error_deg(L / np.linalg.norm(L, axis=1, keepdims=True),
+                            true / np.linalg.norm(true, axis=1, keepdims=True))
+    assert ang.max() < 1.0
+    for j in range(3):
+        got = np.linalg.norm(m.lights[:, j], axis=1) / np.linalg.norm(true, axis=1)
+        want = tr.gains[:, j]
+        rel = (got / got.mean()) / (want / want.mean())
+        assert np.abs(rel - 1).max() < 0.01
+
+
+def test_traced_recovers_gains(point_near):
+    cap, tr = point_near
+    s, r = _samples(cap, tr)
+    m = TracedModel(tr.V, cap.drive)
+    m.fit(s, r)
+    want = tr.gains * tr.exposure / np.pi  # sigma absorbs exposure and 1/pi (albedo 1)
+    assert np.abs(m.gains / want - 1).max() < 0.01
+
+
+@pytest.mark.parametrize("name", ["near", "traced"])
+def test_cross_validated_error_near_and_traced(point_near, name):
+    cap, tr = point_near
+    res = calibrate(cap, tr.ball_radius_mm, models=[name], illumination=tr.V, folds=3)
+    assert res.reports[name]["cv"]["cv_mean_angular_error_deg"] <= 1.5
+
+
+def test_light_field_layout_and_far_field_is_constant(point_near):
+    cap, tr = point_near
+    s, r = _samples(cap, tr)
+    far = FarFieldModel()
+    far.fit(s, r)
+    lf = far.light_field((60, 80))
+    assert lf.shape == (6, 3, 60, 80, 3) and lf.dtype == np.float32
+    assert np.ptp(lf, axis=(2, 3)).max() == 0
+    tm = TracedModel(tr.V, cap.drive)
+    tm.fit(s, r)
+    lf = tm.light_field((60, 80))
+    # The contract: I[p, :, :, c] ~ rho n . light_field[p, c]; on the flat reference n = z.
+    pred = lf[..., 2].transpose(0, 2, 3, 1)
+    assert np.abs(pred - r).mean() < 1.0
+
+
+@pytest.fixture(scope="module")
+def trichromatic():
+    return synthetic_sphere_capture((60, 80), 10, mode="trichromatic", num_leds=12, peak_dn=140, far_field=True,
+                                    seed=5)
+
+
+def test_lut_recovers_truth_and_round_trips(trichromatic):
+    cap, tr = trichromatic
+    res = calibrate(cap, tr.ball_radius_mm, models=["lut"], folds=5)
+    assert res.reports["lut"]["cv"]["cv_mean_angular_error_deg"] < 5.0
+    lut = res.models["lut"].table
+    again = LookupTable.from_arrays(lut.to_arrays())
+    g1, v1 = lut.lookup(cap.frames[:2, 0].astype(float))
+    g2, v2 = again.lookup(cap.frames[:2, 0].astype(float))
+    assert g1.shape == (2, 60, 80, 2) and v1.dtype == bool
+    np.testing.assert_array_equal(g1, g2)
+    np.testing.assert_array_equal(v1, v2)
+    assert np.isfinite(g1).all()
+
+
+def test_mlp_recovers_truth_and_is_deterministic(trichromatic):
+    cap, tr = trichromatic
+    s, r = _samples(cap, tr)
+    a = MLPModel(epochs=150, max_samples=2000)
+    b = MLPModel(epochs=150, max_samples=2000)
+    a.fit(s, r)
+    b.fit(s, r)
+    na, _ = a.predict(s)
+    nb, _ = b.predict(s)
+    np.testing.assert_array_equal(na, nb)
+    cv = cross_validate(lambda: MLPModel(epochs=150, max_samples=2000), s, r, folds=3)
+    assert cv["cv_mean_angular_error_deg"] < 5.0
+    g, ok = a.lookup(cap.frames[:1, 0])
+    assert g.shape == (1, 60, 80, 2) and ok.all()
+
+
+def test_rank_deficient_patterns_raise():
+    # Only the two LEDs on one diameter of the ring: two light directions.
+    cap, tr = synthetic_sphere_capture((60, 80), 4, num_leds=6, leds=[0, 3], peak_dn=140, seed=6)
+    with pytest.raises(UserError, match="three independent light directions"):
+        calibrate(cap, tr.ball_radius_mm, models="all", illumination=tr.V)
+
+
+def test_rank_check_passes_full_ring(point_near):
+    s, _ = _samples(*point_near)
+    assert check_light_rank(s) > 0.2
+
+
+class _SpyNear(NearFieldModel):
+    seen: list = []
+
+    def fit(self, samples, reference=None):
+        _SpyNear.seen.append(set(np.unique(samples.press).tolist()))
+        return super().fit(samples, reference)
+
+
+def test_cross_validation_never_fits_on_the_held_out_press(point_near):
+    cap, tr = point_near
+    s, r = _samples(cap, tr)
+    _SpyNear.seen = []
+    cv = cross_validate(_SpyNear, s, r, folds=3)
+    assert len(cv["folds"]) == 3 == len(_SpyNear.seen)
+    for fold, seen in zip(cv["folds"], _SpyNear.seen):
+        assert not set(fold["test_presses"]) & seen
+        assert not set(fold["test_presses"]) & set(fold["train_presses"])
+    assert sorted(p for f in cv["folds"] for p in f["test_presses"]) == sorted(cv["per_press"])
+
+
+def test_solve_normals_float32_and_float64_agree():
+    rng = np.random.default_rng(0)
+    L = rng.normal(size=(50, 6, 3))
+    L[..., 2] = np.abs(L[..., 2]) + 1
+    n = rng.normal(size=(50, 3))
+    n[:, 2] = np.abs(n[:, 2]) + 2
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    obs = np.einsum("nmk,nk->nm", L, n)
+    lit = obs > 0
+    n64, _, ok64 = solve_normals(np.where(lit, obs, 0.0), L)
+    n32, _, ok32 = solve_normals(np.where(lit, obs, 0.0).astype(np.float32), L.astype(np.float32))
+    fine = ok64 & ok32 & (lit.sum(1) >= 3)
+    assert fine.mean() > 0.8
+    assert angular_error_deg(n64[fine], n[fine]).max() < 1e-4
+    assert angular_error_deg(n32[fine], n64[fine]).max() < 1e-2

@@ -1,0 +1,126 @@
+"""``iristac capture`` and ``iristac emulate-ring`` through a subprocess."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+
+from helpers import REPO, run_cli
+from pipeline.capture.client import RingClient
+from pipeline.store import read_record
+
+FAST = ["--emulate", "--virtual-camera", "--mode", "point", "--camera-fps", "500",
+        "--camera-size", "6", "8", "--timeout", "0.01"]
+
+
+def test_capture_json_keys_with_faults(tmp_path):
+    out = tmp_path / "capture.h5"
+    r = run_cli("capture", *FAST, "--faults", "drop=0.05,corrupt=0.05", "--seed", "3",
+                "--out", out, "--json", timeout=120)
+    assert r.returncode == 0, r.stderr
+    summary = json.loads(r.stdout)
+    assert sorted(summary) == ["frames", "mislabeled", "patterns", "retries", "seconds"]
+    assert summary["frames"] == 49 and summary["patterns"] == 24
+    assert summary["mislabeled"] == 0 and summary["retries"] > 0
+    rec = read_record(out, schema="capture")
+    assert rec.meta["mode"] == "point" and rec.data["reference"].shape == (24, 6, 8, 3)
+    # The point mode lights LED p alone: its reference frame shows LED p's pixels only.
+    lit = rec.data["reference"][5].max(axis=2) > 0
+    idx = np.arange(48).reshape(6, 8) % 24
+    assert np.array_equal(lit, idx == 5)
+
+
+def test_disconnect_then_rerun_resumes(tmp_path):
+    out = tmp_path / "capture.h5"
+    r = run_cli("capture", *FAST, "--faults", "disconnect-after=31", "--out", out, "--json",
+                timeout=120)
+    assert r.returncode == 2
+    err = r.stderr.strip().splitlines()[-1]
+    assert "disconnected during" in err and "15 of 49 steps are saved" in err
+    assert "rerun the same command to resume" in err and not out.exists()
+    r = run_cli("capture", *FAST, "--out", out, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "49 frames" in r.stdout and "0 mislabeled" in r.stdout
+    assert "resumed 15 saved frames" in r.stdout
+    assert read_record(out, schema="capture").meta["runs"] == 2
+
+
+def test_bad_arguments_are_one_line_errors(tmp_path):
+    r = run_cli("capture", "--port", "/dev/ttyIRISTAC-NOPE", "--camera", "0", "--mode", "point",
+                "--out", tmp_path / "c.h5")
+    assert r.returncode == 2
+    assert r.stderr.strip().startswith("iristac capture: error: serial port "
+                                       "'/dev/ttyIRISTAC-NOPE' does not exist")
+    r = run_cli("capture", "--port", "/dev/null", "--virtual-camera", "--mode", "point",
+                "--out", tmp_path / "c.h5")
+    assert r.returncode == 2 and "needs --emulate" in r.stderr
+    r = run_cli("capture", *FAST, "--faults", "drop=7", "--out", tmp_path / "c.h5")
+    assert r.returncode == 2 and "--faults: drop=7.0 must be a probability" in r.stderr
+
+
+def test_emulate_ring_serves_a_pty_until_stopped():
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "emulate-ring", "--leds", "12", "--duration", "20"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO,
+    )
+    try:
+        path = proc.stdout.readline().strip()
+        assert path.startswith("/dev/"), path
+        with RingClient(path, timeout=0.2) as ring:
+            assert ring.info.led_count == 12
+            ring.show_pattern(np.ones((12, 3)), 0.5)
+            assert ring.status().latch_count == 1
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+def test_emulate_ring_wrong_version_is_caught_by_the_host():
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "pipeline", "emulate-ring", "--protocol-version", "9",
+         "--duration", "20"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env, cwd=REPO,
+    )
+    try:
+        path = proc.stdout.readline().strip()
+        r = run_cli("capture", "--port", path, "--camera", "0", "--mode", "point",
+                    "--out", "/tmp/never-written.h5")
+        assert r.returncode == 2
+        assert "speaks ring protocol version 9, this host speaks version 1" in r.stderr
+    finally:
+        proc.terminate()
+        proc.wait(timeout=10)
+
+
+def test_virtual_camera_exposure_longer_than_a_frame_is_a_user_error(tmp_path):
+    r = run_cli("capture", *FAST, "--exposure", "0.5", "--out", tmp_path / "c.h5")
+    assert r.returncode == 2
+    assert "--camera-fps 500.0 and --exposure 0.5: exposure must be in [0, 0.002] s" in r.stderr
+
+
+def test_capture_with_an_opencv_video_file_as_camera(tmp_path):
+    """The OpenCV path end to end: a recorded video stands in for the webcam."""
+    import cv2
+
+    clip = str(tmp_path / "clip.avi")
+    writer = cv2.VideoWriter(clip, cv2.VideoWriter_fourcc(*"FFV1"), 30, (40, 32))
+    for i in range(60):
+        writer.write(np.full((32, 40, 3), (i, 2 * i, 3 * i), np.uint8))  # BGR
+    writer.release()
+    out = tmp_path / "c.h5"
+    r = run_cli("capture", "--emulate", "--camera", clip, "--mode", "point", "--settle", "0",
+                "--timeout", "0.01", "--out", out, "--json", timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["frames"] == 49
+    rec = read_record(out, schema="capture")
+    assert rec.meta["source"] == "camera" and rec.meta["device"]["camera"]["kind"] == "opencv"
+    # Frames are stored in capture order, RGB: dark = video frame 0, reference p = frame 1 + p.
+    assert rec.data["dark"][0, 0].tolist() == [0, 0, 0]
+    assert rec.data["reference"][4][0, 0].tolist() == [15, 10, 5]
+    assert rec.data["frames"][0, 0][0, 0].tolist() == [75, 50, 25]
