@@ -11,7 +11,7 @@ import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
-from pipeline.normals.result import NormalResult, finalize
+from pipeline.normals.result import NormalResult, concat, finalize, finalize_tensors, to_result
 
 __all__ = ["FarFieldSolver", "solve_farfield"]
 
@@ -84,6 +84,9 @@ class FarFieldSolver:
         if N != self.n_obs:
             raise ValueError(f"FarFieldSolver.solve: expected {self.n_obs} observations, got shape "
                              f"{tuple(observations.shape)}")
+        if self.w_rows is None and _inputs.is_integer(observations):
+            X = _inputs.integer_tensor(observations, self.device).reshape(N, H * W)
+            return self._solve_chunks(lambda a, b: X[:, a:b], H, W)
         I, finite = _inputs.flatten_observations(observations, self.dtype, self.device)
         fast = finite is None and self.w_rows is None
         if fast:
@@ -98,7 +101,34 @@ class FarFieldSolver:
             cond = _lstsq.condition(self.L, w)
         b = _lstsq.solve(m, inv, self.iterations)
         return finalize(b, m, cond, (H, W), max_condition=self.max_condition, finite_inputs=fast,
-                        meta={"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition})
+                        meta=_meta(self))
+
+    def solve_frames(self, frames) -> NormalResult:
+        """Normals of one capture's frames ``(P, H, W, C)`` (observations pattern-major,
+        channel-minor, as ``P * C == N_obs``); integer frames skip the transposing copy."""
+        shape = tuple(frames.shape)
+        if len(shape) != 4 or shape[0] * shape[3] != self.n_obs:
+            raise ValueError(f"FarFieldSolver.solve_frames: expected frames (P, H, W, C) with P*C = {self.n_obs}, "
+                             f"got {shape}")
+        P, H, W, C = shape
+        if self.w_rows is None and _inputs.is_integer(frames):
+            X = _inputs.integer_tensor(frames, self.device).reshape(P, H * W, C)
+            return self._solve_chunks(lambda a, b: X[:, a:b].permute(0, 2, 1).reshape(self.n_obs, -1), H, W)
+        return self.solve(np.asarray(frames).transpose(0, 3, 1, 2).reshape(P * C, H, W))
+
+    def _solve_chunks(self, get, H: int, W: int) -> NormalResult:
+        """Integer observations, all lights finite: solve chunk by chunk of pixels."""
+        parts = []
+        for a, b in _inputs.chunks(H * W, self.device):
+            I = get(a, b).to(self.dtype)
+            m = _lstsq.moments(I, self.L, None, self.selectors, Q=self.Q)
+            bb = _lstsq.solve(m, self.inv, self.iterations)
+            parts.append(finalize_tensors(bb, m, self.cond, max_condition=self.max_condition, finite_inputs=True))
+        return to_result(concat(parts), (H, W), _meta(self))
+
+
+def _meta(self) -> dict:
+    return {"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition}
 
 
 def _albedo_iterations(requested, L, selectors, groups, num_groups) -> int:

@@ -11,7 +11,7 @@ import torch
 from pipeline.normals import _lstsq
 from pipeline.normals import _torch as T
 
-__all__ = ["NormalResult", "finalize"]
+__all__ = ["NormalResult", "finalize", "finalize_tensors", "to_result", "concat"]
 
 
 @dataclass
@@ -53,20 +53,9 @@ class NormalResult:
         return float(self.mask.mean()) if self.mask.size else 0.0
 
 
-def finalize(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, shape: tuple[int, int], *,
-             max_condition: float = 1e3, min_count: int = 3, meta: dict | None = None,
-             finite_inputs: bool = False) -> NormalResult:
-    """Turn scaled normals ``b = rho n`` ``(3, M)`` and the moments they came from into a
-    :class:`NormalResult`.
-
-    Pixels with fewer than ``min_count`` used observations, ``cond > max_condition``
-    (``cond`` is ``(M,)``), a zero or non-finite ``b`` or a normal facing away from the camera
-    are masked and get the flat normal, zero albedo and zero residual. ``finite_inputs``
-    (integer observations, finite lights: nothing can overflow) skips the NaN/Inf scrubbing,
-    which is a good part of the real-time path's cost.
-    """
-    H, W = shape
-    out_dtype = np.float64 if b.dtype == torch.float64 else np.float32
+def finalize_tensors(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, *, max_condition: float = 1e3,
+                     min_count: int = 3, finite_inputs: bool = False) -> dict[str, torch.Tensor]:
+    """The per-pixel outputs as tensors with pixels last (see :func:`finalize`)."""
     if not finite_inputs:
         finite = torch.isfinite(b).all(0)
         b = torch.nan_to_num(b, nan=0.0, posinf=0.0, neginf=0.0)
@@ -85,9 +74,15 @@ def finalize(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, shape: tupl
         rho = torch.nan_to_num(rho, nan=0.0, posinf=0.0, neginf=0.0)
         res = torch.nan_to_num(res, nan=0.0, posinf=0.0, neginf=0.0)
         cond = torch.nan_to_num(cond, nan=T.COND_CAP, posinf=T.COND_CAP, neginf=T.COND_CAP)
-    rho = torch.where(valid, rho, zero)
-    res = torch.where(valid, res, zero)
-    cond = cond.expand(H * W) if cond.numel() == 1 else cond
+    return {"normals": n, "albedo": torch.where(valid, rho, zero), "residual": torch.where(valid, res, zero),
+            "condition": cond.expand(n.shape[1]) if cond.numel() == 1 else cond, "mask": valid,
+            "count": m.count}
+
+
+def to_result(t: dict[str, torch.Tensor], shape: tuple[int, int], meta: dict | None = None) -> NormalResult:
+    """Tensors with pixels last -> a :class:`NormalResult` of ``(H, W, ...)`` numpy arrays."""
+    H, W = shape
+    out_dtype = np.float64 if t["normals"].dtype == torch.float64 else np.float32
 
     def out(x):  # (..., M) -> (H, W, ...), one transposing copy made by torch
         x = x.detach()
@@ -96,11 +91,34 @@ def finalize(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, shape: tupl
         return x.cpu().numpy().reshape((H, W) + tuple(x.shape[1:]))
 
     return NormalResult(
-        normals=out(n).astype(out_dtype, copy=False),
-        albedo=out(rho).astype(out_dtype, copy=False),
-        residual=out(res).astype(out_dtype, copy=False),
-        condition=out(cond).astype(out_dtype, copy=False),
-        mask=out(valid).astype(bool, copy=False),
-        count=out(m.count).astype(np.int32, copy=False),
+        normals=out(t["normals"]).astype(out_dtype, copy=False),
+        albedo=out(t["albedo"]).astype(out_dtype, copy=False),
+        residual=out(t["residual"]).astype(out_dtype, copy=False),
+        condition=out(t["condition"]).astype(out_dtype, copy=False),
+        mask=out(t["mask"]).astype(bool, copy=False),
+        count=out(t["count"]).astype(np.int32, copy=False),
         meta=dict(meta or {}),
     )
+
+
+def concat(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Join per-chunk outputs along the pixel axis."""
+    if len(parts) == 1:
+        return parts[0]
+    return {k: torch.cat([p[k] for p in parts], dim=-1) for k in parts[0]}
+
+
+def finalize(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, shape: tuple[int, int], *,
+             max_condition: float = 1e3, min_count: int = 3, meta: dict | None = None,
+             finite_inputs: bool = False) -> NormalResult:
+    """Turn scaled normals ``b = rho n`` ``(3, M)`` and the moments they came from into a
+    :class:`NormalResult`.
+
+    Pixels with fewer than ``min_count`` used observations, ``cond > max_condition``
+    (``cond`` is ``(M,)`` or ``(1,)``), a zero or non-finite ``b`` or a normal facing away from
+    the camera are masked and get the flat normal, zero albedo and zero residual.
+    ``finite_inputs`` (integer observations, finite lights: nothing can overflow) skips the
+    NaN/Inf scrubbing, which is a good part of the real-time path's cost.
+    """
+    t = finalize_tensors(b, m, cond, max_condition=max_condition, min_count=min_count, finite_inputs=finite_inputs)
+    return to_result(t, shape, meta)
