@@ -80,7 +80,7 @@ def measure_size(width: int, height: int, repeats: int, device: str) -> dict:
     far = FarFieldSolver(s.lights_far(), groups=groups, device=device)
     near = NearFieldSolver(s.lights_flat(), groups=groups, device=device)
     solvers = {
-        "lstsq (far field)": lambda: far.solve(_obs(frames)),
+        "lstsq (far field)": lambda: far.solve_frames(frames),
         "nearfield": lambda: near.solve(_obs(frames)),
         "robust (near field)": lambda: solve_robust(_obs(frames), s.lights_flat(), groups=groups, dark_threshold=2.55,
                                                     saturation=255.0, device=device),
@@ -110,7 +110,7 @@ def measure_size(width: int, height: int, repeats: int, device: str) -> dict:
     # Real-time pipelines: far-field least squares + DST or FC, from uint8 frames to heights.
     for method in ("dst", "fc"):
         def pipeline(method=method):
-            r = far.solve(_obs(frames))
+            r = far.solve_frames(frames)
             return integrate(r.normals, mm, r.mask, method=method)
         sec, _ = _best(pipeline, repeats)
         out[f"lstsq+{method}"] = {"seconds": sec, "fps": 1.0 / sec}

@@ -41,7 +41,7 @@ def check_groups(groups, n: int, name: str, device) -> tuple[torch.Tensor | None
 #: Pixels per chunk of the real-time paths: a chunk's float observations (N x CHUNK) stay in
 #: the CPU cache between the passes (conversion, moments, solve), instead of streaming the
 #: whole frame through memory for each pass.
-CHUNK = 16384
+CHUNK = 65536
 
 
 def is_integer(x) -> bool:
