@@ -309,7 +309,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     """
     from pipeline.depth import INTEGRATORS, integrate
     from pipeline.normals._torch import torch_threads
-    from pipeline.store import Record, StageStore, write_record
+    from pipeline.store import Record, StageStore
 
     if solver not in SOLVERS:
         raise UserError(f"--solver must be one of {', '.join(SOLVERS)}, got {solver!r}")

@@ -155,3 +155,16 @@ def test_robust_beats_least_squares_when_a_fifth_is_corrupted(kind):
     e_ls = angular_error_deg(ls.normals, s.normals).mean()
     e_rb = angular_error_deg(rb.normals, s.normals).mean()
     assert e_rb < 0.5 < 3.0 < e_ls, (e_rb, e_ls)
+
+
+def test_chunked_frames_path_equals_whole_frame(monkeypatch):
+    from pipeline.normals import _inputs
+
+    s = render_sphere_scene((14, 18), 0.3, radius=2.0, depth=0.3, num_patterns=4, noise=1.0, bits=8, seed=6)
+    frames = s.frames.astype(np.uint8)
+    solver = FarFieldSolver(s.lights_far(), groups=channel_groups(4))
+    whole = solver.solve(s.observations.astype(np.float32))  # float path: no chunking
+    monkeypatch.setattr(_inputs, "CHUNK", 50)  # 252 pixels -> 6 chunks, the last one short
+    for res in (solver.solve_frames(frames), solver.solve(s.observations.astype(np.uint8))):
+        for name in FIELDS + ("mask", "count"):
+            np.testing.assert_allclose(getattr(res, name), getattr(whole, name), rtol=1e-5, atol=1e-5)

@@ -11,7 +11,7 @@ from pipeline.store import Record
 from sim.frames import normals_to_gradients
 from sim.render import bare_ring_illumination
 from sim.rendered_capture import render_capture, sphere_presses
-from support_recon import _one_torch_thread, angular_error_deg  # noqa: F401
+from support_recon import _one_torch_thread  # noqa: F401
 
 SHAPE, MM = (30, 40), 0.15
 
