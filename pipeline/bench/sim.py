@@ -1,0 +1,280 @@
+"""``iristac bench sim``: what accuracy costs in time in the ray tracer, side by side.
+
+Sections (every time is the best of ``--repeats`` runs, because other processes share the CPU):
+
+rays x sampler     LED 0's flat-gel image (default scene, 60 x 60 px) against a high-ray Sobol
+                   reference: relative L2 error and seconds.
+newton             the paper's case-2 Newton (iterations) and our monotone Newton against the
+                   float64 quartic: max / median intersection error (mm), fallbacks, seconds.
+multi-source       the three ways to get all 24 LEDs: error against tracing each, seconds.
+effects            seconds of a 1e6-ray trace per effect set (a disabled effect costs nothing).
+targets            the issue's performance targets: M rays/s of the full default trace (float32,
+                   side + top + Fresnel + binning + V), 24 LEDs by hit rotation / one LED, peak
+                   memory at 1e7 rays (a child process), eager and torch.compile.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+
+import numpy as np
+import torch
+
+__all__ = ["add_arguments", "run", "format_table"]
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--repeats", type=int, default=3, help="timing repeats, best taken (default 3)")
+    parser.add_argument("--device", default="cpu", help="torch device")
+    parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile measurements")
+    parser.add_argument("--no-memory", action="store_true", help="skip the 1e7-ray peak-memory child process")
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
+
+
+def _best(fn, repeats):
+    best, out = math.inf, None
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def _rel(a, b):
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    return float(np.linalg.norm(a - b) / max(np.linalg.norm(b), 1e-300))
+
+
+def run(args) -> dict:
+    from sim.optics.binning import PixelGrid
+    from sim.optics.multisource import trace_all
+    from sim.scene import load_scene
+
+    if getattr(args, "threads", None):
+        torch.set_num_threads(int(args.threads))
+    quick = bool(getattr(args, "quick", False))
+    reps = int(getattr(args, "repeats", 3))
+    device = getattr(args, "device", "cpu")
+    scene = load_scene("default")
+    grid = PixelGrid((60, 60), (1.0, 1.0), scene.plane.z)
+    res: dict = {"device": device, "quick": quick, "repeats": reps, "threads": torch.get_num_threads(),
+                 "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None}
+
+    # -- rays x sampler -----------------------------------------------------------------
+    ref_rays = 1_000_000 if quick else 4_000_000
+    ref = trace_all(scene, grid, rays=ref_rays, sampler="sobol", leds=[0], vector=False, device=device)
+    E_ref = ref.E[0, 0].double().cpu().numpy()
+    rows = []
+    for n in ([10_000, 100_000] if quick else [10_000, 100_000, 1_000_000]):
+        for smp in ("grid", "random", "stratified", "sobol"):
+            secs, r = _best(lambda: trace_all(scene, grid, rays=n, sampler=smp, seed=1, leds=[0], vector=False,
+                                              device=device), reps)
+            rows.append({"rays": int(r.traces[0].rays), "sampler": smp,
+                         "image_error": _rel(r.E[0, 0].double().cpu().numpy(), E_ref), "seconds": secs})
+    res["rays_sampler"] = {"reference_rays": ref_rays, "rows": rows}
+
+    # -- Newton iterations -> intersection error ------------------------------------------
+    res["newton"] = _bench_newton(scene, 20_000 if quick else 100_000, reps)
+
+    # -- multi-source -------------------------------------------------------------------
+    n_ms = 100_000 if quick else 1_000_000
+    truth = None
+    ms_rows = []
+    for method in ("trace", "hits", "image"):
+        secs, r = _best(lambda: trace_all(scene, grid, method=method, rays=n_ms, device=device), 1 if method == "trace"
+                        else reps)
+        if truth is None:
+            truth = r
+        E = r.E[0].double().cpu().numpy()
+        V = r.V[0].double().cpu().numpy()
+        ms_rows.append({"method": method, "seconds": secs,
+                        "E_error": _rel(E, truth.E[0].double().cpu().numpy()),
+                        "V_error": _rel(V, truth.V[0].double().cpu().numpy()),
+                        "sum_error": _rel(E.sum(0), truth.E[0].double().cpu().numpy().sum(0))})
+    res["multi_source"] = {"rays_per_led": n_ms, "rows": ms_rows}
+
+    # -- effect sets ----------------------------------------------------------------------
+    n_fx = 200_000 if quick else 1_000_000
+    sets = [("none (bare LEDs)", []), ("lens", ["lens"]), ("lens+fresnel", ["lens", "fresnel"]),
+            ("lens+fresnel+profile (default)", ["lens", "fresnel", "emission_profile"]),
+            ("+internal_bounces", ["lens", "fresnel", "emission_profile", "internal_bounces"]),
+            ("+depth_field (4 heights)", ["lens", "fresnel", "emission_profile", "depth_field"]),
+            ("+dispersion (3 indices)", ["lens", "fresnel", "emission_profile", "dispersion"])]
+    fx_rows = []
+    for name, eff in sets:
+        s = scene.with_effects(remove=list(scene.effects)).with_effects(add=eff)
+        heights = s.depth_heights if s.has("depth_field") else (0.0,)
+        indices = s.lens.channel_indices() if s.has("dispersion") else (None,)
+
+        def go():
+            for n_ch in indices:
+                trace_all(s, grid, rays=n_fx, leds=[0], heights=heights, device=device, refractive_index=n_ch)
+        secs, _ = _best(go, reps)
+        fx_rows.append({"effects": name, "seconds": secs})
+    res["effects"] = {"rays": n_fx, "rows": fx_rows}
+
+    # -- targets --------------------------------------------------------------------------
+    res["targets"] = _bench_targets(scene, quick, reps, device, not getattr(args, "no_compile", False),
+                                    not getattr(args, "no_memory", False))
+    return res
+
+
+def _bench_newton(scene, n, reps):
+    from sim.optics.lens import SIDE, LensBody
+    from sim.optics.paper_cases import case2_newton
+    from sim.optics.quartic import first_outer_hit
+    from sim.optics.sampling import SquareSampler, emission_directions
+
+    ln = scene.lens
+    rows = []
+    for dtype in (torch.float32, torch.float64):
+        u, v = SquareSampler(n, "random", seed=5, dtype=dtype).draw(0, n)
+        d = emission_directions(u, v, 1.0, 60.0)
+        o = (torch.full((n,), 40.0, dtype=dtype), torch.zeros(n, dtype=dtype), torch.zeros(n, dtype=dtype))
+        ref_body = LensBody(ln, iterations=50)
+        t, sid, hit, _ = ref_body.enter(o, d)
+        side = (hit & (sid == SIDE)).numpy()
+        O = torch.stack(o, 1).double().numpy()
+        D = torch.stack(d, 1).double().numpy()
+        tq = first_outer_hit(O, D, ln.arc_radius, ln.centre_rho, ln.centre_z, ln.bottom_z, ln.rim_z)
+        Pq = O + np.where(np.isfinite(tq), tq, 0.0)[:, None] * D
+        for it in (1, 2, 3, 5, 10, 20):
+            secs, (P, _, info) = _best(lambda: case2_newton(o, d, ln.arc_radius, ln.centre_rho, ln.centre_z, it), reps)
+            P = torch.stack(P, 1).double().numpy()
+            ok = info["ok"].numpy() & side
+            err = np.linalg.norm(P - Pq, axis=1)[ok]
+            rows.append({"method": "paper case 2", "dtype": str(dtype).replace("torch.", ""), "iterations": it,
+                         "max_error_mm": float(err.max()) if err.size else math.nan,
+                         "median_error_mm": float(np.median(err)) if err.size else math.nan,
+                         "fallback_fraction": float((side & ~info["ok"].numpy()).sum() / max(side.sum(), 1)),
+                         "seconds": secs})
+        for it in (2, 3, 4, 6, 10):
+            body = LensBody(ln, iterations=it)
+            secs, (tt, sid2, hit2, unc) = _best(lambda: body.enter(o, d), reps)
+            m = side & (hit2 & (sid2 == SIDE)).numpy()
+            Pr = O + tt.double().numpy()[:, None] * D
+            err = np.linalg.norm(Pr - Pq, axis=1)[m]
+            rows.append({"method": "robust (monotone Newton)", "dtype": str(dtype).replace("torch.", ""),
+                         "iterations": it, "max_error_mm": float(err.max()) if err.size else math.nan,
+                         "median_error_mm": float(np.median(err)) if err.size else math.nan,
+                         "fallback_fraction": float(unc.sum()) / max(int(side.sum()), 1), "seconds": secs})
+    return {"rays": n, "rows": rows}
+
+
+def _bench_targets(scene, quick, reps, device, do_compile, do_memory):
+    from sim.optics.binning import FieldAccumulator, PixelGrid
+    from sim.optics.multisource import led_azimuths
+    from sim.optics.tracer import trace_source
+
+    n = 200_000 if quick else 1_000_000
+    grid = PixelGrid.from_plane(scene.plane)
+    az = led_azimuths(scene)
+    out = {"rays": n, "rows": []}
+    modes = [False] + ([True] if do_compile else [])
+    for comp in modes:
+        if comp:  # compile outside the timing (the first call compiles for tens of seconds)
+            t0 = time.perf_counter()
+            trace_source(scene, [], rays=n, compile=True, device=device)
+            out["compile_seconds"] = time.perf_counter() - t0
+        one, _ = _best(lambda: trace_source(scene, [FieldAccumulator(grid, (0.0,), device=device)], rays=n,
+                                            compile=comp, device=device), reps)
+        all24, _ = _best(lambda: trace_source(scene, [FieldAccumulator(grid, az - az[0], device=device)], rays=n,
+                                              compile=comp, device=device), reps)
+        kernel, _ = _best(lambda: trace_source(scene, [], rays=n, compile=comp, device=device), reps)
+        out["rows"].append({"compiled": comp, "one_led_seconds": one, "one_led_Mrays_per_s": n / one / 1e6,
+                            "kernel_only_Mrays_per_s": n / kernel / 1e6, "all24_seconds": all24,
+                            "all24_over_one": all24 / one})
+    ps = __import__("sim.scene", fromlist=["load_scene"]).load_scene("plano-sphere")
+    secs, _ = _best(lambda: trace_source(ps, [FieldAccumulator(PixelGrid.from_plane(ps.plane), device=device)],
+                                         rays=n, device=device), reps)
+    out["plano_sphere_Mrays_per_s"] = n / secs / 1e6
+    if do_memory:
+        out["peak_memory"] = _peak_memory(10_000_000 if not quick else 2_000_000, device)
+    return out
+
+
+def _peak_memory(n, device):
+    """Max RSS of a child process tracing ``n`` rays (with binning and V), minus its RSS before."""
+    code = f"""
+import json, resource, time, torch
+from sim.scene import load_scene
+from sim.optics.binning import FieldAccumulator, PixelGrid
+from sim.optics.tracer import trace_source
+s = load_scene("default")
+trace_source(s, [FieldAccumulator(PixelGrid.from_plane(s.plane), device={device!r})], rays=1000, device={device!r})
+before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+t0 = time.perf_counter()
+r = trace_source(s, [FieldAccumulator(PixelGrid.from_plane(s.plane), device={device!r})], rays={n}, device={device!r})
+secs = time.perf_counter() - t0
+after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+print(json.dumps({{"rays": r.rays, "rss_before_mb": before / 1024, "peak_rss_mb": after / 1024,
+                  "seconds": secs, "energy_residual": r.energy.residual}}))
+"""
+    env = dict(os.environ)
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    p = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=900)
+    if p.returncode != 0:
+        return {"error": p.stderr.strip().splitlines()[-1] if p.stderr.strip() else f"exit {p.returncode}"}
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def format_table(result: dict) -> str:
+    L = []
+    L.append(f"iristac bench sim  (device {result['device']}, {result['threads']} torch threads, best of "
+             f"{result['repeats']}{', quick' if result['quick'] else ''})")
+    if result.get("load_average"):
+        L.append("  load average at start: " + ", ".join(f"{x:.2f}" for x in result["load_average"])
+                 + f" on {os.cpu_count()} CPUs (other processes share them: wall times are upper bounds)")
+    rs = result["rays_sampler"]
+    L.append("")
+    L.append(f"rays x sampler: LED 0 image (60x60 px) vs {rs['reference_rays']:,}-ray Sobol reference")
+    L.append(f"  {'rays':>10} {'sampler':>11} {'rel. L2 error':>14} {'seconds':>9}")
+    for r in rs["rows"]:
+        L.append(f"  {r['rays']:>10,} {r['sampler']:>11} {r['image_error']:>14.4f} {r['seconds']:>9.4f}")
+    nw = result["newton"]
+    L.append("")
+    L.append(f"intersection: side-surface hits of {nw['rays']:,} random rays vs the float64 quartic")
+    L.append(f"  {'method':>25} {'dtype':>8} {'iter':>5} {'max err mm':>11} {'median mm':>11} {'fallback':>9} "
+             f"{'seconds':>9}")
+    for r in nw["rows"]:
+        L.append(f"  {r['method']:>25} {r['dtype']:>8} {r['iterations']:>5} {r['max_error_mm']:>11.3g} "
+                 f"{r['median_error_mm']:>11.3g} {r['fallback_fraction']:>9.4f} {r['seconds']:>9.4f}")
+    ms = result["multi_source"]
+    L.append("")
+    L.append(f"multi-source: all 24 LEDs, {ms['rays_per_led']:,} rays per traced LED, errors vs tracing each LED")
+    L.append(f"  {'method':>8} {'E error':>9} {'V error':>9} {'sum-image err':>14} {'seconds':>9}")
+    for r in ms["rows"]:
+        L.append(f"  {r['method']:>8} {r['E_error']:>9.4f} {r['V_error']:>9.4f} {r['sum_error']:>14.4f} "
+                 f"{r['seconds']:>9.4f}")
+    fx = result["effects"]
+    L.append("")
+    L.append(f"effect sets: one LED, {fx['rays']:,} rays, E and V binned")
+    for r in fx["rows"]:
+        L.append(f"  {r['effects']:>32} {r['seconds']:>9.4f} s")
+    tg = result["targets"]
+    L.append("")
+    L.append(f"targets: full default trace, {tg['rays']:,} rays, float32, side + top + Fresnel + binning + V "
+             f"(300x300 px)")
+    L.append(f"  {'compiled':>8} {'1 LED s':>9} {'M rays/s':>9} {'kernel M rays/s':>16} {'24 LEDs s':>10} "
+             f"{'24/1':>6}")
+    for r in tg["rows"]:
+        L.append(f"  {str(r['compiled']):>8} {r['one_led_seconds']:>9.4f} {r['one_led_Mrays_per_s']:>9.2f} "
+                 f"{r['kernel_only_Mrays_per_s']:>16.2f} {r['all24_seconds']:>10.4f} {r['all24_over_one']:>6.2f}")
+    if "compile_seconds" in tg:
+        L.append(f"  (torch.compile first call: {tg['compile_seconds']:.1f} s)")
+    L.append(f"  plano-sphere scene: {tg['plano_sphere_Mrays_per_s']:.2f} M rays/s")
+    if "peak_memory" in tg:
+        pm = tg["peak_memory"]
+        if "error" in pm:
+            L.append(f"  peak memory: failed ({pm['error']})")
+        else:
+            L.append(f"  peak memory at {pm['rays']:,} rays: {pm['peak_rss_mb']:.0f} MB max RSS "
+                     f"({pm['rss_before_mb']:.0f} MB before the trace), {pm['seconds']:.2f} s")
+    return "\n".join(L)

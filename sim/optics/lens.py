@@ -1,0 +1,113 @@
+"""The lens as one convex body: entry and exit points of rays, with the surface that was hit.
+
+Surface ids: ``SIDE = 0``, ``TOP = 1``, ``BOTTOM = 2``.
+"""
+
+from __future__ import annotations
+
+import torch
+
+from sim.optics.base import INF, Vec, solve_quadratic
+from sim.optics.cylinder import Cylinder
+from sim.optics.plane import HalfSpaceAbove
+from sim.optics.sphere import Ball
+from sim.optics.torus import SweptArc
+
+__all__ = ["SIDE", "TOP", "BOTTOM", "LensBody", "box_interval"]
+
+SIDE, TOP, BOTTOM = 0, 1, 2
+
+
+def box_interval(o: Vec, d: Vec, rho_max: float, z_lo: float, z_hi: float):
+    """``(t_lo, t_hi, ok)``: where rays are inside the cylinder ``rho <= rho_max``, ``z_lo <= z <= z_hi``.
+
+    ``t_lo`` is clamped to 0 (rays start at ``t = 0``); ``ok`` is False for rays that miss.
+    """
+    a = d[0] * d[0] + d[1] * d[1]
+    b = o[0] * d[0] + o[1] * d[1]
+    c = o[0] * o[0] + o[1] * o[1] - rho_max * rho_max
+    t1, t2, real = solve_quadratic(a, b, c)
+    axial = a == 0  # parallel to the axis: inside the cylinder for all t, or never
+    c_lo = torch.where(real, t1, torch.where(axial & (c <= 0), torch.full_like(t1, -INF), torch.full_like(t1, INF)))
+    c_hi = torch.where(real, t2, torch.where(axial & (c <= 0), torch.full_like(t2, INF), torch.full_like(t2, -INF)))
+    dz = d[2]
+    flat = dz == 0
+    safe = torch.where(flat, torch.ones_like(dz), dz)
+    s1 = (z_lo - o[2]) / safe
+    s2 = (z_hi - o[2]) / safe
+    in_slab = (o[2] >= z_lo) & (o[2] <= z_hi)
+    ninf, pinf = torch.full_like(s1, -INF), torch.full_like(s1, INF)
+    s_lo = torch.where(flat, torch.where(in_slab, ninf, pinf), torch.minimum(s1, s2))
+    s_hi = torch.where(flat, torch.where(in_slab, pinf, ninf), torch.maximum(s1, s2))
+    t_lo = torch.maximum(torch.maximum(c_lo, s_lo), torch.zeros_like(c_lo))
+    t_hi = torch.minimum(c_hi, s_hi)
+    return t_lo, t_hi, t_lo <= t_hi
+
+
+class LensBody:
+    """Intersection of the side, top and bottom convex sets of a :class:`sim.scene.Lens`.
+
+    Parameters
+    ----------
+    lens : sim.scene.Lens
+    iterations : int
+        Newton iterations of the swept-arc solve.
+    tol : float
+        Tolerance (mm) of the "point lies in every set" test.
+    """
+
+    def __init__(self, lens, iterations: int = 10, tol: float = 1e-3):
+        self.lens = lens
+        if lens.is_arc:
+            self.side = SweptArc(lens.arc_radius, lens.centre_rho, lens.centre_z, lens.bottom_z, lens.rim_z,
+                                 iterations=iterations)
+            rho_max = self.side.rho_max
+        else:
+            self.side = Cylinder(lens.cylinder_radius)
+            rho_max = lens.cylinder_radius
+        self.top = Ball(lens.top_radius, lens.apex_z)
+        self.bottom = HalfSpaceAbove(lens.bottom_z)
+        self.sets = (self.side, self.top, self.bottom)
+        self.tol = float(tol)
+        margin = 1e-3
+        self.box = (rho_max + margin, lens.bottom_z - margin, lens.apex_z + margin)
+
+    def enter(self, o: Vec, d: Vec):
+        """Rays outside the lens: ``(t, surface_id, hit, unconverged)``, each (N,).
+
+        ``unconverged`` marks rays whose swept-arc solve did not converge (counted as misses).
+        """
+        t_lo, t_hi, ok = box_interval(o, d, *self.box)
+        if isinstance(self.side, SweptArc):
+            e0, unconverged = self.side.entry_status(o, d, t_lo, t_hi)
+        else:
+            e0, unconverged = self.side.entry(o, d), torch.zeros_like(ok)
+        e1 = self.top.entry(o, d)
+        e2 = self.bottom.entry(o, d)
+        t = torch.maximum(torch.maximum(e0, e1), e2)
+        sid = torch.where(e0 >= torch.maximum(e1, e2), SIDE, torch.where(e1 >= e2, TOP, BOTTOM))
+        hit = ok & torch.isfinite(t) & (t > 0)
+        ts = torch.where(hit, t, torch.zeros_like(t))
+        p = (o[0] + ts * d[0], o[1] + ts * d[1], o[2] + ts * d[2])
+        inside = self.side.contains(p, self.tol) & self.top.contains(p, self.tol) & self.bottom.contains(p, self.tol)
+        hit = hit & inside
+        return torch.where(hit, t, torch.zeros_like(t)), sid, hit, unconverged & ok
+
+    def leave(self, o: Vec, d: Vec):
+        """Rays inside the lens: ``(t, surface_id, ok)`` of the exit point."""
+        t_lo, t_hi, ok = box_interval(o, d, *self.box)
+        x0 = self.side.exit(o, d, t_lo, t_hi) if isinstance(self.side, SweptArc) else self.side.exit(o, d)
+        x1 = self.top.exit(o, d)
+        x2 = self.bottom.exit(o, d)
+        t = torch.minimum(torch.minimum(x0, x1), x2)
+        sid = torch.where(x0 <= torch.minimum(x1, x2), SIDE, torch.where(x1 <= x2, TOP, BOTTOM))
+        good = torch.isfinite(t) & (t >= 0)
+        return torch.where(good, t, torch.zeros_like(t)), sid, good
+
+    def normal(self, p: Vec, sid) -> Vec:
+        """Outward unit normals at points ``p`` on the surfaces ``sid``."""
+        n0 = self.side.normal(p)
+        n1 = self.top.normal(p)
+        n2 = self.bottom.normal(p)
+        s0, s1 = sid == SIDE, sid == TOP
+        return tuple(torch.where(s0, a, torch.where(s1, b, c)) for a, b, c in zip(n0, n1, n2))

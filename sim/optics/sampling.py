@@ -1,0 +1,136 @@
+"""Ray sampling: points of the unit square, and LED emission directions from them.
+
+Samplers (all seeded and reproducible for a given seed and chunk size):
+
+``grid``        the paper's deterministic ``k x k`` grid of cell centres (``k = round(sqrt(n))``)
+``random``      uniform random points (torch generator seeded with ``seed``)
+``stratified``  one uniform random point in each cell of the ``k x k`` grid
+``sobol``       scrambled Sobol points (``torch.quasirandom.SobolEngine``)
+
+Emission: ``u`` picks the polar angle by inverting the CDF of ``cos^m theta sin theta`` on
+``[0, theta_c]`` (so every ray carries the same power) and ``v`` the azimuth.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from sim.optics import instrument
+
+__all__ = ["SAMPLERS", "actual_rays", "SquareSampler", "emission_directions"]
+
+SAMPLERS = ("grid", "random", "stratified", "sobol")
+
+
+def actual_rays(n: int, sampler: str) -> int:
+    """Number of rays a sampler really draws for a request of ``n`` (grids round to ``k^2``).
+
+    Examples
+    --------
+    >>> actual_rays(1_000_000, "grid"), actual_rays(1000, "grid"), actual_rays(1000, "sobol")
+    (1000000, 1024, 1000)
+    """
+    if sampler not in SAMPLERS:
+        raise ValueError(f"unknown sampler {sampler!r}; expected one of {SAMPLERS}")
+    if sampler in ("grid", "stratified"):
+        k = max(1, round(math.sqrt(n)))
+        return k * k
+    return int(n)
+
+
+class SquareSampler:
+    """Points of ``[0, 1)^2`` drawn chunk by chunk.
+
+    Examples
+    --------
+    >>> s = SquareSampler(4, "grid", device="cpu", dtype=torch.float64)
+    >>> u, v = s.draw(0, 4); u.tolist(), v.tolist()
+    ([0.25, 0.25, 0.75, 0.75], [0.25, 0.75, 0.25, 0.75])
+    """
+
+    def __init__(self, n: int, kind: str, seed: int = 0, device="cpu", dtype=torch.float32):
+        self.n = actual_rays(n, kind)
+        self.kind = kind
+        self.k = max(1, round(math.sqrt(self.n)))
+        self.device = torch.device(device)
+        self.dtype = dtype
+        self.gen = torch.Generator(device="cpu").manual_seed(int(seed))
+        self.sobol = torch.quasirandom.SobolEngine(2, scramble=True, seed=int(seed)) if kind == "sobol" else None
+
+    def draw(self, start: int, stop: int):
+        """Samples ``start .. stop-1`` (call with consecutive ranges for reproducibility)."""
+        m = stop - start
+        if self.kind in ("grid", "stratified"):
+            idx = torch.arange(start, stop, device=self.device)
+            i = torch.div(idx, self.k, rounding_mode="floor").to(self.dtype)
+            j = (idx % self.k).to(self.dtype)
+            if self.kind == "grid":
+                ju = jv = 0.5
+            else:
+                jit = torch.rand(2, m, generator=self.gen, dtype=torch.float64).to(self.device, self.dtype)
+                ju, jv = jit[0], jit[1]
+            return (i + ju) / self.k, (j + jv) / self.k
+        if self.kind == "random":
+            r = torch.rand(2, m, generator=self.gen, dtype=torch.float64).to(self.device, self.dtype)
+            return r[0], r[1]
+        r = self.sobol.draw(m, dtype=torch.float64).to(self.device, self.dtype)
+        return r[:, 0].contiguous(), r[:, 1].contiguous()
+
+
+def emission_directions(u, v, m: float, cone_half_angle_deg: float, axis=(0.0, 0.0, 1.0), profile: bool = True,
+                        azimuth: float = 0.0):
+    """Unit directions ``(dx, dy, dz)`` of equal-power rays from a ``cos^m`` emitter.
+
+    The emitter's local frame turns with the LED's ``azimuth`` about ``z``, so LED ``i`` of a
+    ring emits exactly LED 0's rays rotated by its azimuth (what makes hit rotation exact).
+    With ``profile=False`` (the emission-profile effect disabled) the LED is isotropic inside
+    its cone (``m = 0``).
+
+    Examples
+    --------
+    >>> import torch
+    >>> d = emission_directions(torch.tensor([0.0]), torch.tensor([0.0]), 1.0, 60.0)
+    >>> [round(float(c[0]), 6) for c in d]
+    [0.0, 0.0, 1.0]
+    """
+    if profile:
+        instrument.count("emission_profile")
+    mp = float(m) if profile else 0.0
+    c = math.cos(math.radians(cone_half_angle_deg))
+    a = 1.0 - c ** (mp + 1.0)
+    cos_t = torch.pow(1.0 - u * a, 1.0 / (mp + 1.0))
+    sin_t = torch.sqrt(torch.clamp(1.0 - cos_t * cos_t, min=0.0))
+    phi = (2.0 * math.pi) * v
+    lx, ly, lz = sin_t * torch.cos(phi), sin_t * torch.sin(phi), cos_t
+    ca, sa = math.cos(azimuth), math.sin(azimuth)
+    ax = [float(x) for x in axis]
+    nrm = math.sqrt(sum(x * x for x in ax))
+    ax = [x / nrm for x in ax]
+    # The axis in LED 0's frame (rotated back by the azimuth).
+    a0 = (ca * ax[0] + sa * ax[1], -sa * ax[0] + ca * ax[1], ax[2])
+    if abs(a0[2] - 1.0) < 1e-15:
+        e1, e2, e3 = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
+    elif abs(a0[1]) < 1e-12:
+        # Tilted in the radial plane (a ring tilted toward its axis): e2 = y, e1 = y x a0.
+        e1, e2, e3 = (a0[2], 0.0, -a0[0]), (0.0, 1.0, 0.0), a0
+    else:
+        h = (0.0, 0.0, 1.0) if abs(a0[2]) < 0.9 else (1.0, 0.0, 0.0)
+        e1 = _unit(_cross(h, a0))
+        e2, e3 = _cross(a0, e1), a0
+    x0 = lx * e1[0] + ly * e2[0] + lz * e3[0]
+    y0 = lx * e1[1] + ly * e2[1] + lz * e3[1]
+    z0 = lx * e1[2] + ly * e2[2] + lz * e3[2]
+    if azimuth == 0.0:
+        return x0, y0, z0
+    return ca * x0 - sa * y0, sa * x0 + ca * y0, z0
+
+
+def _cross(a, b):
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+def _unit(a):
+    n = math.sqrt(sum(x * x for x in a))
+    return tuple(x / n for x in a)

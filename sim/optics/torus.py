@@ -1,0 +1,175 @@
+"""The swept-arc lens side: the outer half of a circle swept about ``z`` (part of a torus).
+
+In the meridian plane the side is ``rho = g(z) = rho_c + sqrt(r1^2 - (z - z_c)^2)`` for ``z``
+between the lens bottom and the rim where it meets the top. ``g`` is concave, so the set
+``rho <= g(z)`` is convex. Outside ``[z_lo, z_hi]`` we extend ``g`` by its tangent lines (still
+concave; the lens's other surfaces cut those parts away), which keeps the set convex and
+``g`` finite and C1 everywhere.
+
+Along a ray, ``S(t) = rho(t) - g(z(t))`` is then a convex function of ``t`` (``rho`` of a line
+is convex, ``-g`` of an affine argument is convex). Newton's method on a convex function
+started left of its first root (where ``S > 0``, ``S' < 0``) moves monotonically right onto
+that root and never jumps past it; started right of the last root it moves monotonically
+left onto the last root. That is our robust solve: a safeguarded Newton iteration whose
+bracket is the lens's bounding box, with no possibility of converging to the wrong root.
+If ``S' >= 0`` while ``S > 0`` on the left-hand iteration, the ray misses the set.
+:func:`sim.optics.quartic.torus_roots` cross-checks it against the full quartic.
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from sim.optics.base import INF, ConvexSet, Vec
+
+__all__ = ["SweptArc"]
+
+
+class SweptArc(ConvexSet):
+    """The set ``rho <= g(z)`` of an arc of radius ``r1`` centred at ``(rho_c, z_c)``.
+
+    Parameters
+    ----------
+    r1, rho_c, z_c : float
+        Arc radius and centre in the meridian plane (mm).
+    z_lo, z_hi : float
+        The ``z`` range where the side is a real surface (lens bottom to rim).
+    iterations : int
+        Newton iterations per solve (convergence is checked; see :meth:`entry_status`).
+
+    Examples
+    --------
+    A horizontal ray at the arc centre's height meets the side at ``rho_c + r1``:
+
+    >>> import torch
+    >>> s = SweptArc(13.5, 22.5, 6.0, 1.0, 11.0)
+    >>> o = (torch.tensor([50.0]), torch.zeros(1), torch.full((1,), 6.0))
+    >>> d = (torch.tensor([-1.0]), torch.zeros(1), torch.zeros(1))
+    >>> round(float(s.entry(o, d, torch.zeros(1), torch.full((1,), 100.0))[0]), 4)
+    14.0
+    """
+
+    name = "side"
+
+    def __init__(self, r1: float, rho_c: float, z_c: float, z_lo: float, z_hi: float, iterations: int = 10,
+                 tol: float = 1e-4):
+        if not (abs(z_lo - z_c) < r1 and abs(z_hi - z_c) < r1 and z_lo < z_hi):
+            raise ValueError(f"SweptArc: z range [{z_lo}, {z_hi}] must lie strictly inside the arc's "
+                             f"[{z_c - r1}, {z_c + r1}]")
+        self.r1, self.rho_c, self.z_c = float(r1), float(rho_c), float(z_c)
+        self.z_lo, self.z_hi = float(z_lo), float(z_hi)
+        self.iterations = int(iterations)
+        self.tol = float(tol)
+        self.rho_max = self.rho_c + (self.r1 if z_lo <= z_c <= z_hi else
+                                     max(math.sqrt(r1 ** 2 - (z_lo - z_c) ** 2), math.sqrt(r1 ** 2 - (z_hi - z_c) ** 2)))
+
+    # g_ext and its slope at heights z
+    def _g(self, z):
+        zq = z.clamp(self.z_lo, self.z_hi)
+        u = zq - self.z_c
+        s = torch.sqrt(self.r1 * self.r1 - u * u)
+        slope = -u / s
+        return self.rho_c + s + slope * (z - zq), slope
+
+    def _S(self, o, d, t):
+        x = o[0] + t * d[0]
+        y = o[1] + t * d[1]
+        z = o[2] + t * d[2]
+        rho = torch.sqrt(x * x + y * y)
+        g, slope = self._g(z)
+        # d rho / dt; on the axis (rho = 0) any subgradient will do, use 0.
+        drho = (x * d[0] + y * d[1]) / rho.clamp_min(1e-12)
+        return rho - g, drho - slope * d[2]
+
+    def value(self, p: Vec) -> torch.Tensor:
+        """``S = rho - g(z)`` at points (negative inside the set, ~ signed distance near the surface)."""
+        g, _ = self._g(p[2])
+        return torch.sqrt(p[0] * p[0] + p[1] * p[1]) - g
+
+    def entry(self, o: Vec, d: Vec, t_lo=None, t_hi=None) -> torch.Tensor:
+        """Entry ``t`` by monotone Newton from ``t_lo`` (left end of the lens's bounding box)."""
+        return self.entry_status(o, d, t_lo, t_hi)[0]
+
+    def entry_status(self, o: Vec, d: Vec, t_lo=None, t_hi=None):
+        """``(t, unconverged)``: entry ``t`` and the rays still short of the root after the iterations.
+
+        Unconverged rays (a root ahead but ``S > tol`` after ``iterations`` steps, e.g. nearly
+        tangent rays) are reported as misses and counted, never returned as NaN.
+        """
+        t_lo, t_hi = self._bracket(o, d, t_lo, t_hi)
+        S, dS = self._S(o, d, t_lo)
+        starts_inside = S <= 0
+        t, S, dS, dead = self._newton(o, d, t_lo, S, dS, t_lo <= t_hi, left=True)
+        ahead = ~dead & ~starts_inside & (t <= t_hi)
+        hit = ahead & (S <= self.tol)
+        unconverged = ahead & (S > self.tol) & (dS < 0)
+        out = torch.where(hit, t, torch.full_like(t, INF))
+        return torch.where(starts_inside, torch.full_like(t, -INF), out), unconverged
+
+    def _newton(self, o, d, t, S, dS, active, left: bool):
+        """Monotone Newton on the rays that need it (compacted once), stopping when all converged.
+
+        Returns ``(t, S, dS, dead)`` for every ray; ``dead`` marks rays whose iteration found no
+        root on its side (``S > 0`` with the slope pointing away).
+        """
+        need = active & (S > 0)
+        dead = torch.zeros_like(need)
+        if torch.compiler.is_compiling():
+            # Inside torch.compile: no data-dependent shapes or syncs; masked fixed iterations
+            # fuse into one loop.
+            for _ in range(self.iterations):
+                move = need & (S > 0) & ((dS < 0) if left else (dS > 0))
+                dead = dead | (need & (S > 0) & ((dS >= 0) if left else (dS <= 0)))
+                t = torch.where(move, t - S / torch.where(move, dS, torch.ones_like(dS)), t)
+                S, dS = self._S(o, d, t)
+            return t, S, dS, dead
+        if not bool(need.any()):
+            return t, S, dS, dead
+        idx = torch.nonzero(need).squeeze(1)
+        oo = tuple(c[idx] for c in o)
+        dd = tuple(c[idx] for c in d)
+        tt, s_, ds_ = t[idx], S[idx], dS[idx]
+        gone = torch.zeros_like(tt, dtype=torch.bool)
+        for it in range(self.iterations):
+            move = (s_ > 0) & ((ds_ < 0) if left else (ds_ > 0))
+            gone = gone | ((s_ > 0) & ((ds_ >= 0) if left else (ds_ <= 0)))
+            step = torch.where(move, s_ / torch.where(move, ds_, torch.ones_like(ds_)), torch.zeros_like(s_))
+            tt = tt - step
+            s_, ds_ = self._S(oo, dd, tt)
+            # Converged rays stop moving; check every few steps (a sync) whether all have.
+            if it % 3 == 2 and float(step.abs().max()) < 1e-7 * (1.0 + float(tt.abs().max())):
+                break
+        t = t.index_put((idx,), tt)
+        S = S.index_put((idx,), s_)
+        dS = dS.index_put((idx,), ds_)
+        dead = dead.index_put((idx,), gone)
+        return t, S, dS, dead
+
+    def exit(self, o: Vec, d: Vec, t_lo=None, t_hi=None) -> torch.Tensor:
+        """Exit ``t`` by monotone Newton from ``t_hi`` (right end of the bounding box)."""
+        t_lo, t_hi = self._bracket(o, d, t_lo, t_hi)
+        S, dS = self._S(o, d, t_hi)
+        ends_inside = S <= 0
+        t, S, dS, dead = self._newton(o, d, t_hi, S, dS, t_lo <= t_hi, left=False)
+        hit = ~dead & ~ends_inside & (S <= self.tol)
+        return torch.where(hit, t, torch.full_like(t, INF))
+
+    def _bracket(self, o, d, t_lo, t_hi):
+        if t_lo is None or t_hi is None:
+            # No box given: use the cylinder rho <= rho_max over the arc's own z range.
+            from sim.optics.lens import box_interval
+
+            t_lo, t_hi, _ = box_interval(o, d, self.rho_max, self.z_c - self.r1, self.z_c + self.r1)
+        return t_lo, t_hi
+
+    def contains(self, p: Vec, tol: float) -> torch.Tensor:
+        return self.value(p) <= tol
+
+    def normal(self, p: Vec) -> Vec:
+        rho = torch.sqrt(p[0] * p[0] + p[1] * p[1]).clamp_min(1e-30)
+        _, slope = self._g(p[2])
+        nz = -slope
+        inv = 1.0 / torch.sqrt(1.0 + nz * nz)
+        return p[0] / rho * inv, p[1] / rho * inv, nz * inv
