@@ -11,6 +11,8 @@ Both solve the least-squares problem over pixel edges (see :mod:`pipeline.depth.
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 import scipy.fft
 
@@ -18,6 +20,13 @@ from pipeline.depth._common import (DepthResult, anchor_to_border, divergence_ne
                                     pixel_gradients)
 
 __all__ = ["poisson_dct", "poisson_dst"]
+
+
+@lru_cache(maxsize=16)
+def _neumann_eigenvalues(H: int, W: int) -> np.ndarray:
+    lam = neumann_eigenvalues(H, W)
+    lam[0, 0] = 1.0
+    return lam
 
 
 def neumann_eigenvalues(H: int, W: int) -> np.ndarray:
@@ -30,9 +39,7 @@ def dct_poisson_solve(f: np.ndarray, workers: int | None = None) -> np.ndarray:
     """Solve ``lap_N h = f`` ``(H, W)`` (Neumann), the free constant set to mean zero."""
     H, W = f.shape
     F = scipy.fft.dctn(f, type=2, norm="ortho", workers=workers)
-    lam = neumann_eigenvalues(H, W)
-    lam[0, 0] = 1.0
-    F = F / lam
+    F = F / _neumann_eigenvalues(H, W).astype(f.dtype, copy=False)
     F[0, 0] = 0.0
     return scipy.fft.idctn(F, type=2, norm="ortho", workers=workers)
 
@@ -59,6 +66,7 @@ def poisson_dct(normals, mm_per_px: float, mask=None, *, max_slope: float = 20.0
                        meta={"integrator": "dct", "mm_per_px": float(mm_per_px), "max_slope": float(max_slope)})
 
 
+@lru_cache(maxsize=16)
 def _dst_eigenvalues(H: int, W: int) -> np.ndarray:
     """Eigenvalues of the 5-point Laplacian with zero height half a pixel outside the image,
     in the DST-II basis ``sin(pi k (j + 1/2) / N)``, ``k = 1..N``."""
@@ -103,7 +111,7 @@ def poisson_dst(normals, mm_per_px: float, mask=None, *, boundary=None, max_slop
     left, right, top, bottom = gc[:, :1], gc[:, -1:], gr[:1, :], gr[-1:, :]
     B = None
     if boundary is not None:
-        B = np.asarray(boundary, dtype=np.float64)
+        B = np.asarray(boundary, dtype=gc.dtype)
         if B.shape != (H, W):
             raise ValueError(f"poisson_dst: boundary must have shape {(H, W)}, got {B.shape}")
         B = np.nan_to_num(B, nan=0.0, posinf=0.0, neginf=0.0)
@@ -117,7 +125,7 @@ def poisson_dst(normals, mm_per_px: float, mask=None, *, boundary=None, max_slop
     erp = np.concatenate([top, er, bottom], axis=0)  # (H + 1, W)
     f = (ecp[:, 1:] - ecp[:, :-1]) + (erp[1:, :] - erp[:-1, :])
     F = scipy.fft.dstn(f, type=2, workers=workers)
-    h = scipy.fft.idstn(F / _dst_eigenvalues(H, W), type=2, workers=workers)
+    h = scipy.fft.idstn(F / _dst_eigenvalues(H, W).astype(f.dtype, copy=False), type=2, workers=workers)
     if B is not None:
         h = h + B
     return DepthResult(height=h.astype(np.float32), mask=m,

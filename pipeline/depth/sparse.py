@@ -103,6 +103,7 @@ def sparse_lstsq(normals, mm_per_px: float, mask=None, *, max_slope: float = 20.
     ([-1.0, 0.0, 1.0, 2.0], 0.0)
     """
     gc, gr, m = pixel_gradients(normals, mask, mm_per_px, max_slope, "sparse_lstsq")
+    gc, gr = gc.astype(np.float64), gr.astype(np.float64)  # CG in float64
     H, W = gc.shape
     height = np.zeros((H, W))
     n = int(m.sum())

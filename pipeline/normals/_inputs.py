@@ -41,7 +41,7 @@ def check_groups(groups, n: int, name: str, device) -> tuple[torch.Tensor | None
 #: Pixels per chunk of the real-time paths: a chunk's float observations (N x CHUNK) stay in
 #: the CPU cache between the passes (conversion, moments, solve), instead of streaming the
 #: whole frame through memory for each pass.
-CHUNK = 65536
+CHUNK = 80000
 
 
 def is_integer(x) -> bool:
@@ -65,7 +65,10 @@ def integer_tensor(x, device) -> torch.Tensor:
 
 def chunks(M: int, device) -> list[tuple[int, int]]:
     """Pixel ranges for the chunked paths (one range on a GPU, where chunking only costs)."""
-    step = M if torch.device(device).type != "cpu" else CHUNK
+    if torch.device(device).type != "cpu" or M <= CHUNK:
+        return [(0, M)]
+    n = -(-M // CHUNK)
+    step = -(-M // n)  # balanced: no small tail chunk
     return [(a, min(a + step, M)) for a in range(0, M, step)]
 
 

@@ -136,10 +136,10 @@ def moments(I: torch.Tensor, L: torch.Tensor, w: torch.Tensor | None, selectors:
     M = I.shape[1]
     if w is None:
         wsum = torch.full((M,), float(I.shape[0]), dtype=I.dtype, device=I.device)
-        count = torch.full((M,), I.shape[0], dtype=torch.long, device=I.device)
+        count = torch.full((M,), I.shape[0], dtype=torch.int32, device=I.device)
     else:
         wsum = w.sum(0)
-        count = (w > 0).sum(0)
+        count = (w > 0).sum(0, dtype=torch.int32)
     return Moments(Q=Q, r=torch.stack(rs), S=torch.stack(Ss), wsum=wsum, count=count)
 
 
