@@ -124,17 +124,42 @@ def object_from_spec(spec: str, shape: tuple[int, int], mm_per_px: float):
 
 
 def render_mode_captures(model, modes: Sequence[str], obj, out: str | Path, *, noise_dn: float = 1.0,
-                         bit_depth: int = 8, camera_fps: float = 30.0, seed: int = 21):
-    """Render ``obj`` under each mode with the virtual sensor; write ``out/<mode>.h5``.
+                         bit_depth: int = 8, camera_fps: float = 30.0, seed: int = 21, emulate: bool = False,
+                         faults: str | None = None):
+    """Capture ``obj`` under each mode with the virtual sensor; write ``out/<mode>.h5``.
 
-    Returns ``(captures, capture_seconds)`` for :func:`compare_captures`; the capture time of a
-    mode is its number of frames at ``camera_fps``.
+    With ``emulate`` the capture runs for real: the LED-ring emulator behind a pseudo-terminal
+    (with ``faults``), the host client over pyserial, and the virtual camera rendering whatever
+    the emulated LEDs show at ``camera_fps``, with stale-frame flushing; the capture time is then
+    measured (dark frame, a reference and a contact frame per pattern). Without it the frames
+    are rendered directly and the time is the number of frames at ``camera_fps``.
+
+    Returns ``(captures, capture_seconds)`` for :func:`compare_captures`.
     """
     from pipeline.store import write_record
     from sim.rendered_capture import render_capture
 
     captures: dict[str, Path] = {}
     seconds: dict[str, tuple[float, str]] = {}
+    if emulate:
+        from pipeline.capture.session import capture
+        from pipeline.capture.virtual import VirtualSensorSpec
+        from sim.modes import load_mode
+
+        for mode in modes:
+            name = load_mode(mode).name
+            path = Path(out) / f"{name}.h5"
+            for stale in (path, path.with_name(path.name + ".journal")):
+                stale.unlink(missing_ok=True)  # a fresh capture, not a resume of an older one
+            spec = VirtualSensorSpec(illumination=model, contacts=[obj], noise_dn=noise_dn, bit_depth=bit_depth,
+                                     fps=camera_fps, seed=seed)
+            res = capture(path, mode=mode, emulate=True, faults=faults, virtual_camera=spec, progress=False)
+            if res.mislabeled:
+                raise UserError(f"{path}: {res.mislabeled} frames were stored under the wrong pattern")
+            captures[name] = res.path
+            seconds[name] = (res.seconds, f"measured, emulated ring + {camera_fps:g} fps camera, "
+                                          f"{res.frames} frames, {res.retries} retries")
+        return captures, seconds
     for mode in modes:
         rec = render_capture(model, mode, [obj], noise_dn=noise_dn, bit_depth=bit_depth, seed=seed)
         name = str(rec.meta["mode"])
@@ -320,13 +345,14 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
                   shape: tuple[int, int] = (120, 160), mm_per_px: float = 0.15, rays: int = 2_000_000,
                   captures: dict[str, str] | None = None, calibrations: dict[str, str] | None = None,
                   lut: bool = True, integrator: str = "dst", cache: str | Path | None = None,
-                  noise_dn: float = 1.0, bit_depth: int = 8, camera_fps: float = 30.0,
-                  log: Callable[[str], None] | None = None) -> dict:
+                  noise_dn: float = 1.0, bit_depth: int = 8, camera_fps: float = 30.0, emulate: bool = True,
+                  faults: str | None = None, log: Callable[[str], None] | None = None) -> dict:
     """Which lighting mode reconstructs best, at what capture time (``iristac compare-modes``).
 
     Either the user's own ``captures`` (mode -> capture.h5 with ``truth/*``) are compared, or
     the virtual sensor renders ``object`` under each of ``modes`` from an illumination model
-    (``illumination`` file, else ``scene`` traced with ``rays`` rays per LED). Writes
+    (``illumination`` file, else ``scene`` traced with ``rays`` rays per LED), captured through
+    the ring emulator and virtual camera when ``emulate`` (see :func:`render_mode_captures`). Writes
     ``report.html`` and ``report.json`` into ``out`` and returns the JSON.
     """
     from pipeline.report import Report
@@ -363,7 +389,8 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
         obj = object_from_spec(object, model.shape, model.mm_per_px)
         say(f"rendering the {object} object under {', '.join(modes)}")
         caps, seconds = render_mode_captures(model, modes, obj, out / "captures", noise_dn=noise_dn,
-                                             bit_depth=bit_depth, camera_fps=camera_fps)
+                                             bit_depth=bit_depth, camera_fps=camera_fps, emulate=emulate,
+                                             faults=faults)
         if lut:
             say("calibrating lookup tables for the single-frame modes")
             h, w = model.shape

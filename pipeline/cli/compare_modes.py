@@ -22,6 +22,10 @@ def register(sub, name, help_text):
     p.add_argument("--rays", type=int, default=2_000_000, help="rays per LED when tracing")
     p.add_argument("--integrator", default="dst", choices=["fc", "dct", "dst", "sparse"])
     p.add_argument("--no-lut", action="store_true", help="do not calibrate lookup tables for single-frame modes")
+    p.add_argument("--render-only", action="store_true",
+                   help="render frames directly instead of capturing through the ring emulator and virtual camera")
+    p.add_argument("--faults", help="fault spec for the emulated ring, e.g. drop=0.05,corrupt=0.05")
+    p.add_argument("--fps", type=float, default=30.0, help="virtual camera frame rate (default 30)")
     p.add_argument("--cache", help="stage store folder (default: OUT/cache)")
     add_json_flag(p)
     p.set_defaults(func=_run)
@@ -46,7 +50,8 @@ def _run(args) -> int:
                          object=args.object, shape=tuple(args.size), mm_per_px=args.mm_per_px, rays=args.rays,
                          captures=_pairs(args.captures, "--captures") or None,
                          calibrations=_pairs(args.calibration, "--calibration"), lut=not args.no_lut,
-                         integrator=args.integrator, cache=args.cache,
+                         integrator=args.integrator, cache=args.cache, emulate=not args.render_only,
+                         faults=args.faults, camera_fps=args.fps,
                          log=lambda m: print(f"[compare-modes] {m}", file=sys.stderr))
     if args.json:
         print_json(data)
