@@ -168,3 +168,17 @@ def test_chunked_frames_path_equals_whole_frame(monkeypatch):
     for res in (solver.solve_frames(frames), solver.solve(s.observations.astype(np.uint8))):
         for name in FIELDS + ("mask", "count"):
             np.testing.assert_allclose(getattr(res, name), getattr(whole, name), rtol=1e-5, atol=1e-5)
+
+
+@settings(max_examples=25, deadline=None)
+@given(image=arrays(np.float64, (3, 4, 3), elements=_values))
+def test_lut_solver_any_input_finite_with_mask(image):
+    from pipeline.normals import LUTSolver
+    from support_recon import NearestColourTable
+
+    rng = np.random.default_rng(0)
+    g = rng.uniform(-3, 3, (200, 2))
+    table = NearestColourTable(rng.uniform(0, 255, (200, 3)), g, max_distance=40.0)
+    res = LUTSolver(table).solve(image)
+    _assert_finite(res, (3, 4))
+    assert not res.mask[~np.isfinite(image).all(-1)].any()
