@@ -20,6 +20,7 @@ refused). Pixel pitch is unknown: ``mm_per_px`` is 1 (heights come out in pixels
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -29,17 +30,22 @@ from pipeline.errors import UserError
 __all__ = ["DiligentObject", "read_diligent", "diligent_record", "import_diligent"]
 
 
+@dataclass
 class DiligentObject:
-    """The contents of one DiLiGenT object folder (see the module docstring for shapes)."""
+    """The contents of one DiLiGenT object folder.
 
-    def __init__(self, names, directions, intensities, images, mask, normals_gt, folder):
-        self.names = names
-        self.directions = directions
-        self.intensities = intensities
-        self.images = images
-        self.mask = mask
-        self.normals_gt = normals_gt
-        self.folder = folder
+    names (P,) image file names; directions (P, 3) unit light directions; intensities (P, 3)
+    RGB light intensities; images (P, H, W, 3) RGB at full bit depth; mask (H, W) bool;
+    normals_gt (H, W, 3) or None; folder the source folder.
+    """
+
+    names: list[str]
+    directions: np.ndarray
+    intensities: np.ndarray
+    images: np.ndarray
+    mask: np.ndarray
+    normals_gt: np.ndarray | None
+    folder: Path
 
 
 def _read_table(path: Path, cols: int) -> np.ndarray:

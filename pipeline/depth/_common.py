@@ -13,7 +13,6 @@ from typing import Any
 
 import numpy as np
 
-from sim.frames import normals_to_gradients
 
 __all__ = ["DepthResult", "pixel_gradients", "half_pixel_gradients", "anchor_to_border", "check_mask"]
 
@@ -63,7 +62,7 @@ def pixel_gradients(normals, mask, mm_per_px: float, max_slope: float, name: str
 
     Returns
     -------
-    gc, gr : ndarray, shape (H, W), float64
+    gc, gr : ndarray, shape (H, W), float32 for float32 normals, else float64
         ``dh/dcol`` and ``dh/drow`` in mm per pixel (``dh/drow = -dh/dy * s`` per sim.frames).
     mask : ndarray, shape (H, W), bool
         The input mask and-ed with finiteness.
@@ -75,18 +74,30 @@ def pixel_gradients(normals, mask, mm_per_px: float, max_slope: float, name: str
     >>> round(float(gc[0, 0]), 6), float(gr[0, 0]), bool(m[0, 0])
     (0.075, 0.0, True)
     """
-    n = np.asarray(normals, dtype=np.float64)
+    n = np.asarray(normals)
     if n.ndim != 3 or n.shape[-1] != 3 or min(n.shape) < 1:
         raise ValueError(f"{name}: normals must have shape (H, W, 3), got {n.shape}")
     if not (np.isfinite(mm_per_px) and mm_per_px > 0):
         raise ValueError(f"{name}: mm_per_px must be a positive number, got {mm_per_px!r}")
-    m = check_mask(mask, n.shape[:2], name) & np.isfinite(n).all(-1) & (n[..., 2] > 0)
-    n = np.where(m[..., None], n, np.array([0.0, 0.0, 1.0]))
-    p, q = normals_to_gradients(n)
-    mag = np.hypot(p, q)
-    scale = np.where(mag > max_slope, max_slope / np.maximum(mag, 1e-300), 1.0)
-    p, q = p * scale, q * scale
-    return p * mm_per_px, -q * mm_per_px, m
+    # float32 normals (the solvers' default) are integrated in float32: half the memory
+    # traffic, and float32 FFTs are ~2x faster; float64 normals keep the float64 reference.
+    dt = np.float32 if n.dtype == np.float32 else np.float64
+    nx, ny, nz = (n[..., i].astype(dt) for i in range(3))
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        m = check_mask(mask, n.shape[:2], name) & (nz > 0) & (nz < np.inf)  # False for NaN too
+        nz = np.where(m, nz, dt(1.0))
+        p = -nx / nz
+        q = -ny / nz
+        m &= np.isfinite(p) & np.isfinite(q)
+    p = np.where(m, p, dt(0.0))
+    q = np.where(m, q, dt(0.0))
+    # Clip slopes (grazing normals) only where needed: the magnitude test is cheap.
+    if np.abs(p).max() > max_slope / 1.5 or np.abs(q).max() > max_slope / 1.5:
+        mag = np.hypot(p, q)
+        with np.errstate(over="ignore", divide="ignore"):
+            scale = np.where(mag > max_slope, max_slope / np.maximum(mag, np.finfo(dt).tiny), 1.0).astype(dt)
+        p, q = p * scale, q * scale
+    return p * dt(mm_per_px), -q * dt(mm_per_px), m
 
 
 def half_pixel_gradients(gc, gr):
@@ -98,7 +109,7 @@ def divergence_neumann(gc, gr):
     """``div g`` ``(H, W)`` of the edge gradients with no flux through the image border."""
     ec, er = half_pixel_gradients(gc, gr)
     H, W = gc.shape
-    f = np.zeros((H, W))
+    f = np.zeros((H, W), dtype=gc.dtype)
     f[:, :-1] += ec
     f[:, 1:] -= ec
     f[:-1, :] += er

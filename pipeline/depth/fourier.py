@@ -50,15 +50,14 @@ def frankot_chellappa(normals, mm_per_px: float, mask=None, *, max_slope: float 
     mc, mr = gc.mean(), gr.mean()
     Gc = scipy.fft.rfft2(gc - mc, workers=workers)
     Gr = scipy.fft.rfft2(gr - mr, workers=workers)
-    u = 2.0 * np.pi * scipy.fft.rfftfreq(W)[None, :]
-    v = 2.0 * np.pi * scipy.fft.fftfreq(H)[:, None]
+    u = (2.0 * np.pi * scipy.fft.rfftfreq(W)[None, :]).astype(gc.dtype)
+    v = (2.0 * np.pi * scipy.fft.fftfreq(H)[:, None]).astype(gc.dtype)
     denom = u * u + v * v
     denom[0, 0] = 1.0
     Z = (-1j * u * Gc - 1j * v * Gr) / denom
     Z[0, 0] = 0.0
     h = scipy.fft.irfft2(Z, s=(H, W), workers=workers)
-    rows, cols = np.mgrid[0:H, 0:W]
-    h = h + mc * cols + mr * rows
+    h = h + mc * np.arange(W, dtype=h.dtype)[None, :] + mr * np.arange(H, dtype=h.dtype)[:, None]
     h = anchor_to_border(h, m)
     return DepthResult(height=h.astype(np.float32), mask=m,
                        meta={"integrator": "fc", "mm_per_px": float(mm_per_px), "max_slope": float(max_slope)})

@@ -38,6 +38,40 @@ def check_groups(groups, n: int, name: str, device) -> tuple[torch.Tensor | None
     return torch.as_tensor(g.astype(np.int64), device=device), int(g.max()) + 1 if g.size else 1
 
 
+#: Pixels per chunk of the real-time paths: a chunk's float observations (N x CHUNK) stay in
+#: the CPU cache between the passes (conversion, moments, solve), instead of streaming the
+#: whole frame through memory for each pass.
+CHUNK = 80000
+
+
+def is_integer(x) -> bool:
+    """Whether ``x`` (numpy or torch) holds integers (cannot be NaN/Inf)."""
+    if isinstance(x, torch.Tensor):
+        return not (x.dtype.is_floating_point or x.dtype.is_complex)
+    return np.asarray(x).dtype.kind in "iub"
+
+
+def integer_tensor(x, device) -> torch.Tensor:
+    """An integer array as a tensor on ``device`` without converting its values yet."""
+    if isinstance(x, torch.Tensor):
+        return x.to(device)
+    a = np.asarray(x)
+    if a.dtype in (np.uint16, np.uint32, np.uint64):
+        a = a.astype(np.int64)  # torch lacks arithmetic on these unsigned types
+    if not a.flags.writeable:
+        a = np.array(a)
+    return torch.as_tensor(a, device=device)
+
+
+def chunks(M: int, device) -> list[tuple[int, int]]:
+    """Pixel ranges for the chunked paths (one range on a GPU, where chunking only costs)."""
+    if torch.device(device).type != "cpu" or M <= CHUNK:
+        return [(0, M)]
+    n = -(-M // CHUNK)
+    step = -(-M // n)  # balanced: no small tail chunk
+    return [(a, min(a + step, M)) for a in range(0, M, step)]
+
+
 def flatten_observations(observations, dtype, device) -> tuple[torch.Tensor, torch.Tensor | None]:
     """``(N, H, W)`` -> ``(N, H*W)`` tensor, and the finite mask (None when all finite).
 

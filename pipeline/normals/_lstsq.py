@@ -9,8 +9,8 @@ From them, without touching the observations again:
 - the residual: ``sum w (I - rho_g n . L)^2 = sum_g S_g - (n . r_g)^2 / (n^T Q_g n)``.
 
 With an albedo per camera channel the model ``I_k = rho_g(k) n . L_k`` is bilinear; we
-alternate: solve ``b`` jointly, estimate each group's albedo, rescale each group to the mean
-albedo (``s_g``) and solve again -- each step is a few ``(3, M)`` operations.
+alternate: solve ``b`` jointly, estimate each group's albedo, scale each group's lights by its
+relative albedo and solve again (see :func:`solve`).
 
 Layout: pixels last. Observations ``(N, M)``, lights ``(N, 3)`` (shared) or ``(N, 3, M)``.
 """
@@ -59,6 +59,27 @@ def group_selectors(groups: torch.Tensor | None, num_groups: int, n: int) -> lis
         else:
             out.append(idx)
     return out
+
+
+def channels_share_lights(L: torch.Tensor, selectors: list, rtol: float = 1e-4) -> bool:
+    """True when every group's lights are one scalar multiple of the first group's.
+
+    Then a joint solve is exact whatever the per-group albedo (white patterns: the channels
+    of a pattern see the same light), and the per-group alternation can be skipped.
+    ``L`` is ``(N, 3)`` or ``(N, 3, M)``; groups of different sizes never share.
+    """
+    if len(selectors) < 2:
+        return True
+    ref = L[selectors[0]].to(torch.float64)
+    ref_norm = float((ref * ref).sum())
+    for sel in selectors[1:]:
+        Lg = L[sel].to(torch.float64)
+        if Lg.shape != ref.shape:
+            return False
+        a = float((Lg * ref).sum()) / max(ref_norm, 1e-300)
+        if float(((Lg - a * ref) ** 2).sum()) > (rtol ** 2) * max(float((Lg * Lg).sum()), 1e-300):
+            return False
+    return True
 
 
 def gram_shared(L: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
@@ -115,10 +136,10 @@ def moments(I: torch.Tensor, L: torch.Tensor, w: torch.Tensor | None, selectors:
     M = I.shape[1]
     if w is None:
         wsum = torch.full((M,), float(I.shape[0]), dtype=I.dtype, device=I.device)
-        count = torch.full((M,), I.shape[0], dtype=torch.long, device=I.device)
+        count = torch.full((M,), I.shape[0], dtype=torch.int32, device=I.device)
     else:
         wsum = w.sum(0)
-        count = (w > 0).sum(0)
+        count = (w > 0).sum(0, dtype=torch.int32)
     return Moments(Q=Q, r=torch.stack(rs), S=torch.stack(Ss), wsum=wsum, count=count)
 
 
@@ -149,7 +170,13 @@ def group_albedo(m: Moments, n: torch.Tensor) -> tuple[torch.Tensor, torch.Tenso
 
 def solve(m: Moments, inv: torch.Tensor, iterations: int = 0) -> torch.Tensor:
     """``b`` ``(3, M)`` from moments and the inverse ``(3, 3, M|1)`` of ``sum_g Q_g``; then
-    ``iterations`` per-group albedo alternation steps (only meaningful with several groups)."""
+    ``iterations`` per-group albedo alternation steps (only meaningful with several groups).
+
+    The alternation rescales the *model*, not the data: with relative albedo ``s_g`` the
+    system becomes ``(sum_g s_g^2 Q_g) b = sum_g s_g r_g``, so noisy dim channels are not
+    amplified. When every group sees the same lights (white patterns) the joint solve is
+    already exact and the alternation changes nothing but the cost.
+    """
     b = T.matvec3(inv, m.r.sum(0))
     if m.r.shape[0] < 2:
         return b
@@ -157,9 +184,11 @@ def solve(m: Moments, inv: torch.Tensor, iterations: int = 0) -> torch.Tensor:
         n, _ = unit(b)
         rho, _, _ = group_albedo(m, n)
         mean = rho.mean(0, keepdim=True)
-        ok = rho > 0
-        scale = torch.where(ok, mean / torch.where(ok, rho, torch.ones_like(rho)), torch.ones_like(rho))
-        b = T.matvec3(inv, (m.r * scale[:, None]).sum(0))
+        ok = (rho > 0) & (mean > 0)
+        rel = torch.where(ok, rho / torch.where(ok, mean, torch.ones_like(mean)), torch.ones_like(rho))
+        A = (m.Q * (rel * rel)[:, None, None, :]).sum(0)
+        inv_p, _ = T.inverse3(A)
+        b = T.matvec3(inv_p, (m.r * rel[:, None]).sum(0))
     return b
 
 

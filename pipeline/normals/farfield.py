@@ -11,7 +11,7 @@ import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
-from pipeline.normals.result import NormalResult, finalize
+from pipeline.normals.result import NormalResult, concat, finalize, finalize_tensors, to_result
 
 __all__ = ["FarFieldSolver", "solve_farfield"]
 
@@ -26,12 +26,15 @@ class FarFieldSolver:
         a far-field calibration's ``(P, C, 3)`` reshaped to ``(P*C, 3)``.
     groups : ndarray, shape (N_obs,), optional
         Albedo group of each observation (the camera channel): albedo is then estimated per
-        group, and when every group has at least three observations the normal is refined
-        for per-channel albedo.
+        group (given the normal).
     max_condition : float
         Pixels whose light matrix is worse conditioned are masked.
     albedo_iterations : int
-        Alternation steps for per-group albedo (see :mod:`pipeline.normals._lstsq`).
+        Alternation steps that refine the normal for per-group albedo (needs at least three
+        observations per group; see :func:`pipeline.normals._lstsq.solve`). Useful only when
+        the camera channels see different light directions (coloured patterns) and the
+        albedo is coloured. None (default): 3 when the channels' lights differ (not one
+        scalar multiple of each other), else 0 (the joint solve is exact then).
     device, dtype
         Torch device and float dtype of the computation.
 
@@ -47,7 +50,7 @@ class FarFieldSolver:
     ([0.6, 0.0, 0.8], 2.0, True)
     """
 
-    def __init__(self, lights, *, groups=None, max_condition: float = 1e3, albedo_iterations: int = 2,
+    def __init__(self, lights, *, groups=None, max_condition: float = 1e3, albedo_iterations: int | None = None,
                  device="cpu", dtype="float32"):
         L = np.asarray(lights, dtype=np.float64)
         if L.ndim != 2 or L.shape[1] != 3 or L.shape[0] < 1:
@@ -57,9 +60,10 @@ class FarFieldSolver:
         self.n_obs = L.shape[0]
         self.groups, self.num_groups = _inputs.check_groups(groups, self.n_obs, "FarFieldSolver", self.device)
         self.selectors = _lstsq.group_selectors(self.groups, self.num_groups, self.n_obs)
-        self.iterations = int(albedo_iterations) if _inputs.group_counts_ok(self.groups, self.num_groups) else 0
         self.max_condition = float(max_condition)
         self.L, row_ok = _inputs.flatten_lights(L, self.dtype, self.device)
+        self.iterations = _albedo_iterations(albedo_iterations, self.L, self.selectors, self.groups,
+                                             self.num_groups)
         # Rows without a finite light are dropped by weight; all rows good -> unit weights.
         self.w_rows = None if bool(row_ok.all()) else row_ok.to(self.dtype)[:, None]
         # The light matrix is the same at every pixel: its moments, inverse and condition are
@@ -80,8 +84,12 @@ class FarFieldSolver:
         if N != self.n_obs:
             raise ValueError(f"FarFieldSolver.solve: expected {self.n_obs} observations, got shape "
                              f"{tuple(observations.shape)}")
+        if self.w_rows is None and _inputs.is_integer(observations):
+            X = _inputs.integer_tensor(observations, self.device).reshape(N, H * W)
+            return self._solve_chunks(lambda a, b: X[:, a:b], H, W)
         I, finite = _inputs.flatten_observations(observations, self.dtype, self.device)
-        if finite is None and self.w_rows is None:
+        fast = finite is None and self.w_rows is None
+        if fast:
             m = _lstsq.moments(I, self.L, None, self.selectors, Q=self.Q)
             inv, cond = self.inv, self.cond
         else:
@@ -92,8 +100,45 @@ class FarFieldSolver:
             inv, _ = T.inverse3(m.Q.sum(0))
             cond = _lstsq.condition(self.L, w)
         b = _lstsq.solve(m, inv, self.iterations)
-        return finalize(b, m, cond, (H, W), max_condition=self.max_condition,
-                        meta={"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition})
+        return finalize(b, m, cond, (H, W), max_condition=self.max_condition, finite_inputs=fast,
+                        meta=_meta(self))
+
+    def solve_frames(self, frames) -> NormalResult:
+        """Normals of one capture's frames ``(P, H, W, C)`` (observations pattern-major,
+        channel-minor, as ``P * C == N_obs``); integer frames skip the transposing copy."""
+        shape = tuple(frames.shape)
+        if len(shape) != 4 or shape[0] * shape[3] != self.n_obs:
+            raise ValueError(f"FarFieldSolver.solve_frames: expected frames (P, H, W, C) with P*C = {self.n_obs}, "
+                             f"got {shape}")
+        P, H, W, C = shape
+        if self.w_rows is None and _inputs.is_integer(frames):
+            X = _inputs.integer_tensor(frames, self.device).reshape(P, H * W, C)
+            return self._solve_chunks(lambda a, b: X[:, a:b].permute(0, 2, 1).reshape(self.n_obs, -1), H, W)
+        return self.solve(np.asarray(frames).transpose(0, 3, 1, 2).reshape(P * C, H, W))
+
+    def _solve_chunks(self, get, H: int, W: int) -> NormalResult:
+        """Integer observations, all lights finite: solve chunk by chunk of pixels."""
+        parts = []
+        for a, b in _inputs.chunks(H * W, self.device):
+            I = get(a, b).to(self.dtype)
+            m = _lstsq.moments(I, self.L, None, self.selectors, Q=self.Q)
+            bb = _lstsq.solve(m, self.inv, self.iterations)
+            parts.append(finalize_tensors(bb, m, self.cond, max_condition=self.max_condition, finite_inputs=True))
+        return to_result(concat(parts), (H, W), _meta(self))
+
+
+def _meta(self) -> dict:
+    return {"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition}
+
+
+def _albedo_iterations(requested, L, selectors, groups, num_groups) -> int:
+    """Alternation steps: as requested, or (None) 3 when the channels see different lights
+    and 0 when a joint solve is already exact; never without three observations per group."""
+    if not _inputs.group_counts_ok(groups, num_groups):
+        return 0
+    if requested is None:
+        return 0 if _lstsq.channels_share_lights(L, selectors) else 3
+    return int(requested)
 
 
 def solve_farfield(observations, lights, **kwargs) -> NormalResult:

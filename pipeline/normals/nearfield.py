@@ -13,6 +13,7 @@ import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
+from pipeline.normals.farfield import _albedo_iterations
 from pipeline.normals.result import NormalResult, finalize
 
 __all__ = ["NearFieldSolver", "solve_nearfield"]
@@ -51,7 +52,7 @@ class NearFieldSolver:
     """
 
     def __init__(self, lights, *, groups=None, method: str = "normal", max_condition: float = 1e3,
-                 albedo_iterations: int = 2, device="cpu", dtype="float32"):
+                 albedo_iterations: int | None = None, device="cpu", dtype="float32"):
         if lights is None or len(getattr(lights, "shape", ())) != 4 or lights.shape[-1] != 3:
             raise ValueError(f"NearFieldSolver: lights must have shape (N_obs, H, W, 3), got "
                              f"{getattr(lights, 'shape', None)}")
@@ -63,9 +64,10 @@ class NearFieldSolver:
         self.method = method
         self.groups, self.num_groups = _inputs.check_groups(groups, self.n_obs, "NearFieldSolver", self.device)
         self.selectors = _lstsq.group_selectors(self.groups, self.num_groups, self.n_obs)
-        self.iterations = int(albedo_iterations) if _inputs.group_counts_ok(self.groups, self.num_groups) else 0
         self.max_condition = float(max_condition)
         self.L, ok = _inputs.flatten_lights(lights, self.dtype, self.device)  # (N, 3, M)
+        self.iterations = _albedo_iterations(albedo_iterations, self.L, self.selectors, self.groups,
+                                             self.num_groups)
         self.w0 = None if bool(ok.all()) else ok.to(self.dtype)
         # The light field is fixed: per-pixel moments, inverse and condition once per model.
         self.Q = torch.stack([_lstsq.gram_pixel(self.L[sel], None if self.w0 is None else self.w0[sel])
@@ -93,7 +95,7 @@ class NearFieldSolver:
             b = _qr_solve(I, self.L, torch.ones_like(I) if w is None else w)
         else:
             b = _lstsq.solve(m, inv, self.iterations)
-        return finalize(b, m, cond, (H, W), max_condition=self.max_condition,
+        return finalize(b, m, cond, (H, W), max_condition=self.max_condition, finite_inputs=finite is None,
                         meta={"solver": "nearfield", "method": self.method, "max_condition": self.max_condition})
 
 

@@ -97,6 +97,8 @@ def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturatio
     dt = T.torch_dtype(dtype)
     g, num_groups = _inputs.check_groups(groups, N, "solve_robust", dev)
     selectors = _lstsq.group_selectors(g, num_groups, N)
+    # Per-pixel weights differ between channels here, so a joint albedo would be biased even
+    # under white patterns: refine for per-group albedo (see _lstsq.solve).
     iters_albedo = 2 if _inputs.group_counts_ok(g, num_groups) else 0
     raw = T.to_tensor(observations, dt, dev).reshape(N, -1)
     L, light_ok = _inputs.flatten_lights(lights, dt, dev)

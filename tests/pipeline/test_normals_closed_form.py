@@ -41,15 +41,23 @@ def test_farfield_plane_exact_with_albedo(device):
 
 
 def test_farfield_sphere_exact_per_channel_albedo(sphere):
-    # Far-field data: lights are the centre pixel's light vectors for every pixel.
-    L = sphere.lights_far()
-    P = sphere.frames.shape[0]
+    # Coloured patterns: each camera channel sees its own light direction, and the albedo is
+    # coloured, so a joint solve is biased; the per-channel alternation converges to the truth.
+    rng = np.random.default_rng(7)
+    P = 6
+    L = np.concatenate([rng.normal(0, 0.5, (P * 3, 2)), rng.uniform(0.8, 1.2, (P * 3, 1))], axis=1)
     rho = np.array([0.9, 0.5, 0.2])
     I = np.einsum("kc,hwc->khw", L, sphere.normals) * np.tile(rho, P)[:, None, None]
-    res = solve_farfield(I, L, groups=channel_groups(P), dtype="float64", albedo_iterations=8)
+    joint = solve_farfield(I, L, groups=channel_groups(P), dtype="float64", albedo_iterations=0)
+    e_joint = angular_error_deg(joint.normals, sphere.normals).max()
+    assert e_joint > 1.0
+    auto = solve_farfield(I, L, groups=channel_groups(P), dtype="float64")  # detects differing lights
+    assert angular_error_deg(auto.normals, sphere.normals).max() < e_joint / 10
+    res = solve_farfield(I, L, groups=channel_groups(P), dtype="float64", albedo_iterations=30)
     assert res.mask.all()
-    assert angular_error_deg(res.normals, sphere.normals).max() < 1e-4
-    np.testing.assert_allclose(res.albedo, np.broadcast_to(rho, res.albedo.shape), rtol=1e-5)
+    assert angular_error_deg(res.normals, sphere.normals).max() < 1e-3
+    np.testing.assert_allclose(res.albedo / res.albedo[..., :1], np.broadcast_to(rho / rho[0], res.albedo.shape),
+                               rtol=1e-4)
 
 
 @pytest.mark.parametrize("method", ["normal", "qr"])

@@ -155,3 +155,30 @@ def test_robust_beats_least_squares_when_a_fifth_is_corrupted(kind):
     e_ls = angular_error_deg(ls.normals, s.normals).mean()
     e_rb = angular_error_deg(rb.normals, s.normals).mean()
     assert e_rb < 0.5 < 3.0 < e_ls, (e_rb, e_ls)
+
+
+def test_chunked_frames_path_equals_whole_frame(monkeypatch):
+    from pipeline.normals import _inputs
+
+    s = render_sphere_scene((14, 18), 0.3, radius=2.0, depth=0.3, num_patterns=4, noise=1.0, bits=8, seed=6)
+    frames = s.frames.astype(np.uint8)
+    solver = FarFieldSolver(s.lights_far(), groups=channel_groups(4))
+    whole = solver.solve(s.observations.astype(np.float32))  # float path: no chunking
+    monkeypatch.setattr(_inputs, "CHUNK", 50)  # 252 pixels -> 6 chunks, the last one short
+    for res in (solver.solve_frames(frames), solver.solve(s.observations.astype(np.uint8))):
+        for name in FIELDS + ("mask", "count"):
+            np.testing.assert_allclose(getattr(res, name), getattr(whole, name), rtol=1e-5, atol=1e-5)
+
+
+@settings(max_examples=25, deadline=None)
+@given(image=arrays(np.float64, (3, 4, 3), elements=_values))
+def test_lut_solver_any_input_finite_with_mask(image):
+    from pipeline.normals import LUTSolver
+    from support_recon import NearestColourTable
+
+    rng = np.random.default_rng(0)
+    g = rng.uniform(-3, 3, (200, 2))
+    table = NearestColourTable(rng.uniform(0, 255, (200, 3)), g, max_distance=40.0)
+    res = LUTSolver(table).solve(image)
+    _assert_finite(res, (3, 4))
+    assert not res.mask[~np.isfinite(image).all(-1)].any()
