@@ -158,11 +158,13 @@ def render_scene_files(out_dir, *, mode="monochromatic", height_file=None, heigh
                        sphere_rd: tuple[float, float] | None = None, center=(0.0, 0.0),
                        shape: tuple[int, int] | None = None, mm_per_px: float = 0.0625, gel_z: float = 35.0,
                        settings_file=None, noise_dn: float = 1.0, bit_depth: int | None = 8, seed: int = 0,
-                       name: str = "capture") -> dict:
+                       name: str = "capture", illumination=None) -> dict:
     """Render a height map (file or sphere) under a mode to PNGs and a ``capture`` HDF5 file.
 
-    The illumination is the bare-LED ring (:func:`sim.render.bare_ring_illumination`) at
-    ``gel_z``. This is what ``iristac sim render`` runs.
+    The illumination is ``illumination`` (an ``illumination.h5`` from the ray tracer, whose
+    pixel grid then sets ``shape`` and ``mm_per_px``) or else the bare-LED ring
+    (:func:`sim.render.bare_ring_illumination`) at ``gel_z``. This is what
+    ``iristac sim render`` runs.
 
     Parameters
     ----------
@@ -196,6 +198,12 @@ def render_scene_files(out_dir, *, mode="monochromatic", height_file=None, heigh
     if height_file is not None and sphere_rd is not None:
         raise UserError("give either a height file or a sphere, not both")
     mode_obj = load_mode(mode)
+    model = None
+    if illumination is not None:
+        from sim.synthesize import load_illumination
+
+        model = load_illumination(illumination)
+        shape, mm_per_px = model.shape, model.mm_per_px
     if height_file is not None:
         surface = height_from_file(height_file, mm_per_px, mm_per_unit=height_scale, shape=shape)
         shape, mm_per_px = surface.shape, surface.mm_per_px
@@ -207,7 +215,11 @@ def render_scene_files(out_dir, *, mode="monochromatic", height_file=None, heigh
                 surface = sphere(shape, mm_per_px, float(sphere_rd[0]), float(sphere_rd[1]), center=tuple(center))
             except ValueError as exc:
                 raise UserError(f"--sphere: {exc}") from None
-    model = bare_ring_illumination(shape, mm_per_px, gel_z)
+    if model is None:
+        model = bare_ring_illumination(shape, mm_per_px, gel_z)
+    elif surface is not None and surface.shape != model.shape:
+        raise UserError(f"{height_file}: height map is {surface.shape} pixels, the illumination model "
+                        f"{illumination} is {model.shape}")
     settings = load_render_settings(settings_file) if settings_file is not None else None
     contacts = [surface] if surface is not None else []
     rec = render_capture(model, mode_obj, contacts, settings=settings, noise_dn=noise_dn, bit_depth=bit_depth,

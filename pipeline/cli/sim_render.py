@@ -28,6 +28,8 @@ def register(group):
     p.add_argument("--shape", nargs=2, type=int, metavar=("H", "W"), help="image size (default 240 320)")
     p.add_argument("--mm-per-px", type=float, default=0.0625, help="pixel pitch on the gel (default 0.0625)")
     p.add_argument("--gel-z", type=float, default=35.0, help="LED plane to gel distance, mm (default 35)")
+    p.add_argument("--illumination", metavar="ILL", help="illumination.h5 from `iristac sim synthesize` "
+                   "(default: the closed-form bare LED ring at --gel-z); its grid sets the size and pitch")
     p.add_argument("--settings", metavar="FILE", help="render settings YAML (effects); see docs/renderer.md")
     p.add_argument("--noise", type=float, default=1.0, help="read noise sigma in DN without --settings (default 1)")
     p.add_argument("--bit-depth", type=int, default=8, choices=[8, 10, 12, 16], help="without --settings (default 8)")
@@ -42,6 +44,7 @@ def register(group):
     p.add_argument("--shape", nargs=2, type=int, default=(120, 160), metavar=("H", "W"))
     p.add_argument("--mm-per-px", type=float, default=0.125)
     p.add_argument("--gel-z", type=float, default=35.0)
+    p.add_argument("--illumination", metavar="ILL", help="illumination.h5 (default: the bare LED ring)")
     p.add_argument("--figure", metavar="PNG", help="write the figure here")
     add_json_flag(p)
     p.set_defaults(func=_uniformity)
@@ -66,7 +69,8 @@ def _render(args) -> int:
     res = render_scene_files(args.out, mode=args.mode, height_file=args.height, height_scale=args.height_scale,
                              sphere_rd=args.sphere, center=args.center, shape=args.shape,
                              mm_per_px=args.mm_per_px, gel_z=args.gel_z, settings_file=args.settings,
-                             noise_dn=args.noise, bit_depth=args.bit_depth, seed=args.seed)
+                             noise_dn=args.noise, bit_depth=args.bit_depth, seed=args.seed,
+                             illumination=args.illumination)
     if args.json:
         print_json(res)
     else:
@@ -80,7 +84,12 @@ def _uniformity(args) -> int:
     from sim.render import bare_ring_illumination
     from sim.uniformity import uniformity_figure, uniformity_report
 
-    model = bare_ring_illumination(tuple(args.shape), args.mm_per_px, args.gel_z)
+    if args.illumination:
+        from sim.synthesize import load_illumination
+
+        model = load_illumination(args.illumination)
+    else:
+        model = bare_ring_illumination(tuple(args.shape), args.mm_per_px, args.gel_z)
     rep = uniformity_report(model, args.modes or None)
     fig = str(uniformity_figure(model, args.figure, list(rep))) if args.figure else None
     if args.json:

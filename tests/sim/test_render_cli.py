@@ -58,3 +58,20 @@ def test_sim_uniformity_json_and_figure(tmp_path):
     res = json.loads(r.stdout)
     assert set(res) == {"modes", "frames", "figure"} and (tmp_path / "u.png").is_file()
     assert res["modes"]["multicolour"]["G"]["cv_mean"] < res["modes"]["trichromatic"]["G"]["cv_mean"]
+
+
+def test_sim_render_and_uniformity_take_a_traced_illumination_file(tmp_path):
+    import json
+
+    from pipeline.store import read_record
+    from sim.synthesize import save_illumination, synthesize
+
+    ill = save_illumination(synthesize("default", (24, 32), 0.7, rays=60_000, sampler="sobol"), tmp_path / "ill.h5")
+    r = run_cli("sim", "render", "--illumination", ill, "--sphere", "2", "0.5", "--mode", "trichromatic",
+                "--out", tmp_path / "r", "--json")
+    assert r.returncode == 0, r.stderr
+    res = json.loads(r.stdout)
+    assert res["shape"] == [24, 32] and read_record(res["capture"]).data["frames"].shape == (1, 1, 24, 32, 3)
+    r = run_cli("sim", "uniformity", "point", "--illumination", ill, "--json")
+    assert r.returncode == 0, r.stderr
+    assert "point" in json.loads(r.stdout)["modes"]
