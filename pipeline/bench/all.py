@@ -75,10 +75,18 @@ def run(args) -> dict:
         except Exception as exc:  # noqa: BLE001 - one failing benchmark must not hide the others
             result, error = {}, f"{type(exc).__name__}: {exc}"
         seconds = time.perf_counter() - t0
-        rows = [dict(r, bench=name, machine=machine) for r in result.get("rows", [])] if not error else []
-        table = module.format_table(result) if not error and not rows else None
+        rows = [dict(r, bench=name, machine=machine) for r in common_rows(name, result)] if not error else []
+        # A benchmark without common rows also contributes its own table (the ray tracer's has
+        # throughput and memory figures that are not error/time pairs).
+        table = module.format_table(result) if not error and not result.get("rows") else None
         sections.append({"bench": name, "seconds": seconds, "rows": rows, "table": table, "error": error})
     out = {"machine": machine, "quick": bool(getattr(args, "quick", False)), "sections": sections}
+    if args.out:
+        import json
+
+        raw = Path(args.out).with_suffix(".json")
+        raw.parent.mkdir(parents=True, exist_ok=True)
+        raw.write_text(json.dumps(out, indent=1, default=str), encoding="utf-8")
     md = format_markdown(out, plot_name=Path(args.plot).name if args.plot else None)
     if args.out:
         Path(args.out).parent.mkdir(parents=True, exist_ok=True)
@@ -88,6 +96,31 @@ def run(args) -> dict:
         plot_rows([r for s in sections for r in s["rows"]], args.plot)
         out["plot"] = str(args.plot)
     return out
+
+
+def common_rows(name: str, result: dict) -> list[dict]:
+    """The ``rows`` of a benchmark result, mapping sectioned results (the ray tracer's) too."""
+    if result.get("rows"):
+        return list(result["rows"])
+    if name != "sim":
+        return []
+    rows = []
+
+    def finite(v):
+        return None if v is None or v != v else float(v)
+
+    for r in result.get("rays_sampler", {}).get("rows", []):
+        rows.append({"knob": "rays x sampler", "setting": f"{r['sampler']} {r['rays']:,}",
+                     "error": finite(r["image_error"]), "error_unit": "rel. L2 vs reference", "seconds": r["seconds"]})
+    for r in result.get("newton", {}).get("rows", []):
+        rows.append({"knob": f"intersection iterations ({r['dtype']})", "setting": f"{r['method']} x{r['iterations']}",
+                     "error": finite(r["median_error_mm"]), "error_unit": "mm (median)", "seconds": r["seconds"]})
+    for r in result.get("multi_source", {}).get("rows", []):
+        rows.append({"knob": "multi-source method", "setting": r["method"], "error": finite(r["sum_error"]),
+                     "error_unit": "rel. error of the 24-LED image", "seconds": r["seconds"]})
+    for r in result.get("effects", {}).get("rows", []):
+        rows.append({"knob": "effect set", "setting": r["effects"], "error": None, "seconds": r["seconds"]})
+    return rows
 
 
 def _sub_args(module, args):
@@ -132,7 +165,7 @@ def format_markdown(result: dict, plot_name: str | None = None) -> str:
                     err += f" {r['error_unit']}"
                 lines.append(f"| {r['knob']} | {r['setting']} | {err} | {_fmt(r.get('seconds'))} | {r['machine']} |")
             lines.append("")
-        elif s["table"]:
+        if s["table"]:
             lines += ["```", s["table"].rstrip(), "```", ""]
     return "\n".join(lines)
 
