@@ -90,28 +90,13 @@ def _read_yaml(path: Path) -> Any:
 
 
 def _validate_config(kind: str, obj: Any, source) -> None:
-    """Validate against ``data_schemas/configs/<kind>.json``; UserError naming file and key."""
+    """Validate against ``data_schemas/configs/<kind>.json``; UserError naming the file and the key."""
+    from data_schemas import SchemaError, validate_config
+
     try:
-        from data_schemas import validate_config  # the shared validator (lead's), when present
-    except ImportError:
-        validate_config = None
-    if validate_config is not None:
-        try:
-            validate_config(kind, obj, str(source))
-        except ValueError as exc:  # data_schemas.SchemaError is a ValueError
-            raise UserError(str(exc)) from None
-        return
-    import json
-
-    import jsonschema
-
-    schema_path = Path(__file__).resolve().parents[1] / "data_schemas" / "configs" / f"{kind}.json"
-    schema = json.loads(schema_path.read_text(encoding="utf-8"))
-    errors = list(jsonschema.Draft202012Validator(schema).iter_errors(obj))
-    if errors:
-        e = min(errors, key=lambda e: (e.validator != "additionalProperties", len(list(e.absolute_path))))
-        where = "/".join(str(p) for p in e.absolute_path) or "(top level)"
-        raise UserError(f"{source}: {where}: {e.message}")
+        validate_config(kind, obj, str(source))
+    except SchemaError as exc:
+        raise UserError(str(exc)) from None
 
 
 def list_modes() -> list[str]:

@@ -29,6 +29,7 @@ Examples
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from collections import deque
@@ -114,7 +115,8 @@ class VirtualCamera:
         self.script = list(script)
         self._times = np.array(times)
         self.albedo = albedo
-        self.settings = settings or RenderSettings()
+        # A copy: set_exposure must not change the caller's settings object.
+        self.settings = dataclasses.replace(settings) if settings is not None else RenderSettings()
         self.fps = float(fps)
         self.buffer_size = int(buffer_size)
         self._renderer = Renderer(model, self.settings, device=device)

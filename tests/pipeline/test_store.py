@@ -135,19 +135,15 @@ def test_image_stacks_are_compressed_and_chunked(tmp_path):
 
 _SLOW_WRITER = textwrap.dedent("""
     import sys, numpy as np
-    sys.path.insert(0, {repo!r}); sys.path.insert(0, {tests!r})
-    from pipeline.store import StageStore
-    from schema_examples import example_record
+    sys.path.insert(0, {repo!r})
+    from pipeline.store import Record, StageStore
     s = StageStore({root!r})
     key = s.key("capture", 1, {{"mode": "crash"}})
-    rec = example_record("capture")
     # Big enough that the write takes a while: random data does not compress.
-    rec.data["frames"] = np.random.default_rng(0).integers(0, 255, (40, 24, 240, 320, 3), dtype=np.uint8)
-    for k in ("truth/height", "truth/normals", "truth/albedo", "dark"):
-        del rec.data[k]
-    rec.data["reference"] = rec.data["frames"][0]
-    rec.data["drive"] = np.zeros((24, 6, 3), np.float32)
-    rec.data["brightness"] = np.ones(24, np.float32)
+    frames = np.random.default_rng(0).integers(0, 255, (40, 24, 240, 320, 3), dtype=np.uint8)
+    rec = Record("capture", {{"frames": frames, "reference": frames[0],
+                              "drive": np.zeros((24, 6, 3), np.float32), "brightness": np.ones(24, np.float32)}},
+                 {{"mm_per_px": 0.1, "pattern_names": ["p"] * 24, "source": "test"}})
     print("writing", flush=True)
     s.put(key, rec)
     print("done", flush=True)
@@ -156,12 +152,13 @@ _SLOW_WRITER = textwrap.dedent("""
 
 def test_sigkill_mid_write_leaves_no_valid_entry_and_gc_cleans(tmp_path):
     root = tmp_path / "store"
-    code = _SLOW_WRITER.format(repo=str(REPO), tests=str(REPO / "tests"), root=str(root))
-    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    code = _SLOW_WRITER.format(repo=str(REPO), root=str(root))
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     assert proc.stdout.readline().strip() == "writing"
     deadline = time.time() + 60
     temps = []
     while time.time() < deadline and not temps:
+        assert proc.poll() is None, f"the writer died before writing: {proc.stderr.read()}"
         temps = [p for p in (root / "capture").glob(".*.tmp.h5")] if (root / "capture").is_dir() else []
         time.sleep(0.01)
     assert temps, "the writer never created its temporary file"

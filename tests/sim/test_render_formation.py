@@ -139,3 +139,21 @@ def test_input_checks_print_the_shape(model):
         RenderSettings(bit_depth=7)
     with pytest.raises(ValueError, match="V_depth"):
         Renderer(model, RenderSettings(depth_field=True))
+
+
+from hypothesis import given, settings as hsettings, strategies as st
+
+
+@hsettings(max_examples=20, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), a=st.floats(0.0, 1.0), b=st.floats(0.0, 1.0),
+       depth=st.floats(0.1, 1.4), cx=st.floats(-3.0, 3.0))
+def test_superposition_of_light_property(model, seed, a, b, depth, cx):
+    """Light adds: the frame under a*A + b*B is a*frame(A) + b*frame(B) (attached shadows are per LED)."""
+    rng = np.random.default_rng(seed)
+    A, B = rng.uniform(0, 1, (2, 24, 3))
+    surf = sphere(SHAPE, PX, 1.5, depth, center=(cx, 0.3))
+    r = Renderer(model, RenderSettings(exposure=1e5), dtype=torch.float64)
+    r.set_surface(surf)
+    both = r.render(a * A + b * B)
+    np.testing.assert_allclose(both, a * r.render(A) + b * r.render(B), rtol=1e-10, atol=1e-12)
+    assert np.all(np.isfinite(both)) and both.min() >= 0
