@@ -90,21 +90,37 @@ def lens_kernel(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, 
     code; under ``torch.compile`` every ray does, so the whole chunk is one fused graph.
     """
     if not torch.compiler.is_compiling():
-        _, _, near = box_interval(o, d, *body.box)
+        t_lo, t_hi, near = box_interval(o, d, *body.box)
         if not bool(near.all()):
             idx = torch.nonzero(near).squeeze(1)
+            box = (t_lo[idx], t_hi[idx], near[idx])
             so, sd, sw, stats = _lens_masked(body, ng, fresnel, bounces, tuple(c[idx] for c in o),
-                                             tuple(c[idx] for c in d), w[idx], paper)
+                                             tuple(c[idx] for c in d), w[idx], paper, box)
             out = (tuple(c.index_put((idx,), x) for c, x in zip(o, so)),
                    tuple(c.index_put((idx,), x) for c, x in zip(d, sd)), w.index_put((idx,), sw))
             return (*out, stats)
     return _lens_masked(body, ng, fresnel, bounces, o, d, w, paper)
 
 
-def _lens_masked(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, d: Vec, w, paper=None):
+def _lens_masked(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, d: Vec, w, paper=None, box=None):
     """:func:`lens_kernel` with masks instead of branches (one fusable graph)."""
+    t, sid, hit, unconv = body.enter(o, d, box)
+    if not torch.compiler.is_compiling() and not bool(hit.all()):
+        # Eager: only the rays that enter the lens go on through it.
+        idx = torch.nonzero(hit).squeeze(1)
+        so, sd, sw, stats = _through(body, ng, fresnel, bounces, tuple(c[idx] for c in o), tuple(c[idx] for c in d),
+                                     w[idx], t[idx], sid[idx], hit[idx], paper)
+        out = (tuple(c.index_put((idx,), x) for c, x in zip(o, so)),
+               tuple(c.index_put((idx,), x) for c, x in zip(d, sd)), w.index_put((idx,), sw))
+    else:
+        *out, stats = _through(body, ng, fresnel, bounces, o, d, w, t, sid, hit, paper)
+    stats["newton_unconverged"] = unconv.sum()
+    return (*out, stats)
+
+
+def _through(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, d: Vec, w, t, sid, hit, paper):
+    """Rays ``hit`` enter the lens at ``o + t d`` through surface ``sid``: refract, cross, leave."""
     zero = torch.zeros_like(w)
-    t, sid, hit, unconv = body.enter(o, d)
     p = _along(o, d, t)
     nrm = body.normal(p, sid)
     if paper is not None:
@@ -161,8 +177,7 @@ def _lens_masked(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec,
             absorbed = absorbed + torch.where(trap, w_in, zero)
             tir_absorbed = tir_absorbed + trap.sum()
     stats = {"reflected": reflected.sum(), "absorbed": absorbed.sum(), "tir_lost": tir_absorbed,
-             "tir_bounces": tir_bounces, "aperture_absorbed": aperture, "numerical_lost": lost_n,
-             "newton_unconverged": unconv.sum()}
+             "tir_bounces": tir_bounces, "aperture_absorbed": aperture, "numerical_lost": lost_n}
     return out_o, out_d, out_w, stats
 
 
