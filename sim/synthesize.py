@@ -248,4 +248,11 @@ def default_illumination(shape=(60, 80), mm_per_px: float = 0.5, rays: int = 250
     >>> m.V.shape, m.num_leds
     ((24, 12, 16, 3), 24)
     """
-    return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)
+    # One intra-op thread: on a shared 2-core machine a second thread mostly waits on barriers
+    # (measured 0.65 s single-threaded vs 3-30 s with two under load); restored afterwards.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)
+    finally:
+        torch.set_num_threads(threads)
