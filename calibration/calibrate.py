@@ -20,15 +20,18 @@ from calibration.capture import Capture, read_capture
 from calibration.detect import Circle, DetectOptions, detect_contacts
 from calibration.models import (MODEL_NAMES, CalibrationModel, FarFieldModel, LightFieldModel, LUTModel, MLPModel,
                                 NearFieldModel, TracedModel, check_light_rank)
+from calibration.models.led_geometry import geometry_basis
+from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
 from calibration.validate import cross_validate
 from pipeline.errors import UserError
+from sim.illumination_model import IlluminationModel
 
-__all__ = ["CalibrationResult", "calibrate", "label_errors", "CIRCLE_COLUMNS"]
+__all__ = ["CalibrationResult", "calibrate", "label_errors", "read_illumination", "CIRCLE_COLUMNS"]
 
 #: Columns of the ``circles (K, 8)`` dataset of calibration.h5.
 CIRCLE_COLUMNS = ("center_x", "center_y", "radius_px", "contact_radius_px", "quality", "accepted", "snr",
-                  "residual_px")
+                  "residual_px", "shift_x", "shift_y")
 
 
 @dataclass
@@ -113,7 +116,8 @@ class CalibrationResult:
 
         # One row per press (the stage schema's (K, *) ``circles``); columns in CIRCLE_COLUMNS.
         data: dict[str, np.ndarray] = {"circles": np.array(
-            [[*c.center_xy, c.radius_px, c.contact_radius_px, c.quality, float(c.accepted), c.snr, c.residual_px]
+            [[*c.center_xy, c.radius_px, c.contact_radius_px, c.quality, float(c.accepted), c.snr, c.residual_px,
+              *c.shift_xy]
              for c in self.circles], dtype=np.float32).reshape(-1, len(CIRCLE_COLUMNS))}
         best_lf = self.best_light_field_model
         if best_lf is not None:
@@ -144,7 +148,11 @@ class CalibrationResult:
 
 
 def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np.ndarray) -> dict[str, Any]:
-    """Median centre and radius error (px) of the accepted circles against hand labels."""
+    """Median centre and radius error (px) of the accepted circles against hand labels.
+
+    Also the median signed centre offset ``center_offset_px_median = [dx, dy]`` (circle minus
+    label): a bias shared by all presses shows there, not in the error's size alone.
+    """
     acc = np.array([c.accepted for c in circles])
     c = np.array([c.center_xy for c in circles]).reshape(-1, 2)
     r = np.array([c.radius_px for c in circles])
@@ -152,7 +160,26 @@ def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np
     re = np.abs(r - np.asarray(radius_px, float))[acc]
     return {"center_error_px_median": float(np.median(ce)) if ce.size else None,
             "radius_error_px_median": float(np.median(re)) if re.size else None,
+            "center_offset_px_median": np.median((c - np.asarray(center_xy, float))[acc], axis=0).tolist()
+            if ce.size else None,
             "center_error_px": ce.tolist(), "radius_error_px": re.tolist()}
+
+
+def read_illumination(path: str | Path) -> IlluminationModel:
+    """Read an ``illumination`` record (the ray tracer's ``illumination.h5``) for the traced model.
+
+    Goes through :func:`sim.synthesize.load_illumination` (schema-validated by the stage
+    store); a missing or invalid file raises :class:`UserError` naming it.
+    """
+    from sim.synthesize import load_illumination
+
+    path = Path(path)
+    if not path.is_file():
+        raise UserError(f"{path}: no such file (expected an 'illumination' HDF5 record from iristac sim trace)")
+    try:
+        return load_illumination(path)
+    except ValueError as exc:  # IlluminationModel's own checks (shapes, NaN)
+        raise UserError(f"{path}: {exc}") from None
 
 
 def _factories(names, capture: Capture, illumination, saturation, model_options) -> dict[str, Callable | str]:
@@ -167,9 +194,20 @@ def _factories(names, capture: Capture, illumination, saturation, model_options)
             out[name] = lambda o=o: NearFieldModel(**o)
         elif name == "traced":
             V = getattr(illumination, "V", illumination)
+            o = dict(o)
+            correct = bool(o.pop("correct_geometry", False))
             if V is None:
                 out[name] = "no illumination model (LED fields V) given for this sensor"
             else:
+                if np.asarray(V).shape[1:3] != capture.shape:
+                    raise UserError(f"calibrate: the illumination model is {np.asarray(V).shape[1:3]} pixels (H, W) "
+                                    f"but the capture is {capture.shape}; trace it on the capture's pixel grid")
+                if correct:
+                    if not isinstance(illumination, IlluminationModel):
+                        raise UserError("calibrate: LED geometry corrections need an IlluminationModel (LED "
+                                        "positions, gel_z, mm_per_px), not bare fields")
+                    o["basis"] = geometry_basis(illumination.led_positions, None, illumination.shape,
+                                                illumination.mm_per_px, illumination.gel_z)
                 out[name] = lambda o=o, V=V: TracedModel(V, capture.drive, capture.brightness, **o)
         elif name == "lut":
             if (p, c) != (1, 3):
@@ -187,7 +225,7 @@ def _factories(names, capture: Capture, illumination, saturation, model_options)
 def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: float | None = None,
               models: str | Sequence[str] = "all", *, illumination=None, folds: int = 5, shrink_px: float = 2.0,
               detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
-              seed: int = 0) -> CalibrationResult:
+              refine_iterations: int = 2, seed: int = 0) -> CalibrationResult:
     """Calibrate light models from a sphere-indentation capture.
 
     Parameters
@@ -204,7 +242,10 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         apply (``traced`` without ``illumination``, ``lut`` with more than one pattern) are
         reported as skipped; asked for by name they raise :class:`UserError`.
     illumination : IlluminationModel or ndarray (L, H, W, 3), optional
-        LED fields for the traced model.
+        LED fields for the traced model (:func:`read_illumination` reads one from a file).
+        With ``model_options={"traced": {"correct_geometry": True}}`` (an IlluminationModel
+        is then needed) the traced fit also corrects LED positions and tilts to first order
+        (:mod:`calibration.models.led_geometry`).
     folds : int
         Cross-validation press groups.
     shrink_px : float
@@ -212,6 +253,9 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
     detect_options : DetectOptions, optional
     model_options : dict, optional
         name -> keyword arguments of that model's constructor (e.g. ``{"near": {"degree": 3}}``).
+    refine_iterations : int
+        Passes of :func:`calibration.refine.refine_centres` (photometric centres from
+        cross-fitted near-field normals); 0 keeps the edge detector's centres.
     seed : int
 
     Returns
@@ -224,6 +268,18 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         Missing scale, no usable press, or patterns with fewer than three independent
         light directions.
     """
+    from threadpoolctl import threadpool_limits
+
+    # Small, many solves: a single BLAS thread is several times faster on a loaded machine
+    # than threads that spin waiting for a core (see pyproject.toml).
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _calibrate(capture, ball_radius_mm, mm_per_px, models, illumination=illumination, folds=folds,
+                          shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
+                          refine_iterations=refine_iterations, seed=seed)
+
+
+def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, folds, shrink_px, detect_options,
+               model_options, refine_iterations, seed) -> CalibrationResult:
     src = str(capture) if not isinstance(capture, Capture) else "capture"
     cap = read_capture(capture) if not isinstance(capture, Capture) else capture
     mm = mm_per_px if mm_per_px is not None else cap.mm_per_px
@@ -247,7 +303,14 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         reasons = "; ".join(f"press {k}: {c.reason}" for k, c in enumerate(circles) if not c.accepted)
         raise UserError(f"{src}: only {accepted} press(es) accepted, calibration needs at least 2 ({reasons})")
     samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat)
+    # Before any light model is fitted: refinement fits one, which needs three directions.
     rank = check_light_rank(samples.subset(samples.press >= 0), what=src)
+    t0 = time.perf_counter()
+    circles, refine_report = refine_centres(frames, ref, circles, ball_radius_mm, mm, iterations=refine_iterations,
+                                            folds=folds, seed=seed, shrink_px=shrink_px, saturation=sat)
+    refine_report["seconds"] = time.perf_counter() - t0
+    if refine_iterations > 0:
+        samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat)
     factories = _factories(names, cap, illumination, sat, model_options)
     fitted: dict[str, CalibrationModel] = {}
     reports: dict[str, dict[str, Any]] = {}
@@ -270,5 +333,5 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
                              ball_radius_mm=float(ball_radius_mm), mm_per_px=float(mm), shape=cap.shape,
                              num_patterns=int(frames.shape[1]), num_channels=int(frames.shape[4]),
                              light_rank_ratio=rank,
-                             meta={"detect_seconds": t_detect, "samples": len(samples),
+                             meta={"detect_seconds": t_detect, "refine": refine_report, "samples": len(samples),
                                    "contact_samples": int(samples.contact.sum())})

@@ -50,6 +50,9 @@ class Circle:
         Peak contrast over background noise sigma.
     residual_px : float
         RMS distance of the inlier edge points to the circle.
+    shift_xy : (float, float)
+        How far :func:`calibration.refine.refine_centres` moved the centre from the detected
+        one (px); ``(0, 0)`` when not refined.
     """
 
     center_xy: tuple[float, float]
@@ -60,10 +63,12 @@ class Circle:
     reason: str
     snr: float = 0.0
     residual_px: float = 0.0
+    shift_xy: tuple[float, float] = (0.0, 0.0)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         d["center_xy"] = [float(v) for v in self.center_xy]
+        d["shift_xy"] = [float(v) for v in self.shift_xy]
         return d
 
 

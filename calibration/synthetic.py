@@ -1,11 +1,12 @@
 """Synthetic sphere-indentation captures with exact truth (tests and benchmarks).
 
-Presses are shaded with the project's core formula :func:`sim.lambertian.shade` under the
-closed-form bare-LED ring field :func:`sim.point_source.point_source_field` (or, with
-``far_field=True``, each LED's field at the image centre everywhere), the truth surface is
-:func:`calibration.truth.sphere_cap`, and the camera adds seeded Gaussian noise (default
-sigma = 1 DN) and 8-bit quantization. Once the renderer (``sim.rendered_capture``) lands this
-stays as the small closed-form reference.
+A thin wrapper over the project's one image-formation path, the renderer
+:func:`sim.rendered_capture.render_capture`: it builds the illumination model (the closed-form
+bare-LED ring field :func:`sim.point_source.point_source_field`, or with ``far_field=True``
+each LED's field at the image centre everywhere), a lighting mode from a drive matrix, one
+:func:`sim.geometry.sphere` press per requested contact circle, and turns the rendered
+``capture`` record into a :class:`calibration.capture.Capture` plus a :class:`SyntheticTruth`
+that remembers what the frames were made from (fields, gains, exposure, LED geometry).
 """
 
 from __future__ import annotations
@@ -15,11 +16,15 @@ from dataclasses import dataclass
 import numpy as np
 
 from calibration.capture import Capture
-from calibration.truth import sphere_cap
-from sim.lambertian import shade
+from sim.frames import pixel_to_recon
+from sim.geometry import sphere
+from sim.illumination_model import IlluminationModel
+from sim.modes import LightingMode, ModeFrame
 from sim.point_source import point_source_field, ring_geometry
+from sim.render import RenderSettings, auto_exposure
+from sim.rendered_capture import render_capture
 
-__all__ = ["SyntheticTruth", "lighting_drive", "synthetic_sphere_capture"]
+__all__ = ["SyntheticTruth", "lighting_drive", "drive_mode", "ring_illumination", "synthetic_sphere_capture"]
 
 
 @dataclass
@@ -82,13 +87,51 @@ def lighting_drive(mode: str, num_leds: int, leds: list[int] | None = None) -> n
     raise ValueError(f"lighting_drive: unknown mode {mode!r} (expected 'point' or 'trichromatic')")
 
 
+def drive_mode(drive: np.ndarray, name: str = "custom", brightness=None) -> LightingMode:
+    """A :class:`sim.modes.LightingMode` whose frame ``p`` drives the LEDs with ``drive[p]``.
+
+    Examples
+    --------
+    >>> m = drive_mode(lighting_drive("point", 3))
+    >>> m.num_leds, m.pattern_names
+    (3, ['custom0', 'custom1', 'custom2'])
+    """
+    drive = np.asarray(drive, dtype=np.float64)
+    if drive.ndim != 3 or drive.shape[2] != 3:
+        raise ValueError(f"drive_mode: drive must have shape (P, L, 3), got {drive.shape}")
+    b = np.ones(len(drive)) if brightness is None else np.asarray(brightness, dtype=np.float64).reshape(-1)
+    return LightingMode(name, [ModeFrame(f"{name}{p}", drive[p], float(b[p])) for p in range(len(drive))])
+
+
+def ring_illumination(shape: tuple[int, int], mm_per_px: float, num_leds: int = 6, ring_radius: float = 40.0,
+                      gel_z: float = 30.0, far_field: bool = False, positions=None, axes=None) -> IlluminationModel:
+    """Bare-LED ring illumination (closed form); ``far_field`` uses each LED's centre-pixel field everywhere.
+
+    ``positions``/``axes`` (L, 3), optical frame, replace the regular ring when given.
+
+    Examples
+    --------
+    >>> ring_illumination((4, 6), 0.1, 3).V.shape
+    (3, 4, 6, 3)
+    """
+    h, w = int(shape[0]), int(shape[1])
+    pos, ax = ring_geometry(num_leds, ring_radius)
+    pos = pos if positions is None else np.asarray(positions, dtype=np.float64)
+    ax = ax if axes is None else np.asarray(axes, dtype=np.float64)
+    V = point_source_field(pos, ax, (h, w), mm_per_px, gel_z, dtype=np.float64)
+    if far_field:
+        V = np.broadcast_to(V[:, h // 2:h // 2 + 1, w // 2:w // 2 + 1, :], V.shape).copy()
+    return IlluminationModel(V=V, mm_per_px=mm_per_px, led_positions=pos, gel_z=gel_z,
+                             meta={"source": "bare_ring", "far_field": bool(far_field)})
+
+
 def synthetic_sphere_capture(shape: tuple[int, int] = (60, 80), num_presses: int = 8, *,
                              mm_per_px: float = 0.1, ball_radius_mm: float = 1.5,
                              centers_rc=None, radii_px=None, num_leds: int = 6, ring_radius: float = 40.0,
                              gel_z: float = 30.0, mode: str = "point", leds: list[int] | None = None,
                              drive=None, gains=None, far_field: bool = False, albedo=1.0,
-                             peak_dn: float = 200.0, noise_dn: float = 1.0, seed: int = 0
-                             ) -> tuple[Capture, SyntheticTruth]:
+                             peak_dn: float = 200.0, noise_dn: float = 1.0, seed: int = 0,
+                             illumination: IlluminationModel | None = None) -> tuple[Capture, SyntheticTruth]:
     """Render ``num_presses`` ball presses (8-bit, noisy) with exact truth.
 
     Parameters
@@ -98,7 +141,7 @@ def synthetic_sphere_capture(shape: tuple[int, int] = (60, 80), num_presses: int
         K; ignored when ``centers_rc`` is given.
     mm_per_px, ball_radius_mm : float
     centers_rc : array_like, shape (K, 2), optional
-        Press centres (row, col); default: seeded uniform, away from the border.
+        Press centres (row, col) in pixels; default: seeded uniform, away from the border.
     radii_px : array_like, shape (K,), optional
         Contact radii in pixels; default: seeded in [0.55, 0.8] x the ball radius.
     num_leds, ring_radius, gel_z : ring of bare LEDs (see :func:`sim.point_source.ring_geometry`).
@@ -112,8 +155,11 @@ def synthetic_sphere_capture(shape: tuple[int, int] = (60, 80), num_presses: int
     peak_dn : float
         Brightest flat reference value before noise.
     noise_dn : float
-        Gaussian noise sigma in DN, before rounding to 8 bits.
+        Gaussian read noise sigma in DN, before rounding to 8 bits.
     seed : int
+    illumination : IlluminationModel, optional
+        Render with this model instead of the bare ring (``num_leds``, ``ring_radius``,
+        ``gel_z``, ``far_field`` are then ignored).
 
     Returns
     -------
@@ -133,35 +179,41 @@ def synthetic_sphere_capture(shape: tuple[int, int] = (60, 80), num_presses: int
     if radii_px is None:
         k = len(centers_rc) if centers_rc is not None else num_presses
         radii_px = rng.uniform(0.55, 0.8, size=k) * r_ball_px
-    radii_px = np.asarray(radii_px, dtype=float)
+    radii_px = np.asarray(radii_px, dtype=float).reshape(-1)
     if centers_rc is None:
         pad = radii_px + 2.0
         centers_rc = np.stack([rng.uniform(pad, h - 1 - pad), rng.uniform(pad, w - 1 - pad)], axis=-1)
     centers_rc = np.asarray(centers_rc, dtype=float).reshape(-1, 2)
     if len(radii_px) != len(centers_rc):
         raise ValueError(f"synthetic_sphere_capture: {len(centers_rc)} centres but {len(radii_px)} radii")
-    pos, axes = ring_geometry(num_leds, ring_radius)
-    V = point_source_field(pos, axes, (h, w), mm_per_px, gel_z, dtype=np.float64)
-    if far_field:
-        V = np.broadcast_to(V[:, h // 2:h // 2 + 1, w // 2:w // 2 + 1, :], V.shape).copy()
-    drive = lighting_drive(mode, num_leds, leds) if drive is None else np.asarray(drive, dtype=float)
-    gains = rng.uniform(0.8, 1.2, size=(num_leds, 3)) if gains is None else np.asarray(gains, dtype=float)
-    flat = np.zeros((h, w, 3))
-    flat[..., 2] = 1.0
-    ref = shade(V, flat, albedo, drive, gains=gains)
-    exposure = peak_dn / float(ref.max())
-    caps = [sphere_cap((h, w), c, r, ball_radius_mm, mm_per_px) for c, r in zip(centers_rc, radii_px)]
-    frames = np.stack([shade(V, c.normals, albedo, drive, exposure=exposure, gains=gains) for c in caps])
-
-    def camera(img):
-        noisy = img + rng.normal(0.0, noise_dn, size=img.shape)
-        return np.clip(np.rint(noisy), 0, 255).astype(np.uint8)
-
-    cap = Capture(frames=camera(frames), reference=camera(ref * exposure), drive=drive.astype(np.float32),
-                  brightness=np.ones(len(drive), dtype=np.float32), mm_per_px=mm_per_px,
-                  truth={"height": np.stack([c.height for c in caps]).astype(np.float32),
-                         "normals": np.stack([c.normals for c in caps]).astype(np.float32)},
-                  meta={"source": "virtual", "bit_depth": 8, "mode": mode})
-    truth = SyntheticTruth(centers_rc=centers_rc, radii_px=radii_px, V=V, gains=gains, exposure=exposure,
-                           led_positions=pos, led_axes=axes, gel_z=gel_z, ball_radius_mm=ball_radius_mm)
+    if np.any(radii_px >= r_ball_px) or np.any(radii_px <= 0):
+        raise ValueError(f"synthetic_sphere_capture: contact radii must be in (0, {r_ball_px:.2f}) px (the ball), "
+                         f"got {radii_px.tolist()}")
+    model = illumination if illumination is not None else ring_illumination(
+        (h, w), mm_per_px, num_leds, ring_radius, gel_z, far_field)
+    if model.shape != (h, w):
+        raise ValueError(f"synthetic_sphere_capture: illumination is {model.shape} pixels, shape is {(h, w)}")
+    n_led = model.num_leds
+    drive = lighting_drive(mode, n_led, leds) if drive is None else np.asarray(drive, dtype=float)
+    gains = rng.uniform(0.8, 1.2, size=(n_led, 3)) if gains is None else np.asarray(gains, dtype=float)
+    exposure = auto_exposure(model, drive, target_dn=peak_dn, gains=gains)
+    settings = RenderSettings(exposure=exposure, gains=gains, read_noise=float(noise_dn), saturation=True,
+                              bit_depth=8)
+    # Contact radius a on a ball of radius R: pressed depth d = R - sqrt(R^2 - a^2).
+    a_mm = radii_px * mm_per_px
+    depths = ball_radius_mm - np.sqrt(ball_radius_mm ** 2 - a_mm ** 2)
+    x, y = pixel_to_recon(centers_rc[:, 0], centers_rc[:, 1], (h, w), mm_per_px)
+    presses = [sphere((h, w), mm_per_px, ball_radius_mm, float(d), center=(float(cx), float(cy)))
+               for d, cx, cy in zip(depths, np.atleast_1d(x), np.atleast_1d(y))]
+    rec = render_capture(model, drive_mode(drive, mode), presses, albedo=albedo, settings=settings, dark=False,
+                         seed=int(rng.integers(1 << 30)))
+    d = rec.data
+    cap = Capture(frames=d["frames"], reference=d["reference"], drive=d["drive"], brightness=d["brightness"],
+                  mm_per_px=mm_per_px, truth={"height": d["truth/height"], "normals": d["truth/normals"]},
+                  meta={"source": "virtual", "bit_depth": 8, "mode": mode,
+                        "pattern_names": list(rec.meta["pattern_names"])})
+    truth = SyntheticTruth(centers_rc=centers_rc, radii_px=radii_px, V=np.asarray(model.V, dtype=np.float64),
+                           gains=gains, exposure=exposure, led_positions=np.asarray(model.led_positions),
+                           led_axes=None if illumination is not None else ring_geometry(num_leds, ring_radius)[1],
+                           gel_z=float(model.gel_z), ball_radius_mm=ball_radius_mm)
     return cap, truth

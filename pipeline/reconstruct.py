@@ -34,8 +34,8 @@ import numpy as np
 
 from pipeline.errors import UserError
 
-__all__ = ["LightSource", "ReconstructResult", "load_lights", "solve_capture", "reconstruct", "NORMALS_VERSION",
-           "DEPTH_VERSION"]
+__all__ = ["LightSource", "ReconstructResult", "load_lights", "solve_capture", "normals_record", "depth_record",
+           "reconstruct", "NORMALS_VERSION", "DEPTH_VERSION"]
 
 NORMALS_VERSION = 1
 DEPTH_VERSION = 1
@@ -274,6 +274,79 @@ def _stack(results, name: str) -> np.ndarray:
     return np.stack([getattr(r, name) for r in results])
 
 
+def normals_record(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False,
+                   max_condition: float = 1e3, device="cpu", dtype="float32", threads: int | None = 1):
+    """Stage 4 on records: the ``normals`` :class:`~pipeline.store.Record` of a capture (no caching).
+
+    Parameters
+    ----------
+    cap : Record
+        Schema ``capture``: ``frames (K, P, H, W, C)``, ``reference (P, H, W, C)``, optional
+        ``dark (H, W, C)``; attributes ``mm_per_px`` and ``bit_depth``.
+    lights : LightSource
+        From :func:`load_lights`.
+    solver, ratio, max_condition, device, dtype, threads
+        As in :func:`reconstruct`.
+
+    Returns
+    -------
+    Record
+        Schema ``normals``: ``normals (K, H, W, 3)``, ``albedo``, ``residual``, ``condition``,
+        ``mask``, ``count``.
+    """
+    from pipeline.normals._torch import torch_threads
+    from pipeline.store import Record
+
+    mm_per_px = float(cap.meta["mm_per_px"])
+    raw = cap.data["frames"]
+    frames = raw.astype(np.float32)
+    ref = cap.data["reference"].astype(np.float32)
+    if "dark" in cap.data:
+        frames = frames - cap.data["dark"].astype(np.float32)
+        ref = ref - cap.data["dark"].astype(np.float32)
+    bits = cap.meta.get("bit_depth")
+    full = (2 ** int(bits) - 1) if bits else (np.iinfo(raw.dtype).max if raw.dtype.kind in "iu" else None)
+    saturated = (raw >= full) if full is not None else None
+    dark_thr = 0.01 * full if full is not None else 0.0
+    with torch_threads(threads):
+        res = solve_capture(frames, lights, solver=solver, reference=ref, saturated=saturated, ratio=ratio,
+                            max_condition=max_condition, dark_threshold=dark_thr, device=device, dtype=dtype)
+    data = {name: _stack(res, name) for name in ("normals", "albedo", "residual", "condition", "mask", "count")}
+    meta = {"solver": solver, "mm_per_px": mm_per_px, "ratio": bool(ratio), "max_condition": float(max_condition),
+            "lights": lights.source, "valid_fraction": float(data["mask"].mean())}
+    meta.update({k: v for k, v in res[0].meta.items() if k not in meta and isinstance(v, (str, int, float))})
+    return Record("normals", data, meta)
+
+
+def depth_record(n_rec, integrator: str = "dst"):
+    """Stage 5 on records: integrate every instance of a ``normals`` record into a ``depth`` record.
+
+    Parameters
+    ----------
+    n_rec : Record
+        Schema ``normals``: ``normals (K, H, W, 3)``, ``mask (K, H, W)``, attribute ``mm_per_px``.
+    integrator : {"fc", "dct", "dst", "sparse"}
+
+    Returns
+    -------
+    Record
+        Schema ``depth``: ``height (K, H, W)`` in mm and ``mask (K, H, W)``.
+    """
+    from pipeline.depth import INTEGRATORS, integrate
+    from pipeline.store import Record
+
+    if integrator not in INTEGRATORS:
+        raise UserError(f"--integrator must be one of {', '.join(sorted(INTEGRATORS))}, got {integrator!r}")
+    mm_per_px = float(n_rec.meta["mm_per_px"])
+    outs = [integrate(n_rec.data["normals"][k], mm_per_px, n_rec.data["mask"][k], method=integrator)
+            for k in range(n_rec.data["normals"].shape[0])]
+    data = {"height": np.stack([o.height for o in outs]), "mask": np.stack([o.mask for o in outs])}
+    meta = {"integrator": integrator, "mm_per_px": mm_per_px}
+    if integrator == "sparse":
+        meta["converged"] = bool(all(o.meta["converged"] for o in outs))
+    return Record("depth", data, meta)
+
+
 def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "lstsq", integrator: str = "dst",
                 out=None, store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu",
                 dtype="float32", threads: int | None = 1, images: bool = True, force: bool = False
@@ -307,9 +380,8 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     -------
     ReconstructResult
     """
-    from pipeline.depth import INTEGRATORS, integrate
-    from pipeline.normals._torch import torch_threads
-    from pipeline.store import Record, StageStore, write_record
+    from pipeline.depth import INTEGRATORS
+    from pipeline.store import StageStore
 
     if solver not in SOLVERS:
         raise UserError(f"--solver must be one of {', '.join(SOLVERS)}, got {solver!r}")
@@ -331,36 +403,14 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     n_key = store.key("normals", NORMALS_VERSION, n_params, inputs=[cap_key, lights.key])
 
     def compute_normals():
-        raw = cap.data["frames"]
-        frames = raw.astype(np.float32)
-        ref = cap.data["reference"].astype(np.float32)
-        if "dark" in cap.data:
-            frames = frames - cap.data["dark"].astype(np.float32)
-            ref = ref - cap.data["dark"].astype(np.float32)
-        bits = cap.meta.get("bit_depth")
-        full = (2 ** int(bits) - 1) if bits else (np.iinfo(raw.dtype).max if raw.dtype.kind in "iu" else None)
-        saturated = (raw >= full) if full is not None else None
-        dark_thr = 0.01 * full if full is not None else 0.0
-        with torch_threads(threads):
-            res = solve_capture(frames, lights, solver=solver, reference=ref, saturated=saturated, ratio=ratio,
-                                max_condition=max_condition, dark_threshold=dark_thr, device=device, dtype=dtype)
-        data = {name: _stack(res, name) for name in ("normals", "albedo", "residual", "condition", "mask", "count")}
-        meta = {"solver": solver, "mm_per_px": mm_per_px, "ratio": bool(ratio), "max_condition": float(max_condition),
-                "lights": lights.source, "valid_fraction": float(data["mask"].mean())}
-        meta.update({k: v for k, v in res[0].meta.items() if k not in meta and isinstance(v, (str, int, float))})
-        return Record("normals", data, meta)
+        return normals_record(cap, lights, solver=solver, ratio=ratio, max_condition=max_condition,
+                              device=device, dtype=dtype, threads=threads)
 
     n_rec, n_cached = store.get_or_compute(n_key, compute_normals, force=force)
     d_key = store.key("depth", DEPTH_VERSION, {"integrator": integrator, "mm_per_px": mm_per_px}, inputs=[n_key])
 
     def compute_depth():
-        outs = [integrate(n_rec.data["normals"][k], mm_per_px, n_rec.data["mask"][k], method=integrator)
-                for k in range(n_rec.data["normals"].shape[0])]
-        data = {"height": np.stack([o.height for o in outs]), "mask": np.stack([o.mask for o in outs])}
-        meta = {"integrator": integrator, "mm_per_px": mm_per_px}
-        if integrator == "sparse":
-            meta["converged"] = bool(all(o.meta["converged"] for o in outs))
-        return Record("depth", data, meta)
+        return depth_record(n_rec, integrator)
 
     d_rec, d_cached = store.get_or_compute(d_key, compute_depth, force=force)
     seconds = time.perf_counter() - t0

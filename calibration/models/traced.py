@@ -5,6 +5,12 @@ max(0, n(x) . V_i(x))`` is linear in the gains ``sigma_ij`` (``rho = 1``: the ge
 uniform; exposure and the ``1 / pi`` fold into ``sigma``), so they are fitted per camera
 channel by non-negative least squares over all patterns. Any pattern, captured or not, then
 has the light field ``sim.illumination_model.light_matrices(V, W, b, gains=sigma)``.
+
+Optionally (``basis`` given, see :mod:`calibration.models.led_geometry`) the fit also corrects
+each LED's position and tilt to first order, ``V_i = V_i^0 + sum_k theta_ik D_ik``: gains
+(NNLS) and the corrections ``theta`` (ridge-damped linear least squares with the gains held,
+a Gauss-Newton step since the model is linear in ``theta`` where the pixel stays lit)
+alternate for ``geometry_iterations`` rounds.
 """
 
 from __future__ import annotations
@@ -31,11 +37,22 @@ class TracedModel(LightFieldModel):
         Vector irradiance per LED (an ``IlluminationModel.V``).
     drive : ndarray, shape (P, L, 3)
     brightness : ndarray, shape (P,), optional
+    basis : ndarray, shape (L, 5, H, W, 3), optional
+        ``dV / dtheta`` (:func:`calibration.models.led_geometry.geometry_basis`); enables the
+        LED position/tilt corrections.
+    geometry_iterations : int
+        Alternations of gains and geometry.
+    geometry_ridge : float
+        Damping of the geometry step, relative to the mean diagonal of the normal matrix.
+    max_geometry_samples : int
+        Pixels (seeded draw) used for the geometry step.
     """
 
     name = "traced"
 
-    def __init__(self, V: np.ndarray, drive: np.ndarray, brightness: np.ndarray | None = None):
+    def __init__(self, V: np.ndarray, drive: np.ndarray, brightness: np.ndarray | None = None,
+                 basis: np.ndarray | None = None, geometry_iterations: int = 4, geometry_ridge: float = 1e-3,
+                 max_geometry_samples: int = 20000):
         V = np.asarray(V, dtype=np.float64)
         drive = np.asarray(drive, dtype=np.float64)
         if V.ndim != 4 or V.shape[-1] != 3:
@@ -43,7 +60,17 @@ class TracedModel(LightFieldModel):
         if drive.ndim != 3 or drive.shape[1:] != (V.shape[0], 3):
             raise UserError(f"traced model: the capture's drive {drive.shape} does not match the illumination "
                             f"model's {V.shape[0]} LEDs (expected (P, {V.shape[0]}, 3))")
+        if basis is not None:
+            basis = np.asarray(basis, dtype=np.float64)
+            if basis.ndim != 5 or basis.shape[0] != V.shape[0] or basis.shape[2:] != V.shape[1:]:
+                raise UserError(f"traced model: the geometry basis must have shape ({V.shape[0]}, K, "
+                                f"{V.shape[1]}, {V.shape[2]}, 3), got {basis.shape}")
+        self.V0 = V
         self.V = V
+        self.basis = basis
+        self.theta: np.ndarray | None = None
+        self.geometry_iterations, self.geometry_ridge = int(geometry_iterations), float(geometry_ridge)
+        self.max_geometry_samples = int(max_geometry_samples)
         self.drive = drive
         self.brightness = np.ones(len(drive)) if brightness is None else np.asarray(brightness, dtype=np.float64)
         self.gains: np.ndarray | None = None
@@ -57,26 +84,71 @@ class TracedModel(LightFieldModel):
         if samples.intensities.shape[1:] != (len(self.drive), 3):
             raise UserError(f"traced model: samples have {samples.intensities.shape[1:]} pattern-channels, the drive "
                             f"has ({len(self.drive)}, 3)")
-        Vs = self.V[:, samples.rows, samples.cols]  # (L, N, 3)
+        V0 = self.V0[:, samples.rows, samples.cols]  # (L, N, 3)
+        rounds = self.geometry_iterations if self.basis is not None else 0
+        theta = np.zeros((self.V0.shape[0], 0 if self.basis is None else self.basis.shape[1]))
+        for it in range(rounds + 1):
+            Vs = V0 if self.basis is None else V0 + np.einsum("lk,lknc->lnc", theta, self._basis_at(samples))
+            gains, resid = self._fit_gains(Vs, samples)
+            if it == rounds:
+                break
+            theta = theta + self._geometry_step(Vs, gains, samples)
+        self.gains = gains
+        if self.basis is not None:
+            self.theta = theta
+            self.V = self.V0 + np.einsum("lk,lkhwc->lhwc", theta, self.basis)
+        rep = self._fit_report(samples)
+        rep["residual_rms_dn"] = resid
+        if self.theta is not None:
+            rep["led_position_correction_mm"] = self.theta[:, :3].tolist()
+            rep["led_tilt_correction_deg"] = np.degrees(self.theta[:, 3:5]).tolist()
+        return rep
+
+    def _basis_at(self, samples: Samples) -> np.ndarray:
+        return self.basis[:, :, samples.rows, samples.cols]  # (L, K, N, 3)
+
+    def _fit_gains(self, Vs: np.ndarray, samples: Samples) -> tuple[np.ndarray, float]:
+        """NNLS per camera channel for fields ``Vs (L, N, 3)`` at the samples; returns gains and RMS residual."""
         s = np.maximum(np.einsum("lnk,nk->nl", Vs, samples.normals), 0.0)  # (N, L)
         w = self.drive * self.brightness[:, None, None]  # (P, L, 3)
-        gains = np.zeros((self.V.shape[0], 3))
+        n_led = Vs.shape[0]
+        gains = np.zeros((n_led, 3))
         resid = []
         for j in range(3):
-            A = (s[:, None, :] * w[None, :, :, j]).reshape(-1, self.V.shape[0])  # (N * P, L)
+            A = (s[:, None, :] * w[None, :, :, j]).reshape(-1, n_led)  # (N * P, L)
             b = samples.intensities[:, :, j].reshape(-1).astype(np.float64)
             active = np.abs(A).sum(0) > 0
-            g = np.zeros(self.V.shape[0])
+            g = np.zeros(n_led)
             # Column scaling keeps NNLS well conditioned (V is ~1e-4 W/mm^2).
             sc = np.maximum(np.abs(A[:, active]).max(0), 1e-300)
             g_act, rn = nnls(A[:, active] / sc, b, maxiter=50 * A.shape[1])
             g[active] = g_act / sc
             gains[:, j] = g
             resid.append(rn / np.sqrt(max(len(b), 1)))
-        self.gains = gains
-        rep = self._fit_report(samples)
-        rep["residual_rms_dn"] = float(np.sqrt(np.mean(np.square(resid))))
-        return rep
+        return gains, float(np.sqrt(np.mean(np.square(resid))))
+
+    def _geometry_step(self, Vs: np.ndarray, gains: np.ndarray, samples: Samples) -> np.ndarray:
+        """Gauss-Newton step ``dtheta (L, K)`` with the gains held (ridge-damped, columns scaled)."""
+        rng = np.random.default_rng(0)
+        idx = np.arange(len(samples))
+        if len(idx) > self.max_geometry_samples:
+            idx = np.sort(rng.choice(idx, self.max_geometry_samples, replace=False))
+        n = samples.normals[idx]
+        V = Vs[:, idx]
+        D = self._basis_at(samples)[:, :, idx]  # (L, K, N, 3)
+        shade = np.einsum("lnc,nc->nl", V, n)
+        lit = shade > 0
+        w = self.drive * self.brightness[:, None, None] * gains[None]  # (P, L, 3)
+        pred = np.einsum("plj,nl->npj", w, np.where(lit, shade, 0.0))
+        r = (samples.intensities[idx].astype(np.float64) - pred).reshape(-1)
+        nD = np.einsum("lknc,nc->nlk", D, n) * lit[..., None]  # (N, L, K)
+        n_led, k = D.shape[:2]
+        J = np.einsum("plj,nlk->npjlk", w, nD).reshape(len(idx) * w.shape[0] * 3, n_led * k)
+        sc = np.maximum(np.sqrt(np.einsum("ij,ij->j", J, J)), 1e-300)
+        Js = J / sc
+        G = Js.T @ Js
+        G[np.diag_indices_from(G)] += self.geometry_ridge * max(float(np.trace(G)) / len(G), 1e-300)
+        return (np.linalg.solve(G, Js.T @ r) / sc).reshape(n_led, k)
 
     def lights_at(self, rows, cols, shape):
         w = self.drive * self.brightness[:, None, None] * self.gains[None]  # (P, L, 3)
@@ -86,4 +158,7 @@ class TracedModel(LightFieldModel):
         return light_matrices(self.V.astype(np.float32), self.drive, self.brightness, gains=self.gains).astype(np.float32)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        return {"gains": self.gains.astype(np.float32)}
+        out = {"gains": self.gains.astype(np.float32)}
+        if self.theta is not None:
+            out["geometry_correction"] = self.theta.astype(np.float32)  # (L, 5): led_geometry.GEOMETRY_PARAMS
+        return out

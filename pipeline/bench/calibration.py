@@ -4,6 +4,10 @@ Two cases: the shared real GelSight frames (30 presses, one RGB pattern; skipped
 ``../shared/data`` is absent) with the hand-label comparison, and a synthetic point-lit ring
 capture (bare-LED near field, 8-bit, noise 1 DN) with the gain and direction errors against
 the exact truth.
+
+``rows`` (the common format of ``iristac bench all``): one per model and case (knob
+``calibration model (real|synthetic)``, error = cross-validated mean angular error), the full
+calibration time, centre refinement on/off, and the MLP's training steps (error vs time).
 """
 
 from __future__ import annotations
@@ -39,13 +43,32 @@ def _rows(res, seconds_total):
     return s, rows
 
 
+def _model_rows(case: str, s: dict) -> list[dict]:
+    return [{"knob": f"calibration model ({case})", "setting": name, "error": m["cv_mean_angular_error_deg"],
+             "error_unit": "deg", "seconds": m["seconds"]} for name, m in s["models"].items() if not m.get("skipped")]
+
+
+def _mlp_sweep(cap, steps: list[int]) -> list[dict]:
+    """CV error and time of the MLP alone, per number of training steps (real frames)."""
+    from calibration.calibrate import calibrate
+
+    rows = []
+    for n in steps:
+        res = calibrate(cap, 2.0, cap.mm_per_px, ["mlp"], model_options={"mlp": {"epochs": n}})
+        m = res.summary()["models"]["mlp"]
+        rows.append({"knob": "mlp training steps (real)", "setting": n, "error": m["cv_mean_angular_error_deg"],
+                     "error_unit": "deg", "seconds": m["seconds"]})
+    return rows
+
+
 def run(args) -> dict:
     from calibration.calibrate import calibrate
     from calibration.importers import load_gelsight_npz
     from calibration.models.base import angular_error_deg
     from calibration.synthetic import synthetic_sphere_capture
 
-    out: dict = {"cases": []}
+    out: dict = {"cases": [], "rows": []}
+    quick = bool(getattr(args, "quick", False))
     npz = Path(args.npz) if getattr(args, "npz", None) else _shared_data()
     if npz is not None:
         cap = load_gelsight_npz(npz)
@@ -56,8 +79,28 @@ def run(args) -> dict:
         out["cases"].append({"case": f"real {npz.name} ({s['presses']} presses, {cap.shape[0]}x{cap.shape[1]})",
                              "total_seconds": total, "accepted": s["accepted"], "presses": s["presses"],
                              "center_error_px_median": s.get("center_error_px_median"),
-                             "radius_error_px_median": s.get("radius_error_px_median"), "models": rows})
-    k = 8 if getattr(args, "quick", False) else 30
+                             "radius_error_px_median": s.get("radius_error_px_median"),
+                             "center_offset_px_median": s.get("center_offset_px_median"),
+                             "refine_seconds": res.meta["refine"].get("seconds"), "models": rows})
+        out["rows"] += _model_rows("real", s)
+        out["rows"].append({"knob": "full calibration (real, 30 presses)", "setting": "all models",
+                            "error": s["models"][res.best_model]["cv_mean_angular_error_deg"], "error_unit": "deg",
+                            "seconds": total})
+        out["rows"].append({"knob": "centre refinement (real)", "setting": "2 passes",
+                            "error": s["models"]["near"]["cv_mean_angular_error_deg"], "error_unit": "deg",
+                            "seconds": res.meta["refine"].get("seconds", 0.0)})
+        t = time.perf_counter()
+        raw = calibrate(cap, 2.0, cap.mm_per_px, ["near"], refine_iterations=0).summary()
+        out["rows"].append({"knob": "centre refinement (real)", "setting": "off (edge detector)",
+                            "error": raw["models"]["near"]["cv_mean_angular_error_deg"], "error_unit": "deg",
+                            "seconds": 0.0})
+        out["cases"][-1]["unrefined"] = {"near_cv_mean_deg": raw["models"]["near"]["cv_mean_angular_error_deg"],
+                                         "center_error_px_median": raw.get("center_error_px_median"),
+                                         "center_offset_px_median": raw.get("center_offset_px_median"),
+                                         "seconds": time.perf_counter() - t}
+        if not quick:
+            out["rows"] += _mlp_sweep(cap, [50, 100, 200, 400])
+    k = 8 if quick else 30
     cap, tr = synthetic_sphere_capture((120, 160), k, mm_per_px=0.1, ball_radius_mm=2.0, num_leds=12,
                                        peak_dn=140, seed=11)
     t = time.perf_counter()
@@ -76,6 +119,10 @@ def run(args) -> dict:
                          "total_seconds": total, "accepted": s["accepted"], "presses": s["presses"],
                          "traced_gain_error_max": gain_err, "far_direction_error_max_deg": far_dir,
                          "models": rows})
+    out["rows"] += _model_rows("synthetic", s)
+    out["rows"].append({"knob": f"full calibration (synthetic, {k} presses)", "setting": "all models",
+                        "error": s["models"][res.best_model]["cv_mean_angular_error_deg"], "error_unit": "deg",
+                        "seconds": total})
     return out
 
 
@@ -86,8 +133,15 @@ def format_table(result: dict) -> str:
         lines.append(f"  accepted {c['accepted']}/{c['presses']}   full calibration (detect + fit + CV, all models) "
                      f"{c['total_seconds']:.2f} s")
         if c.get("center_error_px_median") is not None:
-            lines.append(f"  circles vs hand labels: centre median {c['center_error_px_median']:.2f} px, radius median "
+            off = c.get("center_offset_px_median") or [float("nan")] * 2
+            lines.append(f"  circles vs hand labels: centre median {c['center_error_px_median']:.2f} px (median offset "
+                         f"circle - label {off[0]:+.2f}, {off[1]:+.2f} px), radius median "
                          f"{c['radius_error_px_median']:.2f} px")
+        if c.get("unrefined"):
+            u = c["unrefined"]
+            lines.append(f"  without centre refinement: near CV mean {u['near_cv_mean_deg']:.2f} deg, centre median "
+                         f"{u['center_error_px_median']:.2f} px from the labels; refinement took "
+                         f"{c['refine_seconds']:.2f} s")
         if c.get("traced_gain_error_max") is not None:
             lines.append(f"  traced gains: max relative error {100 * c['traced_gain_error_max']:.2f} %")
         if c.get("far_direction_error_max_deg") is not None:
@@ -99,4 +153,9 @@ def format_table(result: dict) -> str:
                 lines.append(f"  {r['model']:8s} skipped: {r['skipped']}")
             else:
                 lines.append(f"  {r['model']:8s} {r['cv_mean_deg']:12.2f} {r['cv_median_deg']:14.2f} {r['seconds']:8.2f}")
+    if result.get("rows"):
+        lines.append("rows (knob / setting / error / seconds)")
+        for r in result["rows"]:
+            err = "-" if r["error"] is None else f"{r['error']:.2f} {r['error_unit']}"
+            lines.append(f"  {r['knob']:38s} {str(r['setting']):22s} {err:>10s} {r['seconds']:8.2f} s")
     return "\n".join(lines)

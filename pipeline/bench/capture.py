@@ -5,8 +5,9 @@ without faults, and with and without the emulator's baud-rate model (which makes
 cost its 10 bits per byte on the wire). The protocol's own overhead per pattern change is the
 measured time minus the wire time of the bytes actually exchanged (with the baud model) or the
 whole measured time (without it, the wire is free). A full mode capture (the ``point`` mode:
-dark, 24 references and 24 contact frames) uses the LED-state virtual camera at a webcam's
-frame rate, to show whether the ring or the camera bounds the capture.
+dark, 24 references and 24 contact frames of a sphere press) uses the rendering virtual camera
+(:mod:`pipeline.capture.virtual`, 60 x 80, bare LED ring) at a webcam's frame rate, to show
+whether the ring or the camera bounds the capture.
 """
 
 from __future__ import annotations
@@ -20,7 +21,6 @@ import numpy as np
 from pipeline.capture import protocol as P
 from pipeline.capture.client import RingClient
 from pipeline.capture.emulator import RingEmulator, parse_faults
-from pipeline.capture.led_camera import LedStateCamera
 from pipeline.capture.plan import CaptureSettings, run_capture
 from pipeline.capture.session import load_patterns
 
@@ -58,14 +58,21 @@ def _changes(faults: str, baud: float | None, n: int, timeout: float, seed: int)
 def _full_mode(faults: str, baud: float | None, fps: float, timeout: float, seed: int) -> dict:
     patterns = load_patterns("point")
     out = Path(tempfile.mkdtemp(prefix="iristac-bench-capture-")) / "capture.h5"
+    from pipeline.capture.virtual import VirtualSensorSpec, contact_objects, open_virtual_camera
+
+    shape, mm = (60, 80), 0.1
+    spec = VirtualSensorSpec(shape=shape, mm_per_px=mm, fps=fps,
+                             contacts=contact_objects("sphere", 1, shape, mm, seed=seed))
     with RingEmulator(faults=parse_faults(faults), baudrate=baud, seed=seed) as emu, \
             RingClient(emu.path, timeout=timeout, retries=30) as ring:
-        cam = LedStateCamera(emu, shape=(60, 80), fps=fps)
-        cam.open()
-        t = time.perf_counter()
-        r = run_capture(patterns, ring, cam, out, CaptureSettings(contacts=1), truth=emu,
-                        progress=False, source="virtual")
-        seconds = time.perf_counter() - t
+        cam = open_virtual_camera(spec, emu, patterns.drive, patterns.brightness)
+        try:
+            t = time.perf_counter()
+            r = run_capture(patterns, ring, cam, out, CaptureSettings(contacts=1), truth=emu,
+                            progress=False, source="virtual", on_contact=cam.set_contact)
+            seconds = time.perf_counter() - t
+        finally:
+            cam.close()
     out.unlink()
     out.parent.rmdir()
     return {"seconds": seconds, "frames": r.frames, "mislabeled": r.mislabeled,
@@ -73,6 +80,10 @@ def _full_mode(faults: str, baud: float | None, fps: float, timeout: float, seed
 
 
 def run(args) -> dict:
+    import torch
+
+    # The virtual camera renders one small frame at a time: torch's thread pool only spins.
+    torch.set_num_threads(1)
     quick = bool(getattr(args, "quick", False))
     n = 100 if quick else int(getattr(args, "changes", 500))
     fps = 120.0 if quick else float(getattr(args, "camera_fps", 30.0))

@@ -24,14 +24,16 @@ Examples
 >>> import tempfile, os
 >>> from pipeline.capture.emulator import RingEmulator
 >>> from pipeline.capture.client import RingClient
->>> from pipeline.capture.led_camera import LedStateCamera
->>> patterns = PatternSet("demo", ["a", "b"], np.stack([np.eye(4, 3), np.eye(4, 3)[::-1]]),
+>>> from pipeline.capture.virtual import VirtualSensorSpec, open_virtual_camera
+>>> patterns = PatternSet("demo", ["a", "b"], np.stack([np.eye(24, 3), np.eye(24, 3)[::-1]]),
 ...                       np.array([1.0, 0.5]))
 >>> out = os.path.join(tempfile.mkdtemp(), "capture.h5")
->>> with RingEmulator(led_count=4) as emu, RingClient(emu.path) as ring:
-...     cam = LedStateCamera(emu, shape=(4, 6), fps=400.0)
-...     cam.open()
-...     result = run_capture(patterns, ring, cam, out, truth=emu, progress=False)
+>>> spec = VirtualSensorSpec(shape=(4, 6), mm_per_px=1.0, contacts=[np.zeros((4, 6))], fps=400.0)
+>>> with RingEmulator() as emu, RingClient(emu.path) as ring:
+...     cam = open_virtual_camera(spec, emu, patterns.drive, patterns.brightness)
+...     result = run_capture(patterns, ring, cam, out, truth=emu, on_contact=cam.set_contact,
+...                          progress=False)
+...     cam.close()
 >>> result.frames, result.patterns, result.mislabeled
 (5, 2, 0)
 >>> from pipeline.store import read_record
@@ -233,13 +235,16 @@ def journal_path(out: str | os.PathLike) -> Path:
 
 
 # ---------------------------------------------------------------------------- the journal
-def _fingerprint(patterns: PatternSet, settings: CaptureSettings, shape: tuple[int, int]) -> str:
+def _fingerprint(patterns: PatternSet, settings: CaptureSettings, shape: tuple[int, int],
+                 scene: str = "") -> str:
+    """Hash of the plan; ``scene`` fingerprints anything else the frames depend on (a virtual
+    camera's contacts and light), so a rerun cannot mix frames of two different scenes."""
     h = hashlib.sha256()
     for p in range(len(patterns.names)):
         levels, b = patterns.levels(p)
         h.update(patterns.names[p].encode() + b"\0" + levels.tobytes() + bytes((b,)))
     h.update(json.dumps([patterns.mode, settings.frames_per_pattern, settings.contacts,
-                         settings.dark, list(shape)]).encode())
+                         settings.dark, list(shape)] + ([scene] if scene else [])).encode())
     return h.hexdigest()
 
 
@@ -351,8 +356,10 @@ def _exposure_window(frame: CameraFrame, camera: Camera) -> tuple[tuple[float, f
     Only a reported window can prove a frame fresh; a webcam's read time says nothing about
     when a queued frame was exposed, so for those the settle time and flush must do.
     """
-    window = frame.info.get("exposure") if frame.info else None
-    if window is not None:
+    info = frame.info or {}
+    # sim.virtual_camera names it exposure_window (its "exposure" is the gain mu).
+    window = info.get("exposure_window", info.get("exposure"))
+    if window is not None and np.ndim(window) == 1 and len(window) == 2:
         return (float(window[0]), float(window[1])), True
     half = 0.5 * float(getattr(camera, "exposure_s", 0.0) or 0.0)
     return (frame.timestamp - half, frame.timestamp + half), False
@@ -382,14 +389,15 @@ def _settle_time(camera: Camera, settings: CaptureSettings) -> float:
 
 
 def _grab(camera: Camera, n: int, t_ack: float, settle: float, settings: CaptureSettings,
-          counters: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Read N fresh frames after the ACK at ``t_ack``; return (image, windows (N, 2))."""
+          counters: dict) -> tuple[np.ndarray, np.ndarray, list]:
+    """Read N fresh frames after the ACK at ``t_ack``; return (image, windows (N, 2), the
+    ``info["contact"]`` of each frame (None where the camera does not say))."""
     if settings.stale_frame_guard:
         # Frames already exposing when the LEDs changed finish within the settle time; they
         # and any older queued frames are dropped by the flush.
         time.sleep(max(0.0, t_ack + settle - time.monotonic()))
         counters["stale"] += camera.flush()
-    images, windows = [], []
+    images, windows, contacts = [], [], []
     rejected = 0
     while len(images) < n:
         frame = camera.read()
@@ -409,9 +417,11 @@ def _grab(camera: Camera, n: int, t_ack: float, settle: float, settings: Capture
             raise UserError(f"camera frame must have shape (H, W, 3), got {image.shape}")
         images.append(image)
         windows.append(window)
+        contacts.append((frame.info or {}).get("contact"))
     if n == 1:
-        return images[0], np.asarray(windows, np.float64)
-    return np.mean(np.stack(images).astype(np.float32), axis=0), np.asarray(windows, np.float64)
+        return images[0], np.asarray(windows, np.float64), contacts
+    return (np.mean(np.stack(images).astype(np.float32), axis=0), np.asarray(windows, np.float64),
+            contacts)
 
 
 # ---------------------------------------------------------------------------- the plan
@@ -426,6 +436,9 @@ def run_capture(
     on_contact: Callable[[int], None] | None = None,
     source: str = "camera",
     device_info: dict | None = None,
+    extra_data: dict[str, np.ndarray] | None = None,
+    extra_meta: dict | None = None,
+    scene: str = "",
     progress: bool = True,
 ) -> CaptureResult:
     """Capture every step of the plan (resuming an interrupted run) and write ``out``.
@@ -444,12 +457,18 @@ def run_capture(
     truth : object with ``states_during(t0, t1)``, optional
         The emulator's ground truth; when given, ``mislabeled`` is counted.
     on_contact : callable, optional
-        Called with ``k`` before the first pattern of contact instance ``k`` (e.g. to
-        prompt the operator to press).
+        Called with ``k`` before the first pattern of contact instance ``k`` that this run
+        captures (to prompt the operator to press, or to set a virtual camera's contact); a
+        resumed run calls it again for the instance it resumes in.
     source : str
         Recorded ``source`` attribute (``camera`` or ``virtual``).
     device_info : dict, optional
         Extra device description stored in the ``device`` attribute.
+    extra_data, extra_meta : dict, optional
+        More datasets (e.g. ``truth/height``) and attributes for the capture file.
+    scene : str
+        Fingerprint of anything else the frames depend on (a virtual scene); a journal
+        written with another scene is refused.
     progress : bool
         Show a progress bar on stderr.
 
@@ -474,7 +493,7 @@ def run_capture(
                         f"on {ring.port!r} has {ring.info.led_count}")
     shape = tuple(camera.shape)
     jpath = journal_path(out)
-    journal = _Journal(jpath, _fingerprint(patterns, settings, shape), out)
+    journal = _Journal(jpath, _fingerprint(patterns, settings, shape, scene), out)
     steps = plan_steps(len(patterns.names), settings)
     resumed = sum(journal.done(s) is not None for s in steps)
     settle = _settle_time(camera, settings)
@@ -487,14 +506,18 @@ def run_capture(
                            seconds=time.monotonic() - t_start,
                            stale_frames_dropped=counters["stale"])
 
+    reports_contact = bool(getattr(camera, "reports_contact", False))
     bar = _progress(len(steps), resumed, progress, out)
     step = None
+    pressed = None  # the contact instance this run has asked for
     try:
         for step in steps:
             if journal.done(step) is not None:
                 continue
-            if step.kind == "contact" and step.p == 0 and on_contact is not None:
-                on_contact(step.k)
+            if step.kind == "contact" and step.k != pressed:
+                if on_contact is not None:
+                    on_contact(step.k)
+                pressed = step.k
             if step.kind == "dark":
                 ring.off()
                 levels, b = np.zeros((patterns.led_count, 3), np.uint8), 0
@@ -502,11 +525,17 @@ def run_capture(
                 levels, b = patterns.levels(step.p)
                 ring.show_pattern(patterns.drive[step.p], float(patterns.brightness[step.p]))
             t_ack = time.monotonic()
-            image, windows = _grab(camera, settings.frames_per_pattern, t_ack, settle,
-                                   settings, counters)
+            image, windows, contacts = _grab(camera, settings.frames_per_pattern, t_ack, settle,
+                                             settings, counters)
             if image.shape[:2] != shape:
                 raise UserError(f"camera frame has shape {image.shape}, expected {shape} + (3,)")
-            bad = None if truth is None else _mislabeled(truth, windows, levels, b)
+            bad = None
+            if truth is not None:
+                # A frame is mislabeled if its exposure saw another LED state, or (for a camera
+                # that reports it) another contact than the step's.
+                want = step.k if step.kind == "contact" else -1
+                bad = _mislabeled(truth, windows, levels, b) or (
+                    reports_contact and any(c != want for c in contacts))
             journal.record(step, {"mislabeled": bad}, image, windows, t_ack, time.time())
             bar.update(1)
     except UserError as exc:  # ring or camera failed mid-capture
@@ -532,6 +561,8 @@ def run_capture(
 
     record = _assemble(patterns, settings, journal, steps, shape, source, camera, ring,
                        device_info)
+    record.data.update(extra_data or {})
+    record.meta.update(extra_meta or {})
     write_record(out, record)
     flags = [journal.done(s).get("mislabeled") for s in steps]
     result = CaptureResult(

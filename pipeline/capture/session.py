@@ -2,24 +2,30 @@
 
 :func:`capture` is what ``iristac capture`` (and a pipeline config's ``capture:`` section)
 calls: it opens the ring (a serial port, or an emulator it starts behind a pty), the camera
-(OpenCV, or a virtual camera that images the emulator's LEDs), loads the lighting mode and
-runs :func:`pipeline.capture.plan.run_capture`.
+(OpenCV, any :class:`~pipeline.capture.camera_api.Camera`, or the virtual sensor of
+:mod:`pipeline.capture.virtual` that renders the gel under the emulator's LEDs), loads the
+lighting mode through :func:`sim.modes.load_mode` and runs
+:func:`pipeline.capture.plan.run_capture`.
 
 Examples
 --------
 >>> import tempfile, os
 >>> out = os.path.join(tempfile.mkdtemp(), "capture.h5")
->>> r = capture(out, mode="point", emulate=True, virtual_camera=True, camera_fps=500.0,
-...             camera_shape=(8, 12), progress=False)
+>>> from pipeline.capture.virtual import VirtualSensorSpec, contact_objects
+>>> spec = VirtualSensorSpec(contacts=contact_objects("sphere", 2, (30, 40), 0.1), shape=(30, 40),
+...                          mm_per_px=0.1, fps=400.0)
+>>> r = capture(out, mode="monochromatic", emulate=True, virtual_camera=spec, progress=False)
 >>> r.frames, r.patterns, r.mislabeled
-(49, 24, 0)
+(10, 3, 0)
+>>> r.record.data["frames"].shape, r.record.data["truth/height"].shape
+((2, 3, 30, 40, 3), (2, 30, 40))
 """
 
 from __future__ import annotations
 
 import os
 import sys
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
@@ -28,43 +34,39 @@ from pipeline.capture.emulator import RingEmulator, parse_faults
 from pipeline.capture.plan import CaptureResult, CaptureSettings, PatternSet, run_capture
 from pipeline.errors import UserError
 
-__all__ = ["load_patterns", "patterns_from_mode", "capture", "json_summary", "prompt_contact"]
+if TYPE_CHECKING:
+    from pipeline.capture.camera_api import Camera
+    from pipeline.capture.virtual import VirtualSensorSpec
+
+__all__ = ["load_patterns", "patterns_from_mode", "capture", "virtual_sensor", "json_summary",
+           "prompt_contact"]
 
 
-def load_patterns(mode: str) -> PatternSet:
-    """The patterns of a lighting mode, by name or file path, as a :class:`PatternSet`.
+def load_patterns(mode) -> PatternSet:
+    """The patterns of a lighting mode (name, mode file, or ``sim.modes.LightingMode``).
 
-    Uses ``sim.modes`` (``load_mode`` and ``mode_drive``). Until that module exists the
-    only mode available is ``point`` (one LED at a time, white, full brightness).
+    Raises
+    ------
+    UserError
+        Unknown mode name or invalid mode file (from :func:`sim.modes.load_mode`).
 
-    >>> load_patterns("point").drive.shape
-    (24, 24, 3)
+    Examples
+    --------
+    >>> [load_patterns(m).drive.shape[0] for m in ("point", "monochromatic", "trichromatic", "multicolour")]
+    [24, 3, 1, 1]
     """
-    try:
-        from sim.modes import load_mode, mode_drive  # type: ignore[import-not-found]
-    except ModuleNotFoundError as exc:
-        if exc.name != "sim.modes":
-            raise  # sim.modes exists but is broken: say so, do not fall back silently
-        return _builtin_mode(mode)
-    m = load_mode(mode)
-    return patterns_from_mode(m, mode_drive(m))
+    from sim.modes import load_mode
+
+    return patterns_from_mode(load_mode(mode))
 
 
-def patterns_from_mode(mode, drive: np.ndarray) -> PatternSet:
-    """Adapt a ``sim.modes.LightingMode`` (``.name``, ``.frames`` of (name, drive,
-    brightness)) and its ``mode_drive`` (P, L, 3) to a :class:`PatternSet`."""
+def patterns_from_mode(mode) -> PatternSet:
+    """Adapt a ``sim.modes.LightingMode`` (``.name``, ``.frames`` of (name, drive (L, 3),
+    brightness)) to a :class:`PatternSet`."""
     names = [f[0] for f in mode.frames]
+    drive = np.stack([np.asarray(f[1], np.float64) for f in mode.frames])
     bright = [f[2] for f in mode.frames]
-    return PatternSet(str(mode.name), names, np.asarray(drive), bright)
-
-
-def _builtin_mode(mode: str) -> PatternSet:
-    if mode != "point":
-        raise UserError(f"--mode {mode!r}: lighting modes are not available yet (sim.modes); "
-                        "only 'point' is built in")
-    leds = 24
-    return PatternSet("point", [f"led{i:02d}" for i in range(leds)],
-                      np.repeat(np.eye(leds)[:, :, None], 3, axis=2), np.ones(leds))
+    return PatternSet(str(mode.name), names, drive, bright)
 
 
 def capture(
@@ -74,20 +76,18 @@ def capture(
     port: str | None = None,
     emulate: bool = False,
     faults: str | None = None,
-    camera: int | str | None = None,
-    virtual_camera: bool = False,
+    camera: int | str | Camera | None = None,
+    virtual_camera: bool | VirtualSensorSpec = False,
     frames_per_pattern: int = 1,
-    contacts: int = 1,
+    contacts: int | None = None,
     settle_s: float | None = None,
-    mm_per_px: float = 0.1,
+    mm_per_px: float | None = None,
     exposure: float | None = None,
     baudrate: int = 115200,
     timeout: float = 0.1,
     retries: int = 8,
     emulate_baud: bool = False,
     seed: int = 0,
-    camera_fps: float = 60.0,
-    camera_shape: tuple[int, int] = (60, 80),
     on_contact: Callable[[int], None] | None = None,
     progress: bool = True,
 ) -> CaptureResult:
@@ -98,28 +98,37 @@ def capture(
     out : path-like
         The ``capture.h5`` to write.
     mode : str
-        Lighting mode name or file.
+        Lighting mode name (:func:`sim.modes.list_modes`) or mode file.
     port : str, optional
         Serial port of the ring. Exactly one of ``port`` and ``emulate``.
     emulate : bool
         Start a ring emulator behind a pty instead (``faults``: its fault spec;
         ``emulate_baud``: model the wire time at ``baudrate``).
-    camera : int or str, optional
-        OpenCV camera index, device path or video file. Exactly one of ``camera`` and
-        ``virtual_camera``.
-    virtual_camera : bool
-        Image the emulated ring's LEDs (needs ``emulate``) at ``camera_fps`` and
-        ``camera_shape`` (H, W).
-    frames_per_pattern, contacts, settle_s, mm_per_px
+    camera : int, str or Camera, optional
+        OpenCV camera index, device path or video file, or any object implementing
+        :class:`~pipeline.capture.camera_api.Camera` (opened here and closed at the end).
+        Exactly one of ``camera`` and ``virtual_camera``.
+    virtual_camera : bool or VirtualSensorSpec
+        Render the gel under the emulated ring's LEDs (needs ``emulate``) with
+        :class:`~pipeline.capture.virtual.ContactCamera`; True uses
+        :func:`virtual_sensor` (``contacts`` spheres on a 60 x 80 image). The
+        capture then carries ``truth/height``, ``truth/normals`` and ``truth/albedo``.
+    frames_per_pattern, settle_s
         See :class:`~pipeline.capture.plan.CaptureSettings`.
+    contacts : int, optional
+        K contact instances. Default: the spec's number of contacts, else 1.
+    mm_per_px : float, optional
+        Image scale recorded in the capture. Default: the virtual sensor's, else 0.1.
     exposure : float, optional
-        Camera exposure (seconds for the virtual camera, backend units for OpenCV).
+        Camera exposure (virtual camera: the gain ``mu`` in DN per unit radiance, default
+        fitted to the mode; OpenCV: backend units).
     baudrate, timeout, retries
         Serial settings of the ring client.
     seed : int
         Seed of the emulator's fault injection.
     on_contact : callable, optional
-        Called with k before contact instance k.
+        Called with k before contact instance k (e.g. :func:`prompt_contact` for a real
+        camera; with the virtual camera it is called after the camera's contact is set).
     progress : bool
         Show a progress bar.
 
@@ -130,34 +139,68 @@ def capture(
     """
     if bool(port) == bool(emulate):
         raise UserError("capture: give exactly one of --port PORT and --emulate")
-    if (camera is None) == (not virtual_camera):
+    if (camera is None) == (virtual_camera is False):
         raise UserError("capture: give exactly one of --camera ID and --virtual-camera")
-    if virtual_camera and not emulate:
-        raise UserError("capture: --virtual-camera images the emulated ring's LEDs; it needs "
-                        "--emulate")
+    if virtual_camera is not False and not emulate:
+        raise UserError("capture: --virtual-camera renders the gel under the emulated ring's LEDs; "
+                        "it needs --emulate")
     if faults and not emulate:
         raise UserError("capture: --faults applies to the emulator; it needs --emulate")
-    settings = CaptureSettings(frames_per_pattern=frames_per_pattern, contacts=contacts,
-                               settle_s=settle_s, mm_per_px=mm_per_px)
+    spec = None
+    if virtual_camera is not False:
+        from pipeline.capture.virtual import VirtualSensorSpec  # loads torch: only when needed
+
+        if virtual_camera is True:
+            spec = virtual_sensor(contacts=contacts, mm_per_px=mm_per_px, seed=seed)
+        elif isinstance(virtual_camera, VirtualSensorSpec):
+            spec = virtual_camera
+        else:
+            raise UserError(f"capture: virtual_camera must be True or a VirtualSensorSpec, got "
+                            f"{type(virtual_camera).__name__}")
+        n = len(spec.contacts)
+        if contacts is not None and contacts != n:
+            raise UserError(f"capture: --contacts {contacts} but the virtual sensor has {n} contacts")
+        contacts = n
+        model_pitch = spec.model().mm_per_px
+        if mm_per_px is not None and not np.isclose(mm_per_px, model_pitch):
+            raise UserError(f"capture: --mm-per-px {mm_per_px} differs from the illumination "
+                            f"model's {model_pitch}")
+        mm_per_px = model_pitch
+    settings = CaptureSettings(frames_per_pattern=frames_per_pattern,
+                               contacts=1 if contacts is None else contacts, settle_s=settle_s,
+                               mm_per_px=0.1 if mm_per_px is None else mm_per_px)
     patterns = load_patterns(mode)
     emulator = None
     if emulate:
         emulator = RingEmulator(led_count=patterns.led_count, faults=parse_faults(faults),
                                 baudrate=baudrate if emulate_baud else None, seed=seed)
         port = emulator.start()
+    extra: dict = {}
     try:
         with RingClient(port, baudrate=baudrate, timeout=timeout, retries=retries) as ring:  # type: ignore[arg-type]
-            cam = _open_camera(camera, virtual_camera, emulator, camera_fps, camera_shape,
-                               exposure)
+            if spec is not None:
+                from pipeline.capture.virtual import open_virtual_camera, truth_data
+
+                cam = open_virtual_camera(spec, emulator, patterns.drive, patterns.brightness,
+                                          exposure)
+                extra = dict(
+                    extra_data=truth_data(spec), scene=spec.fingerprint(),
+                    extra_meta={"render_settings": cam.settings.to_dict(),
+                                "illumination": _scalars(spec.model().meta)},
+                )
+                on_contact = _then(cam.set_contact, on_contact)
+            else:
+                cam = _open_camera(camera, exposure)
             try:
                 return run_capture(
                     patterns, ring, cam, out, settings,
                     truth=emulator,
                     on_contact=on_contact,
-                    source="virtual" if virtual_camera else "camera",
+                    source="virtual" if spec is not None else "camera",
                     device_info={"emulated_ring": bool(emulate),
                                  "faults": faults or ""},
                     progress=progress,
+                    **extra,
                 )
             finally:
                 cam.close()
@@ -166,15 +209,79 @@ def capture(
             emulator.stop()
 
 
-def _open_camera(camera, virtual_camera, emulator, fps, shape, exposure):
-    if virtual_camera:
-        from pipeline.capture.led_camera import LedStateCamera
+def virtual_sensor(
+    *,
+    obj: str = "sphere",
+    contacts: int | None = None,
+    illumination: str | os.PathLike | None = None,
+    shape: tuple[int, int] = (60, 80),
+    mm_per_px: float | None = None,
+    fps: float = 60.0,
+    noise_dn: float = 1.0,
+    bit_depth: int | None = 8,
+    seed: int = 0,
+) -> VirtualSensorSpec:
+    """The virtual sensor of ``iristac capture --virtual-camera`` from its options.
 
-        try:
-            cam = LedStateCamera(emulator, shape=shape, fps=fps, exposure_s=exposure)
-        except ValueError as exc:
-            raise UserError(f"--virtual-camera with --camera-fps {fps} and --exposure "
-                            f"{exposure}: {exc}") from None
+    Parameters
+    ----------
+    obj : str
+        ``sphere``, ``indenters``, ``none`` or a ``.npy`` height map / stack
+        (:func:`pipeline.capture.virtual.contact_objects`).
+    contacts : int, optional
+        K (default 1, or the number of maps in a ``.npy`` stack).
+    illumination : path, optional
+        ``illumination.h5``; default the bare LED ring at ``shape`` and ``mm_per_px``.
+    shape : (H, W)
+        Image size without ``illumination``.
+    mm_per_px : float, optional
+        Pixel pitch without ``illumination`` (default 0.1); with it, must agree with the file.
+    fps, noise_dn, bit_depth, seed
+        See :class:`~pipeline.capture.virtual.VirtualSensorSpec`.
+
+    Examples
+    --------
+    >>> spec = virtual_sensor(obj="indenters", contacts=3, shape=(20, 30))
+    >>> len(spec.contacts), spec.model().shape, spec.model().mm_per_px
+    (3, (20, 30), 0.1)
+    """
+    from pipeline.capture.virtual import VirtualSensorSpec, contact_objects, illumination_option
+
+    model = illumination_option(illumination) if illumination is not None else None
+    if model is not None and mm_per_px is not None and not np.isclose(mm_per_px, model.mm_per_px):
+        raise UserError(f"--mm-per-px {mm_per_px} differs from {illumination}'s mm_per_px "
+                        f"{model.mm_per_px}")
+    spec = VirtualSensorSpec(illumination=model, shape=tuple(shape),
+                             mm_per_px=0.1 if mm_per_px is None else float(mm_per_px), fps=fps,
+                             noise_dn=noise_dn, bit_depth=bit_depth, seed=seed)
+    m = spec.model()
+    spec.contacts = contact_objects(obj, contacts, m.shape, m.mm_per_px, seed=seed)
+    return spec
+
+
+def _scalars(meta: dict) -> dict:
+    return {k: v for k, v in meta.items() if isinstance(v, (str, int, float, bool))}
+
+
+def _then(first: Callable[[int], None], second: Callable[[int], None] | None):
+    """``first(k)`` then ``second(k)`` (set the virtual contact, then tell the caller)."""
+    if second is None:
+        return first
+
+    def both(k: int) -> None:
+        first(k)
+        second(k)
+
+    return both
+
+
+def _open_camera(camera, exposure):
+    from pipeline.capture.camera_api import Camera
+
+    if isinstance(camera, Camera):
+        cam = camera
+        if exposure is not None:
+            cam.set_exposure(exposure)
     else:
         from pipeline.capture.camera import OpenCVCamera
 

@@ -8,6 +8,10 @@ from typing import Any
 
 EXIT_NOT_IMPLEMENTED = 3
 
+#: The arguments being parsed (set by :func:`pipeline.cli.main`), for commands that load
+#: heavy modules only when they are the ones asked for.
+ARGV: list[str] = []
+
 
 def add_json_flag(parser) -> None:
     parser.add_argument("--json", action="store_true", help="print results as JSON (stable keys)")

@@ -25,22 +25,43 @@ BENCHMARKS = [
 
 
 def register(sub, name, help_text):
+    from pipeline.cli import _common
+
     _, group = make_group(sub, name, help_text)
+    # Benchmarks import torch and friends; import one only when its own options are needed
+    # (``iristac bench NAME ...``), so that every other command starts fast.
+    wanted = _requested_bench(_common.ARGV)
     for bench_name, text in BENCHMARKS:
         p = group.add_parser(bench_name, help=text, description=text)
         add_json_flag(p)
         p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke test")
-        try:
-            module = importlib.import_module(f"pipeline.bench.{bench_name}")
-        except ModuleNotFoundError:
-            module = None
-        if module is not None and hasattr(module, "add_arguments"):
-            module.add_arguments(p)
-        p.set_defaults(func=_runner(bench_name, module))
+        if bench_name == wanted:
+            module = _load(bench_name)
+            if module is not None and hasattr(module, "add_arguments"):
+                module.add_arguments(p)
+        p.set_defaults(func=_runner(bench_name))
 
 
-def _runner(bench_name, module):
+def _requested_bench(argv) -> str | None:
+    """``NAME`` when the command line is ``[...] bench NAME ...``."""
+    for i, a in enumerate(argv[:-1]):
+        if a == "bench":
+            return argv[i + 1]
+    return None
+
+
+def _load(bench_name):
+    try:
+        return importlib.import_module(f"pipeline.bench.{bench_name}")
+    except ModuleNotFoundError as exc:
+        if exc.name == f"pipeline.bench.{bench_name}":
+            return None
+        raise
+
+
+def _runner(bench_name):
     def run(args) -> int:
+        module = _load(bench_name)
         if module is None:
             print(f"iristac bench {bench_name}: not implemented yet", file=sys.stderr)
             return 3

@@ -16,15 +16,28 @@ def register(sub, name, help_text):
     p.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
     p.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
     p.add_argument("--out", required=True, help="calibration.h5 to write")
+    p.add_argument("--illumination", default=None,
+                   help="illumination.h5 (LED fields V from iristac sim trace) for the traced model")
+    p.add_argument("--correct-led-geometry", action="store_true",
+                   help="traced model: also fit small LED position and tilt corrections")
+    p.add_argument("--no-refine", action="store_true",
+                   help="keep the edge detector's centres (no photometric centre refinement)")
     p.add_argument("--overlay", default=None, help="also write an overlay PNG of the circles")
     add_json_flag(p)
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
-    from calibration.calibrate import calibrate
+    from calibration.calibrate import calibrate, read_illumination
 
-    res = calibrate(args.capture, args.ball_radius, args.mm_per_px, args.model, folds=args.folds)
+    ill = read_illumination(args.illumination) if args.illumination else None
+    if args.correct_led_geometry and ill is None:
+        from pipeline.errors import UserError
+
+        raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
+    opts = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else None
+    res = calibrate(args.capture, args.ball_radius, args.mm_per_px, args.model, folds=args.folds, illumination=ill,
+                    model_options=opts, refine_iterations=0 if args.no_refine else 2)
     res.save(args.out)
     if args.overlay:
         from calibration.capture import read_capture

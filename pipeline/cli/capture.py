@@ -19,17 +19,21 @@ def register(sub, name, help_text):
     cam = p.add_mutually_exclusive_group(required=True)
     cam.add_argument("--camera", help="OpenCV camera index, device path or video file")
     cam.add_argument("--virtual-camera", action="store_true",
-                     help="a virtual camera imaging the emulated ring's LEDs (needs --emulate)")
+                     help="render the gel under the emulated ring's LEDs (needs --emulate); the "
+                     "capture then carries truth/height, truth/normals, truth/albedo")
     p.add_argument("--mode", required=True, help="lighting mode name or file")
     p.add_argument("--frames-per-pattern", type=int, default=1, metavar="N",
                    help="frames averaged per stored frame (default 1)")
-    p.add_argument("--contacts", type=int, default=1, metavar="K",
-                   help="contact instances (presses) after the references (default 1)")
+    p.add_argument("--contacts", type=int, default=None, metavar="K",
+                   help="contact instances (presses) after the references (default 1, or the "
+                   "number of maps in an --object stack)")
     p.add_argument("--settle", type=float, default=None, metavar="S",
                    help="seconds to wait after a pattern change before flushing the camera")
     p.add_argument("--exposure", type=float, default=None,
-                   help="camera exposure (virtual: seconds; OpenCV: backend units)")
-    p.add_argument("--mm-per-px", type=float, default=0.1, help="image scale (default 0.1)")
+                   help="camera exposure (virtual: gain mu in DN per unit radiance, default "
+                   "fitted to the mode; OpenCV: backend units)")
+    p.add_argument("--mm-per-px", type=float, default=None,
+                   help="image scale (default 0.1, or the --illumination file's)")
     p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
     p.add_argument("--timeout", type=float, default=0.1,
                    help="seconds to wait for the ring's first reply (default 0.1)")
@@ -37,9 +41,21 @@ def register(sub, name, help_text):
     p.add_argument("--emulate-baud", action="store_true",
                    help="the emulator models the wire time at --baud")
     p.add_argument("--seed", type=int, default=0, help="seed of the emulator's faults")
-    p.add_argument("--camera-fps", type=float, default=60.0, help="virtual camera frame rate")
-    p.add_argument("--camera-size", type=int, nargs=2, default=(60, 80), metavar=("H", "W"),
-                   help="virtual camera image size (default 60 80)")
+    v = p.add_argument_group("virtual camera (--virtual-camera)")
+    v.add_argument("--object", default="sphere", metavar="OBJ",
+                   help="what presses the gel: sphere (balls at different places and depths), "
+                   "indenters (sphere, cylinder, flat punch, cone, wedge in turn), none, or a "
+                   ".npy height map (H, W) or stack (K, H, W) in mm (default sphere)")
+    v.add_argument("--illumination", metavar="FILE",
+                   help="illumination.h5 (schema illumination) to render with; default: the "
+                   "bare LED ring in closed form")
+    v.add_argument("--camera-fps", type=float, default=60.0, help="frame rate (default 60)")
+    v.add_argument("--camera-size", type=int, nargs=2, default=(60, 80), metavar=("H", "W"),
+                   help="image size without --illumination (default 60 80)")
+    v.add_argument("--noise", type=float, default=1.0, metavar="DN",
+                   help="read noise in DN (default 1)")
+    v.add_argument("--bit-depth", type=int, default=8, choices=(0, 8, 10, 12, 16),
+                   help="frame bit depth; 0 = float32 (default 8)")
     p.add_argument("--no-prompt", action="store_true",
                    help="do not wait for Enter before each contact with a real camera")
     p.add_argument("--out", required=True, help="capture file to write (.h5)")
@@ -49,11 +65,26 @@ def register(sub, name, help_text):
 
 
 def run(args) -> int:
-    from pipeline.capture.session import capture, json_summary, prompt_contact
+    from pipeline.capture.session import capture, json_summary, prompt_contact, virtual_sensor
 
     prompt = None
     if args.camera is not None and not args.no_prompt and sys.stdin.isatty():
         prompt = prompt_contact
+    if args.faults:
+        from pipeline.capture.emulator import parse_faults
+
+        parse_faults(args.faults)  # a bad spec fails before the renderer is loaded
+    virtual = False
+    if args.virtual_camera:
+        import torch
+
+        # One frame at a time is a few small matrix products: with more threads torch's pool
+        # spins on busy cores (measured several times slower on the shared 2-core machine).
+        torch.set_num_threads(1)
+        virtual = virtual_sensor(
+            obj=args.object, contacts=args.contacts, illumination=args.illumination,
+            shape=tuple(args.camera_size), mm_per_px=args.mm_per_px, fps=args.camera_fps,
+            noise_dn=args.noise, bit_depth=args.bit_depth or None, seed=args.seed)
     result = capture(
         args.out,
         mode=args.mode,
@@ -61,7 +92,7 @@ def run(args) -> int:
         emulate=args.emulate,
         faults=args.faults,
         camera=args.camera,
-        virtual_camera=args.virtual_camera,
+        virtual_camera=virtual,
         frames_per_pattern=args.frames_per_pattern,
         contacts=args.contacts,
         settle_s=args.settle,
@@ -72,8 +103,6 @@ def run(args) -> int:
         retries=args.retries,
         emulate_baud=args.emulate_baud,
         seed=args.seed,
-        camera_fps=args.camera_fps,
-        camera_shape=tuple(args.camera_size),
         on_contact=prompt,
         progress=not args.json,
     )

@@ -1,7 +1,68 @@
-"""CLI command (not implemented yet: the pipeline-run issue)."""
+"""``iristac compare-modes``: which lighting mode reconstructs best (:func:`pipeline.compare.compare_modes`)."""
 
-from pipeline.cli._common import not_implemented
+from __future__ import annotations
+
+from pipeline.cli._common import add_json_flag, print_json
+from pipeline.errors import UserError
 
 
 def register(sub, name, help_text):
-    not_implemented(sub, name, help_text, "the pipeline-run issue")
+    p = sub.add_parser(name, help=help_text, description=help_text + ". Renders a test object under each mode "
+                       "with the virtual sensor, or compares your own captures (each with truth/* datasets).")
+    p.add_argument("--out", required=True, help="folder for report.html, report.json and the captures")
+    p.add_argument("--modes", nargs="+", metavar="MODE", help="lighting modes (names or files; default: all shipped)")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--scene", default="default", help="scene to trace (default: default)")
+    src.add_argument("--illumination", metavar="ILL", help="use this illumination.h5 instead of tracing")
+    p.add_argument("--object", default="indenters", help="indenters | sphere | height map (.npy mm, 16-bit .png)")
+    p.add_argument("--captures", nargs="+", metavar="MODE=CAPTURE", help="compare these captures instead of rendering")
+    p.add_argument("--calibration", nargs="+", metavar="MODE=CAL", help="calibrations with a lookup table per mode")
+    p.add_argument("--size", nargs=2, type=int, metavar=("H", "W"), default=(120, 160))
+    p.add_argument("--mm-per-px", type=float, default=0.15)
+    p.add_argument("--rays", type=int, default=2_000_000, help="rays per LED when tracing")
+    p.add_argument("--integrator", default="dst", choices=["fc", "dct", "dst", "sparse"])
+    p.add_argument("--no-lut", action="store_true", help="do not calibrate lookup tables for single-frame modes")
+    p.add_argument("--render-only", action="store_true",
+                   help="render frames directly instead of capturing through the ring emulator and virtual camera")
+    p.add_argument("--faults", help="fault spec for the emulated ring, e.g. drop=0.05,corrupt=0.05")
+    p.add_argument("--fps", type=float, default=30.0, help="virtual camera frame rate (default 30)")
+    p.add_argument("--cache", help="stage store folder (default: OUT/cache)")
+    add_json_flag(p)
+    p.set_defaults(func=_run)
+
+
+def _pairs(items, flag):
+    out = {}
+    for item in items or []:
+        if "=" not in item:
+            raise UserError(f"{flag}: expected MODE=PATH, got {item!r}")
+        k, v = item.split("=", 1)
+        out[k] = v
+    return out
+
+
+def _run(args) -> int:
+    import sys
+
+    from pipeline.compare import compare_modes
+
+    data = compare_modes(args.out, modes=args.modes, scene=args.scene, illumination=args.illumination,
+                         object=args.object, shape=tuple(args.size), mm_per_px=args.mm_per_px, rays=args.rays,
+                         captures=_pairs(args.captures, "--captures") or None,
+                         calibrations=_pairs(args.calibration, "--calibration"), lut=not args.no_lut,
+                         integrator=args.integrator, cache=args.cache, emulate=not args.render_only,
+                         faults=args.faults, camera_fps=args.fps,
+                         log=lambda m: print(f"[compare-modes] {m}", file=sys.stderr))
+    if args.json:
+        print_json(data)
+        return 0
+    print(f"{'mode':<14} {'solver':<10} {'patterns':>8} {'normal mean (deg)':>18} {'depth RMSE (mm)':>16} {'capture s':>10}")
+    for r in data["comparison"]["runs"]:
+        n, d = r["normal_mean_error_deg"], r["depth_rmse_mm"]
+        print(f"{r['mode']:<14} {r['solver']:<10} {r['patterns']:>8} {('%.3f' % n) if n is not None else '-':>18} "
+              f"{('%.4f' % d) if d is not None else '-':>16} {r['capture_seconds']:>10.3g}")
+    best = data["comparison"]["best"]
+    if best:
+        print(f"best: {best['mode']} with {best['solver']} ({best['normal_mean_error_deg']:.3f} deg)")
+    print(f"report: {args.out}/report.html")
+    return 0

@@ -1,4 +1,4 @@
-"""The OpenCV camera wrapper on a real video file, and the LED-state virtual camera's buffer."""
+"""The OpenCV camera wrapper on a real video file, and the virtual camera's buffer and contacts."""
 
 from __future__ import annotations
 
@@ -11,7 +11,9 @@ import pytest
 from pipeline.capture.camera import CameraError, CameraSettingWarning, OpenCVCamera
 from pipeline.capture.camera_api import Camera
 from pipeline.capture.emulator import ShownState
-from pipeline.capture.led_camera import LedStateCamera
+from pipeline.capture.virtual import ContactCamera
+from sim.render import RenderSettings, bare_ring_illumination
+from sim.virtual_camera import ring_led_state
 
 
 @pytest.fixture
@@ -61,33 +63,57 @@ class _History:
         return before + [s for s in self.states if t0 < s.t <= t1]
 
 
-def _state(t, value, leds=2):
+def _state(t, value, leds=24):
     return ShownState(t, np.full((leds, 3), value, np.uint8), 255)
 
 
-def test_exposure_spanning_a_change_mixes_the_states():
-    hist = _History([_state(-1e9, 0)])
-    cam = LedStateCamera(hist, shape=(2, 2), fps=50.0, exposure_s=0.01, buffer_size=2)
-    cam.open()
-    t0 = cam._t0
-    # Frame 1 is exposed over [t0 + 0.02, t0 + 0.03]; the LEDs switch 30 % into it.
-    hist.states.append(_state(t0 + 0.023, 200))
-    cam.read()  # frame 0: all dark
-    f1 = cam.read()
-    assert f1.index == 1 and f1.info["states_in_exposure"] == 2
-    assert np.allclose(f1.image, 0.7 * 200, atol=1)
-    f2 = cam.read()
-    assert np.all(f2.image == 200) and f2.info["states_in_exposure"] == 1
+def _camera(hist, fps, buffer_size=4, contacts=()):
+    model = bare_ring_illumination((4, 6), 1.0)
+    return ContactCamera(model, ring_led_state(hist), list(contacts),
+                         settings=RenderSettings(exposure=1e5), fps=fps, buffer_size=buffer_size)
 
 
-def test_queue_is_stale_until_flushed():
+def test_virtual_camera_queue_is_stale_until_flushed():
     hist = _History([_state(-1e9, 0)])
-    cam = LedStateCamera(hist, shape=(2, 2), fps=200.0, buffer_size=3)
+    cam = _camera(hist, fps=200.0, buffer_size=3)
     cam.open()
-    time.sleep(8 * cam.frame_period)
-    hist.states.append(_state(time.monotonic(), 255))
-    assert cam.read().image.max() == 0  # the queued frames predate the change
-    time.sleep(2 * cam.frame_period)
-    assert cam.flush() == 3  # the queue was full; newer frames were dropped by the "driver"
-    assert cam.dropped_by_driver > 0
-    assert cam.read().image.min() == 255
+    try:
+        time.sleep(8 / cam.fps)
+        t_change = time.monotonic()
+        hist.states.append(_state(t_change, 255))
+        assert cam.read().image.max() == 0  # the queued frames predate the change
+        time.sleep(3 / cam.fps)
+        assert cam.flush() == 3  # the queue was full: older frames were pushed out
+        assert cam.dropped > 0
+        frame = cam.read()
+        assert frame.info["exposure_window"][0] >= t_change and frame.image.min() > 0
+    finally:
+        cam.close()
+
+
+def test_virtual_camera_shows_the_contact_it_is_told_from_the_next_exposure():
+    from sim.geometry import sphere
+
+    hist = _History([_state(-1e9, 255)])
+    ball = sphere((4, 6), 1.0, radius=3.0, depth=1.0)
+    cam = _camera(hist, fps=500.0, contacts=[ball])
+    cam.open()
+    try:
+        flat = cam.read()
+        assert flat.info["contact"] == -1
+        t_set = time.monotonic()
+        cam.set_contact(0)
+        cam.flush()
+        frame = cam.read()
+        while frame.info["exposure_window"][0] < t_set:  # begun before the press: flat gel
+            assert frame.info["contact"] == -1
+            frame = cam.read()
+        assert frame.info["contact"] == 0
+        # The ball tilts the gel under it: the pixels change where it presses, not elsewhere.
+        diff = np.abs(frame.image - flat.image).max(axis=2)
+        assert diff[ball.contact].min() > 1e-3 * flat.image.max()
+        assert np.allclose(diff[~ball.contact], 0, atol=1e-3 * flat.image.max())
+        with pytest.raises(ValueError, match=r"k must be in \[-1, 1\)"):
+            cam.set_contact(1)
+    finally:
+        cam.close()

@@ -28,10 +28,27 @@ def test_capture_json_keys_with_faults(tmp_path):
     assert summary["mislabeled"] == 0 and summary["retries"] > 0
     rec = read_record(out, schema="capture")
     assert rec.meta["mode"] == "point" and rec.data["reference"].shape == (24, 6, 8, 3)
-    # The point mode lights LED p alone: its reference frame shows LED p's pixels only.
-    lit = rec.data["reference"][5].max(axis=2) > 0
-    idx = np.arange(48).reshape(6, 8) % 24
-    assert np.array_equal(lit, idx == 5)
+    assert rec.data["truth/height"].shape == (1, 6, 8) and rec.meta["source"] == "virtual"
+    # The point mode lights one LED at a time: LED 0 sits at +x (right of the image), LED 12
+    # at -x, so the right column is brighter under LED 0 and the left one under LED 12.
+    ref = rec.data["reference"].astype(float).mean(axis=3)
+    assert ref[0][:, -1].mean() > ref[0][:, 0].mean() and ref[12][:, 0].mean() > ref[12][:, -1].mean()
+
+
+def test_objects_from_a_height_map_stack_and_the_indenter_set(tmp_path):
+    stack = np.zeros((2, 6, 8))
+    stack[1, 2:4, 3:5] = 0.3
+    np.save(tmp_path / "h.npy", stack)
+    out = tmp_path / "c.h5"
+    r = run_cli("capture", *FAST, "--mode", "trichromatic", "--object", tmp_path / "h.npy",
+                "--bit-depth", "0", "--noise", "0", "--out", out, "--json", timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["frames"] == 1 + 1 + 2
+    d = read_record(out, schema="capture").data
+    assert np.array_equal(d["truth/height"], stack.astype(np.float32))
+    # Noise-free: the flat contact renders exactly as the reference, the bump does not.
+    assert np.allclose(d["frames"][0, 0], d["reference"][0])
+    assert not np.allclose(d["frames"][1, 0], d["reference"][0])
 
 
 def test_disconnect_then_rerun_resumes(tmp_path):
@@ -55,9 +72,6 @@ def test_bad_arguments_are_one_line_errors(tmp_path):
     assert r.returncode == 2
     assert r.stderr.strip().startswith("iristac capture: error: serial port "
                                        "'/dev/ttyIRISTAC-NOPE' does not exist")
-    r = run_cli("capture", "--port", "/dev/null", "--virtual-camera", "--mode", "point",
-                "--out", tmp_path / "c.h5")
-    assert r.returncode == 2 and "needs --emulate" in r.stderr
     r = run_cli("capture", *FAST, "--faults", "drop=7", "--out", tmp_path / "c.h5")
     assert r.returncode == 2 and "--faults: drop=7.0 must be a probability" in r.stderr
 
@@ -96,12 +110,6 @@ def test_emulate_ring_wrong_version_is_caught_by_the_host():
     finally:
         proc.terminate()
         proc.wait(timeout=10)
-
-
-def test_virtual_camera_exposure_longer_than_a_frame_is_a_user_error(tmp_path):
-    r = run_cli("capture", *FAST, "--exposure", "0.5", "--out", tmp_path / "c.h5")
-    assert r.returncode == 2
-    assert "--camera-fps 500.0 and --exposure 0.5: exposure must be in [0, 0.002] s" in r.stderr
 
 
 def test_capture_with_an_opencv_video_file_as_camera(tmp_path):

@@ -1,4 +1,4 @@
-"""The capture plan over a real pty and the LED-state virtual camera: labels, stale frames,
+"""The capture plan over a real pty and the rendering virtual camera: labels, stale frames,
 resume after a disconnect, the journal."""
 
 from __future__ import annotations
@@ -10,7 +10,6 @@ import pytest
 
 from pipeline.capture.client import RingClient, RingDisconnected
 from pipeline.capture.emulator import FaultSpec, RingEmulator, parse_faults
-from pipeline.capture.led_camera import LedStateCamera, render_led_state
 from pipeline.capture.plan import (
     _fingerprint,
     _Journal,
@@ -20,10 +19,28 @@ from pipeline.capture.plan import (
     plan_steps,
     run_capture,
 )
+from pipeline.capture.virtual import ContactCamera, VirtualSensorSpec, open_virtual_camera
 from pipeline.errors import UserError
 from pipeline.store import read_record
+from sim.render import RenderSettings, bare_ring_illumination, render_images
+from sim.virtual_camera import ring_led_state
 
 SHAPE = (4, 6)
+
+
+@pytest.fixture(autouse=True)
+def one_torch_thread():
+    """The renderer's tiny matrix products spin torch's thread pool on shared cores: one thread
+    is several times faster here (see ``iristac bench render``)."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+# Noise-free float frames: every pixel is an exact function of the LED state and the surface,
+# so a stored frame can be checked against a rendering of the pattern it is labelled with.
+EXACT = RenderSettings(exposure=1e5)
 
 
 def random_patterns(n: int, seed: int = 0, leds: int = 24) -> PatternSet:
@@ -32,19 +49,38 @@ def random_patterns(n: int, seed: int = 0, leds: int = 24) -> PatternSet:
                       rng.uniform(0.2, 1.0, n))
 
 
-def decoded_ok(image: np.ndarray, patterns: PatternSet, p: int) -> bool:
-    levels, b = patterns.levels(p)
-    return np.array_equal(image, np.floor(render_led_state(levels, b, image.shape[:2]) + 0.5))
+def spec_for(patterns: PatternSet, contacts: int = 0, fps: float = 2000.0) -> VirtualSensorSpec:
+    from pipeline.capture.virtual import contact_objects
+
+    model = bare_ring_illumination(SHAPE, 1.0, count=patterns.led_count)
+    return VirtualSensorSpec(illumination=model, settings=EXACT, fps=fps,
+                             contacts=contact_objects("sphere", contacts, SHAPE, 1.0))
 
 
-def capture_with(emu, patterns, out, settings, timeout=0.005, fps=2000.0, warm_up=0.0,
-                 exposure_s=None):
+def expected(spec: VirtualSensorSpec, patterns: PatternSet, k: int = -1) -> np.ndarray:
+    """Noise-free renderings (P, H, W, 3) of every pattern, as the ring latched it, on contact
+    ``k`` (-1: the flat gel)."""
+    levels = np.stack([patterns.levels(p)[0] for p in range(len(patterns.names))]) / 255.0
+    b = np.array([patterns.levels(p)[1] for p in range(len(patterns.names))]) / 255.0
+    surface = spec.surfaces()[k] if k >= 0 else None
+    return render_images(spec.model(), surface, levels, b, settings=EXACT)
+
+
+def decoded_ok(image: np.ndarray, want: np.ndarray) -> bool:
+    """Is ``image`` the rendering ``want`` (up to float32 rounding)?"""
+    return np.allclose(image, want, rtol=1e-4, atol=1e-3)
+
+
+def capture_with(emu, patterns, out, settings, timeout=0.005, fps=2000.0, warm_up=0.0):
+    spec = spec_for(patterns, settings.contacts, fps)
     with RingClient(emu.path, timeout=timeout, retries=25) as ring:
-        cam = LedStateCamera(emu, shape=SHAPE, fps=fps, exposure_s=exposure_s)
-        cam.open()
-        time.sleep(warm_up)  # let the camera's queue fill, as a webcam left running does
-        return run_capture(patterns, ring, cam, out, settings, truth=emu, progress=False,
-                           source="virtual")
+        cam = open_virtual_camera(spec, emu, patterns.drive, patterns.brightness)
+        try:
+            time.sleep(warm_up)  # let the camera's queue fill, as a webcam left running does
+            return run_capture(patterns, ring, cam, out, settings, truth=emu, progress=False,
+                               source="virtual", on_contact=cam.set_contact)
+        finally:
+            cam.close()
 
 
 def test_1000_pattern_changes_with_drops_and_corruption_zero_mislabeled(tmp_path):
@@ -59,32 +95,33 @@ def test_1000_pattern_changes_with_drops_and_corruption_zero_mislabeled(tmp_path
     assert result.mislabeled == 0 and result.frames == 1001
     rec = read_record(out, schema="capture")
     ref = rec.data["reference"]
-    # Independent of the timestamps: every stored frame decodes to its own pattern's LEDs.
-    assert all(decoded_ok(ref[p], patterns, p) for p in range(1000))
+    # Independent of the timestamps: every stored frame is the rendering of its own pattern.
+    want = expected(spec_for(patterns), patterns)
+    assert all(decoded_ok(ref[p], want[p]) for p in range(1000))
     assert not rec.data["dark"].any()
     assert not journal_path(out).exists()
 
 
 def test_skipping_the_stale_frame_flush_is_caught(tmp_path):
-    """Without flushing, the webcam-like queue hands back frames from the previous pattern:
-    the emulator's history and the pixels both say so."""
+    """Without flushing, the webcam-like queue of the virtual camera hands back frames from
+    the previous pattern: the emulator's history and the rendered pixels both say so."""
     patterns = random_patterns(12, seed=1)
     settings = CaptureSettings(contacts=0, dark=False, stale_frame_guard=False)
     with RingEmulator() as emu:
         # A camera left running has a full queue of frames from before the capture; once it
-        # is drained, a read waits for the frame being exposed, which (exposure = the whole
-        # frame period) began before the pattern changed. So every unflushed frame is stale
-        # or mixed.
-        cam = dict(fps=100.0, warm_up=0.06, exposure_s=0.01)
+        # is drained, a read waits for the frame being exposed, which began (and sampled the
+        # LEDs) before the pattern changed. So every unflushed frame is stale.
+        cam = dict(fps=100.0, warm_up=0.06)
         bad = capture_with(emu, patterns, tmp_path / "bad.h5", settings, **cam)
         good = capture_with(emu, patterns, tmp_path / "good.h5",
                             CaptureSettings(contacts=0, dark=False), **cam)
+    want = expected(spec_for(patterns), patterns)
     assert bad.mislabeled == 12
     ref = read_record(tmp_path / "bad.h5").data["reference"]
-    assert sum(not decoded_ok(ref[p], patterns, p) for p in range(12)) >= 10
+    assert sum(not decoded_ok(ref[p], want[p]) for p in range(12)) >= 10
     assert good.mislabeled == 0
     ref = read_record(tmp_path / "good.h5").data["reference"]
-    assert all(decoded_ok(ref[p], patterns, p) for p in range(12))
+    assert all(decoded_ok(ref[p], want[p]) for p in range(12))
 
 
 def test_disconnect_mid_capture_then_resume(tmp_path):
@@ -116,8 +153,10 @@ def test_disconnect_mid_capture_then_resume(tmp_path):
             img = rec.data["dark"] if s.kind == "dark" else (
                 rec.data["reference"][s.p] if s.kind == "reference" else rec.data["frames"][s.k, s.p])
             assert np.array_equal(img, saved[s.id]), s.id
+    spec = spec_for(patterns, 2)
     for k in range(2):
-        assert all(decoded_ok(rec.data["frames"][k, p], patterns, p) for p in range(8))
+        want = expected(spec, patterns, k)
+        assert all(decoded_ok(rec.data["frames"][k, p], want[p]) for p in range(8))
 
 
 def test_journal_of_another_plan_is_refused_and_torn_line_ignored(tmp_path):
@@ -147,7 +186,7 @@ def test_averaging_and_record_contents(tmp_path):
     assert d["drive"].shape == (2, 5, 3) and d["brightness"].shape == (2,)
     levels, b = patterns.levels(1)
     assert np.allclose(d["drive"][1], levels / 255) and np.isclose(d["brightness"][1], b / 255)
-    assert decoded_ok(d["frames"][0, 1].astype(np.float64), patterns, 1)
+    assert decoded_ok(d["frames"][0, 1], expected(spec_for(patterns, 1), patterns, k=0)[1])
     assert d["timing/exposure"].shape == (5, 3, 2)
     # Every averaged exposure began after its step's acknowledgement.
     assert np.all(d["timing/exposure"][:, :, 0] >= d["timing/ack"][:, None])
@@ -181,27 +220,34 @@ def test_ctrl_c_between_presses_then_resume(tmp_path):
     settings = CaptureSettings(contacts=2)
     out = tmp_path / "c.h5"
     asked = []
-
-    def interrupt_at_1(k):
-        asked.append(k)
-        if k == 1:
-            raise KeyboardInterrupt
+    spec = spec_for(patterns, 2)
 
     with RingEmulator() as emu, RingClient(emu.path) as ring:
-        cam = LedStateCamera(emu, shape=SHAPE, fps=2000.0)
-        cam.open()
+        cam = open_virtual_camera(spec, emu, patterns.drive, patterns.brightness)
+
+        def interrupt_at_1(k):
+            asked.append(k)
+            if k == 1:
+                raise KeyboardInterrupt
+            cam.set_contact(k)
+
+        def press(k):
+            asked.append(k)
+            cam.set_contact(k)
+
         with pytest.raises(KeyboardInterrupt):
             run_capture(patterns, ring, cam, out, settings, truth=emu, on_contact=interrupt_at_1,
                         progress=False)
         asked.clear()
-        result = run_capture(patterns, ring, cam, out, settings, truth=emu,
-                             on_contact=asked.append, progress=False)
+        result = run_capture(patterns, ring, cam, out, settings, truth=emu, on_contact=press,
+                             progress=False)
+        cam.close()
     assert asked == [1]
     assert result.resumed_steps == 1 + 3 + 3 and result.frames == 10 and result.mislabeled == 0
 
 
-class _DyingCamera(LedStateCamera):
-    """The LED-state camera, unplugged after a number of reads (as a USB camera can be)."""
+class _DyingCamera(ContactCamera):
+    """The virtual camera, unplugged after a number of reads (as a USB camera can be)."""
 
     def __init__(self, *a, reads_left: int, **kw):
         super().__init__(*a, **kw)
@@ -222,12 +268,14 @@ def test_camera_lost_mid_capture_keeps_steps_and_says_how_to_resume(tmp_path):
     patterns = random_patterns(4, seed=7)
     out = tmp_path / "c.h5"
     with RingEmulator() as emu, RingClient(emu.path) as ring:
-        cam = _DyingCamera(emu, shape=SHAPE, fps=2000.0, reads_left=3)
+        cam = _DyingCamera(bare_ring_illumination(SHAPE, 1.0), ring_led_state(emu), settings=EXACT,
+                           fps=2000.0, reads_left=3)
         cam.open()
         # A settle of 4 frame periods makes every read fresh: one read per step.
         with pytest.raises(CameraError, match="3 of 9 steps are saved .* rerun the same command"):
             run_capture(patterns, ring, cam, out, CaptureSettings(settle_s=0.002), truth=emu,
                         progress=False)
+        cam.close()
         result = capture_with(emu, patterns, out, CaptureSettings())
     assert result.resumed_steps == 3 and result.frames == 9 and result.mislabeled == 0
 
@@ -249,6 +297,6 @@ def test_patterns_from_a_lighting_mode_object():
 
     drives = [np.eye(24, 3), np.eye(24, 3)[::-1]]
     mode = Mode("two", [Frame("a", drives[0], 1.0), Frame("b", drives[1], 0.5)])
-    ps = patterns_from_mode(mode, np.stack(drives))
+    ps = patterns_from_mode(mode)
     assert ps.mode == "two" and ps.names == ["a", "b"] and ps.brightness.tolist() == [1.0, 0.5]
     assert ps.levels(1)[1] == 128 and ps.drive.shape == (2, 24, 3)

@@ -1,0 +1,415 @@
+"""Compare lighting modes by reconstruction error and capture time (``iristac compare-modes``).
+
+For each lighting mode a capture of the same contact geometry (with ground truth) is
+reconstructed with every applicable solver; the result is a table of normal and depth
+error, reconstruction time and capture time per mode and solver, plus the images for a
+report. The captures come either from the virtual sensor (rendered from an illumination
+model) or from the user's own files, as long as they carry ``truth/*`` datasets (rendered
+truth, or a sphere press's truth).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from pipeline.errors import UserError
+
+__all__ = ["ModeRun", "Comparison", "compare_captures", "compare_modes", "render_mode_captures",
+           "default_test_object", "object_from_spec", "solvers_for", "add_to_report"]
+
+#: Solvers tried for multi-pattern and single-RGB-frame modes.
+MULTI_PATTERN_SOLVERS = ("lstsq", "nearfield", "robust")
+SINGLE_FRAME_SOLVERS = ("lstsq", "nearfield", "robust", "lut")
+
+
+@dataclass
+class ModeRun:
+    """One (mode, solver) reconstruction and its figures."""
+
+    mode: str
+    solver: str
+    patterns: int
+    capture_seconds: float
+    capture_seconds_source: str
+    reconstruct_seconds: float
+    normal_mean_error_deg: float | None
+    normal_median_error_deg: float | None
+    depth_rmse_mm: float | None
+    valid_fraction: float
+    images: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    def to_json(self) -> dict:
+        return {k: getattr(self, k) for k in ("mode", "solver", "patterns", "capture_seconds",
+                                                "capture_seconds_source", "reconstruct_seconds",
+                                                "normal_mean_error_deg", "normal_median_error_deg",
+                                                "depth_rmse_mm", "valid_fraction")}
+
+
+@dataclass
+class Comparison:
+    runs: list[ModeRun]
+    frames: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+    truth: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
+
+    def best(self) -> ModeRun | None:
+        """The run with the lowest mean normal error."""
+        scored = [r for r in self.runs if r.normal_mean_error_deg is not None]
+        return min(scored, key=lambda r: r.normal_mean_error_deg) if scored else None
+
+    def best_per_mode(self) -> dict[str, ModeRun]:
+        out: dict[str, ModeRun] = {}
+        for r in self.runs:
+            if r.normal_mean_error_deg is None:
+                continue
+            if r.mode not in out or r.normal_mean_error_deg < out[r.mode].normal_mean_error_deg:
+                out[r.mode] = r
+        return out
+
+    def to_json(self) -> dict:
+        best = self.best()
+        return {"runs": [r.to_json() for r in self.runs],
+                "best": best.to_json() if best else None,
+                "best_per_mode": {m: r.to_json() for m, r in self.best_per_mode().items()}}
+
+
+def default_test_object(shape: tuple[int, int], mm_per_px: float):
+    """The demo's test object: a ball, a cylinder and a flat punch pressed at once, with a fine
+    texture on the ball.
+
+    Returns
+    -------
+    sim.geometry.surface.HeightField
+
+    Examples
+    --------
+    >>> f = default_test_object((60, 80), 0.3)
+    >>> f.height.shape, bool(f.height.max() > 0.3)
+    ((60, 80), True)
+    """
+    from sim.geometry.shapes import cylinder, flat_punch, sphere
+    from sim.geometry.surface import combine
+    from sim.geometry.texture import add_texture
+
+    h, w = shape
+    half_w, half_h = (w - 1) / 2 * mm_per_px, (h - 1) / 2 * mm_per_px
+    ball = sphere(shape, mm_per_px, radius=0.22 * min(half_w, half_h) * 2, depth=0.6,
+                  center=(-0.45 * half_w, 0.25 * half_h))
+    ball = add_texture(ball, amplitude=0.02, period=0.8, angle_deg=30.0)
+    rod = cylinder(shape, mm_per_px, radius=1.5, depth=0.4, center=(0.35 * half_w, 0.3 * half_h), angle_deg=60.0)
+    punch = flat_punch(shape, mm_per_px, radius=0.2 * min(half_w, half_h), depth=0.3,
+                       center=(0.1 * half_w, -0.5 * half_h))
+    return combine([ball, rod, punch])
+
+
+def object_from_spec(spec: str, shape: tuple[int, int], mm_per_px: float):
+    """The contact geometry named by ``--object``: ``indenters`` (the demo's test object),
+    ``sphere`` (a 4 mm ball pressed 0.6 mm at the centre) or a height-map file (``.npy`` in mm,
+    or a 16-bit ``.png`` scaled to 1 mm full scale)."""
+    from sim.geometry.from_file import height_from_file
+    from sim.geometry.shapes import sphere
+
+    if spec == "indenters":
+        return default_test_object(shape, mm_per_px)
+    if spec == "sphere":
+        return sphere(shape, mm_per_px, radius=2.0, depth=0.6)
+    p = Path(spec)
+    if not p.is_file():
+        raise UserError(f"--object: {spec!r} is neither 'indenters', 'sphere' nor an existing height-map file")
+    return height_from_file(p, mm_per_px, shape=shape)
+
+
+def render_mode_captures(model, modes: Sequence[str], obj, out: str | Path, *, noise_dn: float = 1.0,
+                         bit_depth: int = 8, camera_fps: float = 30.0, seed: int = 21, emulate: bool = False,
+                         faults: str | None = None):
+    """Capture ``obj`` under each mode with the virtual sensor; write ``out/<mode>.h5``.
+
+    With ``emulate`` the capture runs for real: the LED-ring emulator behind a pseudo-terminal
+    (with ``faults``), the host client over pyserial, and the virtual camera rendering whatever
+    the emulated LEDs show at ``camera_fps``, with stale-frame flushing; the capture time is then
+    measured (dark frame, a reference and a contact frame per pattern). Without it the frames
+    are rendered directly and the time is the number of frames at ``camera_fps``.
+
+    Returns ``(captures, capture_seconds)`` for :func:`compare_captures`.
+    """
+    from pipeline.store import write_record
+    from sim.rendered_capture import render_capture
+
+    captures: dict[str, Path] = {}
+    seconds: dict[str, tuple[float, str]] = {}
+    if emulate:
+        from pipeline.capture.session import capture
+        from pipeline.capture.virtual import VirtualSensorSpec
+        from sim.modes import load_mode
+
+        for mode in modes:
+            name = load_mode(mode).name
+            path = Path(out) / f"{name}.h5"
+            for stale in (path, path.with_name(path.name + ".journal")):
+                stale.unlink(missing_ok=True)  # a fresh capture, not a resume of an older one
+            spec = VirtualSensorSpec(illumination=model, contacts=[obj], noise_dn=noise_dn, bit_depth=bit_depth,
+                                     fps=camera_fps, seed=seed)
+            res = capture(path, mode=mode, emulate=True, faults=faults, virtual_camera=spec, progress=False)
+            if res.mislabeled:
+                raise UserError(f"{path}: {res.mislabeled} frames were stored under the wrong pattern")
+            captures[name] = res.path
+            seconds[name] = (res.seconds, f"measured, emulated ring + {camera_fps:g} fps camera, "
+                                          f"{res.frames} frames, {res.retries} retries")
+        return captures, seconds
+    for mode in modes:
+        rec = render_capture(model, mode, [obj], noise_dn=noise_dn, bit_depth=bit_depth, seed=seed)
+        name = str(rec.meta["mode"])
+        captures[name] = write_record(Path(out) / f"{name}.h5", rec)
+        P = rec.data["frames"].shape[1]
+        seconds[name] = (P / camera_fps, f"{P} frame{'s' if P > 1 else ''} at {camera_fps:g} fps")
+    return captures, seconds
+
+
+def lut_calibrations(model, modes: Sequence[str], out: str | Path, *, ball_radius_mm: float = 2.0,
+                     presses=None, noise_dn: float = 1.0, bit_depth: int = 8, seed: int = 13,
+                     skipped: dict[str, str] | None = None) -> dict[str, Path]:
+    """A lookup-table calibration for each single-frame mode, from rendered ball presses.
+
+    A mode whose calibration is refused (e.g. its channels' lights are too close to coplanar)
+    gets no table; the reason goes into ``skipped`` (mode -> message) when given.
+    """
+    from calibration.calibrate import calibrate
+    from pipeline.store import write_record
+    from sim.modes import load_mode
+    from sim.rendered_capture import render_capture
+
+    out = Path(out)
+    result = {}
+    for mode in modes:
+        m = load_mode(mode)
+        if len(m.frames) != 1:
+            continue
+        cap = render_capture(model, m, presses, noise_dn=noise_dn, bit_depth=bit_depth, seed=seed)
+        p = write_record(out / f"calibration_capture_{m.name}.h5", cap)
+        try:
+            result[m.name] = calibrate(p, ball_radius_mm, models=["lut"]).save(out / f"calibration_{m.name}.h5")
+        except UserError as exc:
+            if skipped is not None:
+                skipped[m.name] = str(exc)
+    return result
+
+
+def solvers_for(patterns: int, has_lut: bool) -> tuple[str, ...]:
+    """The solvers that apply to a mode with ``patterns`` frames."""
+    if patterns == 1:
+        return SINGLE_FRAME_SOLVERS if has_lut else MULTI_PATTERN_SOLVERS
+    return MULTI_PATTERN_SOLVERS
+
+
+def compare_captures(captures: dict[str, Any], *, illumination=None, calibrations: dict[str, Any] | None = None,
+                     capture_seconds: dict[str, tuple[float, str]] | None = None, integrator: str = "dst",
+                     solvers: Sequence[str] | None = None, store=None, out: str | Path | None = None,
+                     progress: Callable[[str], None] | None = None) -> Comparison:
+    """Reconstruct each mode's capture with each applicable solver and measure the errors.
+
+    Parameters
+    ----------
+    captures : dict
+        mode name -> capture path or Record (with ``truth/normals`` and ``truth/height``).
+    illumination : path or Record, optional
+        Illumination model for the per-pixel (near-field) light matrices; used by every
+        solver except ``lut``.
+    calibrations : dict, optional
+        mode name -> calibration path or Record; a calibration with a lookup table enables
+        the ``lut`` solver for that mode.
+    capture_seconds : dict, optional
+        mode name -> (seconds, how it was obtained) for the table.
+    integrator : str
+        Depth integrator for every run.
+    solvers : sequence of str, optional
+        Restrict the solvers tried.
+    store : StageStore or path, optional
+    out : path, optional
+        Folder for per-run outputs (normals/depth files and PNGs).
+    """
+    from pipeline.evaluate import angular_error_deg
+    from pipeline.outputs import depth_colormap_rgb, normal_map_rgb
+    from pipeline.reconstruct import reconstruct
+    from pipeline.store import Record, read_record
+
+    if not captures:
+        raise UserError("compare-modes: no captures to compare")
+    calibrations = calibrations or {}
+    capture_seconds = capture_seconds or {}
+    runs: list[ModeRun] = []
+    frames: dict[str, np.ndarray] = {}
+    truth: dict[str, np.ndarray] = {}
+    for mode, cap in captures.items():
+        rec = cap if isinstance(cap, Record) else read_record(cap, schema="capture")
+        if "truth/normals" not in rec.data:
+            raise UserError(f"{rec.path}: capture of mode {mode!r} has no truth/normals; compare-modes needs "
+                            f"ground truth (a rendered capture or a sphere press)")
+        P = rec.data["frames"].shape[1]
+        frames[mode] = rec.data["frames"][0]
+        if not truth:
+            truth = {"normals": rec.data["truth/normals"][0], "height": rec.data["truth/height"][0]}
+        cal = calibrations.get(mode)
+        cal_rec = None if cal is None else (cal if isinstance(cal, Record) else read_record(cal, schema="calibration"))
+        has_lut = cal_rec is not None and any(k.startswith("models/lut/") for k in cal_rec.data)
+        tried = [s for s in solvers_for(P, has_lut) if solvers is None or s in solvers]
+        secs, how = capture_seconds.get(mode, (float("nan"), "not measured"))
+        for solver in tried:
+            if progress:
+                progress(f"reconstruct {mode} / {solver}")
+            kw = {"calibration": cal_rec} if solver == "lut" else {"illumination": illumination}
+            run_out = Path(out) / f"{mode}-{solver}" if out is not None else None
+            t0 = time.perf_counter()
+            res = reconstruct(rec, solver=solver, integrator=integrator, store=store, out=run_out, images=False,
+                              force=True, **kw)
+            dt = time.perf_counter() - t0
+            n = res.normals.data["normals"][0]
+            m = res.normals.data["mask"][0].astype(bool)
+            gt = rec.data["truth/normals"][0]
+            err = angular_error_deg(n, gt)
+            err_valid = err[m] if m.any() else np.array([np.nan])
+            height = res.depth.data["height"][0]
+            runs.append(ModeRun(
+                mode=mode, solver=solver, patterns=P, capture_seconds=float(secs), capture_seconds_source=how,
+                reconstruct_seconds=dt,
+                normal_mean_error_deg=res.summary.get("normal_mean_error_deg"),
+                normal_median_error_deg=float(np.median(err_valid)) if m.any() else None,
+                depth_rmse_mm=res.summary.get("depth_rmse_mm"),
+                valid_fraction=float(m.mean()),
+                images={"normals": normal_map_rgb(n, m),
+                        "depth": depth_colormap_rgb(height, m),
+                        "error": _error_map(err, m)},
+            ))
+    return Comparison(runs, frames, truth)
+
+
+def _error_map(err_deg: np.ndarray, mask: np.ndarray, vmax: float = 10.0) -> np.ndarray:
+    """Angular error as an RGB image: black = 0, white = ``vmax`` degrees or more, masked = blue."""
+    e = np.clip(np.nan_to_num(err_deg, nan=vmax) / vmax, 0.0, 1.0)
+    img = np.stack([e, e, e], axis=-1)
+    img[~mask] = (0.1, 0.1, 0.5)
+    return img
+
+
+def _display_frame(frame: np.ndarray) -> np.ndarray:
+    """A capture frame (H, W, 3) or the mean of a pattern stack (P, H, W, 3) for display."""
+    f = np.asarray(frame, dtype=np.float64)
+    if f.ndim == 4:
+        f = f.mean(axis=0)
+    top = np.percentile(f, 99.5) or 1.0
+    return np.clip(f / top, 0.0, 1.0)
+
+
+def add_to_report(report, comp: Comparison, title: str = "Lighting modes compared") -> None:
+    """Add the comparison's table and images to a :class:`pipeline.report.Report`."""
+    from pipeline.outputs import depth_colormap_rgb, normal_map_rgb
+
+    s = report.section(title, "Normal error is the mean angle between reconstructed and true normals over the "
+                              "pixels each solver marked valid; depth RMSE is over the whole image. Capture time "
+                              "is how long the capture of one contact took, with how it was obtained.")
+    header = ["mode", "solver", "patterns", "normal mean (deg)", "normal median (deg)", "depth RMSE (mm)",
+              "valid", "reconstruct (s)", "capture (s)"]
+    rows = [[r.mode, r.solver, r.patterns, _num(r.normal_mean_error_deg), _num(r.normal_median_error_deg),
+             _num(r.depth_rmse_mm), f"{100 * r.valid_fraction:.1f}%", r.reconstruct_seconds,
+             f"{r.capture_seconds:.3g} ({r.capture_seconds_source})"] for r in comp.runs]
+    s.table(header, rows)
+    best = comp.best()
+    if best is not None:
+        s.paragraph(f"Lowest normal error: {best.mode} with {best.solver} "
+                    f"({best.normal_mean_error_deg:.3g} deg, depth RMSE {_num(best.depth_rmse_mm)} mm).")
+    if comp.truth:
+        t = report.section("Ground truth")
+        t.image("true normals", normal_map_rgb(comp.truth["normals"]))
+        t.image("true depth", depth_colormap_rgb(comp.truth["height"]))
+    for mode, frame in comp.frames.items():
+        ms = report.section(f"Mode: {mode}")
+        ms.image(f"{mode}: captured frame" + (" (mean of patterns)" if frame.shape[0] > 1 else ""),
+                 _display_frame(frame if frame.shape[0] > 1 else frame[0]))
+        for r in comp.runs:
+            if r.mode != mode:
+                continue
+            ms.image(f"{mode}/{r.solver}: normals", r.images["normals"])
+            ms.image(f"{mode}/{r.solver}: depth", r.images["depth"])
+            ms.image(f"{mode}/{r.solver}: error (white = 10 deg)", r.images["error"])
+
+
+def _num(v) -> str:
+    return "–" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.4g}"
+
+
+def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene: str = "default",
+                  illumination: str | Path | None = None, object: str = "indenters",
+                  shape: tuple[int, int] = (120, 160), mm_per_px: float = 0.15, rays: int = 2_000_000,
+                  captures: dict[str, str] | None = None, calibrations: dict[str, str] | None = None,
+                  lut: bool = True, integrator: str = "dst", cache: str | Path | None = None,
+                  noise_dn: float = 1.0, bit_depth: int = 8, camera_fps: float = 30.0, emulate: bool = True,
+                  faults: str | None = None, log: Callable[[str], None] | None = None) -> dict:
+    """Which lighting mode reconstructs best, at what capture time (``iristac compare-modes``).
+
+    Either the user's own ``captures`` (mode -> capture.h5 with ``truth/*``) are compared, or
+    the virtual sensor renders ``object`` under each of ``modes`` from an illumination model
+    (``illumination`` file, else ``scene`` traced with ``rays`` rays per LED), captured through
+    the ring emulator and virtual camera when ``emulate`` (see :func:`render_mode_captures`). Writes
+    ``report.html`` and ``report.json`` into ``out`` and returns the JSON.
+    """
+    from pipeline.report import Report
+    from pipeline.store import StageStore, read_record
+    from sim.modes import list_modes
+    from sim.rendered_capture import sphere_presses
+    from sim.synthesize import load_illumination, synthesize_to_store
+
+    say = log or (lambda m: None)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    store = StageStore(cache if cache is not None else out / "cache")
+    t0 = time.perf_counter()
+    ill_path = None
+    model = None
+    if illumination is not None:
+        ill_path = Path(illumination)
+        model = load_illumination(ill_path)
+    elif not captures:
+        say(f"tracing scene {scene!r}: {rays:,} rays per LED onto {shape}")
+        model, key, _ = synthesize_to_store(scene, shape, mm_per_px, store, rays=rays, sampler="sobol")
+        ill_path = store.path_for(key)
+    cals: dict[str, Any] = dict(calibrations or {})
+    lut_skipped: dict[str, str] = {}
+    if captures:
+        caps: dict[str, Any] = dict(captures)
+        seconds = {}
+        for m, p in caps.items():
+            rec = read_record(p, schema="capture")
+            secs = rec.meta.get("seconds")
+            seconds[m] = (float(secs), "measured") if secs is not None else (float("nan"), "not recorded")
+    else:
+        modes = list(modes or list_modes())
+        obj = object_from_spec(object, model.shape, model.mm_per_px)
+        say(f"rendering the {object} object under {', '.join(modes)}")
+        caps, seconds = render_mode_captures(model, modes, obj, out / "captures", noise_dn=noise_dn,
+                                             bit_depth=bit_depth, camera_fps=camera_fps, emulate=emulate,
+                                             faults=faults)
+        if lut:
+            say("calibrating lookup tables for the single-frame modes")
+            h, w = model.shape
+            half = 0.5 * min(h, w) * model.mm_per_px
+            centres = [(0.0, 0.0), (0.4 * half, 0.3 * half), (-0.4 * half, 0.3 * half),
+                       (0.3 * half, -0.4 * half), (-0.3 * half, -0.4 * half)]
+            presses = sphere_presses(model.shape, model.mm_per_px, 2.0, [0.7, 0.6, 0.8, 0.65, 0.75], centres)
+            for m, p in lut_calibrations(model, modes, out, presses=presses, noise_dn=noise_dn,
+                                         bit_depth=bit_depth, skipped=lut_skipped).items():
+                cals.setdefault(m, p)
+            for m, why in lut_skipped.items():
+                say(f"no lookup table for {m}: {why}")
+    comp = compare_captures(caps, illumination=ill_path, calibrations=cals, capture_seconds=seconds,
+                            integrator=integrator, store=store, out=out / "runs", progress=say)
+    data = {"comparison": comp.to_json(), "seconds": time.perf_counter() - t0,
+            "illumination": str(ill_path) if ill_path else None, "lut_skipped": lut_skipped}
+    report = Report("IrisTac: lighting modes compared")
+    add_to_report(report, comp)
+    for m, why in lut_skipped.items():
+        report.sections[0].paragraph(f"No lookup table for {m}: {why}")
+    report.write(out, data=data)
+    return data

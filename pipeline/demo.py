@@ -1,0 +1,186 @@
+"""``iristac demo``: the whole pipeline on a virtual IrisTac, ending in an HTML report.
+
+1. **synthesize**: trace the shipped ``default`` scene (LED ring + lens) onto the camera grid
+   (cached in the stage store).
+2. **calibrate**: render a sphere-indentation capture (a 4 mm ball pressed at several places,
+   every LED in turn, 8-bit, 1 DN noise), detect the contacts and fit light models with
+   cross-validation; for the single-frame modes also a colour lookup table.
+3. **capture**: the test object (a textured ball, a rod and a flat punch pressed at once) under
+   every shipped lighting mode.
+4. **normals** and 5. **depth**: every applicable solver per mode, DST Poisson integration.
+
+The report (``report.html`` + ``report.json``) shows the frames, normal maps, depth maps and
+error maps per mode and solver, with a table of errors and times.
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+
+__all__ = ["run_demo", "DemoSettings"]
+
+
+class DemoSettings:
+    """Sizes of the demo; ``quick`` is a smaller version for tests."""
+
+    def __init__(self, quick: bool = False):
+        self.quick = quick
+        self.shape = (60, 80) if quick else (120, 160)
+        self.mm_per_px = 0.3 if quick else 0.15
+        self.rays = 300_000 if quick else 2_000_000
+        self.ball_radius_mm = 2.0
+        self.presses = 6 if quick else 10
+        self.modes = ("point", "monochromatic", "trichromatic", "multicolour")
+        self.noise_dn = 1.0
+        self.bit_depth = 8
+        self.faults = "drop=0.02,corrupt=0.02"  # the link is not perfect; capture must still label every frame
+        self.camera_fps = 60.0  # the virtual camera's frame rate
+
+
+def _press_layout(settings: DemoSettings) -> tuple[list[float], list[tuple[float, float]]]:
+    """Depths and centres (mm, reconstruction frame) of the calibration presses: a ring of
+    presses plus one in the middle, all well inside the image."""
+    h, w = settings.shape
+    half_w, half_h = (w - 1) / 2 * settings.mm_per_px, (h - 1) / 2 * settings.mm_per_px
+    n = settings.presses
+    rng = np.random.default_rng(7)
+    centres = [(0.0, 0.0)]
+    for k in range(n - 1):
+        a = 2 * np.pi * k / (n - 1)
+        centres.append((0.55 * half_w * np.cos(a), 0.55 * half_h * np.sin(a)))
+    depths = list(rng.uniform(0.5, 0.9, size=n))
+    return depths, centres
+
+
+def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: str | Path | None = None,
+             progress: bool = True, log: Callable[[str], None] | None = None) -> dict[str, Any]:
+    """Run the demo and write ``report.html`` and ``report.json`` into ``out``.
+
+    Parameters
+    ----------
+    out : path
+        Output folder (created).
+    quick : bool
+        Smaller images, fewer rays and presses (for tests; about 4x faster).
+    cache : path, optional
+        Stage store folder; default ``out/cache``, so a second run reuses the illumination and
+        reconstructions.
+    progress : bool
+        Print one line per step on stderr.
+    log : callable, optional
+        Receives the progress lines instead of stderr.
+
+    Returns
+    -------
+    dict
+        The content of ``report.json``: per-stage seconds, calibration figures, and per mode and
+        solver the normal and depth errors and times.
+    """
+    from calibration.calibrate import calibrate
+    from pipeline.compare import (add_to_report, compare_captures, default_test_object, lut_calibrations,
+                                  render_mode_captures)
+    from pipeline.report import Report
+    from pipeline.store import StageStore, write_record
+    from sim.rendered_capture import render_capture, sphere_presses
+    from sim.synthesize import synthesize_to_store
+    from sim.uniformity import uniformity_report
+
+    t_start = time.perf_counter()
+    settings = DemoSettings(quick)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    store = StageStore(cache if cache is not None else out / "cache")
+    say = log or ((lambda m: print(f"[demo {time.perf_counter() - t_start:6.1f}s] {m}", file=sys.stderr))
+                  if progress else (lambda m: None))
+    stages: dict[str, dict[str, Any]] = {}
+
+    # 1. synthesize -------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    say(f"synthesize: tracing the default scene, {settings.rays:,} rays per LED onto {settings.shape}")
+    model, ill_key, ill_cached = synthesize_to_store("default", settings.shape, settings.mm_per_px, store,
+                                                     rays=settings.rays, sampler="sobol")
+    ill_path = store.path_for(ill_key)
+    stages["synthesize"] = {"seconds": time.perf_counter() - t0, "cached": ill_cached, "key": ill_key.digest,
+                            "path": str(ill_path), "rays_per_led": settings.rays, "sampler": "sobol",
+                            "fraction_on_grid": model.meta.get("fraction_on_grid")}
+    uniformity = uniformity_report(model, list(settings.modes))
+
+    # 2. calibrate --------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    depths, centres = _press_layout(settings)
+    presses = sphere_presses(settings.shape, settings.mm_per_px, settings.ball_radius_mm, depths, centres)
+    say(f"calibrate: {len(presses)} rendered ball presses under every LED in turn")
+    cal_cap = render_capture(model, "point", presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
+                             seed=11)
+    cal_cap_path = write_record(out / "calibration_capture.h5", cal_cap)
+    cal = calibrate(cal_cap_path, settings.ball_radius_mm, models=["far", "near", "traced"], illumination=model)
+    cal.save(out / "calibration.h5")
+    cal_summary = cal.summary()
+    say("calibrate: colour lookup tables for the single-frame modes")
+    lut_skipped: dict[str, str] = {}
+    luts = lut_calibrations(model, settings.modes, out, ball_radius_mm=settings.ball_radius_mm, presses=presses,
+                            noise_dn=settings.noise_dn, bit_depth=settings.bit_depth, skipped=lut_skipped)
+    for m, why in lut_skipped.items():
+        say(f"calibrate: no lookup table for {m}: {why}")
+    stages["calibrate"] = {"seconds": time.perf_counter() - t0, "presses": len(presses),
+                           "accepted": int(cal_summary.get("accepted", 0)),
+                           "models": cal_summary.get("models", {}), "lut_skipped": lut_skipped}
+
+    # 3. capture ----------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    obj = default_test_object(settings.shape, settings.mm_per_px)
+    say(f"capture: the test object under {', '.join(settings.modes)} through the ring emulator (pty, "
+        f"{settings.faults}) and the virtual camera")
+    captures, capture_seconds = render_mode_captures(model, settings.modes, obj, out / "captures",
+                                                     noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
+                                                     camera_fps=settings.camera_fps, emulate=True,
+                                                     faults=settings.faults)
+    stages["capture"] = {"seconds": time.perf_counter() - t0, "modes": list(settings.modes)}
+
+    # 4 + 5. normals and depth --------------------------------------------------------------
+    t0 = time.perf_counter()
+    comp = compare_captures(captures, illumination=ill_path, calibrations=luts, capture_seconds=capture_seconds,
+                            integrator="dst", store=store, out=out / "runs", progress=say)
+    stages["reconstruct"] = {"seconds": time.perf_counter() - t0, "runs": len(comp.runs)}
+
+    # report -------------------------------------------------------------------------------
+    say("report: writing report.html and report.json")
+    total = time.perf_counter() - t_start
+    data = {"settings": {"shape": list(settings.shape), "mm_per_px": settings.mm_per_px, "rays": settings.rays,
+                         "ball_radius_mm": settings.ball_radius_mm, "presses": settings.presses,
+                         "noise_dn": settings.noise_dn, "bit_depth": settings.bit_depth, "quick": quick},
+            "stages": stages, "uniformity": {m: r["channels"] for m, r in uniformity.items()}, "comparison": comp.to_json(), "seconds": total,
+            "calibration": {k: v for k, v in cal_summary.items() if k != "circles"}}
+    report = Report("IrisTac demo: a virtual sensor end to end",
+                    f"Default scene traced onto {settings.shape[1]}x{settings.shape[0]} pixels at "
+                    f"{settings.mm_per_px} mm/px; calibrated from {len(presses)} rendered ball presses; a test "
+                    f"object captured under {len(settings.modes)} lighting modes (8-bit, 1 DN read noise) and "
+                    f"reconstructed with every applicable solver. Total {total:.1f} s.")
+    s = report.section("Stages")
+    s.table(["stage", "seconds", "notes"],
+            [["synthesize", stages["synthesize"]["seconds"],
+              ("cached" if ill_cached else f"{settings.rays:,} Sobol rays per LED, hit rotation")],
+             ["calibrate", stages["calibrate"]["seconds"],
+              f"{stages['calibrate']['accepted']}/{len(presses)} presses accepted"],
+             ["capture", stages["capture"]["seconds"],
+              f"ring emulator on a pty ({settings.faults}) + virtual camera at {settings.camera_fps:g} fps"],
+             ["normals + depth", stages["reconstruct"]["seconds"], f"{len(comp.runs)} reconstructions"]])
+    cs = report.section("Calibration (leave-presses-out cross-validation)")
+    cs.table(["model", "CV mean (deg)", "CV median (deg)", "seconds"],
+             [[name, m.get("cv_mean_angular_error_deg", "–"), m.get("cv_median_angular_error_deg", "–"),
+               m.get("seconds", "–")] for name, m in cal_summary.get("models", {}).items()])
+    us = report.section("Flat-gel uniformity per mode (per channel after channel separation)")
+    us.table(["mode", "channel", "frames lit", "mean CV (std/mean)", "worst CV", "worst min/max"],
+             [[mode, ch, st.get("frames_lit"), st.get("cv_mean", "–"), st.get("cv_max", "–"),
+               st.get("min_over_max_min", "–")]
+              for mode, r in uniformity.items() for ch, st in r["channels"].items()])
+    add_to_report(report, comp)
+    report.write(out, data=data)
+    say(f"done in {total:.1f} s: open {out / 'report.html'}")
+    return data

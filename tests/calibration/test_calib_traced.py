@@ -1,0 +1,101 @@
+"""Traced model from an illumination record, and the optional LED position/tilt corrections
+on a synthetic truth whose LEDs sit off their nominal places."""
+
+import json
+
+import numpy as np
+import pytest
+
+from calibration.calibrate import calibrate
+from calibration.capture import write_capture
+from calibration.detect import detect_contacts
+from calibration.models import TracedModel
+from calibration.models.led_geometry import geometry_basis, tilt_axes
+from calibration.samples import collect_samples
+from calibration.synthetic import ring_illumination, synthetic_sphere_capture
+from helpers import run_cli
+from sim.point_source import ring_geometry
+from sim.synthesize import save_illumination
+
+SHAPE, MM, GEL_Z, L = (60, 80), 0.1, 30.0, 6
+
+
+@pytest.fixture(scope="module")
+def displaced():
+    """Presses rendered with LEDs moved by up to 1 mm and tilted by up to 3 degrees."""
+    pos, ax = ring_geometry(L, 40.0)
+    rng = np.random.default_rng(1)
+    dpos = rng.uniform(-1, 1, (L, 3)) * [1.0, 1.0, 0.5]
+    tilt = np.radians(rng.uniform(-3, 3, (L, 2)))
+    truth = ring_illumination(SHAPE, MM, L, gel_z=GEL_Z, positions=pos + dpos, axes=tilt_axes(ax, tilt))
+    cap, tr = synthetic_sphere_capture(SHAPE, 8, ball_radius_mm=1.5, illumination=truth, peak_dn=140, seed=3)
+    return cap, tr, truth, ring_illumination(SHAPE, MM, L, gel_z=GEL_Z)
+
+
+def test_geometry_corrections_recover_the_displaced_field(displaced):
+    cap, tr, truth, nominal = displaced
+    f, r = cap.linear()
+    s = collect_samples(f, r, detect_contacts(f, r, 15.0), 1.5, MM, saturation=255)
+    plain = TracedModel(nominal.V, cap.drive)
+    rep0 = plain.fit(s, r)
+    basis = geometry_basis(nominal.led_positions, None, SHAPE, MM, GEL_Z)
+    corr = TracedModel(nominal.V, cap.drive, basis=basis)
+    rep1 = corr.fit(s, r)
+    # The corrected light field (gains x fields: what the solvers use) is much closer to the
+    # true one than the nominal fields with their best gains. (Fields alone are not: a tilt and
+    # a sideways shift, or a height change and a gain, light the small gel almost alike.)
+    from sim.illumination_model import light_matrices
+
+    true_lf = light_matrices(truth.V, cap.drive, gains=tr.gains * tr.exposure / np.pi)
+    before = np.linalg.norm(plain.light_field(SHAPE) - true_lf)
+    after = np.linalg.norm(corr.light_field(SHAPE) - true_lf)
+    assert after < 0.5 * before, (after, before)
+    # Residual down to the noise (1 DN read noise + 8-bit rounding), and a better fit of normals.
+    assert rep1["residual_rms_dn"] < rep0["residual_rms_dn"] and rep1["residual_rms_dn"] < 1.15
+    assert rep1["train_mean_angular_error_deg"] < rep0["train_mean_angular_error_deg"]
+    # A gain trades against height and tilt (an LED's brightness), but not against its colour:
+    # each LED's channel ratios are the truth's within 1 %.
+    want = tr.gains * tr.exposure / np.pi
+    ratio = corr.gains / want
+    assert np.abs(ratio / ratio[:, :1] - 1).max() < 0.01
+    assert np.shape(rep1["led_position_correction_mm"]) == (L, 3)
+
+
+def test_no_basis_means_no_correction(displaced):
+    cap, tr, truth, nominal = displaced
+    f, r = cap.linear()
+    s = collect_samples(f, r, detect_contacts(f, r, 15.0), 1.5, MM, saturation=255)
+    m = TracedModel(nominal.V, cap.drive)
+    m.fit(s, r)
+    assert m.theta is None and m.V is m.V0 and "geometry_correction" not in m.to_arrays()
+
+
+def test_cli_traced_with_illumination_file(displaced, tmp_path):
+    cap, tr, truth, nominal = displaced
+    write_capture(tmp_path / "cap.h5", cap)
+    save_illumination(nominal, tmp_path / "ill.h5")
+    args = ["calibrate", tmp_path / "cap.h5", "--ball-radius", "1.5", "--model", "traced", "--illumination",
+            tmp_path / "ill.h5", "--out", tmp_path / "cal.h5", "--json", "--folds", "3"]
+    r = run_cli(*args, "--correct-led-geometry")
+    assert r.returncode == 0, r.stderr
+    got = json.loads(r.stdout)["models"]["traced"]
+    assert got["cv_mean_angular_error_deg"] < 1.5 and len(got["fit"]["led_tilt_correction_deg"]) == L
+    from pipeline.store import read_record
+
+    rec = read_record(tmp_path / "cal.h5", "calibration")
+    assert rec.data["models/traced/geometry_correction"].shape == (L, 5)
+    # A wrong-size illumination model and a missing file are one-line errors naming the problem.
+    save_illumination(ring_illumination((30, 40), MM, L), tmp_path / "small.h5")
+    bad = run_cli(*args[:7], tmp_path / "small.h5", *args[8:])
+    assert bad.returncode == 2 and "(30, 40)" in bad.stderr and "Traceback" not in bad.stderr
+    bad = run_cli(*args[:7], tmp_path / "none.h5", *args[8:])
+    assert bad.returncode == 2 and "none.h5" in bad.stderr
+
+
+def test_geometry_correction_needs_led_positions(displaced):
+    cap, tr, truth, nominal = displaced
+    from pipeline.errors import UserError
+
+    with pytest.raises(UserError, match="IlluminationModel"):
+        calibrate(cap, 1.5, models=["traced"], illumination=nominal.V, folds=2,
+                  model_options={"traced": {"correct_geometry": True}}, refine_iterations=0)

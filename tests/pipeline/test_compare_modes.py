@@ -1,0 +1,70 @@
+"""compare-modes and the demo, end to end through the CLI on a small virtual sensor."""
+
+import json
+
+import numpy as np
+import pytest
+
+from helpers import run_cli
+from pipeline.compare import compare_captures, default_test_object, render_mode_captures
+from pipeline.errors import UserError
+from pipeline.store import read_record, write_record
+
+
+@pytest.fixture(scope="module")
+def small_sensor(tmp_path_factory):
+    from sim.synthesize import save_illumination, synthesize
+
+    d = tmp_path_factory.mktemp("sensor")
+    model = synthesize("default", (40, 52), 0.45, rays=150_000, sampler="sobol")
+    return model, save_illumination(model, d / "illumination.h5"), d
+
+
+def test_compare_modes_cli_reports_every_mode_and_the_near_field_wins(small_sensor, tmp_path):
+    _, ill, _ = small_sensor
+    r = run_cli("compare-modes", "--out", tmp_path / "cm", "--illumination", ill, "--modes", "point", "trichromatic",
+                "--json")
+    assert r.returncode == 0, r.stderr
+    data = json.loads(r.stdout)
+    runs = {(x["mode"], x["solver"]): x for x in data["comparison"]["runs"]}
+    assert {m for m, _ in runs} == {"point", "trichromatic"}
+    # The virtual sensor renders with exactly the light field the near-field solver uses:
+    # it must be accurate, and far better than the far-field (centre light vector) solver.
+    near, far = runs[("point", "nearfield")], runs[("point", "lstsq")]
+    assert near["normal_mean_error_deg"] < 2.0 < far["normal_mean_error_deg"]
+    assert near["valid_fraction"] > 0.95 and near["patterns"] == 24
+    # a single-frame mode gets a lookup table, or the report says why it could not
+    assert ("trichromatic", "lut") in runs or "trichromatic" in data["lut_skipped"]
+    assert data["comparison"]["best"]["mode"] in {"point", "trichromatic"}
+    page = (tmp_path / "cm" / "report.html").read_text()
+    assert "point/nearfield: error" in page and (tmp_path / "cm" / "report.json").is_file()
+
+
+def test_user_captures_without_truth_are_refused_clearly(small_sensor, tmp_path):
+    model, ill, _ = small_sensor
+    caps, _ = render_mode_captures(model, ["trichromatic"], default_test_object(model.shape, model.mm_per_px),
+                                   tmp_path)
+    rec = read_record(caps["trichromatic"])
+    for k in [k for k in rec.data if k.startswith("truth/")]:
+        del rec.data[k]
+    p = write_record(tmp_path / "no_truth.h5", rec)
+    with pytest.raises(UserError, match="no_truth.h5: capture of mode 'trichromatic' has no truth/normals"):
+        compare_captures({"trichromatic": p}, illumination=ill)
+    r = run_cli("compare-modes", "--out", tmp_path / "x", "--captures", f"trichromatic={p}", "--illumination", ill)
+    assert r.returncode == 2 and "has no truth/normals" in r.stderr and "Traceback" not in r.stderr
+    r = run_cli("compare-modes", "--out", tmp_path / "x", "--captures", "trichromatic")
+    assert r.returncode == 2 and "expected MODE=PATH" in r.stderr
+
+
+def test_demo_quick_runs_end_to_end(tmp_path):
+    r = run_cli("demo", "--quick", "--out", tmp_path / "demo", "--json", timeout=600)
+    assert r.returncode == 0, r.stderr[-2000:]
+    data = json.loads(r.stdout)
+    assert set(data["stages"]) == {"synthesize", "calibrate", "capture", "reconstruct"}
+    modes = {x["mode"] for x in data["comparison"]["runs"]}
+    assert modes == {"point", "monochromatic", "trichromatic", "multicolour"}
+    assert all(x["normal_mean_error_deg"] is not None for x in data["comparison"]["runs"])
+    assert data["calibration"]["accepted"] == data["settings"]["presses"]
+    out = tmp_path / "demo"
+    assert json.loads((out / "report.json").read_text())["comparison"] == data["comparison"]
+    assert (out / "report.html").read_text().count("<img") >= 4 * 3
