@@ -24,6 +24,8 @@ def register(group):
     p.add_argument("scene", help="shipped scene name (default, plano-sphere) or a YAML path")
     _trace_options(p)
     p.add_argument("--no-lens", action="store_true", help="trace without the lens (the paper's comparison)")
+    p.add_argument("--intersection", choices=("robust", "paper"), default=None,
+                   help="lens intersections: robust (default) or the paper's cases 1-3 with counted fallbacks")
     p.add_argument("--image", metavar="PNG", help="also save the 24-LED flat-gel image")
     add_json_flag(p)
     p.set_defaults(func=_trace)
@@ -100,7 +102,7 @@ def _trace(args) -> int:
     _check_rays(args)
     r = trace_report(args.scene, rays=args.rays, sampler=args.sampler, seed=args.seed, no_lens=args.no_lens,
                      method=args.method, device=args.device, dtype=_dtype(args.dtype), compile=args.compile,
-                     images=bool(args.image))
+                     images=bool(args.image), intersection=args.intersection)
     if args.image:
         _save_image(r.pop("image"), args.image, f"{r['scene']} ({'lens' if r['lens'] else 'no lens'})")
     out = {k: r[k] for k in TRACE_KEYS}
@@ -108,7 +110,7 @@ def _trace(args) -> int:
         print_json(out)
     else:
         print(f"scene {out['scene']} ({'with' if out['lens'] else 'without'} lens), {out['rays']} rays per traced "
-              f"LED ({out['sampler']}, {out['method']}) on {out['device']}")
+              f"LED ({out['sampler']}, {out['method']}, {out['intersection']} intersections) on {out['device']}")
         print(f"  fraction on screen  {100 * out['fraction_on_screen']:.2f} %")
         print(f"  mean intensity      {out['mean_intensity']:.4g} W/m^2 per W per LED")
         print(f"  uniformity          CV {out['uniformity_cv']:.4f}, min/max {out['min_max']:.4f}")
@@ -116,6 +118,9 @@ def _trace(args) -> int:
             print(f"    {ch}: CV {v['uniformity_cv']:.4f}, min/max {v['min_max']:.4f}")
         print(f"  time                {out['seconds']:.3f} s ({out['rays_per_second'] / 1e6:.2f} M rays/s)")
         print(f"  energy residual     {out['energy_residual']:.3g}")
+        shown = {k: v for k, v in out["counters"].items() if v}
+        if shown:
+            print("  counters            " + ", ".join(f"{k} {v}" for k, v in sorted(shown.items())))
     return 0
 
 

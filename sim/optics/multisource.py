@@ -70,7 +70,7 @@ def led_azimuths(scene) -> np.ndarray:
 def trace_all(scene, grid: PixelGrid | None = None, *, method: str = "hits", heights=(0.0,), vector: bool = True,
               rays: int | None = None, sampler: str | None = None, seed: int | None = None, device="cpu",
               dtype=torch.float32, chunk: int = DEFAULT_CHUNK, compile: bool = False,
-              refractive_index: float | None = None, leds=None) -> FieldResult:
+              refractive_index: float | None = None, leds=None, intersection: str | None = None) -> FieldResult:
     """Images of every LED (or of ``leds``) of ``scene`` on ``grid`` (default: the scene's imaging plane).
 
     Examples
@@ -89,7 +89,7 @@ def trace_all(scene, grid: PixelGrid | None = None, *, method: str = "hits", hei
     az = led_azimuths(scene)
     leds = list(range(scene.leds.count)) if leds is None else [int(i) for i in leds]
     kw = dict(rays=rays, sampler=sampler, seed=seed, device=device, dtype=dtype, chunk=chunk, compile=compile,
-              refractive_index=refractive_index)
+              refractive_index=refractive_index, intersection=intersection)
     traces: list[SourceTrace] = []
     if method == "trace":
         Es, Vs, frac = [], [], []
