@@ -91,6 +91,19 @@ def _dtype(name):
     return {"float32": torch.float32, "float64": torch.float64}[name]
 
 
+def _device(name: str) -> str:
+    """Check ``--device`` up front: a clear error instead of a traceback from deep in torch."""
+    import torch
+
+    try:
+        dev = torch.device(name)
+    except RuntimeError as exc:
+        raise UserError(f"--device {name!r}: not a torch device ({exc})") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device {name!r}: CUDA is not available on this machine; use --device cpu")
+    return name
+
+
 def _check_rays(args):
     if args.rays is not None and args.rays < 1:
         raise UserError(f"--rays must be a positive integer, got {args.rays}")
@@ -101,7 +114,7 @@ def _trace(args) -> int:
 
     _check_rays(args)
     r = trace_report(args.scene, rays=args.rays, sampler=args.sampler, seed=args.seed, no_lens=args.no_lens,
-                     method=args.method, device=args.device, dtype=_dtype(args.dtype), compile=args.compile,
+                     method=args.method, device=_device(args.device), dtype=_dtype(args.dtype), compile=args.compile,
                      images=bool(args.image), intersection=args.intersection)
     if args.image:
         _save_image(r.pop("image"), args.image, f"{r['scene']} ({'lens' if r['lens'] else 'no lens'})")
@@ -165,7 +178,7 @@ def _optimize(args) -> int:
         raise UserError(f"--steps and --rays must be positive, got {args.steps} and {args.rays}")
     r = optimize_lens(args.scene, arc_radius=tuple(args.arc_radius), centre_rho=tuple(args.centre_rho),
                       centre_z=tuple(args.centre_z), top_radius=tuple(args.top_radius), steps=args.steps,
-                      max_cv=args.max_cv, rays=args.rays, refine=args.refine, device=args.device)
+                      max_cv=args.max_cv, rays=args.rays, refine=args.refine, device=_device(args.device))
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     images = {}
@@ -214,7 +227,7 @@ def _synthesize(args) -> int:
         args.scene, tuple(args.shape), args.mm_per_px, store, drive=_load_npy(args.drive, "drive"),
         brightness=_load_npy(args.brightness, "brightness"), gains=_load_npy(args.gains, "gains"),
         exposure=args.exposure, rays=args.rays, sampler=args.sampler, seed=args.seed, method=args.method,
-        device=args.device, dtype=_dtype(args.dtype), compile=args.compile)
+        device=_device(args.device), dtype=_dtype(args.dtype), compile=args.compile)
     path = save_illumination(model, args.out)
     res = {"out": str(path), "key": key.digest, "cached": cached, "shape": list(model.shape),
            "leds": model.num_leds, "mm_per_px": model.mm_per_px, "seconds": time.perf_counter() - t0,
