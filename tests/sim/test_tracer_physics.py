@@ -99,10 +99,14 @@ def test_ring_symmetry():
     for img in (np.rot90(tot), tot[::-1, :], tot[:, ::-1]):
         assert np.abs(img - tot).sum() < 1e-3 * tot.sum()
     # The paper's image rotation is close to exact for 90 degrees, worse for 15 (interpolation).
-    img = trace_all(s, g, method="image", rays=40_000, leds=[1, 6]).E[0].double().numpy()
+    rot = trace_all(s, g, method="image", rays=40_000, leds=[1, 6])
+    img = rot.E[0].double().numpy()
     e15 = np.abs(img[0] - E[1]).sum() / E[1].sum()
     e90 = np.abs(img[1] - E[6]).sum() / E[6].sum()
     assert e90 < 1e-3 < e15
+    # ... and its V vectors turn with the image (LED 6 sits on +y: its light comes from +y).
+    V6 = hits.V[0, 6].double().numpy()
+    assert np.abs(rot.V[0, 1].double().numpy() - V6).sum() < 1e-3 * np.abs(V6).sum()
 
 
 def test_float32_matches_float64():
