@@ -59,7 +59,7 @@ def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, 
                          intersection=intersection)
                for n_ch in indices]
     secs = time.perf_counter() - t0
-    Es = [r.E[0].double().cpu().numpy() for r in results]
+    Es = [r.E[0].astype(np.float64) for r in results]
     E = np.stack(Es) if len(Es) > 1 else Es[0]
     res = results[0]
     traces = [t for r in results for t in r.traces]

@@ -164,7 +164,7 @@ def synthesize_record(scene, shape, mm_per_px: float, *, drive=None, brightness=
     for n_ch in indices:
         res = trace_all(scene, grid, method=method, heights=heights, rays=rays, sampler=sampler, seed=seed,
                         device=device, dtype=dtype, compile=compile, refractive_index=n_ch)
-        fields.append(optical_to_recon(res.V).to(torch.float64).cpu().numpy())  # (D, L, H, W, 3)
+        fields.append(optical_to_recon(res.V.astype(np.float64)))  # (D, L, H, W, 3)
         traces.extend(res.traces)
     Vc = np.stack(fields)  # (C, D, L, H, W, 3), C = 3 with dispersion else 1
     Vall = Vc.mean(axis=0)

@@ -102,14 +102,14 @@ def _bench_rays(scene, grid, quick, reps, device):
 
     ref_rays = 1_000_000 if quick else 4_000_000
     ref = trace_all(scene, grid, rays=ref_rays, sampler="sobol", leds=[0], vector=False, device=device)
-    E_ref = ref.E[0, 0].double().cpu().numpy()
+    E_ref = ref.E[0, 0].astype(np.float64)
     rows = []
     for n in ([10_000, 100_000] if quick else [10_000, 100_000, 1_000_000]):
         for smp in ("grid", "random", "stratified", "sobol"):
             secs, r = _best(lambda: trace_all(scene, grid, rays=n, sampler=smp, seed=1, leds=[0], vector=False,
                                               device=device), reps)
             rows.append({"rays": int(r.traces[0].rays), "sampler": smp,
-                         "image_error": _rel(r.E[0, 0].double().cpu().numpy(), E_ref), "seconds": secs})
+                         "image_error": _rel(r.E[0, 0].astype(np.float64), E_ref), "seconds": secs})
     return {"reference_rays": ref_rays, "rows": rows}
 
 
@@ -124,12 +124,12 @@ def _bench_multi(scene, grid, quick, reps, device):
                         else reps)
         if truth is None:
             truth = r
-        E = r.E[0].double().cpu().numpy()
-        V = r.V[0].double().cpu().numpy()
+        E = r.E[0].astype(np.float64)
+        V = r.V[0].astype(np.float64)
         ms_rows.append({"method": method, "seconds": secs,
-                        "E_error": _rel(E, truth.E[0].double().cpu().numpy()),
-                        "V_error": _rel(V, truth.V[0].double().cpu().numpy()),
-                        "sum_error": _rel(E.sum(0), truth.E[0].double().cpu().numpy().sum(0))})
+                        "E_error": _rel(E, truth.E[0].astype(np.float64)),
+                        "V_error": _rel(V, truth.V[0].astype(np.float64)),
+                        "sum_error": _rel(E.sum(0), truth.E[0].astype(np.float64).sum(0))})
     return {"rays_per_led": n_ms, "rows": ms_rows}
 
 
@@ -171,14 +171,14 @@ def _bench_newton(scene, n, reps):
         ref_body = LensBody(ln, iterations=50)
         t, sid, hit, _ = ref_body.enter(o, d)
         side = (hit & (sid == SIDE)).numpy()
-        O = torch.stack(o, 1).double().numpy()
-        D = torch.stack(d, 1).double().numpy()
+        O = torch.stack(o, 1).astype(np.float64)
+        D = torch.stack(d, 1).astype(np.float64)
         tq = first_outer_hit(O, D, ln.arc_radius, ln.centre_rho, ln.centre_z, ln.bottom_z, ln.rim_z)
         Pq = O + np.where(np.isfinite(tq), tq, 0.0)[:, None] * D
         for it in (1, 2, 3, 5, 10, 20):
             secs, (P, _, ok, _) = _best(lambda: side_entry(o, d, ln, it), reps)
             _, _, info = case2_newton(o, d, ln.arc_radius, ln.centre_rho, ln.centre_z, it)
-            P = torch.stack(P, 1).double().numpy()
+            P = torch.stack(P, 1).astype(np.float64)
             ok = ok.numpy() & side
             dist = np.linalg.norm(P - Pq, axis=1)
             err = dist[ok]
@@ -193,7 +193,7 @@ def _bench_newton(scene, n, reps):
             body = LensBody(ln, iterations=it)
             secs, (tt, sid2, hit2, unc) = _best(lambda: body.enter(o, d), reps)
             m = side & (hit2 & (sid2 == SIDE)).numpy()
-            Pr = O + tt.double().numpy()[:, None] * D
+            Pr = O + tt.astype(np.float64)[:, None] * D
             err = np.linalg.norm(Pr - Pq, axis=1)[m]
             rows.append({"method": "robust (monotone Newton)", "dtype": str(dtype).replace("torch.", ""),
                          "iterations": it, "max_error_mm": float(err.max()) if err.size else math.nan,
