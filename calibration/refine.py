@@ -124,6 +124,15 @@ def refine_centres(frames: np.ndarray, reference: np.ndarray, circles: list[Circ
     report : dict
         ``iterations``, ``median_move_px`` (per iteration), ``kept_detected`` (press indices).
     """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):  # why: see calibration.calibrate.calibrate
+        return _refine(frames, reference, circles, ball_radius_mm, mm_per_px, iterations, folds, seed, shrink_px,
+                       saturation, max_shift_px, make_model)
+
+
+def _refine(frames, reference, circles, ball_radius_mm, mm_per_px, iterations, folds, seed, shrink_px, saturation,
+            max_shift_px, make_model):
     out = list(circles)
     accepted = [k for k, c in enumerate(out) if c.accepted]
     report: dict[str, Any] = {"iterations": int(iterations), "median_move_px": [], "kept_detected": []}

@@ -55,6 +55,13 @@ def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples,
         (press -> mean, median, samples), ``folds`` (list of ``{"train_presses", "test_presses"}``),
         ``invalid_fraction``.
     """
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=1, user_api="blas"):  # why: see calibration.calibrate.calibrate
+        return _cross_validate(make_model, samples, reference, folds, seed)
+
+
+def _cross_validate(make_model, samples: Samples, reference: np.ndarray, folds: int, seed: int) -> dict[str, Any]:
     presses = np.unique(samples.press[(samples.press >= 0) & samples.contact])
     if len(presses) < 2:
         raise ValueError(f"cross_validate: needs at least two accepted presses, got {len(presses)}")

@@ -14,10 +14,10 @@ def summarise_capture(path: str, store_root: str) -> dict:
     frames = rec.data["frames"].astype(np.float64)
     diff = frames - rec.data["reference"][None].astype(np.float64)
     store = StageStore(store_root)
-    key = store.key("depth", 1, {"integrator": "summary"}, [path])
+    key = store.key("depth", 1, {"integrator": "fc", "task": "summary"}, [path])
     h = diff.mean(axis=(1, 4)).astype(np.float32)
     store.put(key, Record("depth", {"height": h, "mask": np.ones(h.shape, bool)},
-                          {"integrator": "summary", "mm_per_px": float(rec.meta["mm_per_px"])}))
+                          {"integrator": "fc", "mm_per_px": float(rec.meta["mm_per_px"])}))
     return {"mean_diff": float(diff.mean()), "max_diff": float(np.abs(diff).max()), "key": key.digest}
 
 
