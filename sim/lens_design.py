@@ -25,7 +25,8 @@ __all__ = ["TRACE_KEYS", "trace_report", "compare_lens", "optimize_lens", "LensC
 
 #: The stable key set of ``iristac sim trace --json``.
 TRACE_KEYS = ("fraction_on_screen", "mean_intensity", "uniformity_cv", "min_max", "channels", "rays", "seconds",
-              "rays_per_second", "energy_residual", "scene", "lens", "sampler", "method", "device", "counters")
+              "rays_per_second", "energy_residual", "scene", "lens", "sampler", "method", "intersection", "device",
+              "counters")
 
 
 def _scene(scene) -> Scene:
@@ -34,7 +35,7 @@ def _scene(scene) -> Scene:
 
 def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, seed: int | None = None,
                  no_lens: bool = False, method: str = "hits", device="cpu", dtype=torch.float32,
-                 compile: bool = False, images: bool = False) -> dict:
+                 compile: bool = False, images: bool = False, intersection: str | None = None) -> dict:
     """Trace every LED of ``scene`` onto its imaging plane and report the paper's figures.
 
     Returns a dict with the keys :data:`TRACE_KEYS` (``rays`` per traced source; ``seconds``
@@ -54,10 +55,11 @@ def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, 
     t0 = time.perf_counter()
     indices = s.lens.channel_indices() if s.has("dispersion") else (None,)
     results = [trace_all(s, PixelGrid.from_plane(s.plane), method=method, rays=rays, sampler=sampler, seed=seed,
-                         vector=False, device=device, dtype=dtype, compile=compile, refractive_index=n_ch)
+                         vector=False, device=device, dtype=dtype, compile=compile, refractive_index=n_ch,
+                         intersection=intersection)
                for n_ch in indices]
     secs = time.perf_counter() - t0
-    Es = [r.E[0].double().cpu().numpy() for r in results]
+    Es = [r.E[0].astype(np.float64) for r in results]
     E = np.stack(Es) if len(Es) > 1 else Es[0]
     res = results[0]
     traces = [t for r in results for t in r.traces]
@@ -70,7 +72,7 @@ def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, 
     out = {**m, "rays": int(res.traces[0].rays), "seconds": secs, "rays_per_second": n / secs if secs > 0 else 0.0,
            "energy_residual": max(abs(t.energy.residual) for t in traces), "scene": s.name,
            "lens": s.has("lens"), "sampler": sampler or s.trace.sampler, "method": method, "device": str(device),
-           "counters": counters}
+           "intersection": intersection or s.trace.intersection, "counters": counters}
     if images:
         from sim.optics.metrics import pattern_image
 

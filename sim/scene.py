@@ -13,7 +13,6 @@ on the LED plane, ``+z`` toward the gel.
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -41,7 +40,6 @@ __all__ = [
 EFFECTS = ("lens", "fresnel", "internal_bounces", "emission_profile", "dispersion", "depth_field")
 
 _SCENES_DIR = Path(__file__).resolve().parent / "scenes"
-_SCHEMA_PATH = Path(__file__).resolve().parents[1] / "data_schemas" / "configs" / "scene.json"
 
 # Representative wavelengths (nm) of the camera's R, G, B channels, and the Fraunhofer lines
 # that define the Abbe number; used only when the scene asks for dispersion.
@@ -241,25 +239,19 @@ def load_scene(name_or_path: str | Path) -> Scene:
     return scene_from_dict(data, source=str(path))
 
 
-def _schema() -> dict:
-    return json.loads(_SCHEMA_PATH.read_text())
-
-
 def scene_from_dict(data: Any, source: str = "<dict>") -> Scene:
     """Validate a parsed scene mapping and build a :class:`Scene`.
 
     Raises :class:`pipeline.errors.UserError` naming ``source``, the field and what was expected.
     """
-    import jsonschema
+    import data_schemas
 
     if not isinstance(data, dict):
         raise UserError(f"scene file {source}: expected a mapping at the top level, got {type(data).__name__}")
-    validator = jsonschema.Draft202012Validator(_schema())
-    errors = sorted(validator.iter_errors(data), key=lambda e: list(e.absolute_path))
-    if errors:
-        e = errors[0]
-        where = "/".join(str(p) for p in e.absolute_path) or "(top level)"
-        raise UserError(f"scene file {source}: field {where}: {e.message}")
+    try:
+        data_schemas.validate_config("scene", data, f"scene file {source}")
+    except data_schemas.SchemaError as exc:
+        raise UserError(str(exc)) from None
 
     led = data["leds"]
     count = int(led["count"])

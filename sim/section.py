@@ -107,9 +107,9 @@ def draw_section(scene, out, *, rays: int = 25, image: bool = True, image_rays: 
         zt = ln.top_z(rt)
         prof_r = np.concatenate([[0, ln.bottom_rho], rho_side, rt[::-1]])
         prof_z = np.concatenate([[ln.bottom_z, ln.bottom_z], z, zt[::-1]])
-        for sgn in (1, -1):
-            ax.fill(sgn * prof_r, prof_z, color="#9ecae1", alpha=0.5, lw=1, ec="#3182bd",
-                    label="lens" if sgn == 1 else None)
+        # One polygon: the right half of the profile and its mirror image.
+        ax.fill(np.concatenate([prof_r, -prof_r[::-1]]), np.concatenate([prof_z, prof_z[::-1]]), color="#9ecae1",
+                alpha=0.5, lw=1, ec="#3182bd", label="lens")
     half = s.plane.size[0] / 2
     ax.plot([-half, half], [s.plane.z, s.plane.z], color="k", lw=3, label="gel (imaging plane)")
     pos, _ = s.leds.geometry()
@@ -128,15 +128,18 @@ def draw_section(scene, out, *, rays: int = 25, image: bool = True, image_rays: 
     if image:
         from sim.lens_design import trace_report
 
-        r = trace_report(s, rays=image_rays, images=True)
+        # Sobol rays for the picture: the paper's deterministic grid puts rays on rings and
+        # spokes that alias with the pixel grid into moire.
+        r = trace_report(s, rays=image_rays, sampler="sobol", images=True)
         img = r["image"].mean(axis=2) * 1e6
         ax2 = axs[0, 1]
         hw, hh = s.plane.size[0] / 2, s.plane.size[1] / 2
         # origin="lower": y grows upward as in the optical frame's x-y plane seen from the camera side.
         im = ax2.imshow(img, origin="lower", extent=(-hw, hw, -hh, hh), cmap="inferno")
         fig.colorbar(im, ax=ax2, label="irradiance, W/m^2 per W per LED")
-        ax2.set_title(f"{s.leds.count} LEDs on the gel: {100 * r['fraction_on_screen']:.1f}% on screen, "
-                      f"CV {r['uniformity_cv']:.2f}")
+        leds = f"{s.leds.count} LED" + ("s" if s.leds.count > 1 else "")
+        ax2.set_title(f"{leds} on the gel ({image_rays:,} Sobol rays): {100 * r['fraction_on_screen']:.1f}% on "
+                      f"screen, CV {r['uniformity_cv']:.2f}")
         ax2.set_xlabel("x (mm)")
         ax2.set_ylabel("y (mm)")
     fig.tight_layout()

@@ -25,8 +25,8 @@ from sim.optics.binning import PixelGrid
 from sim.optics.multisource import METHODS, trace_all
 from sim.scene import Scene, load_scene, scene_to_dict
 
-__all__ = ["STAGE_VERSION", "synthesize", "synthesize_to_store", "synthesize_record", "model_from_record", "load_illumination",
-           "save_illumination", "default_illumination"]
+__all__ = ["STAGE_VERSION", "synthesize", "synthesize_to_store", "synthesize_params", "synthesize_record",
+           "model_from_record", "load_illumination", "save_illumination", "default_illumination"]
 
 #: Bump when the computation of the illumination model changes (old store entries stop matching).
 STAGE_VERSION = 1
@@ -121,13 +121,18 @@ def synthesize_to_store(scene, shape, mm_per_px: float, store, **kw):
         raise UserError(f"synthesize: method must be one of {METHODS}, got {full['method']!r}")
     _check_inputs(scene, shape, mm_per_px, full["drive"], full["brightness"], full["gains"])
     shape = (int(shape[0]), int(shape[1]))
-    key = store.key("synthesize", STAGE_VERSION, _params(scene, shape, mm_per_px, **full))
+    key = store.key("synthesize", STAGE_VERSION, synthesize_params(scene, shape, mm_per_px, **full))
     rec, cached = store.get_or_compute(key, lambda: synthesize_record(scene, shape, mm_per_px, **full))
     return model_from_record(rec), key, cached
 
 
-def _params(scene, shape, mm_per_px, *, drive, brightness, gains, exposure, rays, sampler, seed, method, device,
-            dtype, compile) -> dict:
+def synthesize_params(scene, shape, mm_per_px, *, drive=None, brightness=None, gains=None, exposure=1.0, rays=None,
+                      sampler=None, seed=None, method="hits", device="cpu", dtype=torch.float32, compile=False) -> dict:
+    """The parameters that key a synthesize result in the stage store (stage ``synthesize``).
+
+    Everything that changes the result: the scene (minus its description), the grid, the
+    tracing parameters, exposure, patterns and gains. Device and ``compile`` do not enter.
+    """
     tr = scene.trace
     d = scene_to_dict(scene)
     d.pop("description", None)
@@ -159,7 +164,7 @@ def synthesize_record(scene, shape, mm_per_px: float, *, drive=None, brightness=
     for n_ch in indices:
         res = trace_all(scene, grid, method=method, heights=heights, rays=rays, sampler=sampler, seed=seed,
                         device=device, dtype=dtype, compile=compile, refractive_index=n_ch)
-        fields.append(optical_to_recon(res.V).to(torch.float64).cpu().numpy())  # (D, L, H, W, 3)
+        fields.append(optical_to_recon(res.V.astype(np.float64)))  # (D, L, H, W, 3)
         traces.extend(res.traces)
     Vc = np.stack(fields)  # (C, D, L, H, W, 3), C = 3 with dispersion else 1
     Vall = Vc.mean(axis=0)
@@ -243,4 +248,11 @@ def default_illumination(shape=(60, 80), mm_per_px: float = 0.5, rays: int = 250
     >>> m.V.shape, m.num_leds
     ((24, 12, 16, 3), 24)
     """
-    return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)
+    # One intra-op thread: on a shared 2-core machine a second thread mostly waits on barriers
+    # (measured 0.65 s single-threaded vs 3-30 s with two under load); restored afterwards.
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)
+    finally:
+        torch.set_num_threads(threads)

@@ -24,6 +24,8 @@ def register(group):
     p.add_argument("scene", help="shipped scene name (default, plano-sphere) or a YAML path")
     _trace_options(p)
     p.add_argument("--no-lens", action="store_true", help="trace without the lens (the paper's comparison)")
+    p.add_argument("--intersection", choices=("robust", "paper"), default=None,
+                   help="lens intersections: robust (default) or the paper's cases 1-3 with counted fallbacks")
     p.add_argument("--image", metavar="PNG", help="also save the 24-LED flat-gel image")
     add_json_flag(p)
     p.set_defaults(func=_trace)
@@ -89,6 +91,19 @@ def _dtype(name):
     return {"float32": torch.float32, "float64": torch.float64}[name]
 
 
+def _device(name: str) -> str:
+    """Check ``--device`` up front: a clear error instead of a traceback from deep in torch."""
+    import torch
+
+    try:
+        dev = torch.device(name)
+    except RuntimeError as exc:
+        raise UserError(f"--device {name!r}: not a torch device ({exc})") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise UserError(f"--device {name!r}: CUDA is not available on this machine; use --device cpu")
+    return name
+
+
 def _check_rays(args):
     if args.rays is not None and args.rays < 1:
         raise UserError(f"--rays must be a positive integer, got {args.rays}")
@@ -99,8 +114,8 @@ def _trace(args) -> int:
 
     _check_rays(args)
     r = trace_report(args.scene, rays=args.rays, sampler=args.sampler, seed=args.seed, no_lens=args.no_lens,
-                     method=args.method, device=args.device, dtype=_dtype(args.dtype), compile=args.compile,
-                     images=bool(args.image))
+                     method=args.method, device=_device(args.device), dtype=_dtype(args.dtype), compile=args.compile,
+                     images=bool(args.image), intersection=args.intersection)
     if args.image:
         _save_image(r.pop("image"), args.image, f"{r['scene']} ({'lens' if r['lens'] else 'no lens'})")
     out = {k: r[k] for k in TRACE_KEYS}
@@ -108,7 +123,7 @@ def _trace(args) -> int:
         print_json(out)
     else:
         print(f"scene {out['scene']} ({'with' if out['lens'] else 'without'} lens), {out['rays']} rays per traced "
-              f"LED ({out['sampler']}, {out['method']}) on {out['device']}")
+              f"LED ({out['sampler']}, {out['method']}, {out['intersection']} intersections) on {out['device']}")
         print(f"  fraction on screen  {100 * out['fraction_on_screen']:.2f} %")
         print(f"  mean intensity      {out['mean_intensity']:.4g} W/m^2 per W per LED")
         print(f"  uniformity          CV {out['uniformity_cv']:.4f}, min/max {out['min_max']:.4f}")
@@ -116,6 +131,9 @@ def _trace(args) -> int:
             print(f"    {ch}: CV {v['uniformity_cv']:.4f}, min/max {v['min_max']:.4f}")
         print(f"  time                {out['seconds']:.3f} s ({out['rays_per_second'] / 1e6:.2f} M rays/s)")
         print(f"  energy residual     {out['energy_residual']:.3g}")
+        shown = {k: v for k, v in out["counters"].items() if v}
+        if shown:
+            print("  counters            " + ", ".join(f"{k} {v}" for k, v in sorted(shown.items())))
     return 0
 
 
@@ -160,7 +178,7 @@ def _optimize(args) -> int:
         raise UserError(f"--steps and --rays must be positive, got {args.steps} and {args.rays}")
     r = optimize_lens(args.scene, arc_radius=tuple(args.arc_radius), centre_rho=tuple(args.centre_rho),
                       centre_z=tuple(args.centre_z), top_radius=tuple(args.top_radius), steps=args.steps,
-                      max_cv=args.max_cv, rays=args.rays, refine=args.refine, device=args.device)
+                      max_cv=args.max_cv, rays=args.rays, refine=args.refine, device=_device(args.device))
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     images = {}
@@ -209,7 +227,7 @@ def _synthesize(args) -> int:
         args.scene, tuple(args.shape), args.mm_per_px, store, drive=_load_npy(args.drive, "drive"),
         brightness=_load_npy(args.brightness, "brightness"), gains=_load_npy(args.gains, "gains"),
         exposure=args.exposure, rays=args.rays, sampler=args.sampler, seed=args.seed, method=args.method,
-        device=args.device, dtype=_dtype(args.dtype), compile=args.compile)
+        device=_device(args.device), dtype=_dtype(args.dtype), compile=args.compile)
     path = save_illumination(model, args.out)
     res = {"out": str(path), "key": key.digest, "cached": cached, "shape": list(model.shape),
            "leds": model.num_leds, "mm_per_px": model.mm_per_px, "seconds": time.perf_counter() - t0,

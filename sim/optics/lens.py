@@ -72,12 +72,13 @@ class LensBody:
         margin = 1e-3
         self.box = (rho_max + margin, lens.bottom_z - margin, lens.apex_z + margin)
 
-    def enter(self, o: Vec, d: Vec):
+    def enter(self, o: Vec, d: Vec, box=None):
         """Rays outside the lens: ``(t, surface_id, hit, unconverged)``, each (N,).
 
         ``unconverged`` marks rays whose swept-arc solve did not converge (counted as misses).
+        ``box`` is :func:`box_interval` of these rays if the caller has it already.
         """
-        t_lo, t_hi, ok = box_interval(o, d, *self.box)
+        t_lo, t_hi, ok = box if box is not None else box_interval(o, d, *self.box)
         if isinstance(self.side, SweptArc):
             e0, unconverged = self.side.entry_status(o, d, t_lo, t_hi)
         else:

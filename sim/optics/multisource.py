@@ -31,9 +31,10 @@ class FieldResult:
 
     Attributes
     ----------
-    E : torch.Tensor, shape (D, L, H, W)
-        Flat-gel irradiance per LED (W/mm^2 per W emitted) at each of the D gel heights.
-    V : torch.Tensor, shape (D, L, H, W, 3) or None
+    E : ndarray, shape (D, L, H, W)
+        Flat-gel irradiance per LED (W/mm^2 per W emitted) at each of the D gel heights
+        (float32, or float64 for a float64 trace).
+    V : ndarray, shape (D, L, H, W, 3) or None
         Vector irradiance, **optical** frame (convert with :func:`sim.frames.optical_to_recon`).
     grid : PixelGrid
     heights : tuple of float
@@ -43,8 +44,8 @@ class FieldResult:
         Fraction of each LED's power landing on the grid at height 0.
     """
 
-    E: torch.Tensor
-    V: torch.Tensor | None
+    E: np.ndarray
+    V: np.ndarray | None
     grid: PixelGrid
     heights: tuple
     traces: list
@@ -70,7 +71,7 @@ def led_azimuths(scene) -> np.ndarray:
 def trace_all(scene, grid: PixelGrid | None = None, *, method: str = "hits", heights=(0.0,), vector: bool = True,
               rays: int | None = None, sampler: str | None = None, seed: int | None = None, device="cpu",
               dtype=torch.float32, chunk: int = DEFAULT_CHUNK, compile: bool = False,
-              refractive_index: float | None = None, leds=None) -> FieldResult:
+              refractive_index: float | None = None, leds=None, intersection: str | None = None) -> FieldResult:
     """Images of every LED (or of ``leds``) of ``scene`` on ``grid`` (default: the scene's imaging plane).
 
     Examples
@@ -79,7 +80,7 @@ def trace_all(scene, grid: PixelGrid | None = None, *, method: str = "hits", hei
     >>> s = load_scene("default")
     >>> g = PixelGrid((8, 8), (4.0, 4.0), s.plane.z)
     >>> r = trace_all(s, g, rays=4096)
-    >>> tuple(r.E.shape), tuple(r.V.shape)
+    >>> r.E.shape, r.V.shape
     ((1, 24, 8, 8), (1, 24, 8, 8, 3))
     """
     if method not in METHODS:
@@ -89,7 +90,7 @@ def trace_all(scene, grid: PixelGrid | None = None, *, method: str = "hits", hei
     az = led_azimuths(scene)
     leds = list(range(scene.leds.count)) if leds is None else [int(i) for i in leds]
     kw = dict(rays=rays, sampler=sampler, seed=seed, device=device, dtype=dtype, chunk=chunk, compile=compile,
-              refractive_index=refractive_index)
+              refractive_index=refractive_index, intersection=intersection)
     traces: list[SourceTrace] = []
     if method == "trace":
         Es, Vs, frac = [], [], []
@@ -112,8 +113,8 @@ def trace_all(scene, grid: PixelGrid | None = None, *, method: str = "hits", hei
         if method == "image":
             E, V = rotate_images(E[:, 0], None if V is None else V[:, 0], [float(az[i] - az[0]) for i in leds])
             fr = np.repeat(fr, len(leds))
-    return FieldResult(E=E, V=V, grid=grid, heights=tuple(heights), traces=traces,
-                       seconds=time.perf_counter() - t0, fraction_on_grid=fr)
+    return FieldResult(E=E.cpu().numpy(), V=None if V is None else V.cpu().numpy(), grid=grid,
+                       heights=tuple(heights), traces=traces, seconds=time.perf_counter() - t0, fraction_on_grid=fr)
 
 
 def rotate_images(E, V, angles):

@@ -27,7 +27,7 @@ import torch
 from sim.optics.base import Vec
 from sim.optics.lens import SIDE, TOP
 
-__all__ = ["case1_arc_in_plane", "case2_newton", "case3_sphere", "PaperIntersector"]
+__all__ = ["case1_arc_in_plane", "case2_newton", "case3_sphere", "side_entry", "PaperIntersector"]
 
 
 def _dot(a: Vec, b: Vec):
@@ -167,6 +167,31 @@ def case2_newton(A: Vec, i: Vec, r1: float, rho_c: float, z_c: float, iterations
                             "singular": singular, "ok": ok}
 
 
+def side_entry(o: Vec, d: Vec, lens, iterations: int = 20):
+    """The paper's side entry with its checks: ``(P, n, ok, singular)``.
+
+    Case 2 by Newton; where eq. (7) is singular, case 1 in the plane of the source and the
+    axis (the arc centre on the source's side). ``ok`` requires the method's own success
+    (converged, ahead of the source) and a genuine entry: on the outer half of the arc
+    (``rho >= rho_c``), within the side's z range, against the outward normal. Newton
+    iterates that converge to a wrong root (the far side, the inner half of the torus) fail
+    these checks.
+    """
+    ln = lens
+    P2, n2, info = case2_newton(o, d, ln.arc_radius, ln.centre_rho, ln.centre_z, iterations)
+    phi = torch.atan2(o[1], o[0])
+    B = (ln.centre_rho * torch.cos(phi), ln.centre_rho * torch.sin(phi), torch.full_like(phi, ln.centre_z))
+    P1, n1, ok1 = case1_arc_in_plane(o, d, B, ln.arc_radius)
+    sing = info["singular"]
+    P = tuple(torch.where(sing, a, b) for a, b in zip(P1, P2))
+    nn = tuple(torch.where(sing, a, b) for a, b in zip(n1, n2))
+    ok = torch.where(sing, ok1, info["ok"])
+    rho = torch.sqrt(P[0] * P[0] + P[1] * P[1])
+    entering = (d[0] * nn[0] + d[1] * nn[1] + d[2] * nn[2]) < 0
+    ok = ok & entering & (rho >= ln.centre_rho) & (P[2] >= ln.bottom_z - 1e-6) & (P[2] <= ln.rim_z + 1e-6)
+    return P, nn, ok, sing
+
+
 class PaperIntersector:
     """The paper's method inside the tracer: replaces the robust side entry and top exit.
 
@@ -188,18 +213,7 @@ class PaperIntersector:
         m = hit & (sid == SIDE)
         if not bool(m.any()):
             return p, n
-        P2, n2, info = case2_newton(o, d, ln.arc_radius, ln.centre_rho, ln.centre_z, self.iterations)
-        # Case 1 in the plane of the source and the axis: the arc centre on the source's side.
-        phi = torch.atan2(o[1], o[0])
-        B = (ln.centre_rho * torch.cos(phi), ln.centre_rho * torch.sin(phi), torch.full_like(phi, ln.centre_z))
-        P1, n1, ok1 = case1_arc_in_plane(o, d, B, ln.arc_radius)
-        sing = info["singular"]
-        P = tuple(torch.where(sing, a, b) for a, b in zip(P1, P2))
-        nn = tuple(torch.where(sing, a, b) for a, b in zip(n1, n2))
-        ok = torch.where(sing, ok1, info["ok"])
-        rho = torch.sqrt(P[0] * P[0] + P[1] * P[1])
-        entering = (d[0] * nn[0] + d[1] * nn[1] + d[2] * nn[2]) < 0
-        ok = ok & entering & (rho >= ln.centre_rho) & (P[2] >= ln.bottom_z - 1e-6) & (P[2] <= ln.rim_z + 1e-6)
+        P, nn, ok, sing = side_entry(o, d, ln, self.iterations)
         use = m & ok
         self.counters["paper_case1"] += int((use & sing).sum())
         self.counters["paper_case2"] += int((use & ~sing).sum())

@@ -63,9 +63,12 @@ class SquareSampler:
         """Samples ``start .. stop-1`` (call with consecutive ranges for reproducibility)."""
         m = stop - start
         if self.kind in ("grid", "stratified"):
-            idx = torch.arange(start, stop, device=self.device)
-            i = torch.div(idx, self.k, rounding_mode="floor").to(self.dtype)
-            j = (idx % self.k).to(self.dtype)
+            # Row/column of each sample in the k x k grid (float64 holds indices exactly up to
+            # 2^53 and avoids slow int64 division).
+            idx = torch.arange(start, stop, device=self.device, dtype=torch.float64)
+            i64 = torch.floor(idx / self.k)
+            i = i64.to(self.dtype)
+            j = (idx - i64 * self.k).to(self.dtype)
             if self.kind == "grid":
                 ju = jv = 0.5
             else:

@@ -127,24 +127,31 @@ class SweptArc(ConvexSet):
             return t, S, dS, dead
         if not bool(need.any()):
             return t, S, dS, dead
+        # Eager: most rays converge in 4-5 steps, a few near tangency take 9. So iterate the
+        # rays that need it for a few steps, then only the ones still moving (compacted once).
+        t, S, dS = t.clone(), S.clone(), dS.clone()
         idx = torch.nonzero(need).squeeze(1)
         oo = tuple(c[idx] for c in o)
         dd = tuple(c[idx] for c in d)
         tt, s_, ds_ = t[idx], S[idx], dS[idx]
         gone = torch.zeros_like(tt, dtype=torch.bool)
+        first = min(4, self.iterations)
         for it in range(self.iterations):
             move = (s_ > 0) & ((ds_ < 0) if left else (ds_ > 0))
             gone = gone | ((s_ > 0) & ((ds_ >= 0) if left else (ds_ <= 0)))
             step = torch.where(move, s_ / torch.where(move, ds_, torch.ones_like(ds_)), torch.zeros_like(s_))
             tt = tt - step
             s_, ds_ = self._S(oo, dd, tt)
-            # Converged rays stop moving; check every few steps (a sync) whether all have.
-            if it % 3 == 2 and float(step.abs().max()) < 1e-7 * (1.0 + float(tt.abs().max())):
-                break
-        t = t.index_put((idx,), tt)
-        S = S.index_put((idx,), s_)
-        dS = dS.index_put((idx,), ds_)
-        dead = dead.index_put((idx,), gone)
+            if it == first - 1 and it < self.iterations - 1:
+                t[idx], S[idx], dS[idx], dead[idx] = tt, s_, ds_, gone
+                busy = step.abs() > 1e-7 * (1.0 + tt.abs())
+                if not bool(busy.any()):
+                    return t, S, dS, dead
+                idx = idx[busy]
+                oo = tuple(c[busy] for c in oo)
+                dd = tuple(c[busy] for c in dd)
+                tt, s_, ds_, gone = tt[busy], s_[busy], ds_[busy], gone[busy]
+        t[idx], S[idx], dS[idx], dead[idx] = tt, s_, ds_, gone
         return t, S, dS, dead
 
     def exit(self, o: Vec, d: Vec, t_lo=None, t_hi=None) -> torch.Tensor:

@@ -232,3 +232,14 @@ def test_snell_fresnel_tir_grazing():
     # Reflection keeps unit length and flips the normal component.
     r = reflect(tuple(torch.tensor([v], dtype=torch.float64) for v in (0.6, 0.0, 0.8)), nb)
     assert [round(float(c[0]), 12) for c in r] == [0.6, 0.0, -0.8]
+
+
+def test_tracer_with_the_papers_method_matches_robust():
+    from sim.optics.tracer import trace_source
+
+    s = load_scene("default")
+    a = trace_source(s, rays=20_000, sampler="sobol", dtype=torch.float64)
+    b = trace_source(s, rays=20_000, sampler="sobol", dtype=torch.float64, intersection="paper")
+    assert b.counters["paper_case2"] > 1000 and b.counters["paper_case3"] > 1000
+    assert b.counters["paper_fallbacks"] <= 0.01 * b.counters["paper_case2"]
+    assert abs(a.energy.on_screen - b.energy.on_screen) < 1e-6 and abs(b.energy.residual) < 1e-12

@@ -26,6 +26,8 @@ def test_trace_json_keys_and_bad_scene(capsys):
     assert main(["sim", "trace", "no-such-scene"]) == 2
     err = capsys.readouterr().err
     assert "no-such-scene" in err and len(err.strip().splitlines()) == 1
+    assert main(["sim", "trace", "default", "--device", "no-such-device"]) == 2
+    assert "--device 'no-such-device'" in capsys.readouterr().err
 
 
 def test_synthesize_writes_and_caches(tmp_path, capsys):
