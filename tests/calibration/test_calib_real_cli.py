@@ -9,7 +9,7 @@ import pytest
 from helpers import run_cli
 
 _REPO = Path(__file__).resolve().parents[2]
-# ../shared beside the clone (CI, /work/main); a worktree under /work/wt/ finds it one level up.
+# ../shared beside the checkout (as CI has it); a git worktree one folder deeper finds it one level up.
 DATA = next((p for p in (_REPO.parent / "shared" / "data" / "gelsight_ball_presses.npz",
                          _REPO.parent.parent / "shared" / "data" / "gelsight_ball_presses.npz") if p.is_file()),
             _REPO.parent / "shared" / "data" / "gelsight_ball_presses.npz")
