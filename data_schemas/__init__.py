@@ -36,6 +36,7 @@ __all__ = [
     "SchemaError",
     "stage_schema",
     "config_schema",
+    "provenance_schema",
     "stage_schema_names",
     "config_schema_names",
     "schema_version",
@@ -80,6 +81,11 @@ def stage_schema(name: str) -> dict:
 def config_schema(name: str) -> dict:
     """The JSON Schema of config files of kind ``name`` (``scene``, ``pipeline``, ``mode``, ...)."""
     return _load("configs", name)
+
+
+def provenance_schema() -> dict:
+    """The JSON Schema of the provenance attributes the store writes into every file."""
+    return _load("common", "provenance")
 
 
 def stage_schema_names() -> list[str]:

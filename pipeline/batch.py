@@ -23,6 +23,7 @@ from multiprocessing import get_context
 from typing import Any, Callable, Sequence
 
 from pipeline.errors import UserError
+from pipeline.report import format_number
 
 __all__ = ["BatchItem", "run_batch", "format_summary"]
 
@@ -164,7 +165,7 @@ def format_summary(items: Sequence[BatchItem], columns: Sequence[str] = ()) -> s
         row = f"{i.recording:<{name_w}}  {'ok' if i.ok else 'FAILED':<6} {i.seconds:>8.3f}"
         for c in columns:
             v = i.result.get(c) if i.ok and isinstance(i.result, dict) else None
-            row += f"  {_fmt(v):>14}"
+            row += f"  {format_number(v, '-'):>14}"
         lines.append(row)
         if not i.ok:
             lines.append(f"{'':<{name_w}}  -> {i.error}")
@@ -173,10 +174,3 @@ def format_summary(items: Sequence[BatchItem], columns: Sequence[str] = ()) -> s
                  f"{sum(i.seconds for i in items):.2f} s of work")
     return "\n".join(lines)
 
-
-def _fmt(v) -> str:
-    if v is None:
-        return "-"
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return str(v)

@@ -18,6 +18,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pipeline.errors import UserError
+from pipeline.report import format_number
 
 __all__ = ["ModeRun", "Comparison", "compare_captures", "compare_modes", "render_mode_captures",
            "default_test_object", "object_from_spec", "solvers_for", "add_to_report"]
@@ -312,14 +313,14 @@ def add_to_report(report, comp: Comparison, title: str = "Lighting modes compare
                               "is how long the capture of one contact took, with how it was obtained.")
     header = ["mode", "solver", "patterns", "normal mean (deg)", "normal median (deg)", "depth RMSE (mm)",
               "valid", "reconstruct (s)", "capture (s)"]
-    rows = [[r.mode, r.solver, r.patterns, _num(r.normal_mean_error_deg), _num(r.normal_median_error_deg),
-             _num(r.depth_rmse_mm), f"{100 * r.valid_fraction:.1f}%", r.reconstruct_seconds,
+    rows = [[r.mode, r.solver, r.patterns, format_number(r.normal_mean_error_deg),
+             format_number(r.normal_median_error_deg), format_number(r.depth_rmse_mm), f"{100 * r.valid_fraction:.1f}%", r.reconstruct_seconds,
              f"{r.capture_seconds:.3g} ({r.capture_seconds_source})"] for r in comp.runs]
     s.table(header, rows)
     best = comp.best()
     if best is not None:
         s.paragraph(f"Lowest normal error: {best.mode} with {best.solver} "
-                    f"({best.normal_mean_error_deg:.3g} deg, depth RMSE {_num(best.depth_rmse_mm)} mm).")
+                    f"({best.normal_mean_error_deg:.3g} deg, depth RMSE {format_number(best.depth_rmse_mm)} mm).")
     if comp.truth:
         t = report.section("Ground truth")
         t.image("true normals", normal_map_rgb(comp.truth["normals"]))
@@ -335,9 +336,6 @@ def add_to_report(report, comp: Comparison, title: str = "Lighting modes compare
             ms.image(f"{mode}/{r.solver}: depth", r.images["depth"])
             ms.image(f"{mode}/{r.solver}: error (white = 10 deg)", r.images["error"])
 
-
-def _num(v) -> str:
-    return "–" if v is None or (isinstance(v, float) and not np.isfinite(v)) else f"{v:.4g}"
 
 
 def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene: str = "default",

@@ -26,7 +26,22 @@ from typing import Any, Sequence
 
 import numpy as np
 
-__all__ = ["Report", "Section", "to_uint8_image"]
+__all__ = ["Report", "Section", "to_uint8_image", "format_number"]
+
+
+def format_number(v: Any, missing: str = "–") -> str:
+    """A table cell: floats to 4 significant digits, ``missing`` for None, NaN and Inf.
+
+    Examples
+    --------
+    >>> format_number(1.23456), format_number(None), format_number(float("nan"), "-"), format_number(3)
+    ('1.235', '–', '-', '3')
+    """
+    if v is None:
+        return missing
+    if isinstance(v, (float, np.floating)):
+        return f"{float(v):.4g}" if np.isfinite(v) else missing
+    return str(v)
 
 
 def to_uint8_image(img: np.ndarray) -> np.ndarray:

@@ -347,10 +347,7 @@ def _attr_value(v: Any) -> Any:
 def _check_provenance(path: Path, provenance: Mapping[str, Any]) -> None:
     import jsonschema
 
-    schema_path = Path(data_schemas.__file__).parent / "common" / "provenance.json"
-    with open(schema_path, encoding="utf-8") as f:
-        schema = json.load(f)
-    errors = list(jsonschema.Draft202012Validator(schema).iter_errors(dict(provenance)))
+    errors = list(jsonschema.Draft202012Validator(data_schemas.provenance_schema()).iter_errors(dict(provenance)))
     if errors:
         raise StoreError(path, "not an IrisTac store file: " + "; ".join(e.message for e in errors[:3]))
 

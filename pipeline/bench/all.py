@@ -16,6 +16,8 @@ import time
 from pathlib import Path
 from typing import Any
 
+from pipeline.report import format_number
+
 BENCHES = ["sim", "render", "capture", "reconstruct", "calibration"]
 
 
@@ -136,13 +138,6 @@ def _sub_args(module, args):
     return ns
 
 
-def _fmt(v) -> str:
-    if v is None:
-        return "–"
-    if isinstance(v, float):
-        return f"{v:.4g}"
-    return str(v)
-
 
 def format_markdown(result: dict, plot_name: str | None = None) -> str:
     lines = ["# Benchmarks", "",
@@ -160,10 +155,10 @@ def format_markdown(result: dict, plot_name: str | None = None) -> str:
         if s["rows"]:
             lines += ["| knob | setting | error | seconds | machine |", "|---|---|---|---|---|"]
             for r in s["rows"]:
-                err = _fmt(r.get("error"))
+                err = format_number(r.get("error"))
                 if r.get("error") is not None and r.get("error_unit"):
                     err += f" {r['error_unit']}"
-                lines.append(f"| {r['knob']} | {r['setting']} | {err} | {_fmt(r.get('seconds'))} | {r['machine']} |")
+                lines.append(f"| {r['knob']} | {r['setting']} | {err} | {format_number(r.get('seconds'))} | {r['machine']} |")
             lines.append("")
         if s["table"]:
             lines += ["```", s["table"].rstrip(), "```", ""]
