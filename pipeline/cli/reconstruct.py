@@ -19,6 +19,8 @@ def register(sub, name, help_text):
     p.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
     p.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--compile", action="store_true",
+                   help="lstsq: torch.compile the far-field solver (a few seconds once; ~4x faster per frame)")
     p.add_argument("--no-images", action="store_true", help="write only normals.h5 and depth.h5")
     p.add_argument("--force", action="store_true", help="recompute even if the store has the result")
     p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
@@ -33,7 +35,7 @@ def _run(args) -> int:
     res = reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
                       solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
-                      images=not args.no_images, force=args.force)
+                      images=not args.no_images, force=args.force, compile=args.compile)
     s = res.summary
     if args.json:
         print_json(s)

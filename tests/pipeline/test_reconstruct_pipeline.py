@@ -84,3 +84,28 @@ def test_cli_errors_are_one_line(files, tmp_path):
         reconstruct(cap, calibration=cal, solver="nearfield", store=tmp_path / "c2")
     with pytest.raises(UserError, match="lookup table"):
         reconstruct(files["capture"], calibration=files["calibration"], solver="lut", store=tmp_path / "c3")
+
+
+def test_cli_compile_matches_the_eager_solver(files, tmp_path):
+    """``--compile`` (the fused far-field kernel) gives the eager solver's normals to float32 rounding."""
+
+    outs = {}
+    for flag in ([], ["--compile"]):
+        d = tmp_path / ("c" if flag else "e")
+        r = run_cli("reconstruct", files["capture"], "--calibration", files["calibration"], "--solver", "lstsq",
+                    "--out", d / "o", "--cache", d / "cache", "--json", "--no-images", *flag)
+        assert r.returncode == 0 and "failed" not in r.stderr, r.stderr  # no fallback warning
+        outs[bool(flag)] = read_record(d / "o" / "normals.h5", "normals")
+    np.testing.assert_allclose(outs[True].data["normals"], outs[False].data["normals"], atol=1e-5)
+    np.testing.assert_array_equal(outs[True].data["mask"], outs[False].data["mask"])
+
+
+def test_bench_reconstruct_reports_eager_and_compiled_pipelines():
+    r = run_cli("bench", "reconstruct", "--sizes", "64x48", "--repeats", "1", "--json", timeout=300)
+    assert r.returncode == 0, r.stderr
+    size = json.loads(r.stdout)["sizes"][0]
+    assert set(size["pipelines"]) == {"lstsq+dst (eager)", "lstsq+fc (eager)", "lstsq+dst (compiled)",
+                                      "lstsq+fc (compiled)"}
+    assert size["solvers"]["lstsq (far field, compiled)"]["mean_deg"] == pytest.approx(
+        size["solvers"]["lstsq (far field)"]["mean_deg"], abs=1e-3)
+    assert all(v["fps"] > 0 for v in size["pipelines"].values())
