@@ -92,12 +92,19 @@ class CalibrationResult:
                 out["models"][name] = {"skipped": rep["skipped"], "cv_mean_angular_error_deg": None,
                                        "cv_median_angular_error_deg": None, "seconds": 0.0}
                 continue
+            cv = rep["cv"]
+            none_valid = cv["invalid_fraction"] >= 1.0
             out["models"][name] = {
-                "cv_mean_angular_error_deg": rep["cv"]["cv_mean_angular_error_deg"],
-                "cv_median_angular_error_deg": rep["cv"]["cv_median_angular_error_deg"],
+                # Internally an invalid prediction scores 90 deg (a model cannot win by refusing
+                # to answer); when *no* prediction is valid that number means nothing: None.
+                "cv_mean_angular_error_deg": None if none_valid else cv["cv_mean_angular_error_deg"],
+                "cv_median_angular_error_deg": None if none_valid else cv["cv_median_angular_error_deg"],
+                "cv_invalid_fraction": cv["invalid_fraction"],
                 "seconds": rep["seconds"],
                 "fit": rep["fit"],
             }
+            if none_valid:
+                out["models"][name]["note"] = "no valid predictions on the held-out presses"
         if self.labels is not None:
             out.update(self.labels)
         return out
@@ -225,7 +232,7 @@ def _factories(names, capture: Capture, illumination, saturation, model_options)
 def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: float | None = None,
               models: str | Sequence[str] = "all", *, illumination=None, folds: int = 5, shrink_px: float = 2.0,
               detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
-              refine_iterations: int = 2, seed: int = 0) -> CalibrationResult:
+              refine_iterations: int = 2, refine_model: str = "auto", seed: int = 0) -> CalibrationResult:
     """Calibrate light models from a sphere-indentation capture.
 
     Parameters
@@ -255,7 +262,12 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         name -> keyword arguments of that model's constructor (e.g. ``{"near": {"degree": 3}}``).
     refine_iterations : int
         Passes of :func:`calibration.refine.refine_centres` (photometric centres from
-        cross-fitted near-field normals); 0 keeps the edge detector's centres.
+        cross-fitted normals); 0 keeps the edge detector's centres.
+    refine_model : {"auto", "far", "near", "traced", "mlp"}
+        The light model whose normals vote for the centres. ``auto``: ``traced`` when
+        ``illumination`` is given (the ray-traced LED fields follow the lens; a polynomial
+        near field cannot, and on the default lens scene its 15 deg error moved the centres
+        the wrong way), else ``near``. Options come from ``model_options``.
     seed : int
 
     Returns
@@ -275,11 +287,26 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
     with threadpool_limits(limits=1, user_api="blas"):
         return _calibrate(capture, ball_radius_mm, mm_per_px, models, illumination=illumination, folds=folds,
                           shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
-                          refine_iterations=refine_iterations, seed=seed)
+                          refine_iterations=refine_iterations, refine_model=refine_model, seed=seed)
+
+
+#: Models that can vote for contact centres (they predict normals from a few patterns).
+REFINE_MODELS = ("auto", "far", "near", "traced", "mlp")
+
+
+def _refine_factory(refine_model: str, cap: Capture, illumination, saturation, model_options):
+    """``(name, factory)`` of the model that refinement fits (see :func:`calibrate`)."""
+    if refine_model not in REFINE_MODELS:
+        raise UserError(f"calibrate: --refine-model must be one of {', '.join(REFINE_MODELS)}, got {refine_model!r}")
+    name = ("traced" if illumination is not None else "near") if refine_model == "auto" else refine_model
+    make = _factories([name], cap, illumination, saturation, model_options)[name]
+    if isinstance(make, str):
+        raise UserError(f"calibrate: centre refinement with the '{name}' model is impossible: {make}")
+    return name, make
 
 
 def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, folds, shrink_px, detect_options,
-               model_options, refine_iterations, seed) -> CalibrationResult:
+               model_options, refine_iterations, refine_model, seed) -> CalibrationResult:
     src = str(capture) if not isinstance(capture, Capture) else "capture"
     cap = read_capture(capture) if not isinstance(capture, Capture) else capture
     mm = mm_per_px if mm_per_px is not None else cap.mm_per_px
@@ -306,9 +333,12 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
     # Before any light model is fitted: refinement fits one, which needs three directions.
     rank = check_light_rank(samples.subset(samples.press >= 0), what=src)
     t0 = time.perf_counter()
+    refine_name, make_refine = _refine_factory(refine_model, cap, illumination, sat, model_options)
     circles, refine_report = refine_centres(frames, ref, circles, ball_radius_mm, mm, iterations=refine_iterations,
-                                            folds=folds, seed=seed, shrink_px=shrink_px, saturation=sat)
+                                            folds=folds, seed=seed, shrink_px=shrink_px, saturation=sat,
+                                            make_model=make_refine)
     refine_report["seconds"] = time.perf_counter() - t0
+    refine_report["model"] = refine_name
     if refine_iterations > 0:
         samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat)
     factories = _factories(names, cap, illumination, sat, model_options)

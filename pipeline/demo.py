@@ -58,6 +58,11 @@ def _press_layout(settings: DemoSettings) -> tuple[list[float], list[tuple[float
     return depths, centres
 
 
+def _or(value, fallback):
+    """A table cell: ``value``, or ``fallback`` (a reason, a dash) when it is None."""
+    return fallback if value is None else value
+
+
 def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: str | Path | None = None,
              progress: bool = True, log: Callable[[str], None] | None = None) -> dict[str, Any]:
     """Run the demo and write ``report.html`` and ``report.json`` into ``out``.
@@ -119,11 +124,10 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     cal_cap = render_capture(model, "point", presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
                              seed=11)
     cal_cap_path = write_record(out / "calibration_capture.h5", cal_cap)
-    # Photometric centre refinement votes with the polynomial near-field model, which cannot
-    # follow this lens's sharp-edged LED footprints (15 deg CV error): measured on the quick demo
-    # it moves the centres the wrong way (traced CV 2.9 deg with it, 1.0 deg without).
-    cal = calibrate(cal_cap_path, settings.ball_radius_mm, models=["far", "near", "traced"], illumination=model,
-                    refine_iterations=0)
+    # Centre refinement votes with the traced model (refine_model="auto" with an illumination
+    # model): on the quick demo traced CV 0.69 deg refined vs 1.01 deg unrefined; the polynomial
+    # near field (15 deg here: it cannot follow the lens's sharp LED footprints) made it 2.9 deg.
+    cal = calibrate(cal_cap_path, settings.ball_radius_mm, models=["far", "near", "traced"], illumination=model)
     cal.save(out / "calibration.h5")
     cal_summary = cal.summary()
     say("calibrate: colour lookup tables for the single-frame modes")
@@ -177,8 +181,9 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
              ["normals + depth", stages["reconstruct"]["seconds"], f"{len(comp.runs)} reconstructions"]])
     cs = report.section("Calibration (leave-presses-out cross-validation)")
     cs.table(["model", "CV mean (deg)", "CV median (deg)", "seconds"],
-             [[name, m.get("cv_mean_angular_error_deg", "–"), m.get("cv_median_angular_error_deg", "–"),
-               m.get("seconds", "–")] for name, m in cal_summary.get("models", {}).items()])
+             [[name, _or(m.get("cv_mean_angular_error_deg"), m.get("note") or m.get("skipped")),
+               _or(m.get("cv_median_angular_error_deg"), "–"), m.get("seconds", "–")]
+              for name, m in cal_summary.get("models", {}).items()])
     us = report.section("Flat-gel uniformity per mode (per channel after channel separation)")
     us.table(["mode", "channel", "frames lit", "mean CV (std/mean)", "worst CV", "worst min/max"],
              [[mode, ch, st.get("frames_lit"), st.get("cv_mean", "–"), st.get("cv_max", "–"),

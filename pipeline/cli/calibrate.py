@@ -22,6 +22,9 @@ def register(sub, name, help_text):
                    help="traced model: also fit small LED position and tilt corrections")
     p.add_argument("--no-refine", action="store_true",
                    help="keep the edge detector's centres (no photometric centre refinement)")
+    p.add_argument("--refine-model", choices=["auto", "far", "near", "traced", "mlp"], default="auto",
+                   help="light model whose normals vote for the centres (auto: traced with --illumination, "
+                        "else near)")
     p.add_argument("--overlay", default=None, help="also write an overlay PNG of the circles")
     add_json_flag(p)
     p.set_defaults(func=_run)
@@ -37,7 +40,8 @@ def _run(args) -> int:
         raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
     opts = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else None
     res = calibrate(args.capture, args.ball_radius, args.mm_per_px, args.model, folds=args.folds, illumination=ill,
-                    model_options=opts, refine_iterations=0 if args.no_refine else 2)
+                    model_options=opts, refine_iterations=0 if args.no_refine else 2,
+                    refine_model=args.refine_model)
     res.save(args.out)
     if args.overlay:
         from calibration.capture import read_capture
@@ -53,6 +57,8 @@ def _run(args) -> int:
     for name, m in s["models"].items():
         if m.get("skipped"):
             print(f"  {name:7s} skipped: {m['skipped']}")
+        elif m["cv_mean_angular_error_deg"] is None:
+            print(f"  {name:7s} {m['note']}  {m['seconds']:6.2f} s")
         else:
             print(f"  {name:7s} CV mean {m['cv_mean_angular_error_deg']:6.2f} deg  median "
                   f"{m['cv_median_angular_error_deg']:6.2f} deg  {m['seconds']:6.2f} s")

@@ -99,3 +99,30 @@ def test_geometry_correction_needs_led_positions(displaced):
     with pytest.raises(UserError, match="IlluminationModel"):
         calibrate(cap, 1.5, models=["traced"], illumination=nominal.V, folds=2,
                   model_options={"traced": {"correct_geometry": True}}, refine_iterations=0)
+
+
+def test_refinement_votes_with_the_traced_model_when_fields_are_given(displaced):
+    from pipeline.errors import UserError
+
+    cap, tr, truth, nominal = displaced
+    with_fields = calibrate(cap, 1.5, models=["traced"], illumination=truth, folds=3)
+    assert with_fields.meta["refine"]["model"] == "traced"
+    # The traced model measures these presses well, so its votes keep the centres on the truth.
+    assert with_fields.summary()["models"]["traced"]["cv_mean_angular_error_deg"] < 1.5
+    without = calibrate(cap, 1.5, models=["near"], folds=3)
+    assert without.meta["refine"]["model"] == "near"
+    with pytest.raises(UserError, match="refinement with the 'traced' model is impossible"):
+        calibrate(cap, 1.5, models=["near"], folds=3, refine_model="traced")
+    with pytest.raises(UserError, match="--refine-model must be one of"):
+        calibrate(cap, 1.5, models=["near"], folds=3, refine_model="lut")
+
+
+def test_summary_reports_no_number_when_no_prediction_is_valid(displaced):
+    """CV scores an invalid prediction as 90 deg; with none valid the summary says so instead."""
+    cap, tr, truth, nominal = displaced
+    res = calibrate(cap, 1.5, models=["near"], folds=3, refine_iterations=0)
+    res.reports["near"]["cv"].update(cv_mean_angular_error_deg=90.0, cv_median_angular_error_deg=90.0,
+                                     invalid_fraction=1.0)
+    got = res.summary()["models"]["near"]
+    assert got["cv_mean_angular_error_deg"] is None and got["cv_median_angular_error_deg"] is None
+    assert got["cv_invalid_fraction"] == 1.0 and "no valid predictions" in got["note"]
