@@ -24,7 +24,7 @@ import torch
 from sim.optics import instrument
 from sim.optics.plane import plane_hit
 
-__all__ = ["PixelGrid", "FieldAccumulator"]
+__all__ = ["PixelGrid", "BinLayout", "FieldAccumulator", "bin_passes"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,99 @@ class PixelGrid:
     def camera(cls, shape, mm_per_px: float, z: float) -> "PixelGrid":
         """The camera's orthographic pixel grid ``(H, W)`` at ``mm_per_px`` on the gel plane ``z``."""
         return cls((int(shape[0]), int(shape[1])), (float(mm_per_px), float(mm_per_px)), float(z))
+
+
+@dataclass(frozen=True)
+class BinLayout:
+    """What a :class:`FieldAccumulator` bins, as plain hashable values (a compiled tracer keys on it).
+
+    ``angles`` are the rotations that get a binning pass of their own (quarter turns of
+    them are filled by ``rot90``); one pass per (height, angle), heights outer.
+    """
+
+    grid: PixelGrid
+    heights: tuple
+    angles: tuple
+    vector: bool
+
+    @property
+    def passes(self) -> int:
+        return len(self.heights) * len(self.angles)
+
+
+def bin_passes(layout: BinLayout, o, d, w, compact: bool = True):
+    """``[(idx, vals), ...]``, one per pass of ``layout``: flat pixel index (int64, ``H*W`` off the
+    grid) and the (N, C) contributions ``[E, V_x, V_y]`` (or ``[E]``) of each ray.
+
+    ``V_z`` is not binned: a ray's ``w l_z / (A |l_z|)`` is ``-w / A`` (``l_z < 0`` toward
+    the LEDs), so ``V_z = -E`` exactly. ``compact`` keeps only the rays that can land on the
+    grid under some rotation (eager: fewer rows to scatter); without it every ray keeps its
+    row and the others go to the spare bin ``H*W`` with zero contributions (elementwise only:
+    what ``torch.compile`` fuses).
+    """
+    grid = layout.grid
+    H, W = grid.shape
+    cy, cx = grid.centre
+    py, px = grid.pitch
+    inv_a = 1.0 / grid.area
+    # A hit lands on the grid under some rotation only within the grid's circumradius.
+    r2 = ((H / 2.0 + 1.0) * py) ** 2 + ((W / 2.0 + 1.0) * px) ** 2
+    out = []
+    for h in layout.heights:
+        x, y, _, ok = plane_hit(o, d, grid.z - h)
+        ok = ok & (w > 0) & (x * x + y * y <= r2)
+        if compact:
+            x, y, wv = x[ok], y[ok], w[ok]
+            dd = tuple(c[ok] for c in d)
+        else:
+            wv = torch.where(ok, w, torch.zeros_like(w))
+            dd = (d[0], d[1], torch.where(ok, d[2], torch.ones_like(d[2])))
+        e = wv * inv_a
+        if layout.vector:
+            # V contribution w l / (A |l_z|) with l = -d and |l_z| = d_z > 0 here.
+            s = -e / dd[2]
+            vals = torch.stack([e, s * dd[0], s * dd[1]], dim=1)
+        else:
+            vals = e[:, None]
+        for a in layout.angles:
+            if a == 0.0:
+                xr, yr = x, y
+            else:
+                ca, sa = math.cos(a), math.sin(a)
+                xr, yr = ca * x - sa * y, sa * x + ca * y
+            col = torch.floor(xr * (1.0 / px) + (cx + 0.5))
+            row = torch.floor(yr * (1.0 / py) + (cy + 0.5))
+            inb = (col >= 0) & (col < W) & (row >= 0) & (row < H)
+            if not compact:
+                inb = inb & ok
+            idx = torch.where(inb, row * W + col, torch.full_like(row, H * W)).to(torch.int64)
+            out.append((idx, vals))
+    return out
+
+
+def _scatter_rows(flat, idx, vals, base):
+    """``flat[(base + idx[n]) * C + c] += vals[n, c]``: ``index_add_`` of rows into a flat accumulator."""
+    c = vals.shape[1]
+    i = ((idx + base)[:, None] * c + torch.arange(c, device=idx.device)).flatten()
+    flat.index_put_((i,), vals.flatten(), accumulate=True)
+
+
+_SCATTER = []
+
+
+def _compiled_scatter():
+    """:func:`_scatter_rows` through ``torch.compile``: one scalar loop, single-threaded (a parallel
+    scatter needs atomic adds: measured 7x slower on two threads)."""
+    if not _SCATTER:
+        f = torch.compile(_scatter_rows, dynamic=False, options={"cpp.threads": 1})
+
+        def run(flat, idx, vals, base):
+            for x in (flat, idx, vals):
+                torch._dynamo.mark_dynamic(x, 0)
+            return f(flat, idx, vals, base)
+
+        _SCATTER.append(run)
+    return _SCATTER[0]
 
 
 class FieldAccumulator:
@@ -104,55 +197,48 @@ class FieldAccumulator:
                         break
                 else:
                     self.binned.append(i)
-        c = 4 if vector else 1
-        # One spare bin at index H*W takes every off-grid hit, so no per-angle masking is needed.
+        c = 3 if vector else 1
+        # (height, angle, pixel, [E, V_x, V_y]): a pixel's channels share a cache line (channel-major
+        # scatters measured twice as slow). One spare bin at index H*W takes every off-grid hit, so
+        # no per-angle masking is needed.
         self.acc = torch.zeros(len(self.heights), len(self.angles), H * W + 1, c, device=self.device, dtype=dtype)
         self.on_grid = torch.zeros(len(self.heights), len(self.angles), dtype=torch.float64)
-        self._r2 = ((H / 2.0 + 1.0) * grid.pitch[0]) ** 2 + ((W / 2.0 + 1.0) * grid.pitch[1]) ** 2
+
+    @property
+    def layout(self) -> BinLayout:
+        return BinLayout(self.grid, tuple(self.heights), tuple(self.angles[i] for i in self.binned), self.vector)
 
     def add(self, o, d, w) -> None:
         """Bin rays leaving the optics: origins ``o``, unit directions ``d``, powers ``w`` (N,)."""
-        H, W = self.grid.shape
-        cy, cx = self.grid.centre
-        py, px = self.grid.pitch
-        inv_a = 1.0 / self.grid.area
-        for hi, h in enumerate(self.heights):
-            x, y, _, ok = plane_hit(o, d, self.grid.z - h)
-            # A hit lands on the grid under some rotation only within the grid's circumradius:
-            # dropping the others once saves every per-angle pass from touching them.
-            ok = ok & (w > 0) & (x * x + y * y <= self._r2)
-            x, y = x[ok], y[ok]
-            wv = w[ok]
-            e = wv * inv_a
-            if self.vector:
-                # V contribution w l / (A |l_z|) with l = -d and |l_z| = d_z > 0 here.
-                dz = d[2][ok]
-                s = -e / dz
-                vals = torch.stack([e, s * d[0][ok], s * d[1][ok], s * dz], dim=1)
-            else:
-                vals = e[:, None]
+        self.add_passes(bin_passes(self.layout, o, d, w, compact=True))
+
+    def add_passes(self, passes, compiled: bool = False) -> None:
+        """Scatter :func:`bin_passes` output (of this accumulator's :attr:`layout`) into the images.
+
+        ``compiled`` scatters through one ``torch.compile``d loop (measured 3.3 ns per ray and
+        pass on the default scene against 5 for ``index_add_``; the fused tracer uses it).
+        """
+        K, rows = self.acc.shape[1:3]
+        flat = self.acc.view(-1)
+        k = 0
+        for hi in range(len(self.heights)):
             for ai in self.binned:
-                a = self.angles[ai]
-                if a == 0.0:
-                    xr, yr = x, y
+                idx, vals = passes[k]
+                if compiled:
+                    _compiled_scatter()(flat, idx, vals, torch.tensor((hi * K + ai) * rows))
                 else:
-                    ca, sa = math.cos(a), math.sin(a)
-                    xr, yr = ca * x - sa * y, sa * x + ca * y
-                col = torch.floor(xr * (1.0 / px) + (cx + 0.5))
-                row = torch.floor(yr * (1.0 / py) + (cy + 0.5))
-                inb = (col >= 0) & (col < W) & (row >= 0) & (row < H)
-                idx = torch.where(inb, row * W + col, torch.full_like(row, H * W)).to(torch.int64)
-                self.acc[hi, ai].index_add_(0, idx, vals)
-        self._dirty = True
+                    self.acc[hi, ai].index_add_(0, idx, vals)
+                k += 1
 
     def _fill_quarters(self):
         H, W = self.grid.shape
+        D = len(self.heights)
         for i, (j, k) in self.quarter.items():
-            img = self.acc[:, j, :H * W].reshape(len(self.heights), H, W, -1)
+            img = self.acc[:, j, :H * W].reshape(D, H, W, -1)
             # A turn by +90 deg about z maps (x, y) -> (-y, x); x runs along columns and y along
             # rows, so that is rot90 from the column axis toward the row axis.
             rot = torch.rot90(img, k, dims=(2, 1))
-            self.acc[:, i, :H * W] = rot.reshape(len(self.heights), H * W, -1)
+            self.acc[:, i, :H * W] = rot.reshape(D, H * W, -1)
             self.acc[:, i, H * W] = self.acc[:, j, H * W]
 
     def images(self):
@@ -164,13 +250,11 @@ class FieldAccumulator:
         E = self.acc[:, :, :H * W, 0].reshape(D, K, H, W)
         if not self.vector:
             return E, None
-        V = self.acc[:, :, :H * W, 1:].reshape(D, K, H, W, 3).clone()
-        for ai, a in enumerate(self.angles):
-            if a != 0.0:
-                ca, sa = math.cos(a), math.sin(a)
-                vx, vy = V[:, ai, ..., 0].clone(), V[:, ai, ..., 1].clone()
-                V[:, ai, ..., 0] = ca * vx - sa * vy
-                V[:, ai, ..., 1] = sa * vx + ca * vy
+        vx, vy = (self.acc[:, :, :H * W, c].reshape(D, K, H, W) for c in (1, 2))
+        # Rotate each angle's vectors with its image (the binned ones are LED 0's rays rotated).
+        ca = torch.tensor([math.cos(a) for a in self.angles], dtype=E.dtype, device=E.device)[None, :, None, None]
+        sa = torch.tensor([math.sin(a) for a in self.angles], dtype=E.dtype, device=E.device)[None, :, None, None]
+        V = torch.stack([ca * vx - sa * vy, sa * vx + ca * vy, -E], dim=-1)
         return E, V
 
     @property
