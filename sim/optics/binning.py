@@ -83,8 +83,9 @@ class BinLayout:
 
 
 def bin_passes(layout: BinLayout, o, d, w, compact: bool = True):
-    """``[(idx, vals), ...]``, one per pass of ``layout``: flat pixel index (int64, ``H*W`` off the
-    grid) and the (N, C) contributions ``[E, V_x, V_y]`` (or ``[E]``) of each ray.
+    """``[(idx, vals), ...]``, one per pass of ``layout``: flat pixel index (``H*W`` off the grid;
+    int64 with ``compact``, else int32, half the memory traffic for the fused tracer) and the
+    (N, C) contributions ``[E, V_x, V_y]`` (or ``[E]``) of each ray.
 
     ``V_z`` is not binned: a ray's ``w l_z / (A |l_z|)`` is ``-w / A`` (``l_z < 0`` toward
     the LEDs), so ``V_z = -E`` exactly. ``compact`` keeps only the rays that can land on the
@@ -127,7 +128,8 @@ def bin_passes(layout: BinLayout, o, d, w, compact: bool = True):
             inb = (col >= 0) & (col < W) & (row >= 0) & (row < H)
             if not compact:
                 inb = inb & ok
-            idx = torch.where(inb, row * W + col, torch.full_like(row, H * W)).to(torch.int64)
+            idx = torch.where(inb, row * W + col, torch.full_like(row, H * W))
+            idx = idx.to(torch.int64 if compact else torch.int32)
             out.append((idx, vals))
     return out
 
@@ -136,7 +138,7 @@ def _scatter_rows(flat, idx, vals, base):
     """``flat[(base + idx[n]) * C + c] += vals[n, c]``: ``index_add_`` of rows into a flat accumulator."""
     c = vals.shape[1]
     # (N, C) indices, not flattened: a row loop with the channels inner (flat: 25 % slower).
-    i = (idx + base)[:, None] * c + torch.arange(c, device=idx.device)
+    i = (idx.to(torch.int64) + base)[:, None] * c + torch.arange(c, device=idx.device)
     flat.index_put_((i,), vals, accumulate=True)
 
 
@@ -147,7 +149,9 @@ def _compiled_scatter():
     """:func:`_scatter_rows` through ``torch.compile``: one scalar loop, single-threaded (a parallel
     scatter needs atomic adds: measured 7x slower on two threads)."""
     if not _SCATTER:
-        f = torch.compile(_scatter_rows, dynamic=False, options={"cpp.threads": 1})
+        # Scalar code: vectorized, inductor loads each 3-channel row as a masked 16-lane vector
+        # through a stack buffer (measured 3x slower).
+        f = torch.compile(_scatter_rows, dynamic=False, options={"cpp.threads": 1, "cpp.simdlen": 1})
 
         def run(flat, idx, vals, base):
             for x in (flat, idx, vals):
@@ -199,11 +203,10 @@ class FieldAccumulator:
                 else:
                     self.binned.append(i)
         c = 3 if vector else 1
-        # (height, angle, pixel, [E, V_x, V_y]): a pixel's channels share a cache line (channel-major
-        # scatters measured twice as slow). One spare bin at index H*W takes every off-grid hit, so
-        # no per-angle masking is needed.
-        self.acc = torch.zeros(len(self.heights), len(self.angles), H * W + 1, c, device=self.device, dtype=dtype)
-        self.on_grid = torch.zeros(len(self.heights), len(self.angles), dtype=torch.float64)
+        # (height, binned angle, pixel, [E, V_x, V_y]): a pixel's channels share a cache line
+        # (channel-major scatters measured twice as slow); the quarter turns are made by images().
+        # One spare bin at index H*W takes every off-grid hit, so no per-angle masking is needed.
+        self.acc = torch.zeros(len(self.heights), len(self.binned), H * W + 1, c, device=self.device, dtype=dtype)
 
     @property
     def layout(self) -> BinLayout:
@@ -219,39 +222,38 @@ class FieldAccumulator:
         ``compiled`` scatters through one ``torch.compile``d loop (measured 2.6 ns per ray and
         pass on the default scene against 5 for ``index_add_``; the fused tracer uses it).
         """
-        K, rows = self.acc.shape[1:3]
+        B, rows = self.acc.shape[1:3]
         flat = self.acc.view(-1)
-        k = 0
-        for hi in range(len(self.heights)):
-            for ai in self.binned:
-                idx, vals = passes[k]
-                if compiled:
-                    _compiled_scatter()(flat, idx, vals, torch.tensor((hi * K + ai) * rows))
-                else:
-                    self.acc[hi, ai].index_add_(0, idx, vals)
-                k += 1
+        for k, (idx, vals) in enumerate(passes):  # heights outer, binned angles inner, like acc
+            if compiled:
+                _compiled_scatter()(flat, idx, vals, torch.tensor(k * rows))
+            else:
+                self.acc[k // B, k % B].index_add_(0, idx, vals)
 
-    def _fill_quarters(self):
+    def _per_angle(self):
+        """The accumulated (D, K, H, W, C) images of every angle (quarter turns by exact ``rot90``)."""
         H, W = self.grid.shape
         D = len(self.heights)
-        for i, (j, k) in self.quarter.items():
-            img = self.acc[:, j, :H * W].reshape(D, H, W, -1)
-            # A turn by +90 deg about z maps (x, y) -> (-y, x); x runs along columns and y along
-            # rows, so that is rot90 from the column axis toward the row axis.
-            rot = torch.rot90(img, k, dims=(2, 1))
-            self.acc[:, i, :H * W] = rot.reshape(D, H * W, -1)
-            self.acc[:, i, H * W] = self.acc[:, j, H * W]
+        binned = self.acc[:, :, :H * W].reshape(D, len(self.binned), H, W, -1)
+        slot = {ai: b for b, ai in enumerate(self.binned)}
+        out = []
+        for i in range(len(self.angles)):
+            if i in slot:
+                out.append(binned[:, slot[i]])
+            else:
+                j, k = self.quarter[i]
+                # A turn by +90 deg about z maps (x, y) -> (-y, x); x runs along columns and y
+                # along rows, so that is rot90 from the column axis toward the row axis.
+                out.append(torch.rot90(binned[:, slot[j]], k, dims=(2, 1)))
+        return torch.stack(out, 1)
 
     def images(self):
         """``E`` of shape (D, K, H, W) and ``V`` of shape (D, K, H, W, 3), optical frame, rotated per angle."""
-        H, W = self.grid.shape
-        D, K = len(self.heights), len(self.angles)
-        if self.quarter:
-            self._fill_quarters()
-        E = self.acc[:, :, :H * W, 0].reshape(D, K, H, W)
+        img = self._per_angle()
+        E = img[..., 0]
         if not self.vector:
             return E, None
-        vx, vy = (self.acc[:, :, :H * W, c].reshape(D, K, H, W) for c in (1, 2))
+        vx, vy = img[..., 1], img[..., 2]
         # Rotate each angle's vectors with its image (the binned ones are LED 0's rays rotated).
         ca = torch.tensor([math.cos(a) for a in self.angles], dtype=E.dtype, device=E.device)[None, :, None, None]
         sa = torch.tensor([math.sin(a) for a in self.angles], dtype=E.dtype, device=E.device)[None, :, None, None]
@@ -262,10 +264,7 @@ class FieldAccumulator:
     def on_grid(self):
         """Power (W per W emitted) landing on the grid per (height, angle), shape (D, K)."""
         H, W = self.grid.shape
-        if self.quarter:
-            self._fill_quarters()
-        return (self.acc[:, :, :H * W, 0].double().sum(-1) * self.grid.area).cpu()
-
-    @on_grid.setter
-    def on_grid(self, value):  # set once in __init__; the property computes it from the images
-        pass
+        per_slot = self.acc[:, :, :H * W, 0].double().sum(-1) * self.grid.area  # a quarter turn keeps the sum
+        slot = {ai: b for b, ai in enumerate(self.binned)}
+        cols = [slot[i] if i in slot else slot[self.quarter[i][0]] for i in range(len(self.angles))]
+        return per_slot[:, cols].cpu()
