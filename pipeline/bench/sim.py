@@ -10,7 +10,8 @@ multi-source       the three ways to get all 24 LEDs: error against tracing each
 effects            seconds of a 1e6-ray trace per effect set (a disabled effect costs nothing).
 targets            the issue's performance targets: M rays/s of the full default trace (float32,
                    side + top + Fresnel + binning + V), 24 LEDs by hit rotation / one LED, peak
-                   memory at 1e7 rays (a child process), eager and torch.compile.
+                   memory at 1e7 rays (a child process); eager and the fused torch.compile path,
+                   each on one thread and on every core.
 """
 
 from __future__ import annotations
@@ -33,7 +34,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--device", default="cpu", help="torch device")
     parser.add_argument("--no-compile", action="store_true", help="skip the torch.compile measurements")
     parser.add_argument("--no-memory", action="store_true", help="skip the 1e7-ray peak-memory child process")
-    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads (default: torch's)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch intra-op threads (default: torch's; the targets section then measures 1 and "
+                             "every core)")
     parser.add_argument("--only", default=None, help="comma list of sections: rays,newton,multi,effects,targets")
 
 
@@ -93,7 +96,7 @@ def run(args) -> dict:
         res["effects"] = _bench_effects(scene, grid, quick, reps, device)
     if "targets" in only:
         res["targets"] = _bench_targets(scene, quick, reps, device, not getattr(args, "no_compile", False),
-                                        not getattr(args, "no_memory", False))
+                                        not getattr(args, "no_memory", False), getattr(args, "threads", None))
     return res
 
 
@@ -203,7 +206,7 @@ def _bench_newton(scene, n, reps):
     return {"rays": n, "rows": rows}
 
 
-def _bench_targets(scene, quick, reps, device, do_compile, do_memory):
+def _bench_targets(scene, quick, reps, device, do_compile, do_memory, threads=None):
     from sim.optics.binning import FieldAccumulator, PixelGrid
     from sim.optics.multisource import led_azimuths
     from sim.optics.tracer import trace_source
@@ -211,42 +214,74 @@ def _bench_targets(scene, quick, reps, device, do_compile, do_memory):
     n = 200_000 if quick else 1_000_000
     grid = PixelGrid.from_plane(scene.plane)
     az = led_azimuths(scene)
+    threads0 = torch.get_num_threads()
+    # --threads, else one thread and every core: the single-threaded figure is what one core
+    # gives (and what a shared machine still gives), the other what the whole machine gives.
+    counts = [int(threads)] if threads else sorted({1, os.cpu_count() or 1})
     out = {"rays": n, "rows": []}
+    images = {}
+
+    def one(comp, angles=(0.0,)):
+        acc = FieldAccumulator(grid, angles, device=device)
+        r = trace_source(scene, [acc], rays=n, compile=comp, device=device)
+        return r, acc
+
     modes = [False] + ([True] if do_compile else [])
     for comp in modes:
-        if comp:  # compile outside the timing (the first call compiles for tens of seconds)
+        if comp:  # compile outside the timing (the first call of each graph compiles for tens of seconds)
             t0 = time.perf_counter()
+            one(True)
+            one(True, az - az[0])
             trace_source(scene, [], rays=n, compile=True, device=device)
             out["compile_seconds"] = time.perf_counter() - t0
-        one, one_cpu, _ = _best_cpu(lambda: trace_source(
-            scene, [FieldAccumulator(grid, (0.0,), device=device)], rays=n, compile=comp, device=device), reps)
-        all24, all24_cpu, _ = _best_cpu(lambda: trace_source(
-            scene, [FieldAccumulator(grid, az - az[0], device=device)], rays=n, compile=comp, device=device), reps)
-        kernel, _ = _best(lambda: trace_source(scene, [], rays=n, compile=comp, device=device), reps)
-        out["rows"].append({"compiled": comp, "one_led_seconds": one, "one_led_Mrays_per_s": n / one / 1e6,
-                            "one_led_cpu_seconds": one_cpu, "kernel_only_Mrays_per_s": n / kernel / 1e6,
-                            "all24_seconds": all24, "all24_cpu_seconds": all24_cpu, "all24_over_one": all24 / one})
+        for threads in counts:
+            torch.set_num_threads(threads)
+            t1, c1, (r1, acc1) = _best_cpu(lambda: one(comp), reps)
+            t24, c24, _ = _best_cpu(lambda: one(comp, az - az[0]), reps)
+            kernel, _ = _best(lambda: trace_source(scene, [], rays=n, compile=comp, device=device), reps)
+            images[comp] = acc1.images()
+            out["rows"].append({"compiled": comp, "threads": threads, "one_led_seconds": t1,
+                                "one_led_Mrays_per_s": n / t1 / 1e6, "one_led_cpu_seconds": c1,
+                                "kernel_only_Mrays_per_s": n / kernel / 1e6, "all24_seconds": t24,
+                                "all24_cpu_seconds": c24, "all24_over_one": t24 / t1,
+                                "energy_residual": r1.energy.residual,
+                                "retraced": r1.counters.get("retraced", 0)})
+    torch.set_num_threads(threads0)
+    if True in images:
+        (Ea, Va), (Eb, Vb) = images[False], images[True]
+        out["compiled_vs_eager"] = {"E_rel_L1": _rel_l1(Eb, Ea), "V_rel_L1": _rel_l1(Vb, Va)}
     ps = __import__("sim.scene", fromlist=["load_scene"]).load_scene("plano-sphere")
     secs, _ = _best(lambda: trace_source(ps, [FieldAccumulator(PixelGrid.from_plane(ps.plane), device=device)],
                                          rays=n, device=device), reps)
     out["plano_sphere_Mrays_per_s"] = n / secs / 1e6
     if do_memory:
-        out["peak_memory"] = _peak_memory(10_000_000 if not quick else 2_000_000, device)
+        m = 10_000_000 if not quick else 2_000_000
+        out["peak_memory"] = [dict(_peak_memory(m, device, comp), compiled=comp) for comp in modes]
     return out
 
 
-def _peak_memory(n, device):
+def _rel_l1(a, b):
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    return float(np.abs(a - b).sum() / max(np.abs(b).sum(), 1e-300))
+
+
+def _peak_memory(n, device, compiled=False):
     """Max RSS of a child process tracing ``n`` rays (with binning and V), minus its RSS before."""
     code = f"""
 import json, resource, time, torch
 from sim.scene import load_scene
 from sim.optics.binning import FieldAccumulator, PixelGrid
 from sim.optics.tracer import trace_source
+torch.set_num_threads({torch.get_num_threads()})
 s = load_scene("default")
-trace_source(s, [FieldAccumulator(PixelGrid.from_plane(s.plane), device={device!r})], rays=1000, device={device!r})
+def go(rays):
+    return trace_source(s, [FieldAccumulator(PixelGrid.from_plane(s.plane), device={device!r})], rays=rays,
+                        device={device!r}, compile={bool(compiled)!r})
+go(1000)
 before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 t0 = time.perf_counter()
-r = trace_source(s, [FieldAccumulator(PixelGrid.from_plane(s.plane), device={device!r})], rays={n}, device={device!r})
+r = go({n})
 secs = time.perf_counter() - t0
 after = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 print(json.dumps({{"rays": r.rays, "rss_before_mb": before / 1024, "peak_rss_mb": after / 1024,
@@ -321,20 +356,25 @@ def _table_effects(L, fx):
 def _table_targets(L, tg):
     L.append("")
     L.append(f"targets: full default trace, {tg['rays']:,} rays, float32, side + top + Fresnel + binning + V "
-             f"(300x300 px)")
-    L.append(f"  {'compiled':>8} {'1 LED s':>9} {'M rays/s':>9} {'CPU s':>7} {'kernel M rays/s':>16} "
-             f"{'24 LEDs s':>10} {'CPU s':>7} {'24/1':>6}")
+             f"(300x300 px); target >= 10 M rays/s, 24 LEDs <= 1.5 x one, <= 1 GB at 1e7 rays")
+    L.append(f"  {'path':>8} {'threads':>7} {'1 LED s':>9} {'M rays/s':>9} {'CPU s':>7} {'kernel M rays/s':>16} "
+             f"{'24 LEDs s':>10} {'CPU s':>7} {'24/1':>6} {'residual':>9} {'retraced':>8}")
     for r in tg["rows"]:
-        L.append(f"  {str(r['compiled']):>8} {r['one_led_seconds']:>9.4f} {r['one_led_Mrays_per_s']:>9.2f} "
-                 f"{r['one_led_cpu_seconds']:>7.3f} {r['kernel_only_Mrays_per_s']:>16.2f} "
-                 f"{r['all24_seconds']:>10.4f} {r['all24_cpu_seconds']:>7.3f} {r['all24_over_one']:>6.2f}")
+        L.append(f"  {'compiled' if r['compiled'] else 'eager':>8} {r['threads']:>7} {r['one_led_seconds']:>9.4f} "
+                 f"{r['one_led_Mrays_per_s']:>9.2f} {r['one_led_cpu_seconds']:>7.3f} "
+                 f"{r['kernel_only_Mrays_per_s']:>16.2f} {r['all24_seconds']:>10.4f} {r['all24_cpu_seconds']:>7.3f} "
+                 f"{r['all24_over_one']:>6.2f} {r['energy_residual']:>9.1e} {r['retraced']:>8,}")
     if "compile_seconds" in tg:
-        L.append(f"  (torch.compile first call: {tg['compile_seconds']:.1f} s)")
-    L.append(f"  plano-sphere scene: {tg['plano_sphere_Mrays_per_s']:.2f} M rays/s")
-    if "peak_memory" in tg:
-        pm = tg["peak_memory"]
+        L.append(f"  (torch.compile, first calls of the three graphs: {tg['compile_seconds']:.1f} s)")
+    if "compiled_vs_eager" in tg:
+        ce = tg["compiled_vs_eager"]
+        L.append(f"  compiled vs eager, LED 0 image: E {ce['E_rel_L1']:.1e}, V {ce['V_rel_L1']:.1e} relative L1 "
+                 f"(rays within rounding of a pixel edge)")
+    L.append(f"  plano-sphere scene: {tg['plano_sphere_Mrays_per_s']:.2f} M rays/s (eager)")
+    for pm in tg.get("peak_memory", []):
+        path = "compiled" if pm.get("compiled") else "eager"
         if "error" in pm:
-            L.append(f"  peak memory: failed ({pm['error']})")
+            L.append(f"  peak memory ({path}): failed ({pm['error']})")
         else:
-            L.append(f"  peak memory at {pm['rays']:,} rays: {pm['peak_rss_mb']:.0f} MB max RSS "
+            L.append(f"  peak memory ({path}) at {pm['rays']:,} rays: {pm['peak_rss_mb']:.0f} MB max RSS "
                      f"({pm['rss_before_mb']:.0f} MB before the trace), {pm['seconds']:.2f} s")

@@ -14,13 +14,21 @@ from __future__ import annotations
 
 from collections import Counter
 
+import torch
+
 __all__ = ["count", "reset", "snapshot"]
 
 _COUNTS: Counter = Counter()
 
 
 def count(name: str, n: int = 1) -> None:
-    """Record that the code path ``name`` ran ``n`` times."""
+    """Record that the code path ``name`` ran ``n`` times.
+
+    A no-op inside ``torch.compile`` (a traced side effect would run once, at tracing): the
+    compiled tracer counts its effects where it calls the compiled code.
+    """
+    if torch.compiler.is_compiling():
+        return
     _COUNTS[name] += n
 
 

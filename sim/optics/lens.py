@@ -78,9 +78,17 @@ class LensBody:
         ``unconverged`` marks rays whose swept-arc solve did not converge (counted as misses).
         ``box`` is :func:`box_interval` of these rays if the caller has it already.
         """
+        return self.enter_capped(o, d, box)[:4]
+
+    def enter_capped(self, o: Vec, d: Vec, box=None, cap: int | None = None):
+        """:meth:`enter` plus ``unfinished``: with ``cap``, the swept-arc solve takes at most ``cap``
+        Newton steps on every ray and ``unfinished`` marks the rays it left short of the root
+        (see :meth:`sim.optics.torus.SweptArc.entry_capped`); None without a cap or a swept arc.
+        """
         t_lo, t_hi, ok = box if box is not None else box_interval(o, d, *self.box)
+        unfinished = None
         if isinstance(self.side, SweptArc):
-            e0, unconverged = self.side.entry_status(o, d, t_lo, t_hi)
+            e0, unconverged, unfinished = self.side.entry_capped(o, d, t_lo, t_hi, cap=cap)
         else:
             e0, unconverged = self.side.entry(o, d), torch.zeros_like(ok)
         e1 = self.top.entry(o, d)
@@ -92,18 +100,31 @@ class LensBody:
         p = (o[0] + ts * d[0], o[1] + ts * d[1], o[2] + ts * d[2])
         inside = self.side.contains(p, self.tol) & self.top.contains(p, self.tol) & self.bottom.contains(p, self.tol)
         hit = hit & inside
-        return torch.where(hit, t, torch.zeros_like(t)), sid, hit, unconverged & ok
+        if unfinished is not None:
+            unfinished = unfinished & ok
+        return torch.where(hit, t, torch.zeros_like(t)), sid, hit, unconverged & ok, unfinished
 
     def leave(self, o: Vec, d: Vec):
         """Rays inside the lens: ``(t, surface_id, ok)`` of the exit point."""
+        return self.leave_capped(o, d)[:3]
+
+    def leave_capped(self, o: Vec, d: Vec, cap: int | None = None):
+        """:meth:`leave` plus ``unfinished`` (as in :meth:`enter_capped`)."""
         t_lo, t_hi, ok = box_interval(o, d, *self.box)
-        x0 = self.side.exit(o, d, t_lo, t_hi) if isinstance(self.side, SweptArc) else self.side.exit(o, d)
         x1 = self.top.exit(o, d)
         x2 = self.bottom.exit(o, d)
-        t = torch.minimum(torch.minimum(x0, x1), x2)
-        sid = torch.where(x0 <= torch.minimum(x1, x2), SIDE, torch.where(x1 <= x2, TOP, BOTTOM))
+        x12 = torch.minimum(x1, x2)
+        unfinished = None
+        if isinstance(self.side, SweptArc):
+            # The side's Newton starts at the nearer of the box's far end and the other exits:
+            # rays leaving through the top (nearly all) need no step.
+            x0, unfinished = self.side.exit_capped(o, d, t_lo, t_hi, start=torch.minimum(t_hi, x12), cap=cap)
+        else:
+            x0 = self.side.exit(o, d)
+        t = torch.minimum(x0, x12)
+        sid = torch.where(x0 <= x12, SIDE, torch.where(x1 <= x2, TOP, BOTTOM))
         good = torch.isfinite(t) & (t >= 0)
-        return torch.where(good, t, torch.zeros_like(t)), sid, good
+        return torch.where(good, t, torch.zeros_like(t)), sid, good, unfinished
 
     def normal(self, p: Vec, sid) -> Vec:
         """Outward unit normals at points ``p`` on the surfaces ``sid``."""

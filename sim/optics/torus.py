@@ -73,15 +73,25 @@ class SweptArc(ConvexSet):
         slope = -u / s
         return self.rho_c + s + slope * (z - zq), slope
 
-    def _S(self, o, d, t):
+    def _parts(self, o, d, t):
+        """``(Sn, dSn, rho, s)`` at ``o + t d``: ``S = Sn / s`` and ``S' = dSn / (rho s)``.
+
+        ``s = sqrt(r1^2 - u^2) > 0`` (``z`` is clamped strictly inside the arc) and ``rho > 0``
+        (clamped at 1e-12 on the axis, where any subgradient will do), so ``Sn`` and ``dSn``
+        have the signs of ``S`` and ``S'``, and Newton's step ``S / S' = Sn rho / dSn`` costs one
+        division instead of three.
+        """
         x = o[0] + t * d[0]
         y = o[1] + t * d[1]
         z = o[2] + t * d[2]
-        rho = torch.sqrt(x * x + y * y)
-        g, slope = self._g(z)
-        # d rho / dt; on the axis (rho = 0) any subgradient will do, use 0.
-        drho = (x * d[0] + y * d[1]) / rho.clamp_min(1e-12)
-        return rho - g, drho - slope * d[2]
+        rho = torch.sqrt(x * x + y * y).clamp_min(1e-12)
+        zq = z.clamp(self.z_lo, self.z_hi)
+        u = zq - self.z_c
+        s = torch.sqrt(self.r1 * self.r1 - u * u)
+        # S = rho - g, g = rho_c + s + slope (z - zq), slope = -u / s; S' = (x dx + y dy) / rho - slope dz.
+        sn = (rho - self.rho_c - s) * s + u * (z - zq)
+        dsn = (x * d[0] + y * d[1]) * s + u * d[2] * rho
+        return sn, dsn, rho, s
 
     def value(self, p: Vec) -> torch.Tensor:
         """``S = rho - g(z)`` at points (negative inside the set, ~ signed distance near the surface)."""
@@ -98,70 +108,101 @@ class SweptArc(ConvexSet):
         Unconverged rays (a root ahead but ``S > tol`` after ``iterations`` steps, e.g. nearly
         tangent rays) are reported as misses and counted, never returned as NaN.
         """
+        return self.entry_capped(o, d, t_lo, t_hi)[:2]
+
+    def entry_capped(self, o: Vec, d: Vec, t_lo=None, t_hi=None, cap: int | None = None):
+        """:meth:`entry_status` plus ``unfinished``. With ``cap``, at most ``cap`` steps are taken,
+        on every ray (masks, no compaction: what ``torch.compile`` fuses), and ``unfinished``
+        marks the rays whose next step would still move them (the caller retraces those
+        without the cap); without a cap it is None.
+        """
         t_lo, t_hi = self._bracket(o, d, t_lo, t_hi)
-        S, dS = self._S(o, d, t_lo)
-        starts_inside = S <= 0
-        t, S, dS, dead = self._newton(o, d, t_lo, S, dS, t_lo <= t_hi, left=True)
+        sn, dsn, rho, s = self._parts(o, d, t_lo)
+        starts_inside = sn <= 0
+        t, S, dsn, dead, unfinished = self._newton(o, d, t_lo, sn, dsn, rho, s, t_lo <= t_hi, True, cap)
         ahead = ~dead & ~starts_inside & (t <= t_hi)
         hit = ahead & (S <= self.tol)
-        unconverged = ahead & (S > self.tol) & (dS < 0)
+        unconverged = ahead & (S > self.tol) & (dsn < 0)
         out = torch.where(hit, t, torch.full_like(t, INF))
-        return torch.where(starts_inside, torch.full_like(t, -INF), out), unconverged
+        return torch.where(starts_inside, torch.full_like(t, -INF), out), unconverged, unfinished
 
-    def _newton(self, o, d, t, S, dS, active, left: bool):
-        """Monotone Newton on the rays that need it (compacted once), stopping when all converged.
+    def _newton(self, o, d, t, sn, dsn, rho, s, active, left: bool, cap: int | None = None):
+        """Monotone Newton from ``t`` on the rays that need it.
 
-        Returns ``(t, S, dS, dead)`` for every ray; ``dead`` marks rays whose iteration found no
-        root on its side (``S > 0`` with the slope pointing away).
+        Returns ``(t, S, dSn, dead, unfinished)`` for every ray; ``dS`` has the sign of ``dSn``;
+        ``dead`` marks rays whose iteration found no root on its side (``S > 0`` with the slope
+        pointing away); ``unfinished`` is as in :meth:`entry_capped`.
         """
-        need = active & (S > 0)
+        need = active & (sn > 0)
         dead = torch.zeros_like(need)
-        if torch.compiler.is_compiling():
-            # Inside torch.compile: no data-dependent shapes or syncs; masked fixed iterations
-            # fuse into one loop.
-            for _ in range(self.iterations):
-                move = need & (S > 0) & ((dS < 0) if left else (dS > 0))
-                dead = dead | (need & (S > 0) & ((dS >= 0) if left else (dS <= 0)))
-                t = torch.where(move, t - S / torch.where(move, dS, torch.ones_like(dS)), t)
-                S, dS = self._S(o, d, t)
-            return t, S, dS, dead
+        if cap is not None or torch.compiler.is_compiling():
+            # Masks, fixed iterations: no data-dependent shapes or syncs, so the steps fuse
+            # into one loop under torch.compile.
+            for _ in range(self.iterations if cap is None else min(cap, self.iterations)):
+                pos = need & (sn > 0)
+                toward = (dsn < 0) if left else (dsn > 0)
+                move = pos & toward
+                dead = dead | (pos & ~toward)
+                t = torch.where(move, t - sn * rho / torch.where(move, dsn, torch.ones_like(dsn)), t)
+                sn, dsn, rho, s = self._parts(o, d, t)
+            unfinished = None
+            if cap is not None:
+                move = need & ~dead & (sn > 0) & ((dsn < 0) if left else (dsn > 0))
+                step = sn * rho / torch.where(move, dsn, torch.ones_like(dsn))
+                unfinished = move & (step.abs() > 1e-7 * (1.0 + t.abs()))
+            return t, sn / s, dsn, dead, unfinished
         if not bool(need.any()):
-            return t, S, dS, dead
+            return t, sn / s, dsn, dead, None
         # Eager: most rays converge in 4-5 steps, a few near tangency take 9. So iterate the
         # rays that need it for a few steps, then only the ones still moving (compacted once).
-        t, S, dS = t.clone(), S.clone(), dS.clone()
+        t, sn, dsn, s = t.clone(), sn.clone(), dsn.clone(), s.clone()
         idx = torch.nonzero(need).squeeze(1)
         oo = tuple(c[idx] for c in o)
         dd = tuple(c[idx] for c in d)
-        tt, s_, ds_ = t[idx], S[idx], dS[idx]
+        tt, sn_, dsn_, rho_, s_ = t[idx], sn[idx], dsn[idx], rho[idx], s[idx]
         gone = torch.zeros_like(tt, dtype=torch.bool)
         first = min(4, self.iterations)
         for it in range(self.iterations):
-            move = (s_ > 0) & ((ds_ < 0) if left else (ds_ > 0))
-            gone = gone | ((s_ > 0) & ((ds_ >= 0) if left else (ds_ <= 0)))
-            step = torch.where(move, s_ / torch.where(move, ds_, torch.ones_like(ds_)), torch.zeros_like(s_))
+            pos = sn_ > 0
+            toward = (dsn_ < 0) if left else (dsn_ > 0)
+            move = pos & toward
+            gone = gone | (pos & ~toward)
+            step = torch.where(move, sn_ * rho_ / torch.where(move, dsn_, torch.ones_like(dsn_)), torch.zeros_like(sn_))
             tt = tt - step
-            s_, ds_ = self._S(oo, dd, tt)
+            sn_, dsn_, rho_, s_ = self._parts(oo, dd, tt)
             if it == first - 1 and it < self.iterations - 1:
-                t[idx], S[idx], dS[idx], dead[idx] = tt, s_, ds_, gone
+                t[idx], sn[idx], dsn[idx], s[idx], dead[idx] = tt, sn_, dsn_, s_, gone
                 busy = step.abs() > 1e-7 * (1.0 + tt.abs())
                 if not bool(busy.any()):
-                    return t, S, dS, dead
+                    return t, sn / s, dsn, dead, None
                 idx = idx[busy]
                 oo = tuple(c[busy] for c in oo)
                 dd = tuple(c[busy] for c in dd)
-                tt, s_, ds_, gone = tt[busy], s_[busy], ds_[busy], gone[busy]
-        t[idx], S[idx], dS[idx], dead[idx] = tt, s_, ds_, gone
-        return t, S, dS, dead
+                tt, sn_, dsn_, rho_, s_, gone = tt[busy], sn_[busy], dsn_[busy], rho_[busy], s_[busy], gone[busy]
+        t[idx], sn[idx], dsn[idx], s[idx], dead[idx] = tt, sn_, dsn_, s_, gone
+        return t, sn / s, dsn, dead, None
 
     def exit(self, o: Vec, d: Vec, t_lo=None, t_hi=None) -> torch.Tensor:
         """Exit ``t`` by monotone Newton from ``t_hi`` (right end of the bounding box)."""
+        return self.exit_capped(o, d, t_lo, t_hi)[0]
+
+    def exit_capped(self, o: Vec, d: Vec, t_lo=None, t_hi=None, start=None, cap: int | None = None):
+        """``(t, unfinished)``: exit ``t`` by monotone Newton from the right, and (with ``cap``) the
+        rays still moving after ``cap`` steps (see :meth:`entry_capped`).
+
+        Newton starts from ``start`` if given, else from ``t_hi``. Any start right of the last
+        root converges onto it; a start where ``S <= 0`` is inside the set, so the set is left
+        no earlier than there (``+inf`` is returned, as for a ray still inside at ``t_hi``).
+        The lens passes the nearer of ``t_hi`` and the other surfaces' exits: a ray that leaves
+        through the top then needs no iteration at all.
+        """
         t_lo, t_hi = self._bracket(o, d, t_lo, t_hi)
-        S, dS = self._S(o, d, t_hi)
-        ends_inside = S <= 0
-        t, S, dS, dead = self._newton(o, d, t_hi, S, dS, t_lo <= t_hi, left=False)
+        t0 = t_hi if start is None else start
+        sn, dsn, rho, s = self._parts(o, d, t0)
+        ends_inside = sn <= 0
+        t, S, dsn, dead, unfinished = self._newton(o, d, t0, sn, dsn, rho, s, t_lo <= t_hi, False, cap)
         hit = ~dead & ~ends_inside & (S <= self.tol)
-        return torch.where(hit, t, torch.full_like(t, INF))
+        return torch.where(hit, t, torch.full_like(t, INF)), unfinished
 
     def _bracket(self, o, d, t_lo, t_hi):
         if t_lo is None or t_hi is None:
