@@ -138,3 +138,13 @@ def test_coloured_patterns_keep_the_alternating_solver(scene):
     L = scene.lights_far().copy()
     L[1::3] *= np.array([1.0, 0.5, 1.0])  # the green channel sees other lights
     assert not FarFieldSolver(L, groups=channel_groups(4), compile=True).compile
+
+
+def test_huge_finite_observations_stay_finite(scene):
+    """1e30 is finite but its square overflows float32: neither path may return Inf."""
+    obs = scene.observations.astype(np.float32)
+    obs[:, 4, 4] = 1e30
+    for compile in (False, True):
+        got = FarFieldSolver(scene.lights_far(), groups=channel_groups(4), compile=compile).solve(obs)
+        for name in FIELDS:
+            assert np.isfinite(getattr(got, name)).all(), (compile, name)
