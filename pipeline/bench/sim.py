@@ -174,14 +174,14 @@ def _bench_newton(scene, n, reps):
         ref_body = LensBody(ln, iterations=50)
         t, sid, hit, _ = ref_body.enter(o, d)
         side = (hit & (sid == SIDE)).numpy()
-        O = torch.stack(o, 1).astype(np.float64)
-        D = torch.stack(d, 1).astype(np.float64)
+        O = torch.stack(o, 1).numpy().astype(np.float64)
+        D = torch.stack(d, 1).numpy().astype(np.float64)
         tq = first_outer_hit(O, D, ln.arc_radius, ln.centre_rho, ln.centre_z, ln.bottom_z, ln.rim_z)
         Pq = O + np.where(np.isfinite(tq), tq, 0.0)[:, None] * D
         for it in (1, 2, 3, 5, 10, 20):
             secs, (P, _, ok, _) = _best(lambda: side_entry(o, d, ln, it), reps)
             _, _, info = case2_newton(o, d, ln.arc_radius, ln.centre_rho, ln.centre_z, it)
-            P = torch.stack(P, 1).astype(np.float64)
+            P = torch.stack(P, 1).numpy().astype(np.float64)
             ok = ok.numpy() & side
             dist = np.linalg.norm(P - Pq, axis=1)
             err = dist[ok]
@@ -196,7 +196,7 @@ def _bench_newton(scene, n, reps):
             body = LensBody(ln, iterations=it)
             secs, (tt, sid2, hit2, unc) = _best(lambda: body.enter(o, d), reps)
             m = side & (hit2 & (sid2 == SIDE)).numpy()
-            Pr = O + tt.astype(np.float64)[:, None] * D
+            Pr = O + tt.numpy().astype(np.float64)[:, None] * D
             err = np.linalg.norm(Pr - Pq, axis=1)[m]
             rows.append({"method": "robust (monotone Newton)", "dtype": str(dtype).replace("torch.", ""),
                          "iterations": it, "max_error_mm": float(err.max()) if err.size else math.nan,
