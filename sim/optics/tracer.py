@@ -89,7 +89,8 @@ def lens_kernel(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, 
     ``aperture_absorbed``, ``numerical_lost``, ``newton_unconverged``.
 
     Eagerly, only the rays that enter the lens go on through it; under ``torch.compile``
-    every ray does (masks instead of branches), so the whole chunk is one fused graph.
+    every ray does (masks instead of branches), so the whole chunk is one fused graph (the
+    fused tracer, :func:`trace_source` with ``compile``, calls :func:`lens_rays` instead).
     """
     *out, per = lens_rays(body, ng, fresnel, bounces, o, d, w, paper=paper)
     return (*out, sum_stats(per))
@@ -120,12 +121,8 @@ def lens_rays(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, d:
         *out, per = _through(body, ng, fresnel, bounces, o, d, w, t, sid, hit, paper, cap)
     per["newton_unconverged"] = [unconv]
     if cap is not None:
-        late = per.pop("unfinished", None)
-        if unfinished is None:
-            unfinished = late
-        elif late is not None:
-            unfinished = unfinished | late
-        per["unfinished"] = unfinished if unfinished is not None else torch.zeros_like(hit)
+        late = per.pop("unfinished", torch.zeros_like(hit))
+        per["unfinished"] = late if unfinished is None else unfinished | late
     return (*out, per)
 
 
@@ -265,6 +262,9 @@ def _fused_chunk(body, ng, fresnel: bool, bounces: int, emitter: _Emitter, plane
     the scene's plane and in all, :func:`sim.optics.binning.bin_passes` per layout (masks,
     no compaction), and the rays whose capped Newton solve did not finish (``None`` without
     a lens), which are left out of everything else and must be traced again.
+
+    Every key shares one code object, so past torch's recompile limit (8) in one process a new
+    configuration runs this function uncompiled: the same results, at eager speed.
     """
     key = (id(body), ng, fresnel, bounces, emitter, plane_z, half, tuple(layouts), cap)
     if key not in _FUSED:
@@ -339,8 +339,9 @@ def trace_source(scene, accumulators=(), *, led: int = 0, rays: int | None = Non
     pos, axes = scene.leds.geometry()
     src = tuple(float(c) for c in pos[led])
     profile = scene.has("emission_profile")
-    emitter = _Emitter(src, tuple(float(c) for c in axes[led]), math.atan2(src[1], src[0]) if (src[0] or src[1]) else 0.0,
-                       float(scene.leds.emission_m), float(scene.leds.cone_half_angle_deg), profile)
+    azimuth = math.atan2(src[1], src[0]) if (src[0] or src[1]) else 0.0
+    emitter = _Emitter(src, tuple(float(c) for c in axes[led]), azimuth, float(scene.leds.emission_m),
+                       float(scene.leds.cone_half_angle_deg), profile)
     use_lens = scene.has("lens")
     fresnel = scene.has("fresnel")
     bounces = scene.internal_bounces if scene.has("internal_bounces") else 0
