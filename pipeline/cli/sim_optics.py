@@ -82,7 +82,9 @@ def _trace_options(p):
                    help="every LED by hit rotation (exact, default), image rotation (the paper's) or tracing each")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, ...)")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    p.add_argument("--compile", action="store_true", help="torch.compile the lens kernel (slow first call)")
+    p.add_argument("--compile", action="store_true",
+                   help="trace each chunk with one torch.compiled function (robust intersection; the first "
+                        "call compiles for tens of seconds)")
 
 
 def _dtype(name):

@@ -85,9 +85,13 @@ class BinLayout:
 
 
 def bin_passes(layout: BinLayout, o, d, w, compact: bool = True):
-    """``[(idx, vals), ...]``, one per pass of ``layout``: flat pixel index (``H*W`` and up off the
-    grid; int64 with ``compact``, else int32, half the memory traffic for the fused tracer) and the
-    (N, C) contributions ``[E, V_x, V_y]`` (or ``[E]``) of each ray.
+    """``[(idx, vals), ...]``, one per pass of ``layout`` (heights outer, angles inner), and the
+    (N, C) contributions ``vals = [E, V_x, V_y]`` (or ``[E]``) of each ray.
+
+    With ``compact``, ``idx`` is the ray's pixel in the pass (int64; ``H*W`` off the grid).
+    Without, it is where the row's first channel goes in a :class:`FieldAccumulator`'s flat
+    storage (int32 while that holds less than 2^31 values: half the memory traffic), which is
+    all a scatter then has to do.
 
     ``V_z`` is not binned: a ray's ``w l_z / (A |l_z|)`` is ``-w / A`` (``l_z < 0`` toward
     the LEDs), so ``V_z = -E`` exactly. ``compact`` keeps only the rays that can land on the
@@ -102,6 +106,7 @@ def bin_passes(layout: BinLayout, o, d, w, compact: bool = True):
     inv_a = 1.0 / grid.area
     # A hit lands on the grid under some rotation only within the grid's circumradius.
     r2 = ((H / 2.0 + 1.0) * py) ** 2 + ((W / 2.0 + 1.0) * px) ** 2
+    C = 3 if layout.vector else 1
     out = []
     for h in layout.heights:
         x, y, _, ok = plane_hit(o, d, grid.z - h)
@@ -133,17 +138,18 @@ def bin_passes(layout: BinLayout, o, d, w, compact: bool = True):
             else:
                 # Off-grid rows go round-robin to SPARE bins: all into one, each scatter would wait
                 # on the previous one's store (measured 2.5x slower).
-                lane = torch.arange(len(row), device=row.device, dtype=torch.int32) % SPARE
-                idx = torch.where(inb & ok, (row * W + col).to(torch.int32), H * W + lane)
+                it = torch.int32 if layout.passes * (H * W + SPARE) * C < 2 ** 31 else torch.int64
+                lane = torch.arange(len(row), device=row.device, dtype=it) % SPARE
+                idx = torch.where(inb & ok, (row * W + col).to(it), H * W + lane)
+                idx = (idx + len(out) * (H * W + SPARE)) * C
             out.append((idx, vals))
     return out
 
 
-def _scatter_rows(flat, idx, vals, base):
-    """``flat[(base + idx[n]) * C + c] += vals[n, c]``: ``index_add_`` of rows into a flat accumulator."""
-    c = vals.shape[1]
+def _scatter_rows(flat, offset, vals):
+    """``flat[offset[n] + c] += vals[n, c]``: ``index_add_`` of rows into a flat accumulator."""
     # (N, C) indices, not flattened: a row loop with the channels inner (flat: 25 % slower).
-    i = (idx.to(torch.int64) + base)[:, None] * c + torch.arange(c, device=idx.device)
+    i = offset.to(torch.int64)[:, None] + torch.arange(vals.shape[1], device=offset.device)
     flat.index_put_((i,), vals, accumulate=True)
 
 
@@ -158,10 +164,10 @@ def _compiled_scatter():
         # through a stack buffer (measured 3x slower).
         f = torch.compile(_scatter_rows, dynamic=False, options={"cpp.threads": 1, "cpp.simdlen": 1})
 
-        def run(flat, idx, vals, base):
-            for x in (flat, idx, vals):
+        def run(flat, offset, vals):
+            for x in (flat, offset, vals):
                 torch._dynamo.mark_dynamic(x, 0)
-            return f(flat, idx, vals, base)
+            return f(flat, offset, vals)
 
         _SCATTER.append(run)
     return _SCATTER[0]
@@ -223,18 +229,18 @@ class FieldAccumulator:
         self.add_passes(bin_passes(self.layout, o, d, w, compact=True))
 
     def add_passes(self, passes, compiled: bool = False) -> None:
-        """Scatter :func:`bin_passes` output (of this accumulator's :attr:`layout`) into the images.
-
-        ``compiled`` scatters through one ``torch.compile``d loop (measured 2.6 ns per ray and
-        pass on the default scene against 5 for ``index_add_``; the fused tracer uses it).
+        """Scatter :func:`bin_passes` output (of this accumulator's :attr:`layout`) into the images:
+        ``compact`` passes by ``index_add_``, the others (``compiled``) by one ``torch.compile``d
+        loop (measured 2 ns per ray and pass on the default scene; the fused tracer uses it).
         """
-        B, rows = self.acc.shape[1:3]
-        flat = self.acc.view(-1)
-        for k, (idx, vals) in enumerate(passes):  # heights outer, binned angles inner, like acc
-            if compiled:
-                _compiled_scatter()(flat, idx, vals, torch.tensor(k * rows))
-            else:
-                self.acc[k // B, k % B].index_add_(0, idx, vals)
+        if compiled:
+            flat = self.acc.view(-1)
+            for offset, vals in passes:
+                _compiled_scatter()(flat, offset, vals)
+            return
+        B = self.acc.shape[1]
+        for k, (idx, vals) in enumerate(passes):
+            self.acc[k // B, k % B].index_add_(0, idx, vals)
 
     def _per_angle(self):
         """The accumulated (D, K, H, W, C) images of every angle (quarter turns by exact ``rot90``)."""

@@ -19,7 +19,7 @@ import torch
 
 from sim.optics import instrument
 
-__all__ = ["SAMPLERS", "actual_rays", "SquareSampler", "emission_directions"]
+__all__ = ["SAMPLERS", "actual_rays", "SquareSampler", "grid_points", "emission_directions"]
 
 SAMPLERS = ("grid", "random", "stratified", "sobol")
 
@@ -59,27 +59,44 @@ class SquareSampler:
         self.gen = torch.Generator(device="cpu").manual_seed(int(seed))
         self.sobol = torch.quasirandom.SobolEngine(2, scramble=True, seed=int(seed)) if kind == "sobol" else None
 
+    def indices(self, start: int, stop: int):
+        """The float64 cell indices ``start .. stop-1`` of the grid samplers."""
+        return torch.arange(start, stop, device=self.device, dtype=torch.float64)
+
     def draw(self, start: int, stop: int):
         """Samples ``start .. stop-1`` (call with consecutive ranges for reproducibility)."""
         m = stop - start
         if self.kind in ("grid", "stratified"):
-            # Row/column of each sample in the k x k grid (float64 holds indices exactly up to
-            # 2^53 and avoids slow int64 division).
-            idx = torch.arange(start, stop, device=self.device, dtype=torch.float64)
-            i64 = torch.floor(idx / self.k)
-            i = i64.to(self.dtype)
-            j = (idx - i64 * self.k).to(self.dtype)
+            idx = self.indices(start, stop)
             if self.kind == "grid":
-                ju = jv = 0.5
-            else:
-                jit = torch.rand(2, m, generator=self.gen, dtype=torch.float64).to(self.device, self.dtype)
-                ju, jv = jit[0], jit[1]
-            return (i + ju) / self.k, (j + jv) / self.k
+                return grid_points(idx, self.k, self.dtype)
+            jit = torch.rand(2, m, generator=self.gen, dtype=torch.float64).to(self.device, self.dtype)
+            return grid_points(idx, self.k, self.dtype, jit[0], jit[1])
         if self.kind == "random":
             r = torch.rand(2, m, generator=self.gen, dtype=torch.float64).to(self.device, self.dtype)
             return r[0], r[1]
         r = self.sobol.draw(m, dtype=torch.float64).to(self.device, self.dtype)
         return r[:, 0].contiguous(), r[:, 1].contiguous()
+
+
+def grid_points(idx, k, dtype, ju=0.5, jv=0.5):
+    """Points of the ``k x k`` grid's cells ``idx`` (float64 indices, row-major): ``(u, v)``.
+
+    ``ju, jv`` place each point in its cell (0.5: the centre). Elementwise, so the fused
+    tracer computes the grid sampler's points in its compiled loop (``k`` may be a 0-d tensor).
+
+    Examples
+    --------
+    >>> u, v = grid_points(torch.arange(4, dtype=torch.float64), 2, torch.float64)
+    >>> u.tolist(), v.tolist()
+    ([0.25, 0.25, 0.75, 0.75], [0.25, 0.75, 0.25, 0.75])
+    """
+    # Row/column of each sample (float64 holds indices exactly up to 2^53 and avoids slow
+    # int64 division).
+    i64 = torch.floor(idx / k)
+    i = i64.to(dtype)
+    j = (idx - i64 * k).to(dtype)
+    return (i + ju) / k, (j + jv) / k
 
 
 def emission_directions(u, v, m: float, cone_half_angle_deg: float, axis=(0.0, 0.0, 1.0), profile: bool = True,

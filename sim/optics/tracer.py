@@ -24,7 +24,7 @@ from sim.optics.base import Vec
 from sim.optics.lens import BOTTOM, TOP, LensBody, box_interval
 from sim.optics.plane import plane_hit
 from sim.optics.binning import bin_passes
-from sim.optics.sampling import SquareSampler, actual_rays, emission_directions
+from sim.optics.sampling import SquareSampler, actual_rays, emission_directions, grid_points
 
 __all__ = ["Energy", "SourceTrace", "trace_source", "lens_kernel", "lens_rays", "sum_stats", "DEFAULT_CHUNK",
            "FUSED_NEWTON_CAP"]
@@ -89,7 +89,8 @@ def lens_kernel(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, 
     ``aperture_absorbed``, ``numerical_lost``, ``newton_unconverged``.
 
     Eagerly, only the rays that enter the lens go on through it; under ``torch.compile``
-    every ray does (masks instead of branches), so the whole chunk is one fused graph.
+    every ray does (masks instead of branches), so the whole chunk is one fused graph (the
+    fused tracer, :func:`trace_source` with ``compile``, calls :func:`lens_rays` instead).
     """
     *out, per = lens_rays(body, ng, fresnel, bounces, o, d, w, paper=paper)
     return (*out, sum_stats(per))
@@ -120,12 +121,8 @@ def lens_rays(body: LensBody, ng: float, fresnel: bool, bounces: int, o: Vec, d:
         *out, per = _through(body, ng, fresnel, bounces, o, d, w, t, sid, hit, paper, cap)
     per["newton_unconverged"] = [unconv]
     if cap is not None:
-        late = per.pop("unfinished", None)
-        if unfinished is None:
-            unfinished = late
-        elif late is not None:
-            unfinished = unfinished | late
-        per["unfinished"] = unfinished if unfinished is not None else torch.zeros_like(hit)
+        late = per.pop("unfinished", torch.zeros_like(hit))
+        per["unfinished"] = late if unfinished is None else unfinished | late
     return (*out, per)
 
 
@@ -238,9 +235,11 @@ def _on_screen(o: Vec, d: Vec, w, plane_z: float, half: tuple):
 
 
 # Newton steps of the fused path's swept-arc solves (entry, exit; 10 eagerly). After 6 entry
-# steps about 0.1 % of the default scene's rays are still moving; those are traced again by
-# the eager path. Exits need hardly any: the side's exit solve starts at the top's exit.
-FUSED_NEWTON_CAP = (6, 2)
+# steps about 0.2 % of the default scene's rays are still moving; those are traced again by the
+# eager path (5 steps leave 0.9 %, 7 leave 0.05 %: 6 measured fastest). The exit solve starts
+# at the top's exit, where no ray of the default scene needs a step; any that does is retraced
+# (one masked exit step for every ray measured 5 ns per ray, more than the whole retrace).
+FUSED_NEWTON_CAP = (6, 0)
 
 _FUSED: dict = {}
 _BODIES: dict = {}
@@ -255,18 +254,23 @@ def _body(lens, iterations: int) -> LensBody:
 
 
 def _fused_chunk(body, ng, fresnel: bool, bounces: int, emitter: _Emitter, plane_z: float, half: tuple, layouts,
-                 cap: tuple = FUSED_NEWTON_CAP):
+                 grid: bool = False, cap: tuple = FUSED_NEWTON_CAP):
     """``torch.compile`` of one whole chunk (cached): emission, lens, energy sums and bin indices.
 
-    The compiled function takes square samples ``u, v`` and the ray power ``w0`` (0-d) and
-    returns ``(stats, on_screen, total, passes, redo)``: summed lens statistics, the power on
+    The compiled function takes square samples ``u, v`` (with ``grid``: the grid sampler's
+    float64 cell indices and its ``k`` as a 0-d tensor, the points then made in the loop) and
+    the ray power ``w0`` (0-d) and returns ``(stats, on_screen, total, passes, redo)``: summed lens statistics, the power on
     the scene's plane and in all, :func:`sim.optics.binning.bin_passes` per layout (masks,
     no compaction), and the rays whose capped Newton solve did not finish (``None`` without
     a lens), which are left out of everything else and must be traced again.
+
+    Every key shares one code object, so past torch's recompile limit (8) in one process a new
+    configuration runs this function uncompiled: the same results, at eager speed.
     """
-    key = (id(body), ng, fresnel, bounces, emitter, plane_z, half, tuple(layouts), cap)
+    key = (id(body), ng, fresnel, bounces, emitter, plane_z, half, tuple(layouts), grid, cap)
     if key not in _FUSED:
-        def chunk(u, v, w0):
+        def chunk(a, b, w0):
+            u, v = grid_points(a, b, w0.dtype) if grid else (a, b)
             o, d = emitter.rays(u, v)
             w = torch.ones_like(u) * w0
             stats, redo = {}, None
@@ -283,10 +287,11 @@ def _fused_chunk(body, ng, fresnel: bool, bounces: int, emitter: _Emitter, plane
         # into three loops passing ~35 chunk-sized buffers through memory (measured 1.9x slower).
         compiled = torch.compile(chunk, dynamic=False, options={"max_fusion_size": 1 << 16})
 
-        def run(u, v, w0):
-            torch._dynamo.mark_dynamic(u, 0)
-            torch._dynamo.mark_dynamic(v, 0)
-            return compiled(u, v, w0)
+        def run(a, b, w0):
+            for x in (a, b):
+                if x.dim():
+                    torch._dynamo.mark_dynamic(x, 0)
+            return compiled(a, b, w0)
 
         _FUSED[key] = (body, run)
     return _FUSED[key][1]
@@ -337,8 +342,9 @@ def trace_source(scene, accumulators=(), *, led: int = 0, rays: int | None = Non
     pos, axes = scene.leds.geometry()
     src = tuple(float(c) for c in pos[led])
     profile = scene.has("emission_profile")
-    emitter = _Emitter(src, tuple(float(c) for c in axes[led]), math.atan2(src[1], src[0]) if (src[0] or src[1]) else 0.0,
-                       float(scene.leds.emission_m), float(scene.leds.cone_half_angle_deg), profile)
+    azimuth = math.atan2(src[1], src[0]) if (src[0] or src[1]) else 0.0
+    emitter = _Emitter(src, tuple(float(c) for c in axes[led]), azimuth, float(scene.leds.emission_m),
+                       float(scene.leds.cone_half_angle_deg), profile)
     use_lens = scene.has("lens")
     fresnel = scene.has("fresnel")
     bounces = scene.internal_bounces if scene.has("internal_bounces") else 0
@@ -383,19 +389,22 @@ def trace_source(scene, accumulators=(), *, led: int = 0, rays: int | None = Non
             acc.add(o, d, w)
 
     fused = None
+    grid = kind == "grid"
     if compile and paper is None:
         fused = _fused_chunk(body if use_lens else None, ng, fresnel, bounces, emitter, float(plane.z), half,
-                             [acc.layout for acc in accumulators])
+                             [acc.layout for acc in accumulators], grid)
         w0_t = torch.tensor(w0, device=smp.device, dtype=dtype)
+        k_t = torch.tensor(float(smp.k), device=smp.device, dtype=torch.float64)
         counters["retraced"] = 0
     retrace = []
     for start in range(0, n, chunk):
         stop = min(n, start + chunk)
-        u, v = smp.draw(start, stop)
         energy.emitted += (stop - start) * w0
         if fused is None:
-            eager(u, v)
+            eager(*smp.draw(start, stop))
             continue
+        # The grid sampler's points are made in the compiled loop.
+        a, b = (smp.indices(start, stop), k_t) if grid else smp.draw(start, stop)
         # What the compiled code ran (instrument.count is a no-op inside it).
         if profile:
             instrument.count("emission_profile")
@@ -405,14 +414,14 @@ def trace_source(scene, accumulators=(), *, led: int = 0, rays: int | None = Non
                 instrument.count("fresnel", bounces + 2)
             if bounces:
                 instrument.count("internal_bounces", bounces)
-        stats, won, wsum, passes, redo = fused(u, v, w0_t)
+        stats, won, wsum, passes, redo = fused(a, b, w0_t)
         book(stats, won, wsum)
         for acc, p in zip(accumulators, passes):
             acc.add_passes(p, compiled=True)
         if redo is not None:
             idx = torch.nonzero(redo).squeeze(1)
             if idx.numel():
-                retrace.append((u[idx], v[idx]))
+                retrace.append(grid_points(a[idx], smp.k, dtype) if grid else (a[idx], b[idx]))
     if retrace:
         # The rays the capped solves left unfinished, through the eager path in one go (a call
         # per chunk costs ~2 ms of per-op overhead, for ~0.2 % of the rays).

@@ -24,16 +24,17 @@ def _aperture_bounces_scene():
     return scene_from_dict(d).with_effects(add=["internal_bounces"])
 
 
-@pytest.mark.parametrize("make, heights", [(_aperture_bounces_scene, (0.0, 1.5)),
-                                           (lambda: load_scene("plano-sphere"), (0.0,))])
-def test_fused_path_matches_eager_reference(make, heights):
+# The grid sampler's points are made in the compiled loop, the others' passed in: one of each.
+@pytest.mark.parametrize("make, heights, sampler", [(_aperture_bounces_scene, (0.0, 1.5), "grid"),
+                                                    (lambda: load_scene("plano-sphere"), (0.0,), "sobol")])
+def test_fused_path_matches_eager_reference(make, heights, sampler):
     s = make()
     grid = PixelGrid((24, 24), (2.5, 2.5), s.plane.z)
     az = led_azimuths(s)
     out = []
     for compiled in (False, True):
         acc = FieldAccumulator(grid, az - az[0], heights)
-        r = trace_source(s, [acc], rays=60_000, compile=compiled)
+        r = trace_source(s, [acc], rays=60_000, sampler=sampler, compile=compiled)
         out.append((r, *acc.images()))
     (ra, Ea, Va), (rb, Eb, Vb) = out
     ea, eb = ra.energy.as_dict(), rb.energy.as_dict()
