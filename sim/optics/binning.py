@@ -140,7 +140,8 @@ def bin_passes(layout: BinLayout, o, d, w, compact: bool = True):
                 # on the previous one's store (measured 2.5x slower).
                 it = torch.int32 if layout.passes * (H * W + SPARE) * C < 2 ** 31 else torch.int64
                 lane = torch.arange(len(row), device=row.device, dtype=it) % SPARE
-                idx = torch.where(inb & ok, (row * W + col).to(it), H * W + lane)
+                pix = torch.where(inb & ok, row * W + col, torch.full_like(row, -1.0)).to(it)  # in range: no UB
+                idx = torch.where(pix >= 0, pix, H * W + lane)
                 idx = (idx + len(out) * (H * W + SPARE)) * C
             out.append((idx, vals))
     return out
