@@ -244,6 +244,7 @@ def _bench_targets(scene, quick, reps, device, do_compile, do_memory, threads=No
                                 "one_led_Mrays_per_s": n / t1 / 1e6, "one_led_cpu_seconds": c1,
                                 "kernel_only_Mrays_per_s": n / kernel / 1e6, "all24_seconds": t24,
                                 "all24_cpu_seconds": c24, "all24_over_one": t24 / t1,
+                                "all24_over_one_cpu": c24 / c1,
                                 "energy_residual": r1.energy.residual,
                                 "retraced": r1.counters.get("retraced", 0)})
     torch.set_num_threads(threads0)
@@ -358,12 +359,15 @@ def _table_targets(L, tg):
     L.append(f"targets: full default trace, {tg['rays']:,} rays, float32, side + top + Fresnel + binning + V "
              f"(300x300 px); target >= 10 M rays/s, 24 LEDs <= 1.5 x one, <= 1 GB at 1e7 rays")
     L.append(f"  {'path':>8} {'threads':>7} {'1 LED s':>9} {'M rays/s':>9} {'CPU s':>7} {'kernel M rays/s':>16} "
-             f"{'24 LEDs s':>10} {'CPU s':>7} {'24/1':>6} {'residual':>9} {'retraced':>8}")
+             f"{'24 LEDs s':>10} {'CPU s':>7} {'24/1':>6} {'(CPU)':>6} {'residual':>9} {'retraced':>8}")
     for r in tg["rows"]:
         L.append(f"  {'compiled' if r['compiled'] else 'eager':>8} {r['threads']:>7} {r['one_led_seconds']:>9.4f} "
                  f"{r['one_led_Mrays_per_s']:>9.2f} {r['one_led_cpu_seconds']:>7.3f} "
                  f"{r['kernel_only_Mrays_per_s']:>16.2f} {r['all24_seconds']:>10.4f} {r['all24_cpu_seconds']:>7.3f} "
-                 f"{r['all24_over_one']:>6.2f} {r['energy_residual']:>9.1e} {r['retraced']:>8,}")
+                 f"{r['all24_over_one']:>6.2f} {r['all24_over_one_cpu']:>6.2f} {r['energy_residual']:>9.1e} "
+                 f"{r['retraced']:>8,}")
+    L.append("  (CPU s: the process's CPU time; of a one-thread run about what an idle core takes, of a")
+    L.append("   multi-thread run every thread's time, waits at barriers included. 24/1 (CPU) compares those.)")
     if "compile_seconds" in tg:
         L.append(f"  (torch.compile, first calls of the three graphs: {tg['compile_seconds']:.1f} s)")
     if "compiled_vs_eager" in tg:

@@ -146,10 +146,17 @@ class SweptArc(ConvexSet):
                 t = torch.where(move, t - sn * rho / torch.where(move, dsn, torch.ones_like(dsn)), t)
                 sn, dsn, rho, s = self._parts(o, d, t)
             unfinished = None
-            if cap is not None:
-                move = need & ~dead & (sn > 0) & ((dsn < 0) if left else (dsn > 0))
+            if cap is not None and cap < self.iterations:
+                # The uncapped solve would look at this state again: a ray found dead here is
+                # dead there too, one still moving (more than rounding) is unfinished.
+                pos = need & (sn > 0)
+                toward = (dsn < 0) if left else (dsn > 0)
+                dead = dead | (pos & ~toward)
+                move = pos & toward & ~dead
                 step = sn * rho / torch.where(move, dsn, torch.ones_like(dsn))
                 unfinished = move & (step.abs() > 1e-7 * (1.0 + t.abs()))
+            elif cap is not None:
+                unfinished = torch.zeros_like(need)
             return t, sn / s, dsn, dead, unfinished
         if not bool(need.any()):
             return t, sn / s, dsn, dead, None

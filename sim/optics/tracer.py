@@ -259,10 +259,11 @@ def _fused_chunk(body, ng, fresnel: bool, bounces: int, emitter: _Emitter, plane
 
     The compiled function takes square samples ``u, v`` (with ``grid``: the grid sampler's
     float64 cell indices and its ``k`` as a 0-d tensor, the points then made in the loop) and
-    the ray power ``w0`` (0-d) and returns ``(stats, on_screen, total, passes, redo)``: summed lens statistics, the power on
-    the scene's plane and in all, :func:`sim.optics.binning.bin_passes` per layout (masks,
-    no compaction), and the rays whose capped Newton solve did not finish (``None`` without
-    a lens), which are left out of everything else and must be traced again.
+    the ray power ``w0`` (0-d) and returns ``(stats, on_screen, total, passes, redo)``: summed
+    lens statistics, the power on the scene's plane and in all,
+    :func:`sim.optics.binning.bin_passes` per layout (masks, no compaction), and the rays whose
+    capped Newton solve did not finish (``None`` without a lens), which are left out of
+    everything else and must be traced again.
 
     Every key shares one code object, so past torch's recompile limit (8) in one process a new
     configuration runs this function uncompiled: the same results, at eager speed.
