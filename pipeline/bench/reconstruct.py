@@ -147,7 +147,8 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
             sec, d = _best(pipeline, repeats)
             cpu = _CPU.pop(id(d))
             out["pipelines"][f"lstsq+{method} ({solver_name})"] = {"seconds": sec, "fps": 1.0 / sec,
-                                                                   "cpu_seconds": cpu, "cpu_fps": 1.0 / cpu}
+                                                                   "cpu_seconds": cpu, "cpu_fps": 1.0 / cpu,
+                                                                   "integrator": method}
     rng = np.random.default_rng(1)
     for kind in ("clipped", "partial shadow"):
         obs = _corrupt(frames, kind, rng)
@@ -180,9 +181,8 @@ def run(args) -> dict:
             rows.append({"knob": f"integrator (near-field normals) @ {r['size']}", "setting": method,
                          "error": v["rmse_mm"], "error_unit": "mm", "seconds": v["seconds"]})
         for key, v in r["pipelines"].items():
-            method = key.split("+")[1].split()[0]
             rows.append({"knob": f"real-time lstsq + depth @ {r['size']}", "setting": key,
-                         "error": r["integrators"][method]["lstsq (far field)"]["rmse_mm"], "error_unit": "mm",
+                         "error": r["integrators"][v["integrator"]]["lstsq (far field)"]["rmse_mm"], "error_unit": "mm",
                          "seconds": v["seconds"]})
     return {"scene": {"fov_mm": FOV_MM, "ball_radius_mm": RADIUS, "indentation_mm": DEPTH, "patterns": PATTERNS,
                       "noise_dn": 1.0, "bits": 8},

@@ -94,9 +94,10 @@ class FarFieldSolver:
             raise ValueError(f"FarFieldSolver.solve: expected {self.n_obs} observations, got shape "
                              f"{tuple(observations.shape)}")
         if self.compile:
-            X = observations if isinstance(observations, torch.Tensor) else torch.as_tensor(np.asarray(observations))
-            X = X.to(self.device).reshape(N, H * W)
-            if _inputs.is_integer(X) or _all_moderate(X):
+            integer = _inputs.is_integer(observations)
+            X = (_inputs.integer_tensor(observations, self.device) if integer
+                 else T.to_tensor(observations, self.dtype, self.device)).reshape(N, H * W)
+            if integer or _all_moderate(X):
                 out = self._solve_fused(list(X.unbind(0)), H, W)
                 if out is not None:
                     return out

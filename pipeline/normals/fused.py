@@ -105,9 +105,7 @@ def farfield_pixels(planes: list[torch.Tensor], L: torch.Tensor, inv: torch.Tens
     b = [inv[i, 0] * rs[0] + inv[i, 1] * rs[1] + inv[i, 2] * rs[2] for i in range(3)]
     norm = torch.sqrt(b[0] * b[0] + b[1] * b[1] + b[2] * b[2])
     tiny = torch.finfo(dt).tiny
-    valid = (norm > 0) & (b[2] > 0)
-    if not usable:
-        valid = valid & False
+    valid = (norm > 0) & (b[2] > 0) if usable else torch.zeros_like(norm, dtype=torch.bool)
     scale = 1.0 / torch.clamp(norm, min=tiny)
     n = [torch.where(valid, b[0] * scale, 0.0), torch.where(valid, b[1] * scale, 0.0),
          torch.where(valid, b[2] * scale, 1.0)]

@@ -126,3 +126,14 @@ def test_summary_reports_no_number_when_no_prediction_is_valid(displaced):
     got = res.summary()["models"]["near"]
     assert got["cv_mean_angular_error_deg"] is None and got["cv_median_angular_error_deg"] is None
     assert got["cv_invalid_fraction"] == 1.0 and "no valid predictions" in got["note"]
+
+
+def test_cli_refine_model_without_fields_is_one_line_and_keeps_the_old_output(displaced, tmp_path):
+    cap, tr, truth, nominal = displaced
+    write_capture(tmp_path / "cap.h5", cap)
+    out = tmp_path / "cal.h5"
+    out.write_bytes(b"an earlier calibration")
+    r = run_cli("calibrate", tmp_path / "cap.h5", "--ball-radius", "1.5", "--model", "near", "--refine-model",
+                "traced", "--out", out)
+    assert r.returncode == 2 and "refinement with the 'traced' model is impossible" in r.stderr
+    assert "Traceback" not in r.stderr and out.read_bytes() == b"an earlier calibration"
