@@ -116,7 +116,8 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
         Lighting modes of the per-channel and photometric-stereo figures.
     constraints : dict
         ``{min_flux, max_cv, max_channel_cv, min_valid, max_median_condition}``: numbers, or
-        ``"bare"`` for the scene's figure without its lens.
+        ``"bare"``: better than the scene without its lens (by
+        :data:`sim.lensopt.objectives.BARE_MARGIN`, measured with the search's rays).
     vary : dict
         ``{parameter: (low, high)}`` (:data:`sim.lensopt.space.PARAMETERS`).
     start : dict
@@ -152,7 +153,7 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
 
     from sim.lensopt.brief import DesignBrief
     from sim.lensopt.constraints import Manufacturing, violations
-    from sim.lensopt.objectives import CONSTRAINTS, Evaluator
+    from sim.lensopt.objectives import Evaluator, bare_limit
     from sim.lensopt.search import Problem, run_search
     from sim.lensopt.space import DesignSpace, apply_design, design_of
 
@@ -181,7 +182,7 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
         for k, v in brief.constraints.items():
             if v is None:
                 continue
-            limits[k] = getattr(bare_search, CONSTRAINTS[k][0]) if v == "bare" else float(v)
+            limits[k] = bare_limit(k, bare_search) if v == "bare" else float(v)
         space = DesignSpace(base, dict(brief.vary))
         problem = Problem(space, ev, brief.objective, limits, brief.manufacturing)
         say(f"searching {len(space.names)} parameters ({', '.join(space.names)}) by {brief.method}: "
@@ -192,7 +193,9 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
         search_seconds = traj.seconds[-1] if traj.seconds else 0.0
         winner = space.full(best.design)
         name = f"{base.name}-optimized"
-        best_scene = apply_design(base, winner, name=name)
+        best_scene = apply_design(base, winner, name=name, description=(
+            f"Scene {base.name} with its lens optimised by `iristac sim optimize-lens` (objective {brief.objective}"
+            + (f" for {', '.join(brief.modes)}" if brief.modes else "") + f"; constraints {limits or 'none'})."))
 
         say(f"confirming the winner, the start and the bare LEDs with {brief.confirm_rays:,} rays")
         confirm_ev = Evaluator(rays=brief.confirm_rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid,

@@ -71,8 +71,10 @@ def register(group):
     for flag, help_text in (("--min-thickness", "centre thickness (default 2)"),
                             ("--min-edge-thickness", "side wall height at the rim (default 1)"),
                             ("--led-clearance", "LED to lens distance (default 0.5)"),
-                            ("--housing-radius", "widest lens radius (default ring radius + 20)"),
-                            ("--gel-gap", "gap between apex and gel (default 1)")):
+                            ("--housing-radius", "widest lens radius (default: the larger of ring radius + 5 and the gel's half-diagonal)"),
+                            ("--gel-gap", "gap between apex and gel (default 1)"),
+                            ("--tolerance-mm", "the lens must still close with any one dimension this far off "
+                                               "(default 0.1)")):
         g.add_argument(flag, type=float, default=None, metavar="MM", help=f"manufacturing limit: {help_text}")
     g = p.add_argument_group("search")
     g.add_argument("--method", choices=("cmaes", "random", "nelder-mead"), default=None,
@@ -252,6 +254,8 @@ def _optimize(args) -> int:
     start = {k: _float("--start " + k, v) for k, v in (args.start or [])} or None
     manuf = {k: getattr(args, k) for k in ("min_thickness", "min_edge_thickness", "led_clearance", "housing_radius",
                                           "gel_gap") if getattr(args, k) is not None}
+    if args.tolerance_mm is not None:
+        manuf["tolerance"] = args.tolerance_mm
     if manuf:
         base = dict((scene.design or {}).get("manufacturing") or {})
         manuf = {**base, **manuf}

@@ -6,8 +6,9 @@ a 24-LED CV of at most 0.25"; :meth:`DesignBrief.from_scene` reads it and the ca
 overrides (the command line's options) win over it, and defaults over neither.
 
 Metric constraints are numbers or ``"bare"``: the same figure of the scene traced without
-its lens (with the same rays), so ``{"min_flux": "bare", "max_cv": "bare"}`` asks for a lens
-that beats the bare LEDs in flux and in uniformity at once.
+its lens (with the same rays), bettered by 1 % (:func:`sim.lensopt.objectives.bare_limit`),
+so ``{"min_flux": "bare", "max_cv": "bare"}`` asks for a lens that beats the bare LEDs in
+flux and in uniformity at once.
 """
 
 from __future__ import annotations

@@ -34,7 +34,8 @@ from sim.optics.binning import PixelGrid
 from sim.optics.multisource import trace_all
 from sim.scene import Scene
 
-__all__ = ["Metrics", "Evaluator", "OBJECTIVES", "CONSTRAINTS", "loss", "constraint_violations",
+__all__ = ["Metrics", "Evaluator", "OBJECTIVES", "CONSTRAINTS", "BARE_MARGIN", "bare_limit", "loss",
+           "constraint_violations",
            "condition_numbers", "coarse_grid"]
 
 #: objective name -> (metric, +1 to maximise / -1 to minimise)
@@ -54,6 +55,28 @@ CONSTRAINTS = {
     "min_valid": ("valid_fraction", "min"),
     "max_median_condition": ("median_condition", "max"),
 }
+
+
+#: How much better than the bare LEDs a ``"bare"`` constraint asks for (relative): "beats the bare
+#: LEDs" means by more than the search's Monte Carlo noise, not by a tie (a lens that no ray
+#: meets ties the bare LEDs exactly).
+BARE_MARGIN = 0.01
+
+
+def bare_limit(name: str, bare: Metrics) -> float:
+    """The bound a ``"bare"`` constraint ``name`` stands for, given the bare LEDs' metrics.
+
+    Examples
+    --------
+    >>> m = Metrics(fraction_on_screen=0.3, uniformity_cv=0.2, valid_fraction=1.0, median_condition=4.0)
+    >>> round(bare_limit("min_flux", m), 6), round(bare_limit("max_cv", m), 6), bare_limit("min_valid", m)
+    (0.303, 0.198, 1.0)
+    """
+    metric, kind = CONSTRAINTS[name]
+    v = getattr(bare, metric)
+    if metric == "valid_fraction":
+        return v  # a fraction that may be 1 already: no worse than bare
+    return v * (1.0 + BARE_MARGIN) if kind == "min" else v * (1.0 - BARE_MARGIN)
 
 
 @dataclass

@@ -40,6 +40,13 @@ def write_scene_file(scene, path, result: dict | None = None) -> Path:
                   f"CV {result['bare']['uniformity_cv']:.4f}."]
     d = scene_to_dict(scene)
     d.pop("design", None)  # the brief that found it belongs to the scene it started from
+    rgb = d["leds"]["rgb"]
+    if all(row == rgb[0] for row in rgb):
+        d["leds"]["rgb"] = [rgb[0]]  # one triple for every LED, as the shipped scenes write it
+    for part in d.get("lens", {}).values():
+        if isinstance(part, dict):
+            for k, v in part.items():
+                part[k] = round(float(v), 4)  # 0.1 um: far below any workshop's tolerance
     text = "\n".join(lines) + "\n" + yaml.safe_dump(d, sort_keys=False, default_flow_style=None, width=110)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(path.name + ".tmp")
