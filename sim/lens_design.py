@@ -139,7 +139,8 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
         ``sim trace`` reports them), ``valid_fraction``, ``median_condition`` and
         ``channel_cv`` (for ``modes``; None without), ``design`` (every parameter),
         ``evaluations``, ``seconds`` (the search), ``feasible``, ``start`` and ``bare`` (the
-        same figures for the starting design and the bare LEDs), ``tolerance``, the files
+        same figures for the starting design and the bare LEDs), ``lens_off`` (the winner's LEDs
+        without its lens: what the lens adds), ``tolerance``, the files
         written, and the brief.
 
     Examples
@@ -175,7 +176,9 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
                        max_condition=brief.max_condition, region=brief.region, device=device)
         first = {**design_of(base), **brief.start}
         start_scene = apply_design(base, first)
-        bare_scene = base.with_effects(remove=["lens"])
+        # The bare LEDs: the scene without its lens (with the brief's reference changes, e.g. the
+        # LEDs facing the gel when their tilt is part of the design).
+        bare_scene = (apply_design(base, brief.reference) if brief.reference else base).with_effects(remove=["lens"])
         needs_bare = any(v == "bare" for v in brief.constraints.values())
         bare_search = ev(bare_scene) if needs_bare else None
         limits = {}
@@ -225,7 +228,9 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
                        "metrics": best.metrics.as_dict() if best.metrics else None, "note": best.note},
             "start": {"design": {k: first[k] for k in winner}, **figures(start_scene),
                       "feasible": bool(first_c.feasible), "note": first_c.note},
-            "bare": figures(bare_scene),
+            "bare": {**figures(bare_scene), "reference": dict(brief.reference)},
+            # The winner's own LEDs without its lens: what the lens itself adds.
+            "lens_off": figures(best_scene.with_effects(remove=["lens"])),
             "confirm_rays": brief.confirm_rays,
             "threads": torch.get_num_threads(),
             "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
@@ -251,7 +256,7 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
 OPTIMIZE_KEYS = ("scene", "objective", "modes", "method", "constraints", "constraints_requested", "manufacturing",
                  "varied", "fraction_on_screen", "uniformity_cv", "valid_fraction", "median_condition",
                  "channel_cv", "min_max", "design", "feasible", "geometry", "evaluations", "traced", "seconds",
-                 "search", "start", "bare", "confirm_rays", "tolerance", "files", "total_seconds", "threads",
+                 "search", "start", "bare", "lens_off", "confirm_rays", "tolerance", "files", "total_seconds", "threads",
                  "load_average")
 
 

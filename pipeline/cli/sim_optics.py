@@ -73,6 +73,7 @@ def register(group):
                             ("--led-clearance", "LED to lens distance (default 0.5)"),
                             ("--housing-radius", "widest lens radius (default: the larger of ring radius + 5 and the gel's half-diagonal)"),
                             ("--gel-gap", "gap between apex and gel (default 1)"),
+                            ("--window-radius", "the top (the camera's window) spans at least this radius (default 0)"),
                             ("--tolerance-mm", "the lens must still close with any one dimension this far off "
                                                "(default 0.1)")):
         g.add_argument(flag, type=float, default=None, metavar="MM", help=f"manufacturing limit: {help_text}")
@@ -253,7 +254,7 @@ def _optimize(args) -> int:
             vary[k] = (_float("--bound " + k, lo), _float("--bound " + k, hi))
     start = {k: _float("--start " + k, v) for k, v in (args.start or [])} or None
     manuf = {k: getattr(args, k) for k in ("min_thickness", "min_edge_thickness", "led_clearance", "housing_radius",
-                                          "gel_gap") if getattr(args, k) is not None}
+                                          "gel_gap", "window_radius") if getattr(args, k) is not None}
     if args.tolerance_mm is not None:
         manuf["tolerance"] = args.tolerance_mm
     if manuf:
@@ -294,9 +295,11 @@ def _print_optimize(r) -> None:
           + f", constraints {r['constraints'] or 'none'}; {r['method']} over {', '.join(r['varied'])}")
     print(f"  {r['evaluations']} designs ({r['traced']} traced) in {r['seconds']:.1f} s; confirmed with "
           f"{r['confirm_rays']:,} rays")
-    print(f"  bare LEDs  {fig(r['bare'])}")
+    ref = r["bare"].get("reference") or {}
+    print(f"  bare LEDs  {fig(r['bare'])}" + (f"  ({', '.join(f'{k} {v:g}' for k, v in ref.items())})" if ref else ""))
     print(f"  start      {fig(r['start'])}")
     print(f"  optimized  {fig(r)}" + ("" if r["feasible"] else "  (NO FEASIBLE DESIGN FOUND: best infeasible shown)"))
+    print(f"  lens off   {fig(r['lens_off'])}  (the optimized LEDs without the lens)")
     print("  design     " + ", ".join(f"{k} {v:.4g}" for k, v in r["design"].items()))
     tol = r.get("tolerance")
     if tol:

@@ -8,7 +8,8 @@ overrides (the command line's options) win over it, and defaults over neither.
 Metric constraints are numbers or ``"bare"``: the same figure of the scene traced without
 its lens (with the same rays), bettered by 1 % (:func:`sim.lensopt.objectives.bare_limit`),
 so ``{"min_flux": "bare", "max_cv": "bare"}`` asks for a lens that beats the bare LEDs in
-flux and in uniformity at once.
+flux and in uniformity at once. ``reference`` sets parameters of that bare comparison (e.g.
+``{"led_tilt_deg": 0}``: LEDs facing the gel, for a scene whose tilt is itself a design choice).
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ class DesignBrief:
     manufacturing: Manufacturing = Manufacturing()
     vary: dict = field(default_factory=lambda: {k: DEFAULT_BOUNDS[k] for k in DEFAULT_VARY})
     start: dict = field(default_factory=dict)
+    reference: dict = field(default_factory=dict)
     method: str = "cmaes"
     rays: int = 100_000
     sampler: str = "sobol"
@@ -71,6 +73,8 @@ class DesignBrief:
             kw["vary"] = {k: tuple(float(x) for x in v) for k, v in d.pop("vary").items()}
         if "start" in d:
             kw["start"] = {k: float(v) for k, v in d.pop("start").items()}
+        if "reference" in d:
+            kw["reference"] = {k: float(v) for k, v in d.pop("reference").items()}
         if d:
             raise UserError(f"{where}: unknown keys {sorted(d)}")
         names = {f.name for f in fields(cls)}
@@ -107,7 +111,7 @@ class DesignBrief:
             for k, v in self.constraints.items() if v is not None)
         if needs_modes and not self.modes:
             raise UserError("optimize-lens: the objective or a constraint needs lighting modes (--mode)")
-        for k in list(self.vary) + list(self.start):
+        for k in list(self.vary) + list(self.start) + list(self.reference):
             if k not in PARAMETERS:
                 raise UserError(f"optimize-lens: unknown parameter {k!r}; expected one of {', '.join(PARAMETERS)}")
         for name in ("rays", "grid", "evaluations", "confirm_rays", "tolerance_rays"):

@@ -12,6 +12,8 @@ On top of that :class:`Manufacturing` asks for
 ``housing_radius``       the lens's widest radius (it sits inside the sensor's housing, which holds
                          the LED ring and the gel);
 ``gel_gap``              gap between the apex and the lowest gel height (the gel must not rest on the lens);
+``window_radius``        the camera looks at the gel through the lens's top: the top (not the side) must
+                         span at least this radius (0: no such limit);
 ``tolerance``            the lens must still close into a lens with any one dimension off by this much
                          (mm; :func:`sim.lensopt.tolerance.perturbations`): a side arc that only just
                          reaches the top makes a lens that a 0.1 mm error turns into no lens at all.
@@ -25,7 +27,7 @@ Examples
 >>> from sim.scene import load_scene
 >>> v = violations(load_scene("default"), Manufacturing())
 >>> sorted(v), all(x == 0.0 for x in v.values())
-(['gel_gap', 'housing_radius', 'led_clearance', 'min_edge_thickness', 'min_thickness', 'tolerance'], True)
+(['gel_gap', 'housing_radius', 'led_clearance', 'min_edge_thickness', 'min_thickness', 'tolerance', 'window_radius'], True)
 """
 
 from __future__ import annotations
@@ -51,6 +53,7 @@ class Manufacturing:
     housing_radius: float | None = None
     gel_gap: float = 1.0
     tolerance: float = 0.1
+    window_radius: float = 0.0
 
     def resolved(self, scene: Scene) -> "Manufacturing":
         """With ``housing_radius`` filled in for ``scene``."""
@@ -59,7 +62,7 @@ class Manufacturing:
         w, h = scene.plane.size
         return Manufacturing(self.min_thickness, self.min_edge_thickness, self.led_clearance,
                              max(scene.leds.radius + 5.0, 0.5 * float(np.hypot(w, h))), self.gel_gap,
-                             self.tolerance)
+                             self.tolerance, self.window_radius)
 
     def as_dict(self) -> dict:
         return asdict(self)
@@ -118,6 +121,7 @@ def violations(scene: Scene, limits: Manufacturing) -> dict:
         "led_clearance": max(0.0, lim.led_clearance - led_distance(scene)),
         "housing_radius": max(0.0, widest - lim.housing_radius),
         "gel_gap": max(0.0, lim.gel_gap - (gel - ln.apex_z)),
+        "window_radius": max(0.0, lim.window_radius - ln.rim_rho),
     }
 
 
