@@ -25,7 +25,7 @@ for a solid of revolution (rotating any lens point to the LED's azimuth brings i
 Examples
 --------
 >>> from sim.scene import load_scene
->>> v = violations(load_scene("default"), Manufacturing())
+>>> v = violations(load_scene("default-v1"), Manufacturing())
 >>> sorted(v), all(x == 0.0 for x in v.values())
 (['gel_gap', 'housing_radius', 'led_clearance', 'min_edge_thickness', 'min_thickness', 'tolerance', 'window_radius'], True)
 """
@@ -75,7 +75,7 @@ def lens_profile(lens, samples: int = 400) -> np.ndarray:
     Examples
     --------
     >>> from sim.scene import load_scene
-    >>> p = lens_profile(load_scene("default").lens, 50)
+    >>> p = lens_profile(load_scene("default-v1").lens, 50)
     >>> p.shape[1], bool(np.isclose(p[:, 1].max(), 16.0))
     (2, True)
     """

@@ -17,7 +17,7 @@ def write_scene_file(scene, path, result: dict | None = None) -> Path:
     --------
     >>> import tempfile, os
     >>> from sim.scene import load_scene
-    >>> p = write_scene_file(load_scene("default"), os.path.join(tempfile.mkdtemp(), "s.yaml"))
+    >>> p = write_scene_file(load_scene("default-v1"), os.path.join(tempfile.mkdtemp(), "s.yaml"))
     >>> load_scene(p).lens.arc_radius
     13.5
     """

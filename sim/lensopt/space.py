@@ -70,7 +70,7 @@ def design_of(scene: Scene) -> dict:
     Examples
     --------
     >>> from sim.scene import load_scene
-    >>> d = design_of(load_scene("default"))
+    >>> d = design_of(load_scene("default-v1"))
     >>> d["arc_radius"], d["top_radius"], d["top_conic"], d["led_tilt_deg"]
     (13.5, 600.0, 0.0, 0.0)
     """
@@ -117,11 +117,11 @@ class DesignSpace:
     Examples
     --------
     >>> from sim.scene import load_scene
-    >>> sp = DesignSpace(load_scene("default"), {"apex_z": (10.0, 20.0), "top_radius": (100.0, 10000.0)})
+    >>> sp = DesignSpace(load_scene("default-v1"), {"apex_z": (10.0, 20.0), "top_radius": (100.0, 10000.0)})
     >>> u = sp.encode({"apex_z": 15.0, "top_radius": 1000.0})
     >>> [round(float(x), 6) for x in u]
     [0.5, 0.5]
-    >>> sp.decode(u)
+    >>> {k: round(v, 9) for k, v in sp.decode(u).items()}
     {'apex_z': 15.0, 'top_radius': 1000.0}
     """
 

@@ -37,7 +37,7 @@ def perturbations(scene: Scene, names, delta: float = 0.1, tilt_delta: float = 0
     Examples
     --------
     >>> from sim.scene import load_scene
-    >>> p = perturbations(load_scene("default"), ["apex_z", "led_tilt_deg", "top_radius"])
+    >>> p = perturbations(load_scene("default-v1"), ["apex_z", "led_tilt_deg", "top_radius"])
     >>> [round(v, 3) for v in p["apex_z"]], p["led_tilt_deg"], [round(v) for v in p["top_radius"]]
     ([15.9, 16.1], (-0.5, 0.5), [647, 560])
     """
