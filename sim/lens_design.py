@@ -123,7 +123,7 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
     start : dict
         Starting values of some parameters (default: the scene's).
     manufacturing : dict
-        :class:`sim.lensopt.constraints.Manufacturing` limits in mm.
+        :class:`sim.lensopt.constraints.Manufacturing` limits in mm (replaces the scene's).
     out : path, optional
         Folder for the winner's scene file (``<scene>-optimized.yaml``), ``trajectory.json``,
         ``trajectory.png`` and the section drawings of the start and the winner.
@@ -141,7 +141,7 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
         ``evaluations``, ``seconds`` (the search), ``feasible``, ``start`` and ``bare`` (the
         same figures for the starting design and the bare LEDs), ``lens_off`` (the winner's LEDs
         without its lens: what the lens adds), ``tolerance``, the files
-        written, and the brief.
+        written, and the brief; plus ``scene_object``, the winner as a :class:`sim.scene.Scene`.
 
     Examples
     --------

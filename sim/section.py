@@ -75,6 +75,9 @@ def ray_paths(scene: Scene, count: int = 25, max_bounces: int = 3) -> list[np.nd
         alive &= ~inside  # still trapped after max_bounces: drawn up to the last bounce
     x, y, t, ok = plane_hit(o, d, scene.plane.z)
     far = 1.5 * max(scene.plane.z, 1.0)
+    # A ray that reaches the gel's plane only far off to the side (nearly horizontal, e.g. the
+    # edge of a tilted LED's cone) is drawn as far as the others, not to its distant crossing.
+    ok = ok & (t <= 4.0 * far)
     for k in range(n):
         if not alive[k]:
             continue

@@ -9,9 +9,10 @@ Sections (``--only``):
     than the bare LEDs, >= 90 % well-conditioned pixels for the photometric-stereo modes), with
     the search's wall time.
 ``methods``
-    the paper scene's brief searched by CMA-ES, uniform random search and Nelder-Mead with the
-    same budget of evaluations and the same rays (common random numbers), each from two seeds:
-    the best feasible flux found and the time. Why CMA-ES.
+    the ``paper`` and ``default-v1`` scenes' briefs searched by CMA-ES, uniform random search and
+    Nelder-Mead with the same budget of evaluations and the same rays (common random numbers),
+    each from two seeds (Nelder-Mead, deterministic, from the start and from a jittered start):
+    the best feasible objective found and the time.
 ``smoothness``
     finite-difference derivatives of the flux and the CV with respect to each dimension of the
     paper winner at steps of 0.001 to 1 mm (same rays for every design): a gradient method sees
@@ -29,7 +30,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--only", nargs="*", choices=SECTIONS, help="run only these sections")
     parser.add_argument("--evaluations", type=int, default=600, help="budget per search in the methods section")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    parser.add_argument("--plot", default=None, help="write the methods' trajectories to this PNG")
+    parser.add_argument("--plot", default=None,
+                        help="write the methods' trajectories to PNGs named after this one (_paper, _default-v1)")
 
 
 def run(args) -> dict:
@@ -80,34 +82,43 @@ def _targets(rows) -> dict:
 
 def _methods(rows, evaluations: int, plot) -> dict:
     from sim.lensopt.brief import DesignBrief
-    from sim.lensopt.objectives import Evaluator
+    from sim.lensopt.objectives import Evaluator, bare_limit
     from sim.lensopt.search import METHODS, Problem, run_search
-    from sim.lensopt.space import DesignSpace, design_of
+    from sim.lensopt.space import DesignSpace, apply_design, design_of
     from sim.scene import load_scene
 
-    base = load_scene("paper")
-    brief = DesignBrief.from_scene(base)
     res, trajs = {}, {}
-    for method in METHODS:
-        for seed in (0, 1):
-            ev = Evaluator(rays=brief.rays, sampler=brief.sampler, seed=0, grid=brief.grid)
-            prob = Problem(DesignSpace(base, dict(brief.vary)), ev, brief.objective,
-                           {k: float(v) for k, v in brief.constraints.items()}, brief.manufacturing)
-            t0 = time.perf_counter()
-            best, _, traj = run_search(prob, design_of(base), method=method, evaluations=evaluations, seed=seed,
-                                       sigma0=brief.sigma0, progress=False)
-            sec = time.perf_counter() - t0
-            value = best.metrics.fraction_on_screen if best.feasible else None
-            res[f"{method}/{seed}"] = {"best_flux": value, "feasible": best.feasible, "seconds": sec,
-                                       "evaluations": len(traj.loss), "traced": prob.traced}
-            trajs[f"{method} seed {seed}"] = traj.as_dict()
-            rows.append({"knob": "lens optimizer (paper brief)", "setting": f"{method} seed {seed}",
-                         "error": None if value is None else 1.0 - value, "error_unit": "fraction off screen",
-                         "seconds": sec})
+    for scene in ("paper", "default-v1"):
+        base = load_scene(scene)
+        brief = DesignBrief.from_scene(base)
+        ev = Evaluator(rays=brief.rays, sampler=brief.sampler, seed=0, grid=brief.grid, modes=brief.modes,
+                       max_condition=brief.max_condition, region=brief.region)
+        bare = ev((apply_design(base, brief.reference) if brief.reference else base).with_effects(remove=["lens"]))
+        limits = {k: bare_limit(k, bare) if v == "bare" else float(v) for k, v in brief.constraints.items()}
+        for method in METHODS:
+            for seed in (0, 1):
+                prob = Problem(DesignSpace(base, dict(brief.vary)), ev, brief.objective, limits, brief.manufacturing)
+                t0 = time.perf_counter()
+                best, _, traj = run_search(prob, {**design_of(base), **brief.start}, method=method,
+                                           evaluations=evaluations, seed=seed, sigma0=brief.sigma0, progress=False)
+                sec = time.perf_counter() - t0
+                value = best.objective_value(brief.objective) if best.feasible else None
+                res[f"{scene}/{method}/{seed}"] = {"objective": brief.objective, "best": value,
+                                                   "feasible": best.feasible, "seconds": sec,
+                                                   "evaluations": len(traj.loss), "traced": prob.traced}
+                trajs[f"{scene} {method} seed {seed}"] = traj.as_dict()
+                rows.append({"knob": f"lens optimizer ({scene} brief)", "setting": f"{method} seed {seed}",
+                             "error": None if value is None else 1.0 - value, "error_unit": "fraction off screen",
+                             "seconds": sec})
     if plot:
+        from pathlib import Path
+
         from sim.lensopt.plot import trajectory_figure
 
-        trajectory_figure(trajs, plot, objective="flux", label="paper brief: ")
+        for scene in ("paper", "default-v1"):
+            p = Path(plot)
+            trajectory_figure({k.split(" ", 1)[1]: v for k, v in trajs.items() if k.startswith(scene + " ")},
+                              p.with_name(f"{p.stem}_{scene}{p.suffix}"), objective="flux", label=f"{scene} brief: ")
     return res
 
 
@@ -143,10 +154,10 @@ def format_table(result: dict) -> str:
                      f"CV {r['uniformity_cv']:.4f} (bare {r['bare_uniformity_cv']:.4f}), valid {vf}; "
                      f"{r['evaluations']} designs in {r['seconds']:.1f} s")
     if result.get("methods"):
-        lines.append(f"{'method/seed':<16} {'best flux':>10} {'seconds':>9} {'designs':>8} {'traced':>7}")
+        lines.append(f"{'scene/method/seed':<28} {'best':>10} {'seconds':>9} {'designs':>8} {'traced':>7}")
         for k, r in result["methods"].items():
-            f = "-" if r["best_flux"] is None else f"{100 * r['best_flux']:.2f} %"
-            lines.append(f"{k:<16} {f:>10} {r['seconds']:>9.1f} {r['evaluations']:>8} {r['traced']:>7}")
+            f = "none feasible" if r["best"] is None else f"{100 * r['best']:.2f} %"
+            lines.append(f"{k:<28} {f:>10} {r['seconds']:>9.1f} {r['evaluations']:>8} {r['traced']:>7}")
     for k, row in (result.get("smoothness") or {}).items():
         lines.append(f"d/d {k:<11} " + "  ".join(f"h {h}: flux {v['d_flux_per_mm']:+.4f}/mm CV {v['d_cv_per_mm']:+.4f}/mm"
                                                   for h, v in row.items()))

@@ -159,7 +159,8 @@ def run_search(problem: Problem, start: dict, *, method: str = "cmaes", evaluati
             from scipy.optimize import minimize
 
             # Nelder-Mead on the clipped cube, restarted from the best point while budget remains.
-            x = u0
+            # It is deterministic: seeds other than 0 start it from a jittered start (sigma0 per axis).
+            x = u0 if seed == 0 else np.clip(u0 + sigma0 * rng.standard_normal(len(u0)), 0.0, 1.0)
             while True:
                 minimize(lambda u: score(np.clip(u, 0.0, 1.0)), x, method="Nelder-Mead",
                          options={"maxfev": evaluations, "initial_simplex": _simplex(x, sigma0)})
