@@ -29,6 +29,9 @@ SECTIONS = ("targets", "methods", "smoothness")
 def add_arguments(parser) -> None:
     parser.add_argument("--only", nargs="*", choices=SECTIONS, help="run only these sections")
     parser.add_argument("--evaluations", type=int, default=600, help="budget per search in the methods section")
+    parser.add_argument("--seeds", type=int, default=2, help="seeds per method in the methods section (default 2)")
+    parser.add_argument("--methods", nargs="*", default=None, help="methods compared (default: all of them)")
+    parser.add_argument("--sigma0", type=float, default=None, help="initial step (default: each brief's)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--plot", default=None,
                         help="write the methods' trajectories to PNGs named after this one (_paper, _default-v1)")
@@ -47,7 +50,9 @@ def run(args) -> dict:
         if "targets" in only:
             out["targets"] = _targets(out["rows"])
         if "methods" in only:
-            out["methods"] = _methods(out["rows"], int(getattr(args, "evaluations", 600)), getattr(args, "plot", None))
+            out["methods"] = _methods(out["rows"], int(getattr(args, "evaluations", 600)), getattr(args, "plot", None),
+                                      int(getattr(args, "seeds", 2) or 2), getattr(args, "methods", None),
+                                      getattr(args, "sigma0", None))
         if "smoothness" in only:
             out["smoothness"] = _smoothness()
         out["load_average_end"] = list(os.getloadavg())
@@ -80,7 +85,7 @@ def _targets(rows) -> dict:
     return res
 
 
-def _methods(rows, evaluations: int, plot) -> dict:
+def _methods(rows, evaluations: int, plot, seeds: int = 2, methods=None, sigma0=None) -> dict:
     from sim.lensopt.brief import DesignBrief
     from sim.lensopt.objectives import Evaluator, bare_limit
     from sim.lensopt.search import METHODS, Problem, run_search
@@ -95,19 +100,21 @@ def _methods(rows, evaluations: int, plot) -> dict:
                        max_condition=brief.max_condition, region=brief.region)
         bare = ev((apply_design(base, brief.reference) if brief.reference else base).with_effects(remove=["lens"]))
         limits = {k: bare_limit(k, bare) if v == "bare" else float(v) for k, v in brief.constraints.items()}
-        for method in METHODS:
-            for seed in (0, 1):
+        for method in methods or METHODS:
+            for seed in range(seeds):
                 prob = Problem(DesignSpace(base, dict(brief.vary)), ev, brief.objective, limits, brief.manufacturing)
                 t0 = time.perf_counter()
                 best, _, traj = run_search(prob, {**design_of(base), **brief.start}, method=method,
-                                           evaluations=evaluations, seed=seed, sigma0=brief.sigma0, progress=False)
+                                           evaluations=evaluations, seed=seed, sigma0=sigma0 or brief.sigma0,
+                                           progress=False)
                 sec = time.perf_counter() - t0
                 value = best.objective_value(brief.objective) if best.feasible else None
-                res[f"{scene}/{method}/{seed}"] = {"objective": brief.objective, "best": value,
+                tag = f"{method}" + (f"@{sigma0:g}" if sigma0 else "")
+                res[f"{scene}/{tag}/{seed}"] = {"objective": brief.objective, "best": value,
                                                    "feasible": best.feasible, "seconds": sec,
                                                    "evaluations": len(traj.loss), "traced": prob.traced}
-                trajs[f"{scene} {method} seed {seed}"] = traj.as_dict()
-                rows.append({"knob": f"lens optimizer ({scene} brief)", "setting": f"{method} seed {seed}",
+                trajs[f"{scene} {tag} seed {seed}"] = traj.as_dict()
+                rows.append({"knob": f"lens optimizer ({scene} brief)", "setting": f"{tag} seed {seed}",
                              "error": None if value is None else 1.0 - value, "error_unit": "fraction off screen",
                              "seconds": sec})
     if plot:

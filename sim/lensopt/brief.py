@@ -39,7 +39,7 @@ class DesignBrief:
     vary: dict = field(default_factory=lambda: {k: DEFAULT_BOUNDS[k] for k in DEFAULT_VARY})
     start: dict = field(default_factory=dict)
     reference: dict = field(default_factory=dict)
-    method: str = "cmaes"
+    method: str = "nelder-mead"
     rays: int = 100_000
     sampler: str = "sobol"
     grid: int = 40
