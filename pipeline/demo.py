@@ -129,8 +129,9 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
                              seed=11)
     cal_cap_path = write_record(out / "calibration_capture.h5", cal_cap)
     # Centre refinement votes with the traced model (refine_model="auto" with an illumination
-    # model): on the quick demo traced CV 0.69 deg refined vs 1.01 deg unrefined; the polynomial
-    # near field (15 deg here: it cannot follow the lens's sharp LED footprints) made it 2.9 deg.
+    # model): on the quick demo with the pre-issue-16 lens (scene default-v1) traced CV 0.69 deg
+    # refined vs 1.01 deg unrefined; the polynomial near field (15 deg there: it cannot follow that
+    # lens's sharp LED footprints) made it 2.9 deg. With the current default: traced 0.18 deg.
     cal = calibrate(cal_cap_path, settings.ball_radius_mm, models=["far", "near", "traced"], illumination=model)
     cal.save(out / "calibration.h5")
     cal_summary = cal.summary()
