@@ -13,14 +13,14 @@ import torch
 from scipy.spatial import cKDTree
 
 from pipeline.bench.recon_scene import render_sphere_scene, sphere_cap  # noqa: F401  (re-exported)
-from pipeline.normals._torch import torch_threads
+from pipeline.base.threads import limit_threads
 
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 
 
 @pytest.fixture(autouse=True)
 def _one_torch_thread():
-    with torch_threads(1):
+    with limit_threads(torch=1):
         yield
 
 

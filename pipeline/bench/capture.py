@@ -22,7 +22,7 @@ from pipeline.capture import protocol as P
 from pipeline.capture.client import RingClient
 from pipeline.capture.emulator import RingEmulator, parse_faults
 from pipeline.capture.plan import CaptureSettings, run_capture
-from pipeline.capture.session import load_patterns
+from pipeline.base.modes import load_mode
 
 FAULTS = "drop=0.05,corrupt=0.05,delay=0.02"
 BAUD = 115200
@@ -56,13 +56,14 @@ def _changes(faults: str, baud: float | None, n: int, timeout: float, seed: int)
 
 
 def _full_mode(faults: str, baud: float | None, fps: float, timeout: float, seed: int) -> dict:
-    patterns = load_patterns("point")
+    patterns = load_mode("point")
     out = Path(tempfile.mkdtemp(prefix="iristac-bench-capture-")) / "capture.h5"
-    from pipeline.capture.virtual import VirtualSensorSpec, contact_objects, open_virtual_camera
+    from pipeline.capture.virtual import VirtualSensorSpec, open_virtual_camera
+    from sim.contacts import contact_surfaces
 
     shape, mm = (60, 80), 0.1
     spec = VirtualSensorSpec(shape=shape, mm_per_px=mm, fps=fps,
-                             contacts=contact_objects("sphere", 1, shape, mm, seed=seed))
+                             contacts=contact_surfaces("sphere", shape, mm, 1, seed=seed))
     with RingEmulator(faults=parse_faults(faults), baudrate=baud, seed=seed) as emu, \
             RingClient(emu.path, timeout=timeout, retries=30) as ring:
         cam = open_virtual_camera(spec, emu, patterns.drive, patterns.brightness)
@@ -80,10 +81,14 @@ def _full_mode(faults: str, baud: float | None, fps: float, timeout: float, seed
 
 
 def run(args) -> dict:
-    import torch
+    from pipeline.base.threads import limit_threads
 
     # The virtual camera renders one small frame at a time: torch's thread pool only spins.
-    torch.set_num_threads(1)
+    with limit_threads(torch=1):
+        return _run(args)
+
+
+def _run(args) -> dict:
     quick = bool(getattr(args, "quick", False))
     n = 100 if quick else int(getattr(args, "changes", 500))
     fps = 120.0 if quick else float(getattr(args, "camera_fps", 30.0))

@@ -161,13 +161,13 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
 
 
 def run(args) -> dict:
-    from pipeline.normals._torch import torch_threads
+    from pipeline.base.threads import limit_threads
 
     sizes = getattr(args, "sizes", None) or (["160x120"] if getattr(args, "quick", False) else ["320x240", "640x480"])
     repeats = getattr(args, "repeats", None) or (3 if getattr(args, "quick", False) else 20)
     device = getattr(args, "device", "cpu")
     per_size = []
-    with torch_threads(getattr(args, "threads", 1)):
+    with limit_threads(torch=getattr(args, "threads", 1)):
         for spec in sizes:
             w, h = (int(v) for v in spec.lower().split("x"))
             per_size.append(measure_size(w, h, repeats, device, getattr(args, "no_compile", False)))

@@ -47,7 +47,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 
 from pipeline.capture import protocol as P
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["FaultSpec", "parse_faults", "ShownState", "EmulatorStats", "RingEmulator", "serve_forever"]
 

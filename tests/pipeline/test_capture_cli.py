@@ -12,7 +12,7 @@ import numpy as np
 
 from helpers import REPO, run_cli
 from pipeline.capture.client import RingClient
-from pipeline.store import read_record
+from pipeline.base.store import read_record
 
 FAST = ["--emulate", "--virtual-camera", "--mode", "point", "--camera-fps", "500",
         "--camera-size", "6", "8", "--timeout", "0.01"]

@@ -14,14 +14,15 @@ from pipeline.capture.plan import (
     _fingerprint,
     _Journal,
     CaptureSettings,
-    PatternSet,
     journal_path,
     plan_steps,
     run_capture,
 )
+from pipeline.base.modes import LightingMode
+from pipeline.capture.protocol import quantize_state
 from pipeline.capture.virtual import ContactCamera, VirtualSensorSpec, open_virtual_camera
-from pipeline.errors import UserError
-from pipeline.store import read_record
+from pipeline.base.errors import UserError
+from pipeline.base.store import read_record
 from sim.render import RenderSettings, bare_ring_illumination, render_images
 from sim.virtual_camera import ring_led_state
 
@@ -43,25 +44,30 @@ def one_torch_thread():
 EXACT = RenderSettings(exposure=1e5)
 
 
-def random_patterns(n: int, seed: int = 0, leds: int = 24) -> PatternSet:
+def random_patterns(n: int, seed: int = 0, leds: int = 24) -> LightingMode:
     rng = np.random.default_rng(seed)
-    return PatternSet("random", [f"p{i}" for i in range(n)], rng.random((n, leds, 3)),
-                      rng.uniform(0.2, 1.0, n))
+    return LightingMode.from_arrays("random", [f"p{i}" for i in range(n)], rng.random((n, leds, 3)),
+                                    rng.uniform(0.2, 1.0, n))
 
 
-def spec_for(patterns: PatternSet, contacts: int = 0, fps: float = 2000.0) -> VirtualSensorSpec:
-    from pipeline.capture.virtual import contact_objects
+def levels_of(patterns: LightingMode, p: int):
+    """The 8-bit state pattern ``p`` puts on the wire."""
+    return quantize_state(patterns.drive[p], float(patterns.brightness[p]))
 
-    model = bare_ring_illumination(SHAPE, 1.0, count=patterns.led_count)
+
+def spec_for(patterns: LightingMode, contacts: int = 0, fps: float = 2000.0) -> VirtualSensorSpec:
+    from sim.contacts import contact_surfaces
+
+    model = bare_ring_illumination(SHAPE, 1.0, count=patterns.num_leds)
     return VirtualSensorSpec(illumination=model, settings=EXACT, fps=fps,
-                             contacts=contact_objects("sphere", contacts, SHAPE, 1.0))
+                             contacts=contact_surfaces("sphere", SHAPE, 1.0, contacts))
 
 
-def expected(spec: VirtualSensorSpec, patterns: PatternSet, k: int = -1) -> np.ndarray:
+def expected(spec: VirtualSensorSpec, patterns: LightingMode, k: int = -1) -> np.ndarray:
     """Noise-free renderings (P, H, W, 3) of every pattern, as the ring latched it, on contact
     ``k`` (-1: the flat gel)."""
-    levels = np.stack([patterns.levels(p)[0] for p in range(len(patterns.names))]) / 255.0
-    b = np.array([patterns.levels(p)[1] for p in range(len(patterns.names))]) / 255.0
+    levels = np.stack([levels_of(patterns, p)[0] for p in range(len(patterns.frames))]) / 255.0
+    b = np.array([levels_of(patterns, p)[1] for p in range(len(patterns.frames))]) / 255.0
     surface = spec.surfaces()[k] if k >= 0 else None
     return render_images(spec.model(), surface, levels, b, settings=EXACT)
 
@@ -184,7 +190,7 @@ def test_averaging_and_record_contents(tmp_path):
     d = rec.data
     assert d["frames"].dtype == np.float32 and d["frames"].shape == (1, 2, *SHAPE, 3)
     assert d["drive"].shape == (2, 5, 3) and d["brightness"].shape == (2,)
-    levels, b = patterns.levels(1)
+    levels, b = levels_of(patterns, 1)
     assert np.allclose(d["drive"][1], levels / 255) and np.isclose(d["brightness"][1], b / 255)
     assert decoded_ok(d["frames"][0, 1], expected(spec_for(patterns, 1), patterns, k=0)[1])
     assert d["timing/exposure"].shape == (5, 3, 2)
@@ -198,11 +204,11 @@ def test_averaging_and_record_contents(tmp_path):
 
 def test_pattern_set_and_settings_validation():
     with pytest.raises(UserError, match=r"drive must have shape \(P=2, L, 3\), got \(2, 4\)"):
-        PatternSet("m", ["a", "b"], np.zeros((2, 4)), np.ones(2))
+        LightingMode.from_arrays("m", ["a", "b"], np.zeros((2, 4)), np.ones(2))
     with pytest.raises(UserError, match="pattern 'b'.*in \\[0, 1\\]"):
-        PatternSet("m", ["a", "b"], np.stack([np.zeros((3, 3)), np.full((3, 3), 2.0)]), np.ones(2))
+        LightingMode.from_arrays("m", ["a", "b"], np.stack([np.zeros((3, 3)), np.full((3, 3), 2.0)]), np.ones(2))
     with pytest.raises(UserError, match="unique"):
-        PatternSet("m", ["a", "a"], np.zeros((2, 3, 3)), np.ones(2))
+        LightingMode.from_arrays("m", ["a", "a"], np.zeros((2, 3, 3)), np.ones(2))
     with pytest.raises(UserError, match="--frames-per-pattern"):
         CaptureSettings(frames_per_pattern=0)
 
@@ -280,23 +286,11 @@ def test_camera_lost_mid_capture_keeps_steps_and_says_how_to_resume(tmp_path):
     assert result.resumed_steps == 3 and result.frames == 9 and result.mislabeled == 0
 
 
-def test_patterns_from_a_lighting_mode_object():
-    """The adapter to sim.modes' contract: frames of (name, drive (L, 3), brightness)."""
-    from typing import NamedTuple
-
-    from pipeline.capture.session import patterns_from_mode
-
-    class Frame(NamedTuple):
-        name: str
-        drive: np.ndarray
-        brightness: float
-
-    class Mode(NamedTuple):
-        name: str
-        frames: list
+def test_a_lighting_mode_is_the_capture_plans_pattern_type():
+    """The plan takes the one pattern type, :class:`pipeline.base.modes.LightingMode`."""
+    from pipeline.base.modes import ModeFrame
 
     drives = [np.eye(24, 3), np.eye(24, 3)[::-1]]
-    mode = Mode("two", [Frame("a", drives[0], 1.0), Frame("b", drives[1], 0.5)])
-    ps = patterns_from_mode(mode)
-    assert ps.mode == "two" and ps.names == ["a", "b"] and ps.brightness.tolist() == [1.0, 0.5]
-    assert ps.levels(1)[1] == 128 and ps.drive.shape == (2, 24, 3)
+    mode = LightingMode("two", [ModeFrame("a", drives[0], 1.0), ModeFrame("b", drives[1], 0.5)])
+    assert mode.name == "two" and mode.pattern_names == ["a", "b"] and mode.brightness.tolist() == [1.0, 0.5]
+    assert levels_of(mode, 1)[1] == 128 and mode.drive.shape == (2, 24, 3)

@@ -8,19 +8,19 @@ import pytest
 
 from pipeline.capture.client import RingDisconnected
 from pipeline.capture.plan import journal_path
-from pipeline.capture.session import capture, load_patterns
+from pipeline.base.modes import list_modes, load_mode
+from pipeline.capture.session import capture
 from pipeline.capture.virtual import (
     VirtualSensorSpec,
-    contact_objects,
     illumination_option,
     open_virtual_camera,
     truth_data,
 )
-from pipeline.errors import UserError
-from pipeline.store import Record, read_record
-from sim.frames import normals_to_gradients
+from pipeline.base.errors import UserError
+from pipeline.base.store import Record, read_record
+from pipeline.base.frames import normals_to_gradients
 from sim.geometry import HeightField
-from sim.modes import list_modes
+from sim.contacts import contact_surfaces
 from sim.render import RenderSettings, render_images
 
 SHAPE = (40, 50)
@@ -40,7 +40,7 @@ def one_torch_thread():
 
 def spec(contacts=2, obj="indenters", **kw) -> VirtualSensorSpec:
     kw.setdefault("fps", 400.0)
-    return VirtualSensorSpec(shape=SHAPE, mm_per_px=MM, contacts=contact_objects(obj, contacts, SHAPE, MM),
+    return VirtualSensorSpec(shape=SHAPE, mm_per_px=MM, contacts=contact_surfaces(obj, SHAPE, MM, contacts),
                              **kw)
 
 
@@ -64,14 +64,14 @@ def test_every_mode_end_to_end_with_faults_truth_and_contacts(tmp_path, mode):
     s = spec(noise_dn=0.5)
     result = capture(out, mode=mode, emulate=True, faults="drop=0.05,corrupt=0.05", seed=4,
                      virtual_camera=s, timeout=0.01, progress=False)
-    patterns = load_patterns(mode)
-    n_p = len(patterns.names)
+    patterns = load_mode(mode)
+    n_p = len(patterns.frames)
     assert result.patterns == n_p and result.frames == 1 + n_p + 2 * n_p
     assert result.mislabeled == 0
     rec = read_record(out, schema="capture")
     d, m = rec.data, rec.meta
     assert m["mode"] == mode and m["source"] == "virtual" and m["bit_depth"] == 8
-    assert m["pattern_names"] == patterns.names and m["mm_per_px"] == MM
+    assert m["pattern_names"] == patterns.pattern_names and m["mm_per_px"] == MM
     assert d["frames"].shape == (2, n_p, *SHAPE, 3) and d["frames"].dtype == np.uint8
     for name, want in truth_data(s).items():
         assert np.array_equal(d[name], want), name
@@ -115,7 +115,7 @@ def test_a_camera_object_on_a_port_with_a_contact_callback(tmp_path):
     from pipeline.capture.emulator import RingEmulator
 
     s = spec(contacts=2, obj="sphere", noise_dn=0.0, fps=300.0)
-    patterns = load_patterns("monochromatic")
+    patterns = load_mode("monochromatic")
     pressed = []
     with RingEmulator() as ring:
         cam = open_virtual_camera(s, ring, patterns.drive, patterns.brightness)
@@ -141,15 +141,15 @@ def test_a_camera_object_on_a_port_with_a_contact_callback(tmp_path):
 
 
 def test_contact_objects_and_illumination_file_errors(tmp_path):
-    fs = contact_objects("indenters", 5, SHAPE, MM)
+    fs = contact_surfaces("indenters", SHAPE, MM, 5)
     assert len(fs) == 5 and all(f.height.max() > 0 and f.contact.any() for f in fs)
-    assert all(f.height.max() == 0 for f in contact_objects("none", 2, SHAPE, MM))
+    assert all(f.height.max() == 0 for f in contact_surfaces("none", SHAPE, MM, 2))
     np.save(tmp_path / "one.npy", np.zeros(SHAPE))
-    assert len(contact_objects(str(tmp_path / "one.npy"), 3, SHAPE, MM)) == 3
+    assert len(contact_surfaces(str(tmp_path / "one.npy"), SHAPE, MM, 3)) == 3
     with pytest.raises(UserError, match=r"expected a real height map \(H, W\) = \(10, 10\) or a stack.*got float64 \(1, 40, 50\)"):
-        contact_objects(str(tmp_path / "one.npy"), None, (10, 10), MM)
-    with pytest.raises(UserError, match="expected one of sphere, indenters, none or a .npy"):
-        contact_objects("cube", 1, SHAPE, MM)
+        contact_surfaces(str(tmp_path / "one.npy"), (10, 10), MM, None)
+    with pytest.raises(UserError, match="expected one of sphere, cylinder, .*indenters, test-object, none or a .npy/.png height map"):
+        contact_surfaces("cube", SHAPE, MM, 1)
     with pytest.raises(UserError, match="--illumination .*nope.h5: no such file"):
         illumination_option(tmp_path / "nope.h5")
     (tmp_path / "bad.h5").write_bytes(b"not hdf5")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from helpers import run_cli
-from pipeline.store import StageStore
+from pipeline.base.store import StageStore
 from schema_examples import example_record
 
 GROUPS = ["sim", "capture", "calibrate", "reconstruct", "run", "batch", "bench", "cache", "import", "eval", "demo"]

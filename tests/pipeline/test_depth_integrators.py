@@ -9,17 +9,18 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from pipeline.depth import INTEGRATORS, frankot_chellappa, integrate, poisson_dct, poisson_dst, sparse_lstsq
-from sim.frames import gradients_to_normals, normals_from_height
+from pipeline.base.registry import INTEGRATORS
+from pipeline.depth import frankot_chellappa, integrate, poisson_dct, poisson_dst, sparse_lstsq
+from pipeline.base.frames import gradients_to_normals, normals_from_height
 from support_recon import sphere_cap
 
 S = 0.1  # mm per pixel
-METHODS = sorted(INTEGRATORS)
+METHODS = list(INTEGRATORS.names())
 
 
 def _plane(shape=(20, 24), p=0.3, q=-0.2):
     rows, cols = np.mgrid[0:shape[0], 0:shape[1]]
-    # z = p x + q y with x = col * s, y = -row * s (sim.frames)
+    # z = p x + q y with x = col * s, y = -row * s (pipeline.base.frames)
     h = p * cols * S + q * (-rows * S)
     return h, gradients_to_normals(np.full(shape, p), np.full(shape, q))
 

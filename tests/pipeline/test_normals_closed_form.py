@@ -7,7 +7,7 @@ import pytest
 
 from pipeline.normals import (FarFieldSolver, LUTSolver, NearFieldSolver, ratio_to_reference, solve_farfield,
                               solve_nearfield, solve_robust)
-from sim.frames import gradients_to_normals, normals_to_gradients
+from pipeline.base.frames import gradients_to_normals, normals_to_gradients
 from support_recon import (DEVICES, NearestColourTable, _one_torch_thread, angular_error_deg,  # noqa: F401
                            channel_groups, render_sphere_scene)
 
@@ -132,7 +132,7 @@ def test_lut_solver_on_sphere_and_plane(sphere):
 
 
 def test_solvers_agree_on_sign_convention():
-    # A pixel lit more by the +x light tilts its normal toward +x: n_x > 0 (sim.frames).
+    # A pixel lit more by the +x light tilts its normal toward +x: n_x > 0 (pipeline.base.frames).
     I = np.einsum("kc,c->k", LIGHTS, [0.3, 0.0, 0.95])[:, None, None]
     res = FarFieldSolver(LIGHTS, dtype="float64").solve(I)
     p, q = normals_to_gradients(res.normals[0, 0])

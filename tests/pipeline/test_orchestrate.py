@@ -1,11 +1,14 @@
 """The stage graph engine: caching, reasons, --force, failures that keep earlier results."""
 
 import numpy as np
+from pathlib import Path
+
 import pytest
 
-from pipeline.errors import UserError
-from pipeline.orchestrate import Stage, StageFailed, file_input_key, plan_stages, run_stages
-from pipeline.store import Record, StageStore
+from pipeline.base.errors import UserError
+from pipeline.stages.base import file_input_key
+from pipeline.stages.graph import Stage, StageFailed, plan_stages, run_stages
+from pipeline.base.store import Record, StageStore
 
 
 def _chain(calls, scale=1.0, fail_at=None):
@@ -86,15 +89,16 @@ def test_failing_stage_keeps_earlier_results_and_names_the_problem(tmp_path):
     assert calls == ["normals", "depth"] and res[0].cached
 
 
-def test_corrupt_cached_entry_is_reported_or_recomputed(tmp_path):
+def test_corrupt_cached_entry_is_recomputed_or_with_no_heal_reported(tmp_path):
     store, calls = StageStore(tmp_path), []
     res = run_stages(_chain(calls), store)
     open(res[1].path, "wb").write(b"junk")
     with pytest.raises(StageFailed, match="truncated or corrupt"):
-        run_stages(_chain(calls), store)
+        run_stages(_chain(calls), store, heal=False)
     calls.clear()
-    run_stages(_chain(calls), store, recompute_bad=True)
-    assert calls == ["normals"]
+    healed = run_stages(_chain(calls), store)
+    assert calls == ["normals"] and [r.cached for r in healed] == [True, False, True]
+    assert len(list(Path(res[1].path).parent.glob("*.bad-*.h5"))) == 1  # quarantined, not deleted
 
 
 def test_cycles_and_unknown_dependencies_are_rejected(tmp_path):

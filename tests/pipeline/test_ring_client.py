@@ -16,7 +16,7 @@ from pipeline.capture.client import (
     RingTimeout,
 )
 from pipeline.capture.emulator import FaultSpec, RingEmulator, parse_faults
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 
 def test_handshake_and_every_command():

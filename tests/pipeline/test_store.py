@@ -15,7 +15,7 @@ import pytest
 from hypothesis import given, settings, strategies as st
 
 from helpers import REPO
-from pipeline.store import Record, StageStore, StoreError, read_record, write_record
+from pipeline.base.store import Record, StageStore, StoreError, read_record, write_record
 from schema_examples import example_record
 
 
@@ -136,7 +136,7 @@ def test_image_stacks_are_compressed_and_chunked(tmp_path):
 _SLOW_WRITER = textwrap.dedent("""
     import sys, numpy as np
     sys.path.insert(0, {repo!r})
-    from pipeline.store import Record, StageStore
+    from pipeline.base.store import Record, StageStore
     s = StageStore({root!r})
     key = s.key("capture", 1, {{"mode": "crash"}})
     # Big enough that the write takes a while: random data does not compress.
@@ -185,7 +185,7 @@ def test_gc_leaves_a_live_writers_temporary(tmp_path):
 
 
 def _concurrent_writer(root, seed, barrier):
-    from pipeline.store import StageStore
+    from pipeline.base.store import StageStore
     from schema_examples import example_record
 
     s = StageStore(root)

@@ -1,4 +1,4 @@
-"""Pin the sign of every axis of the coordinate conventions (sim/frames.py)."""
+"""Pin the sign of every axis of the coordinate conventions (pipeline/base/frames.py)."""
 
 import numpy as np
 import pytest

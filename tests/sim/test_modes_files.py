@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 import yaml
 
-from pipeline.errors import UserError
-from sim.modes import (MODES_DIR, LightingMode, ModeFrame, list_modes, load_mode, mode_brightness, mode_drive,
+from pipeline.base.errors import UserError
+from pipeline.base.modes import (MODES_DIR, LightingMode, ModeFrame, list_modes, load_mode, mode_brightness, mode_drive,
                        save_mode)
 
 BUILTIN = ["monochromatic", "multicolour", "point", "trichromatic"]

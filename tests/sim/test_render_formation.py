@@ -8,7 +8,7 @@ import torch
 
 from sim.geometry import sphere
 from sim.lambertian import shade
-from sim.modes import mode_brightness, mode_drive
+from pipeline.base.modes import mode_brightness, mode_drive
 from sim.point_source import point_source_field, ring_geometry
 from sim.render import RenderSettings, Renderer, auto_exposure, bare_ring_illumination, render_images
 
@@ -63,7 +63,7 @@ def test_sphere_matches_direct_per_pixel_formula(model):
     rng = np.random.default_rng(0)
     pix = [tuple(p) for p in np.argwhere(surf.contact)[rng.choice(surf.contact.sum(), 40, replace=False)]]
     pix += [(0, 0), (29, 39), (15, 20)]
-    from sim.frames import pixel_to_recon
+    from pipeline.base.frames import pixel_to_recon
 
     for r, c in pix:
         x, y = (float(v) for v in pixel_to_recon(r, c, SHAPE, PX))

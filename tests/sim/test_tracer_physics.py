@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from sim.frames import optical_to_recon
+from pipeline.base.frames import optical_to_recon
 from sim.optics import instrument
 from sim.optics.binning import PixelGrid
 from sim.optics.multisource import trace_all

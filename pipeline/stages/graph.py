@@ -1,5 +1,9 @@
 """Run a graph of cached stages: plan what must be recomputed and why, then execute it.
 
+The graph's nodes are :class:`Stage` objects built by the stage modules of
+:mod:`pipeline.stages` (``node(...)``); ``iristac run`` hands a config's graph to
+:func:`run_stages`.
+
 A stage is computed only when the store has no valid entry for its key; the key covers its
 parameters, its version and the keys of the stages it depends on, so a change anywhere
 recomputes exactly the stages downstream of it. A per-config *run manifest* remembers the
@@ -8,7 +12,7 @@ previous keys and parameters so that ``--dry-run`` can say *why* a stage will ru
 Examples
 --------
 >>> import tempfile, numpy as np
->>> from pipeline.store import StageStore, Record
+>>> from pipeline.base.store import StageStore, Record
 >>> def make_depth(inputs):
 ...     return Record("depth", {"height": np.zeros((1, 2, 2), np.float32),
 ...                             "mask": np.ones((1, 2, 2), bool)},
@@ -28,10 +32,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-from pipeline.errors import UserError
-from pipeline.store import Record, StageKey, StageStore, StoreError
+from pipeline.base.errors import UserError
+from pipeline.base.store import Record, StageKey, StageStore, StoreError
 
-__all__ = ["Stage", "PlannedStage", "StageResult", "StageFailed", "plan_stages", "run_stages", "file_input_key"]
+__all__ = ["Stage", "PlannedStage", "StageResult", "StageFailed", "plan_stages", "run_stages"]
 
 
 @dataclass
@@ -222,12 +226,13 @@ def plan_stages(stages: Sequence[Stage], store: StageStore, *, force: Sequence[s
 
 def run_stages(stages: Sequence[Stage], store: StageStore, *, force: Sequence[str] = (),
                run_name: str | None = None, progress: Callable[[str], None] | None = None,
-               recompute_bad: bool = False) -> list[StageResult]:
+               heal: bool = True) -> list[StageResult]:
     """Plan, then compute the stages that need it, in dependency order.
 
-    A cached entry that turns out to be corrupt raises :class:`~pipeline.store.StoreError`
-    unless ``recompute_bad`` (then it is moved aside and recomputed). When a stage fails,
-    :class:`StageFailed` is raised; every stage before it stays in the store.
+    A cached entry that turns out to be corrupt or to violate its schema is quarantined,
+    reported in one warning line and recomputed (``heal``); with ``heal=False`` it stops the
+    run (a :class:`StageFailed` naming the file). When a stage fails, :class:`StageFailed` is
+    raised; every stage before it stays in the store.
     """
     planned = plan_stages(stages, store, force=force, run_name=run_name)
     records: dict[str, Record] = {}
@@ -238,7 +243,7 @@ def run_stages(stages: Sequence[Stage], store: StageStore, *, force: Sequence[st
         if progress:
             progress(f"{s.name}: {'cached' if ps.cached else 'computing'} ({ps.reason})")
         try:
-            rec = None if not ps.cached else store.get(ps.key, recompute_bad=recompute_bad)
+            rec = None if not ps.cached else store.get(ps.key, recompute_bad=heal)
             cached = rec is not None
             if rec is None:
                 rec = s.compute({d: records[d] for d in s.depends})
@@ -260,18 +265,3 @@ def run_stages(stages: Sequence[Stage], store: StageStore, *, force: Sequence[st
                                    str(store.path_for(ps.key)), ps.reason))
     _save_manifest(store, run_name, planned)
     return results
-
-
-def file_input_key(path: str | os.PathLike) -> str:
-    """Content hash of a file outside the store, for use in ``Stage.extra_inputs``."""
-    import hashlib
-
-    p = Path(path)
-    if not p.is_file():
-        raise UserError(f"{p}: no such file")
-    h = hashlib.sha256()
-    with open(p, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return "file:" + h.hexdigest()[:32]
-

@@ -46,6 +46,8 @@ __all__ = [
     "recon_to_optical",
     "gradients_to_normals",
     "normals_to_gradients",
+    "gradients_to_pixel_steps",
+    "pixel_steps_to_gradients",
     "normals_from_height",
 ]
 
@@ -150,15 +152,36 @@ def gradients_to_normals(p, q):
     return n / np.linalg.norm(n, axis=-1, keepdims=True)
 
 
-def normals_to_gradients(n, min_nz: float = 1e-6):
+def normals_to_gradients(n, min_nz: float = 1e-6, dtype=float):
     """Surface gradients ``(p, q)`` from unit normals ``(..., 3)``.
 
     ``n_z`` is clamped to at least ``min_nz`` so that grazing normals give large but finite
-    gradients rather than Inf.
+    gradients rather than Inf. ``dtype`` is the float type of the result (float64 by
+    default; the depth integrators keep float32 normals in float32).
     """
-    n = np.asarray(n, dtype=float)
-    nz = np.maximum(n[..., 2], min_nz)
+    n = np.asarray(n, dtype=dtype)
+    nz = np.maximum(n[..., 2], n.dtype.type(min_nz))
     return -n[..., 0] / nz, -n[..., 1] / nz
+
+
+def gradients_to_pixel_steps(p, q, mm_per_px: float):
+    """Height steps per pixel ``(dh/dcol, dh/drow)`` in mm from gradients ``p = dh/dx``, ``q = dh/dy``.
+
+    Columns grow along ``+x`` and rows along ``-y`` (reconstruction frame), so
+    ``dh/dcol = p s`` and ``dh/drow = -q s``. The result keeps the float type of ``p``.
+
+    Examples
+    --------
+    >>> gradients_to_pixel_steps(np.float32(0.5), np.float32(0.25), 0.1)
+    (np.float32(0.05), np.float32(-0.025))
+    """
+    s = np.asarray(p).dtype.type(mm_per_px) if np.asarray(p).dtype.kind == "f" else float(mm_per_px)
+    return p * s, -q * s
+
+
+def pixel_steps_to_gradients(dh_dcol, dh_drow, mm_per_px: float):
+    """Inverse of :func:`gradients_to_pixel_steps`: ``(p, q) = (dh/dcol / s, -dh/drow / s)``."""
+    return dh_dcol / mm_per_px, -dh_drow / mm_per_px
 
 
 def normals_from_height(h, mm_per_px: float):
@@ -184,6 +207,4 @@ def normals_from_height(h, mm_per_px: float):
     if h.ndim != 2:
         raise ValueError(f"normals_from_height: expected a height map of shape (H, W), got {h.shape}")
     dh_drow, dh_dcol = np.gradient(h)
-    p = dh_dcol / mm_per_px
-    q = -dh_drow / mm_per_px
-    return gradients_to_normals(p, q)
+    return gradients_to_normals(*pixel_steps_to_gradients(dh_dcol, dh_drow, mm_per_px))

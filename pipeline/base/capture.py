@@ -1,10 +1,14 @@
-"""The in-memory capture every calibration step works on, and its HDF5 reading/writing.
+"""The typed view of a ``capture`` record, and the one function that writes a capture file.
 
 The on-disk layout is the ``capture`` stage of ``docs/developing.md`` (``frames (K, P, H, W, C)``,
 ``reference (P, H, W, C)``, optional ``dark (H, W, C)``, ``drive (P, L, 3)``,
 ``brightness (P,)``, attribute ``mm_per_px`` ...). Hand labels of imported captures travel
 as optional datasets ``labels/center_xy (K, 2)`` and ``labels/radius_px (K,)``: they are kept
 for comparison only, calibration never reads them to fit anything.
+
+Every capture file, whoever makes it (the renderer, the importers, calibration's synthetic
+captures), is written by :func:`write_capture`, from a :class:`Capture` or a ``capture``
+:class:`~pipeline.base.store.Record`.
 """
 
 from __future__ import annotations
@@ -15,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["Capture", "read_capture", "write_capture"]
 
@@ -87,11 +91,27 @@ class Capture:
 _OPTIONAL = {"labels/center_xy", "labels/radius_px", "truth/height", "truth/normals", "truth/albedo", "dark"}
 
 
-def write_capture(path: str | Path, cap: Capture) -> Path:
-    """Write ``cap`` as a ``capture`` record (see :mod:`pipeline.store`).
+def write_capture(path: str | Path, cap) -> Path:
+    """Write a capture atomically, schema-checked, as a ``capture`` file (see :mod:`pipeline.base.store`).
 
-    Returns the path written.
+    Parameters
+    ----------
+    path : path-like
+    cap : Capture or Record
+        A :class:`Capture`, or a ``capture`` :class:`~pipeline.base.store.Record` (e.g. from
+        :func:`sim.rendered_capture.render_capture`).
+
+    Returns
+    -------
+    Path
+        The path written.
     """
+    from pipeline.base.store import Record, write_record
+
+    if isinstance(cap, Record):
+        if cap.schema != "capture":
+            raise UserError(f"{path}: expected a 'capture' record, got {cap.schema!r}")
+        return write_record(path, cap)
     data: dict[str, np.ndarray] = {
         "frames": np.asarray(cap.frames),
         "reference": np.asarray(cap.reference),
@@ -106,16 +126,17 @@ def write_capture(path: str | Path, cap: Capture) -> Path:
     meta = dict(cap.meta)
     if cap.mm_per_px is not None:
         meta["mm_per_px"] = float(cap.mm_per_px)
-    from calibration import h5io
-
-    return h5io.write(path, "capture", data, meta)
+    return write_record(path, Record(schema="capture", data=data, meta=meta))
 
 
 def read_capture(path: str | Path) -> Capture:
     """Read a ``capture`` record written by :func:`write_capture` or the capture stage."""
-    from calibration import h5io
+    from pipeline.base.store import read_record
 
-    data, meta = h5io.read(path, "capture")
+    if not Path(path).is_file():
+        raise UserError(f"{path}: no such file (expected a 'capture' HDF5 record)")
+    rec = read_record(path, schema="capture")
+    data, meta = dict(rec.data), dict(rec.meta)
     for key in ("frames", "reference"):
         if key not in data:
             raise UserError(f"{path}: capture has no dataset '{key}' (expected (K, P, H, W, C) frames and "

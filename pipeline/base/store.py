@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import logging
 import os
 import re
 import secrets
@@ -37,8 +38,8 @@ import numpy as np
 
 import data_schemas
 from pipeline import __version__
-from pipeline.errors import UserError
-from pipeline.hashing import canonical, canonical_json, digest
+from pipeline.base.errors import UserError
+from pipeline.base.hashing import canonical, canonical_json, digest
 
 __all__ = [
     "StoreError",
@@ -52,14 +53,7 @@ __all__ = [
     "describe_file",
 ]
 
-#: Which schema each pipeline stage writes (stages not listed write the schema of their name).
-STAGE_SCHEMAS = {
-    "calibrate": "calibration",
-    "synthesize": "illumination",
-    "capture": "capture",
-    "normals": "normals",
-    "depth": "depth",
-}
+_log = logging.getLogger("iristac")
 
 _PROV = "iristac_"
 _JSON_ATTRS = "iristac_json_attrs"
@@ -442,7 +436,8 @@ class StageStore:
 
         Parameters are coerced by the schema's ``x-params`` (ints to floats where it says
         ``number``) and canonically encoded; inputs are the keys (or digests) of the results
-        this one was computed from, in order.
+        this one was computed from, in order. ``schema`` is the schema the stage writes
+        (default: the stage's name; each stage module of :mod:`pipeline.stages` passes its own).
 
         Examples
         --------
@@ -454,7 +449,7 @@ class StageStore:
         """
         if not re.fullmatch(r"[A-Za-z0-9_-]+", stage):
             raise ValueError(f"stage name must be letters, digits, '_' or '-', got {stage!r}")
-        schema = schema or STAGE_SCHEMAS.get(stage, stage)
+        schema = schema or stage  # a stage writes the schema of its name unless told (pipeline.stages)
         try:
             param_schema = data_schemas.stage_schema(schema).get("x-params")
         except data_schemas.SchemaError:
@@ -478,8 +473,10 @@ class StageStore:
         """The stored result of ``key``, or ``None`` if there is none.
 
         A bad file (truncated, corrupt, wrong schema) raises :class:`StoreError`, unless
-        ``recompute_bad`` is set: then it is moved aside to ``<digest>.bad-<time>.h5`` (kept,
-        never deleted) and treated as a miss.
+        ``recompute_bad`` is set: then it is quarantined (moved aside to
+        ``<digest>.bad-<time>.h5``, kept, never deleted), one warning line naming the file and
+        the problem goes to the ``iristac`` logger, and it is treated as a miss, so the
+        caller recomputes it: the cache heals itself.
         """
         path = self.path_for(key)
         if not path.exists():
@@ -489,11 +486,14 @@ class StageStore:
             if rec.provenance.get("iristac_key") != key.digest:
                 raise StoreError(path, f"file records key {rec.provenance.get('iristac_key')!r}, "
                                        f"expected {key.digest!r} (file renamed or copied by hand?)")
-        except StoreError:
+        except StoreError as exc:
             if not recompute_bad:
                 raise
+            problem = exc.problem
             stamp = int(_dt.datetime.now().timestamp() * 1000)
-            os.replace(path, path.with_name(f"{key.digest}.bad-{stamp}.h5"))
+            bad = path.with_name(f"{key.digest}.bad-{stamp}.h5")
+            os.replace(path, bad)
+            _log.warning("cache entry %s was bad (%s); quarantined as %s and recomputed", path, problem, bad.name)
             return None
         return rec
 

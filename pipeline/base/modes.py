@@ -1,4 +1,4 @@
-"""Lighting modes: named sets of LED patterns, stored as data files (``sim/modes/*.yaml``).
+"""Lighting modes: named sets of LED patterns, stored as data files (``pipeline/base/modes/*.yaml``).
 
 A mode is a list of frames; each frame drives the ``L`` LEDs with an ``(L, 3)`` matrix of RGB
 levels in ``[0, 1]`` (``W_p[i, j]`` in DESIGN.md) and has a global brightness. The built-in
@@ -26,7 +26,7 @@ A user mode is any YAML/JSON file with the same layout (schema ``data_schemas/co
 LED ``i`` sits at azimuth ``15 i`` degrees from optical ``+x`` toward optical ``+y``
 (:func:`sim.point_source.ring_geometry`). In an image displayed with row 0 at the top, LED 0
 lights from the right (larger columns) and LED 6 from the bottom (larger rows), so the index
-runs clockwise on screen (:mod:`sim.frames`: optical ``y`` grows with the row).
+runs clockwise on screen (:mod:`pipeline.base.frames`: optical ``y`` grows with the row).
 
 Examples
 --------
@@ -37,18 +37,18 @@ Examples
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, Sequence
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
+from pipeline.base.registry import MODES_DIR, list_modes
 
 __all__ = ["ModeFrame", "LightingMode", "load_mode", "list_modes", "mode_drive", "mode_brightness", "save_mode", "describe_modes",
            "MODES_DIR"]
-
-#: Folder of the built-in mode files.
-MODES_DIR = Path(__file__).resolve().parent / "modes"
 
 
 class ModeFrame(NamedTuple):
@@ -59,21 +59,90 @@ class ModeFrame(NamedTuple):
     brightness: float
 
 
-class LightingMode(NamedTuple):
-    """A lighting mode: its name, frames, description and the file it came from."""
+@dataclass
+class LightingMode:
+    """A lighting mode: its name, its patterns (frames), description and the file it came from.
+
+    The one pattern type of the project: the renderer, the capture plan, calibration and
+    the uniformity report all take a ``LightingMode`` (:func:`load_mode` reads one from a
+    file, :meth:`from_arrays` builds one from arrays).
+
+    Attributes
+    ----------
+    name : str
+    frames : list of ModeFrame, length P
+        Each pattern's name, RGB drive ``(L, 3)`` in [0, 1] and brightness in [0, 1].
+    description, source : str
+
+    Raises
+    ------
+    UserError
+        No patterns, patterns of different LED counts, duplicate names, or values outside
+        [0, 1] (naming the mode and the pattern).
+    """
 
     name: str
     frames: list[ModeFrame]
     description: str = ""
     source: str = ""
 
+    def __post_init__(self) -> None:
+        self.frames = [ModeFrame(str(f[0]), np.asarray(f[1], dtype=np.float64), float(f[2])) for f in self.frames]
+        if not self.frames:
+            raise UserError(f"mode {self.name!r}: no patterns")
+        leds = self.frames[0].drive.shape[0] if self.frames[0].drive.ndim == 2 else -1
+        for f in self.frames:
+            if f.drive.ndim != 2 or f.drive.shape != (leds, 3):
+                raise UserError(f"mode {self.name!r}, pattern {f.name!r}: drive must have shape (L, 3) with one L "
+                                f"for every pattern, got {f.drive.shape}")
+            if not np.all(np.isfinite(f.drive)) or f.drive.min(initial=0) < 0 or f.drive.max(initial=0) > 1:
+                raise UserError(f"mode {self.name!r}, pattern {f.name!r}: drive values must be finite and in [0, 1]")
+            if not (np.isfinite(f.brightness) and 0 <= f.brightness <= 1):
+                raise UserError(f"mode {self.name!r}, pattern {f.name!r}: brightness must be in [0, 1], "
+                                f"got {f.brightness}")
+        if len(set(self.pattern_names)) != len(self.frames):
+            raise UserError(f"mode {self.name!r}: pattern names must be unique, got {self.pattern_names}")
+
+    @classmethod
+    def from_arrays(cls, name: str, names: Sequence[str], drive, brightness, description: str = "",
+                    source: str = "") -> "LightingMode":
+        """A mode from ``names`` (P), ``drive (P, L, 3)`` and ``brightness (P,)``.
+
+        Examples
+        --------
+        >>> m = LightingMode.from_arrays("two", ["a", "b"], np.ones((2, 24, 3)), [1.0, 0.5])
+        >>> m.drive.shape, m.brightness.tolist(), m.num_leds
+        ((2, 24, 3), [1.0, 0.5], 24)
+        """
+        names = [str(n) for n in names]
+        d = np.asarray(drive, dtype=np.float64)
+        b = np.asarray(brightness, dtype=np.float64).reshape(-1)
+        p = len(names)
+        if d.ndim != 3 or d.shape[0] != p or d.shape[2] != 3:
+            raise UserError(f"mode {name!r}: drive must have shape (P={p}, L, 3), got {d.shape}")
+        if b.shape != (p,):
+            raise UserError(f"mode {name!r}: brightness must have shape (P={p},), got {b.shape}")
+        return cls(str(name), [ModeFrame(n, d[i], float(b[i])) for i, n in enumerate(names)], description, source)
+
     @property
     def num_leds(self) -> int:
+        """L, the LEDs each pattern drives."""
         return int(self.frames[0].drive.shape[0])
 
     @property
     def pattern_names(self) -> list[str]:
+        """The P pattern names, in order."""
         return [f.name for f in self.frames]
+
+    @cached_property
+    def drive(self) -> np.ndarray:
+        """``(P, L, 3)`` float64 RGB drive per pattern and LED."""
+        return np.stack([f.drive for f in self.frames])
+
+    @cached_property
+    def brightness(self) -> np.ndarray:
+        """``(P,)`` float64 global brightness per pattern."""
+        return np.array([f.brightness for f in self.frames], dtype=np.float64)
 
 
 def _read_yaml(path: Path) -> Any:
@@ -99,17 +168,6 @@ def _validate_config(kind: str, obj: Any, source) -> None:
         raise UserError(str(exc)) from None
 
 
-def list_modes() -> list[str]:
-    """Names of the built-in modes (the files in :data:`MODES_DIR`).
-
-    Examples
-    --------
-    >>> {"point", "monochromatic", "trichromatic", "multicolour"} <= set(list_modes())
-    True
-    """
-    return sorted(p.stem for p in MODES_DIR.glob("*.yaml"))
-
-
 def load_mode(name_or_path) -> LightingMode:
     """Load a built-in mode by name, or a user mode from a YAML/JSON file.
 
@@ -120,7 +178,7 @@ def load_mode(name_or_path) -> LightingMode:
 
     Raises
     ------
-    pipeline.errors.UserError
+    pipeline.base.errors.UserError
         Unknown name, unreadable file, or a file that breaks the schema (the message names
         the file and the key, e.g. ``frames/2/drive``).
     """
