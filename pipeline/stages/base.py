@@ -5,11 +5,11 @@ A stage's output key hashes (stage name, stage version, canonical parameters, in
 (:class:`StageSpec` and its ``params(...)``); the input keys are the *identities* of the
 records the stage reads, given by :func:`record_key`, the one rule every entry point uses:
 
-- a record that came out of the stage store is identified by its stage key (its
-  ``iristac_key`` attribute), so a result computed by ``iristac run`` and read back by
-  ``iristac reconstruct`` is the same input to both;
-- a standalone file by the hash of its content (``file:...``, :func:`file_input_key`), so
-  renaming or moving it changes nothing;
+- a store entry (read from ``<store>/<stage>/<key>.h5``) is identified by its stage key, so
+  a result computed by ``iristac run`` and read back by ``iristac reconstruct`` is the same
+  input to both;
+- any other file by the hash of its content (``file:...``, :func:`file_input_key`), so
+  renaming, moving or copying it out of a store changes nothing;
 - a record in memory by the digest of its content (``memory:...``).
 
 A standalone capture file is special: the capture stage reads files too (``capture: {file:
@@ -28,7 +28,7 @@ from typing import Any, Callable, Mapping, Sequence
 from pipeline.base.errors import UserError
 from pipeline.base.store import Record, StageKey, StageStore
 
-__all__ = ["StageSpec", "NodeContext", "record_key", "file_input_key", "config_path"]
+__all__ = ["StageSpec", "NodeContext", "record_key", "is_entry", "file_input_key", "config_path"]
 
 
 @dataclass(frozen=True)
@@ -97,14 +97,20 @@ def record_key(rec: Record) -> str:
     >>> record_key(rec)[:7]
     'memory:'
     """
-    key = rec.provenance.get("iristac_key") if rec.provenance else None
-    if key:
-        return str(key)
+    if is_entry(rec):
+        return str(rec.provenance["iristac_key"])
     if rec.path is None:  # an in-memory record: hash its content
         from pipeline.base.hashing import digest
 
         return "memory:" + digest({"schema": rec.schema, "data": rec.data, "meta": rec.meta})
     return file_input_key(rec.path)
+
+
+def is_entry(rec: Record) -> bool:
+    """Whether ``rec`` was read from (or written to) its own entry of a stage store."""
+    key = rec.provenance.get("iristac_key") if rec.provenance else None
+    return bool(key) and rec.path is not None and Path(rec.path).stem == key \
+        and Path(rec.path).parent.name == rec.provenance.get("iristac_stage")
 
 
 def file_input_key(path: str | os.PathLike) -> str:

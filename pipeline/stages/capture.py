@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.base.errors import UserError
-from pipeline.stages.base import StageSpec, config_path, file_input_key, record_key
+from pipeline.stages.base import StageSpec, config_path, file_input_key, is_entry, record_key
 
 __all__ = ["SPEC", "params", "compute", "run", "node", "resolve", "scale", "capture_key", "virtual_sensor_capture"]
 
@@ -72,11 +72,10 @@ def params(p: Mapping[str, Any]) -> dict:
 
 
 def capture_key(store, rec) -> str:
-    """The identity of a capture record as an input: its stage key when it came from the store,
-    else this stage's key over a standalone file (what ``capture: {file: ...}`` keys), else
-    the digest of its content."""
-    key = rec.provenance.get("iristac_key") if rec.provenance else None
-    if not key and rec.path is not None:
+    """The identity of a capture record as an input: its stage key when it is a store entry,
+    else this stage's key over a file (what ``capture: {file: ...}`` in a run config keys),
+    else the digest of its content."""
+    if not is_entry(rec) and rec.path is not None:
         return SPEC.key(store, params({"file": str(rec.path)}), [file_input_key(rec.path)]).digest
     return record_key(rec)
 
