@@ -12,7 +12,7 @@ from pipeline.base.errors import UserError
 from pipeline.stages.synthesize import illumination_record
 from sim.contacts import contact_surfaces
 from pipeline.base.store import StageStore, write_record
-from tests.helpers import run_cli
+from helpers import run_cli
 
 SHAPE, PX = (12, 16), 0.5
 BAD = 7  # index of the corrupt recording

@@ -13,7 +13,7 @@ import yaml
 from pipeline.base.errors import UserError
 from pipeline.run import plan_pipeline, run_pipeline
 from pipeline.base.store import StageStore
-from tests.helpers import REPO, run_cli
+from helpers import REPO, run_cli
 
 STAGES = ["synthesize", "calibrate", "capture", "normals", "depth"]
 

@@ -12,7 +12,6 @@ from pipeline.base.modes import mode_brightness, mode_drive
 from sim.point_source import point_source_field, ring_geometry
 from sim.render import RenderSettings, Renderer, auto_exposure, bare_ring_illumination, render_images
 
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 SHAPE = (30, 40)
 PX = 0.4
 
@@ -34,7 +33,6 @@ def _eq15_flat(V, drive, brightness, exposure, gains, albedo):
     return out
 
 
-@pytest.mark.parametrize("device", DEVICES)
 @pytest.mark.parametrize("mode", ["point", "monochromatic", "trichromatic", "multicolour"])
 def test_flat_gel_reproduces_the_illumination_image(model, device, mode):
     drive, bright = mode_drive(mode), mode_brightness(mode)

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from sim import frames
+from pipeline.base import frames
 
 
 def test_pixel_axes_in_both_frames():
@@ -59,13 +59,27 @@ def test_ball_pressed_in_gives_a_positive_bump_whose_normals_point_outward():
     np.testing.assert_allclose(n[0, 0], [0, 0, 1])
 
 
-def test_gradients_and_normals_round_trip():
+def test_gradients_and_normals_round_trip(dtype):
     rng = np.random.default_rng(1)
     p, q = rng.standard_normal(50), rng.standard_normal(50)
     n = frames.gradients_to_normals(p, q)
     np.testing.assert_allclose(np.linalg.norm(n, axis=-1), 1.0)
-    p2, q2 = frames.normals_to_gradients(n)
-    np.testing.assert_allclose(p2, p, rtol=1e-12)
-    np.testing.assert_allclose(q2, q, rtol=1e-12)
+    p2, q2 = frames.normals_to_gradients(n.astype(dtype.np), dtype=dtype.np)
+    assert p2.dtype == dtype.np and q2.dtype == dtype.np
+    np.testing.assert_allclose(p2, p, rtol=dtype.tol(1e-12, 1e-5))
+    np.testing.assert_allclose(q2, q, rtol=dtype.tol(1e-12, 1e-5))
     # grazing normals give finite gradients
-    assert np.all(np.isfinite(frames.normals_to_gradients(np.array([1.0, 0, 0]))))
+    assert np.all(np.isfinite(frames.normals_to_gradients(np.array([1.0, 0, 0], dtype.np), dtype=dtype.np)))
+
+
+def test_pixel_steps_follow_the_image_axes(dtype):
+    """A surface rising along +x rises toward larger columns; rising along +y, toward smaller rows."""
+    dcol, drow = frames.gradients_to_pixel_steps(np.array(0.5, dtype.np), np.array(0.25, dtype.np), 0.1)
+    assert dcol.dtype == dtype.np and drow.dtype == dtype.np
+    assert dcol == pytest.approx(0.05, rel=dtype.tol(1e-12, 1e-6)) and drow == pytest.approx(-0.025, rel=dtype.tol(1e-12, 1e-6))
+    p, q = frames.pixel_steps_to_gradients(dcol, drow, 0.1)
+    assert p == pytest.approx(0.5, rel=dtype.tol(1e-12, 1e-6)) and q == pytest.approx(0.25, rel=dtype.tol(1e-12, 1e-6))
+    # The same convention as normals_from_height: a ramp along the columns has n_x < 0.
+    h = np.tile(np.arange(5.0), (4, 1)) * dcol
+    n = frames.normals_from_height(h, 0.1)
+    assert n[1, 2, 0] < 0 and abs(n[1, 2, 1]) < 1e-12

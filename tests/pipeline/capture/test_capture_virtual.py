@@ -192,13 +192,6 @@ def test_bad_virtual_camera_requests_are_user_errors(tmp_path):
     assert not out.exists()
 
 
-def _devices():
-    import torch
-
-    return ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
-
-
-@pytest.mark.parametrize("device", _devices())
 def test_virtual_capture_on_each_device_matches_the_cpu_float64_rendering(tmp_path, device):
     """One torch code path: the capture's frames on ``device`` equal a float64 CPU rendering."""
     s = spec(contacts=1, obj="sphere", noise_dn=0.0, bit_depth=None, device=device)

@@ -1,5 +1,5 @@
-"""Depth integrators: closed-form plane and sphere, agreement, sign, non-integrable fields,
-NaN/grazing normals, float32 vs float64."""
+"""Depth integrators: closed-form plane and sphere (from float32 and float64 normals: ``dtype``),
+agreement, sign, non-integrable fields, NaN/grazing normals, float32 vs float64."""
 
 from __future__ import annotations
 
@@ -30,30 +30,30 @@ def _centered(h, ref):
 
 
 @pytest.mark.parametrize("method", ["fc", "dct", "sparse"])
-def test_plane_is_exact(method):
+def test_plane_is_exact(method, dtype):
     h, n = _plane()
-    out = integrate(n, S, method=method)
+    out = integrate(n.astype(dtype.np), S, method=method)
     np.testing.assert_allclose(_centered(out.height, h), h, atol=1e-5)
     assert out.mask.all() and out.height.dtype == np.float32
 
 
-def test_dst_plane_exact_with_its_boundary_and_flat_border_by_default():
+def test_dst_plane_exact_with_its_boundary_and_flat_border_by_default(dtype):
     h, n = _plane()
-    out = poisson_dst(n, S, boundary=h)
+    out = poisson_dst(n.astype(dtype.np), S, boundary=h)
     np.testing.assert_allclose(out.height, h, atol=1e-5)
     # Default: zero height at the image edge. A bump flat near the border stays at zero there.
     hb, nb = sphere_cap((30, 30), S, 1.0, 0.3)
-    out = poisson_dst(nb, S)
+    out = poisson_dst(nb.astype(dtype.np), S)
     border = np.ones(hb.shape, bool)
     border[1:-1, 1:-1] = False
     assert np.abs(out.height[border]).max() < 1e-4
 
 
 @pytest.mark.parametrize("method", METHODS)
-def test_sphere_indentation_height_and_sign(method):
+def test_sphere_indentation_height_and_sign(method, dtype):
     # A 2 mm ball pressed 0.3 mm into the gel: a positive bump (toward the camera).
     h, n = sphere_cap((48, 56), S, 2.0, 0.3)
-    out = integrate(n, S, method=method)
+    out = integrate(n.astype(dtype.np), S, method=method)
     rmse = np.sqrt(np.mean((out.height - h) ** 2))
     assert rmse < 0.02 * 0.3, rmse
     assert abs(out.height.max() - 0.3) < 0.02 and out.height[24, 28] > 0.25
@@ -68,9 +68,9 @@ def test_dct_and_masked_sparse_solve_the_same_problem_on_a_full_mask():
     np.testing.assert_allclose(a, b, atol=1e-5)
 
 
-def test_sparse_ignores_everything_outside_the_mask():
+def test_sparse_ignores_everything_outside_the_mask(dtype):
     h, n = _plane((16, 18))
-    n = n.copy()
+    n = n.astype(dtype.np)
     mask = np.zeros(h.shape, bool)
     mask[3:13, 4:15] = True
     n[~mask] = [0.9, -0.3, 0.3]  # garbage outside: must not matter

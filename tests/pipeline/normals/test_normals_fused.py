@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from pipeline.normals import FarFieldSolver, fused
-from support_recon import DEVICES, _one_torch_thread, channel_groups, render_sphere_scene  # noqa: F401
+from support_recon import _one_torch_thread, channel_groups, render_sphere_scene  # noqa: F401
 
 FIELDS = ("normals", "albedo", "residual", "condition", "mask", "count")
 
@@ -97,7 +97,6 @@ def test_frame_planes_cv2_numpy_and_torch_agree():
     np.testing.assert_array_equal(torch.stack(fused.frame_planes(mono)).numpy(), mono[..., 0].reshape(2, 24))
 
 
-@pytest.mark.parametrize("device", DEVICES)
 def test_compiled_solver_equals_eager_solver(scene, device):
     """uint8 frames, uint8 observations and finite float observations take the compiled path
     and agree with the eager solver to float32 rounding; a NaN takes the eager path."""
