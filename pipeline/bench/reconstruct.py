@@ -125,7 +125,9 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
         results[name] = res
         out["solvers"][name] = {"seconds": sec, "fps": 1.0 / sec, "cpu_seconds": _CPU.pop(id(res)),
                                 "mean_deg": err(res), "valid_fraction": res.valid_fraction}
-    for method in ("fc", "dct", "dst", "sparse"):
+    from pipeline.base.registry import INTEGRATORS
+
+    for method in INTEGRATORS.names():  # every registered integrator
         for src in ("nearfield", "lstsq (far field)"):
             res = results[src]
             reps = repeats if method != "sparse" else max(1, repeats // 10)
