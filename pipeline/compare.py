@@ -151,9 +151,9 @@ def lut_calibrations(store, model, modes: Sequence[str], out: str | Path, *, bal
         if len(m.frames) != 1:
             continue
         cap = render_capture(model, m, presses, noise_dn=noise_dn, bit_depth=bit_depth, seed=seed)
-        p = write_capture(out / f"calibration_capture_{m.name}.h5", cap)
+        write_capture(out / f"calibration_capture_{m.name}.h5", Record(cap.schema, cap.data, cap.meta))
         try:
-            rec, _, _ = calibrate_stage.run(store, p, ball_radius_mm=ball_radius_mm, models=["lut"])
+            rec, _, _ = calibrate_stage.run(store, cap, ball_radius_mm=ball_radius_mm, models=["lut"])
             result[m.name] = write_record(out / f"calibration_{m.name}.h5", Record(rec.schema, rec.data, rec.meta))
         except UserError as exc:
             if skipped is not None:

@@ -127,11 +127,11 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     say(f"calibrate: {len(presses)} rendered ball presses under every LED in turn")
     cal_cap = render_capture(model, "point", presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
                              seed=11)
-    cal_cap_path = write_capture(out / "calibration_capture.h5", cal_cap)
+    write_capture(out / "calibration_capture.h5", Record(cal_cap.schema, cal_cap.data, cal_cap.meta))
     # Centre refinement votes with the traced model (refine_model="auto" with an illumination
     # model): on the quick demo traced CV 0.69 deg refined vs 1.01 deg unrefined; the polynomial
     # near field (15 deg here: it cannot follow the lens's sharp LED footprints) made it 2.9 deg.
-    cal, _, cal_cached = calibrate_stage.run(store, cal_cap_path, ball_radius_mm=settings.ball_radius_mm,
+    cal, _, cal_cached = calibrate_stage.run(store, cal_cap, ball_radius_mm=settings.ball_radius_mm,
                                              models=["far", "near", "traced"], illumination=model,
                                              illumination_key=ill_key)
     write_record(out / "calibration.h5", Record(cal.schema, cal.data, cal.meta))

@@ -21,7 +21,7 @@ import numpy as np
 
 from pipeline.base.errors import UserError
 
-__all__ = ["Capture", "read_capture", "write_capture"]
+__all__ = ["Capture", "read_capture", "capture_from_record", "write_capture"]
 
 
 @dataclass
@@ -135,11 +135,17 @@ def read_capture(path: str | Path) -> Capture:
 
     if not Path(path).is_file():
         raise UserError(f"{path}: no such file (expected a 'capture' HDF5 record)")
-    rec = read_record(path, schema="capture")
+    return capture_from_record(read_record(path, schema="capture"))
+
+
+def capture_from_record(rec) -> Capture:
+    """The :class:`Capture` view of a ``capture`` :class:`~pipeline.base.store.Record`
+    (read from a file or made in memory); errors name the record's file."""
+    where = rec.path if rec.path is not None else "capture"
     data, meta = dict(rec.data), dict(rec.meta)
     for key in ("frames", "reference"):
         if key not in data:
-            raise UserError(f"{path}: capture has no dataset '{key}' (expected (K, P, H, W, C) frames and "
+            raise UserError(f"{where}: capture has no dataset '{key}' (expected (K, P, H, W, C) frames and "
                             "(P, H, W, C) reference)")
     frames = data["frames"]
     p = frames.shape[1] if frames.ndim == 5 else 0
@@ -155,4 +161,6 @@ def read_capture(path: str | Path) -> Capture:
                        mm_per_px=None if mm is None else float(mm), dark=data.get("dark"), labels=labels,
                        truth=truth, meta=meta)
     except UserError as exc:
-        raise UserError(f"{path}: {exc}") from None
+        if rec.path is None:
+            raise
+        raise UserError(f"{rec.path}: {exc}") from None

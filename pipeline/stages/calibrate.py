@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from pipeline.base.errors import UserError
-from pipeline.stages.base import StageSpec, config_path, file_input_key
+from pipeline.stages.base import StageSpec, config_path, file_input_key, record_key
 
 __all__ = ["SPEC", "RENDER_DEFAULTS", "params", "compute", "run", "node", "resolve"]
 
@@ -84,17 +84,26 @@ def compute(p: Mapping[str, Any], illumination=None, *, device: str = "cpu"):
         return read_record(res.save(Path(tmp) / "calibration.h5"), schema="calibration")
 
 
-def run(store, capture: str | Path, *, ball_radius_mm: float, models: str | Sequence[str], folds: int = 5,
+def run(store, capture, *, ball_radius_mm: float, models: str | Sequence[str], folds: int = 5,
         mm_per_px: float | None = None, illumination=None, illumination_key=None, force: bool = False,
         heal: bool = True):
-    """``(record, key, cached)``: calibrate the sphere ``capture`` file through ``store``.
+    """``(record, key, cached)``: calibrate the sphere ``capture`` through ``store``.
 
+    ``capture`` is a ``capture.h5`` (identified by its content) or a ``capture`` Record
+    (identified by :func:`pipeline.stages.base.record_key`: a rendered capture in memory by
+    its data, so a rerun that renders the same presses finds this calibration).
     ``illumination`` (an IlluminationModel) and its identity ``illumination_key`` are needed
     for the ``traced`` model.
     """
-    p = {"capture": str(capture), "ball_radius_mm": float(ball_radius_mm), "model": models, "folds": int(folds),
+    from pipeline.base.capture import capture_from_record
+    from pipeline.base.store import Record
+
+    if isinstance(capture, Record):
+        source, inputs = capture_from_record(capture), [record_key(capture)]
+    else:
+        source, inputs = str(capture), [file_input_key(capture)]
+    p = {"capture": source, "ball_radius_mm": float(ball_radius_mm), "model": models, "folds": int(folds),
          "mm_per_px": mm_per_px}
-    inputs = [file_input_key(capture)]
     traced = models == "traced" or (not isinstance(models, str) and "traced" in models)
     if traced:
         if illumination is None or illumination_key is None:
