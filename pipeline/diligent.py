@@ -142,10 +142,10 @@ def diligent_record(obj: DiligentObject):
 def import_diligent(folder, out) -> dict:
     """Read a DiLiGenT folder and write it as ``out`` (capture.h5). Returns a summary dict
     with keys ``out``, ``images``, ``height``, ``width``, ``mask_pixels``, ``has_ground_truth``."""
-    from pipeline.base.store import write_record
+    from pipeline.base.capture import write_capture
 
     obj = read_diligent(folder)
-    path = write_record(out, diligent_record(obj))
+    path = write_capture(out, diligent_record(obj))
     return {"out": str(path), "images": len(obj.names), "height": int(obj.images.shape[1]),
             "width": int(obj.images.shape[2]), "mask_pixels": int(obj.mask.sum()),
             "has_ground_truth": obj.normals_gt is not None}

@@ -17,7 +17,7 @@ starts, so an interrupted capture (unplugged ring, Ctrl-C) restarts after the la
 step; a record torn by a crash is detected by its CRC and that step is captured again. The
 journal carries a fingerprint of the plan; a rerun with different patterns or settings
 refuses to mix the two. When every step is done the final ``capture.h5`` is written
-atomically through :func:`pipeline.base.store.write_record`, and only then is the journal removed.
+atomically by :func:`pipeline.base.capture.write_capture`, and only then is the journal removed.
 
 Examples
 --------
@@ -439,7 +439,7 @@ def run_capture(
     UserError
         The journal belongs to another capture, or the patterns do not fit the ring.
     """
-    from pipeline.base.store import write_record
+    from pipeline.base.capture import write_capture
 
     settings = settings or CaptureSettings()
     out = Path(out)
@@ -518,7 +518,7 @@ def run_capture(
                        device_info)
     record.data.update(extra_data or {})
     record.meta.update(extra_meta or {})
-    write_record(out, record)
+    write_capture(out, record)
     flags = [journal.done(s).get("mislabeled") for s in steps]
     result = CaptureResult(
         path=out,
