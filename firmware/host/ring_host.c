@@ -330,7 +330,10 @@ int main(int argc, char **argv)
         ++i;
         if (strcmp(opt, "--leds") == 0) {
             leds = (long)number(opt, val);
-            if (leds < 1 || leds > RING_MAX_LEDS) usage_error("--leds must be in 1..RING_MAX_LEDS, got", val);
+            if (leds < 1 || leds > RING_MAX_LEDS) {
+                fprintf(stderr, "%s: --leds must be in 1..%d, got %s\n", prog, RING_MAX_LEDS, val);
+                return 2;
+            }
         } else if (strcmp(opt, "--faults") == 0) {
             strncpy(faults, val, sizeof faults - 1);
             parse_faults(faults);
@@ -370,8 +373,10 @@ int main(int argc, char **argv)
     cfg.version = (uint8_t)version;
     cfg.firmware_id = firmware_id;
     /* 2 ms, or 20 character times at the modelled baud rate if that is longer. */
-    cfg.frame_gap_ms = (uint8_t)(wire.baud > 0 && 200.0 / wire.baud * 1000.0 > 2.0
-                                     ? ceil(200.0 / wire.baud * 1000.0) : 2);
+    {
+        double gap = wire.baud > 0 ? ceil(200.0 / wire.baud * 1000.0) : 2.0;
+        cfg.frame_gap_ms = (uint8_t)(gap < 2.0 ? 2.0 : gap > 255.0 ? 255.0 : gap);
+    }
     if (ring_init(&dev, &cfg) != 0) usage_error("invalid configuration", NULL);
     ring_parser_reset(&wire_rx);
     open_pty();

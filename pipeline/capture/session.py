@@ -76,6 +76,7 @@ def capture(
     port: str | None = None,
     emulate: bool = False,
     faults: str | None = None,
+    ring_firmware: str | os.PathLike | None = None,
     camera: int | str | Camera | None = None,
     virtual_camera: bool | VirtualSensorSpec = False,
     frames_per_pattern: int = 1,
@@ -104,6 +105,10 @@ def capture(
     emulate : bool
         Start a ring emulator behind a pty instead (``faults``: its fault spec;
         ``emulate_baud``: model the wire time at ``baudrate``).
+    ring_firmware : path-like, optional
+        With ``emulate``: serve the ring with this host build of the C firmware
+        (``make -C firmware host``, :class:`~pipeline.capture.firmware_host.FirmwareEmulator`)
+        instead of the Python emulator.
     camera : int, str or Camera, optional
         OpenCV camera index, device path or video file, or any object implementing
         :class:`~pipeline.capture.camera_api.Camera` (opened here and closed at the end).
@@ -146,6 +151,8 @@ def capture(
                         "it needs --emulate")
     if faults and not emulate:
         raise UserError("capture: --faults applies to the emulator; it needs --emulate")
+    if ring_firmware and not emulate:
+        raise UserError("capture: --ring-firmware serves the emulated ring; it needs --emulate")
     spec = None
     if virtual_camera is not False:
         from pipeline.capture.virtual import VirtualSensorSpec  # loads torch: only when needed
@@ -172,8 +179,14 @@ def capture(
     patterns = load_patterns(mode)
     emulator = None
     if emulate:
-        emulator = RingEmulator(led_count=patterns.led_count, faults=parse_faults(faults),
-                                baudrate=baudrate if emulate_baud else None, seed=seed)
+        ring_kw = dict(led_count=patterns.led_count, faults=parse_faults(faults),
+                       baudrate=baudrate if emulate_baud else None, seed=seed)
+        if ring_firmware:
+            from pipeline.capture.firmware_host import FirmwareEmulator
+
+            emulator = FirmwareEmulator(ring_firmware, **ring_kw)
+        else:
+            emulator = RingEmulator(**ring_kw)
         port = emulator.start()
     extra: dict = {}
     try:
