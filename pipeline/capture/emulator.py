@@ -56,7 +56,8 @@ from pipeline.capture import protocol as P
 from pipeline.errors import UserError
 
 __all__ = [
-    "FaultSpec", "parse_faults", "ShownState", "EmulatorStats", "RingDevice", "RingEmulator",
+    "FaultSpec", "parse_faults", "ShownState", "LatchHistory", "EmulatorStats", "RingDevice",
+    "RingEmulator",
     "serve_forever",
 ]
 
@@ -148,6 +149,44 @@ class ShownState:
         return int(self.brightness) == int(brightness) and np.array_equal(self.levels, levels)
 
 
+class LatchHistory:
+    """The states a ring latched, with their times: what the LEDs showed at any instant.
+
+    Thread-safe (the device appends while the camera reads). Shared by :class:`RingDevice`
+    and :class:`~pipeline.capture.firmware_host.FirmwareEmulator`.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._states: list[ShownState] = []
+        self._times: list[float] = []
+
+    def append(self, state: ShownState) -> None:
+        with self._lock:
+            self._states.append(state)
+            self._times.append(state.t)
+
+    def last(self) -> ShownState:
+        with self._lock:
+            return self._states[-1]
+
+    def all(self) -> list[ShownState]:
+        with self._lock:
+            return list(self._states)
+
+    def __len__(self) -> int:
+        return len(self._states)
+
+    def during(self, t0: float, t1: float) -> list[ShownState]:
+        """The states shown at any instant of the closed interval [t0, t1]."""
+        if t1 < t0:
+            raise ValueError(f"interval end {t1} is before its start {t0}")
+        with self._lock:
+            i0 = max(bisect.bisect_right(self._times, t0) - 1, 0)
+            i1 = bisect.bisect_right(self._times, t1)
+            return self._states[i0:i1]
+
+
 @dataclass
 class EmulatorStats:
     """Counters of what crossed the emulated wire (for tests and the benchmark)."""
@@ -224,12 +263,11 @@ class RingDevice:
         self.stats = stats if stats is not None else EmulatorStats()
         self._send = send
         self._clock = clock
-        self._lock = threading.Lock()
         off = np.zeros((led_count, 3), np.uint8)
         self._pending = off.copy()
         self._pending_brightness = 0
-        self._history: list[ShownState] = [ShownState(clock(), off, 0)]
-        self._history_t: list[float] = [self._history[0].t]
+        self._history = LatchHistory()
+        self._history.append(ShownState(clock(), off, 0))
         self._latch_count = 0
         self._last_key: tuple[int, int, bytes] | None = None
         self._last_reply = b""
@@ -331,15 +369,11 @@ class RingDevice:
 
     # ------------------------------------------------------------------ ground truth
     def _latch(self, levels: np.ndarray, brightness: int) -> None:
-        with self._lock:
-            state = ShownState(self._clock(), levels, int(brightness))
-            self._history.append(state)
-            self._history_t.append(state.t)
-            self._latch_count += 1
+        self._history.append(ShownState(self._clock(), levels, int(brightness)))
+        self._latch_count += 1
 
     def _status(self) -> P.Status:
-        with self._lock:
-            shown = self._history[-1]
+        shown = self._history.last()
         return P.Status(
             latch_count=self._latch_count,
             shown_crc=P.state_crc(shown.levels, shown.brightness),
@@ -349,23 +383,16 @@ class RingDevice:
 
     def led_state(self) -> tuple[np.ndarray, float]:
         """What the LEDs show now: drive (L, 3) float32 in [0, 1] and brightness in [0, 1]."""
-        with self._lock:
-            s = self._history[-1]
+        s = self._history.last()
         return s.levels.astype(np.float32) / 255.0, s.brightness / 255.0
 
     def history(self) -> list[ShownState]:
         """Every latched state since start, oldest first (the first is all-off at start)."""
-        with self._lock:
-            return list(self._history)
+        return self._history.all()
 
     def states_during(self, t0: float, t1: float) -> list[ShownState]:
         """The states shown at any instant of the closed interval [t0, t1] (clock seconds)."""
-        if t1 < t0:
-            raise ValueError(f"interval end {t1} is before its start {t0}")
-        with self._lock:
-            i0 = max(bisect.bisect_right(self._history_t, t0) - 1, 0)
-            i1 = bisect.bisect_right(self._history_t, t1)
-            return self._history[i0:i1]
+        return self._history.during(t0, t1)
 
 
 class RingEmulator:

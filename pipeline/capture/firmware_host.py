@@ -26,7 +26,6 @@ Examples
 
 from __future__ import annotations
 
-import bisect
 import os
 import select
 import shutil
@@ -41,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.capture import protocol as P
-from pipeline.capture.emulator import EmulatorStats, FaultSpec, ShownState
+from pipeline.capture.emulator import EmulatorStats, FaultSpec, LatchHistory, ShownState
 from pipeline.errors import UserError
 
 __all__ = ["FIRMWARE_DIR", "HOST_PROGRAM", "build_host_firmware", "FirmwareEmulator"]
@@ -137,10 +136,9 @@ class FirmwareEmulator:
         self._log = None
         self._stats_fd: int | None = None
         self._final_stats: EmulatorStats | None = None
-        self._lock = threading.Lock()
+        self._lock = threading.Lock()  # one reader of the log at a time
         self._tail = b""
-        self._history: list[ShownState] = []
-        self._history_t: list[float] = []
+        self._history = LatchHistory()
 
     # ------------------------------------------------------------------ lifecycle
     def _args(self) -> list[str]:
@@ -185,7 +183,7 @@ class FirmwareEmulator:
         self._log = open(self._dir / "latches.bin", "rb")
         self._stats_fd = os.open(self._dir / "stats.bin", os.O_RDONLY)
         self._read_log()
-        if not self._history or abs(self._history[0].t - t_spawn) > 5.0:
+        if not len(self._history) or abs(self._history.all()[0].t - t_spawn) > 5.0:
             self.stop()
             raise UserError("the ring firmware host program's CLOCK_MONOTONIC does not match "
                             "time.monotonic(): its latch times cannot be compared with frames")
@@ -271,30 +269,21 @@ class FirmwareEmulator:
                                     f"expected {self.led_count}")
                 start = i * size + _RECORD_HEAD.size
                 levels = np.frombuffer(data, np.uint8, 3 * count, start).reshape(count, 3).copy()
-                state = ShownState(t_ns * 1e-9, levels, int(brightness))
-                self._history.append(state)
-                self._history_t.append(state.t)
+                self._history.append(ShownState(t_ns * 1e-9, levels, int(brightness)))
             self._tail = data[n * size:]
 
     def led_state(self) -> tuple[np.ndarray, float]:
         """What the LEDs show now: drive (L, 3) float32 in [0, 1] and brightness in [0, 1]."""
         self._read_log()
-        with self._lock:
-            s = self._history[-1]
+        s = self._history.last()
         return s.levels.astype(np.float32) / 255.0, s.brightness / 255.0
 
     def history(self) -> list[ShownState]:
         """Every latched state since start, oldest first (the first is all-off at power-on)."""
         self._read_log()
-        with self._lock:
-            return list(self._history)
+        return self._history.all()
 
     def states_during(self, t0: float, t1: float) -> list[ShownState]:
         """The states shown at any instant of the closed interval [t0, t1] (monotonic s)."""
-        if t1 < t0:
-            raise ValueError(f"interval end {t1} is before its start {t0}")
         self._read_log()
-        with self._lock:
-            i0 = max(bisect.bisect_right(self._history_t, t0) - 1, 0)
-            i1 = bisect.bisect_right(self._history_t, t1)
-            return self._history[i0:i1]
+        return self._history.during(t0, t1)
