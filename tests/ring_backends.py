@@ -10,7 +10,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from pipeline.capture.emulator import RingEmulator
+from pipeline.capture.firmware_host import ring_emulator
 
 BACKENDS = ("python", "c")
 
@@ -24,11 +24,7 @@ class RingBackend:
 
     def emulator(self, led_count: int = 24, **kw):
         """A RingEmulator, or a FirmwareEmulator running the C build, with these arguments."""
-        if self.binary is None:
-            return RingEmulator(led_count, **kw)
-        from pipeline.capture.firmware_host import FirmwareEmulator
-
-        return FirmwareEmulator(self.binary, led_count, **kw)
+        return ring_emulator(self.binary, led_count, **kw)
 
     def __str__(self) -> str:
         return self.name

@@ -40,10 +40,10 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.capture import protocol as P
-from pipeline.capture.emulator import EmulatorStats, FaultSpec, LatchHistory, ShownState
+from pipeline.capture.emulator import EmulatorStats, FaultSpec, LatchHistory, RingEmulator, ShownState
 from pipeline.errors import UserError
 
-__all__ = ["FIRMWARE_DIR", "HOST_PROGRAM", "build_host_firmware", "FirmwareEmulator"]
+__all__ = ["FIRMWARE_DIR", "HOST_PROGRAM", "build_host_firmware", "FirmwareEmulator", "ring_emulator"]
 
 #: The firmware sources of this checkout (absent from an installed wheel).
 FIRMWARE_DIR = Path(__file__).resolve().parents[2] / "firmware"
@@ -287,3 +287,15 @@ class FirmwareEmulator:
         """The states shown at any instant of the closed interval [t0, t1] (monotonic s)."""
         self._read_log()
         return self._history.during(t0, t1)
+
+
+def ring_emulator(ring_firmware: str | os.PathLike | None = None, led_count: int = 24, **kw):
+    """An emulated ring: :class:`~pipeline.capture.emulator.RingEmulator`, or with
+    ``ring_firmware`` (the host program) a :class:`FirmwareEmulator`; ``kw`` as for either.
+
+    >>> type(ring_emulator(None, 4)).__name__
+    'RingEmulator'
+    """
+    if ring_firmware is None:
+        return RingEmulator(led_count, **kw)
+    return FirmwareEmulator(ring_firmware, led_count, **kw)

@@ -30,7 +30,8 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from pipeline.capture.client import RingClient
-from pipeline.capture.emulator import RingEmulator, parse_faults
+from pipeline.capture.emulator import parse_faults
+from pipeline.capture.firmware_host import ring_emulator
 from pipeline.capture.plan import CaptureResult, CaptureSettings, PatternSet, run_capture
 from pipeline.errors import UserError
 
@@ -181,12 +182,7 @@ def capture(
     if emulate:
         ring_kw = dict(led_count=patterns.led_count, faults=parse_faults(faults),
                        baudrate=baudrate if emulate_baud else None, seed=seed)
-        if ring_firmware:
-            from pipeline.capture.firmware_host import FirmwareEmulator
-
-            emulator = FirmwareEmulator(ring_firmware, **ring_kw)
-        else:
-            emulator = RingEmulator(**ring_kw)
+        emulator = ring_emulator(ring_firmware or None, **ring_kw)
         port = emulator.start()
     extra: dict = {}
     try:
