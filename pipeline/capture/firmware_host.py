@@ -130,7 +130,7 @@ class FirmwareEmulator:
         self.seed = seed
         self.firmware = firmware
         self.path: str | None = None
-        self.disconnected = threading.Event()
+        self._disconnected = threading.Event()
         self._proc: subprocess.Popen | None = None
         self._dir: Path | None = None
         self._log = None
@@ -202,7 +202,7 @@ class FirmwareEmulator:
                 proc.kill()
                 proc.wait()
         if proc.returncode == 1:
-            self.disconnected.set()
+            self._disconnected.set()
         if self._log is not None:
             self._read_log()
             self._final_stats = self._read_stats()
@@ -230,8 +230,15 @@ class FirmwareEmulator:
         except subprocess.TimeoutExpired:
             return False
         if code == 1:
-            self.disconnected.set()
+            self._disconnected.set()
         return True
+
+    @property
+    def disconnected(self) -> threading.Event:
+        """Set once the program has exited after an injected disconnect (exit status 1)."""
+        if self._proc is not None and self._proc.poll() == 1:
+            self._disconnected.set()
+        return self._disconnected
 
     def __enter__(self) -> FirmwareEmulator:
         self.start()
