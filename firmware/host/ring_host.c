@@ -205,9 +205,10 @@ static double number(const char *opt, const char *s)
 {
     char *end;
     double v;
-    errno = 0;
+    /* No errno test: strtod reports ERANGE for a subnormal (a valid, tiny probability) too;
+     * overflow gives an infinity, which isfinite rejects. */
     v = strtod(s, &end);
-    if (errno || end == s || *end || !isfinite(v)) {
+    if (end == s || *end || !isfinite(v)) {
         fprintf(stderr, "%s: %s %s is not a number\n", prog, opt, s);
         exit(2);
     }

@@ -56,6 +56,13 @@ def test_host_program_bad_arguments(ring_firmware_binary, args, message):
     assert r.returncode == 2 and message in r.stderr, r.stderr
 
 
+def test_host_program_takes_tiny_probabilities(ring_firmware_binary):
+    """A subnormal probability is a valid number (strtod flags it ERANGE; found by hypothesis)."""
+    r = subprocess.run([str(ring_firmware_binary), "--faults", "delay=2.225073858507e-311",
+                        "--duration", "0"], capture_output=True, text=True, timeout=10)
+    assert r.returncode == 0, r.stderr
+
+
 def test_host_program_prints_its_pty_and_stops_on_its_own(ring_firmware_binary):
     r = subprocess.run([str(ring_firmware_binary), "--duration", "0.2"], capture_output=True,
                        text=True, timeout=10)
