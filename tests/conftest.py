@@ -76,3 +76,24 @@ def pytest_sessionfinish(session, exitstatus):
     if outside:
         print(f"\nmodules imported from outside {_REPO}: {', '.join(outside)}", file=sys.stderr)
         session.exitstatus = 1
+@pytest.fixture(scope="session")
+def ring_firmware_binary(tmp_path_factory):
+    """The C ring firmware's host program (``make -C firmware host``), built once per session
+    into a temporary folder; skips with the reason when make or a C compiler is missing."""
+    from pipeline.capture.firmware_host import build_host_firmware
+    from ring_backends import missing_build_tools
+
+    why = missing_build_tools()
+    if why:
+        pytest.skip(f"C ring firmware backend not built: {why}")
+    return build_host_firmware(tmp_path_factory.mktemp("ring-firmware"))
+
+
+@pytest.fixture(scope="session", params=["python", "c"])
+def ring_backend(request):
+    """The ring emulator backend: the Python emulator, and the C firmware's host build."""
+    from ring_backends import RingBackend
+
+    if request.param == "python":
+        return RingBackend("python")
+    return RingBackend("c", request.getfixturevalue("ring_firmware_binary"))

@@ -31,7 +31,8 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from pipeline.capture.client import RingClient
-from pipeline.capture.emulator import RingEmulator, parse_faults
+from pipeline.capture.emulator import parse_faults
+from pipeline.capture.firmware_host import ring_emulator
 from pipeline.capture.plan import CaptureResult, CaptureSettings, run_capture
 from pipeline.base.errors import UserError
 
@@ -50,6 +51,7 @@ def capture(
     port: str | None = None,
     emulate: bool = False,
     faults: str | None = None,
+    ring_firmware: str | os.PathLike | None = None,
     camera: int | str | Camera | None = None,
     virtual_camera: bool | VirtualSensorSpec = False,
     frames_per_pattern: int = 1,
@@ -78,6 +80,10 @@ def capture(
     emulate : bool
         Start a ring emulator behind a pty instead (``faults``: its fault spec;
         ``emulate_baud``: model the wire time at ``baudrate``).
+    ring_firmware : path-like, optional
+        With ``emulate``: serve the ring with this host build of the C firmware
+        (``make -C firmware host``, :class:`~pipeline.capture.firmware_host.FirmwareEmulator`)
+        instead of the Python emulator.
     camera : int, str or Camera, optional
         OpenCV camera index, device path or video file, or any object implementing
         :class:`~pipeline.base.camera.Camera` (opened here and closed at the end).
@@ -120,6 +126,8 @@ def capture(
                         "it needs --emulate")
     if faults and not emulate:
         raise UserError("capture: --faults applies to the emulator; it needs --emulate")
+    if ring_firmware and not emulate:
+        raise UserError("capture: --ring-firmware serves the emulated ring; it needs --emulate")
     spec = None
     if virtual_camera is not False:
         from pipeline.capture.virtual import VirtualSensorSpec  # loads torch: only when needed
@@ -148,8 +156,8 @@ def capture(
     patterns = load_mode(mode)
     emulator = None
     if emulate:
-        emulator = RingEmulator(led_count=patterns.num_leds, faults=parse_faults(faults),
-                                baudrate=baudrate if emulate_baud else None, seed=seed)
+        emulator = ring_emulator(ring_firmware or None, led_count=patterns.num_leds, faults=parse_faults(faults),
+                                 baudrate=baudrate if emulate_baud else None, seed=seed)
         port = emulator.start()
     extra: dict = {}
     try:

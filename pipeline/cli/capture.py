@@ -16,6 +16,10 @@ def register(sub, name, help_text):
     ring.add_argument("--emulate", action="store_true", help="use a ring emulator behind a pty")
     p.add_argument("--faults", help="emulator faults, e.g. drop=0.05,corrupt=0.05,delay=0.02,"
                    "delay-s=0.05,disconnect-after=N")
+    p.add_argument("--ring-firmware", metavar="BIN",
+                   help="with --emulate: serve the ring with this host build of the C firmware "
+                   "(make -C firmware host: firmware/build/host/iristac-ring-host) instead of "
+                   "the Python emulator")
     cam = p.add_mutually_exclusive_group(required=True)
     cam.add_argument("--camera", help="OpenCV camera index, device path or video file")
     cam.add_argument("--virtual-camera", action="store_true",
@@ -103,6 +107,7 @@ def _capture(args, prompt):
         port=args.port,
         emulate=args.emulate,
         faults=args.faults,
+        ring_firmware=args.ring_firmware,
         camera=args.camera,
         virtual_camera=virtual,
         frames_per_pattern=args.frames_per_pattern,

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from pipeline.capture.client import RingClient, RingDisconnected
-from pipeline.capture.emulator import FaultSpec, RingEmulator, parse_faults
+from pipeline.capture.emulator import FaultSpec, parse_faults
 from pipeline.capture.plan import (
     _fingerprint,
     _Journal,
@@ -89,11 +89,11 @@ def capture_with(emu, patterns, out, settings, timeout=0.005, fps=2000.0, warm_u
             cam.close()
 
 
-def test_1000_pattern_changes_with_drops_and_corruption_zero_mislabeled(tmp_path):
+def test_1000_pattern_changes_with_drops_and_corruption_zero_mislabeled(tmp_path, ring_backend):
     patterns = random_patterns(1000)
     out = tmp_path / "capture.h5"
     faults = parse_faults("drop=0.05,corrupt=0.05")
-    with RingEmulator(faults=faults, seed=5) as emu:
+    with ring_backend.emulator(faults=faults, seed=5) as emu:
         result = capture_with(emu, patterns, out, CaptureSettings(contacts=0))
         st = emu.stats
     assert st.dropped_in + st.dropped_out > 50 and st.corrupted_in + st.corrupted_out > 50
@@ -108,12 +108,12 @@ def test_1000_pattern_changes_with_drops_and_corruption_zero_mislabeled(tmp_path
     assert not journal_path(out).exists()
 
 
-def test_skipping_the_stale_frame_flush_is_caught(tmp_path):
+def test_skipping_the_stale_frame_flush_is_caught(tmp_path, ring_backend):
     """Without flushing, the webcam-like queue of the virtual camera hands back frames from
     the previous pattern: the emulator's history and the rendered pixels both say so."""
     patterns = random_patterns(12, seed=1)
     settings = CaptureSettings(contacts=0, dark=False, stale_frame_guard=False)
-    with RingEmulator() as emu:
+    with ring_backend.emulator() as emu:
         # A camera left running has a full queue of frames from before the capture; once it
         # is drained, a read waits for the frame being exposed, which began (and sampled the
         # LEDs) before the pattern changed. So every unflushed frame is stale.
@@ -130,12 +130,12 @@ def test_skipping_the_stale_frame_flush_is_caught(tmp_path):
     assert all(decoded_ok(ref[p], want[p]) for p in range(12))
 
 
-def test_disconnect_mid_capture_then_resume(tmp_path):
+def test_disconnect_mid_capture_then_resume(tmp_path, ring_backend):
     patterns = random_patterns(8, seed=2)
     settings = CaptureSettings(contacts=2)
     out = tmp_path / "capture.h5"
     steps = plan_steps(8, settings)
-    with RingEmulator(faults=parse_faults("disconnect-after=20")) as emu:
+    with ring_backend.emulator(faults=parse_faults("disconnect-after=20")) as emu:
         with pytest.raises(RingDisconnected) as err:
             capture_with(emu, patterns, out, settings)
     msg = str(err.value)
@@ -145,7 +145,7 @@ def test_disconnect_mid_capture_then_resume(tmp_path):
     assert 5 <= len(saved) < len(steps)
     assert not out.exists()
 
-    with RingEmulator(faults=FaultSpec()) as emu:
+    with ring_backend.emulator(faults=FaultSpec()) as emu:
         result = capture_with(emu, patterns, out, settings)
         latches = len(emu.history()) - 1
     assert result.resumed_steps == len(saved)
@@ -165,25 +165,25 @@ def test_disconnect_mid_capture_then_resume(tmp_path):
         assert all(decoded_ok(rec.data["frames"][k, p], want[p]) for p in range(8))
 
 
-def test_journal_of_another_plan_is_refused_and_torn_line_ignored(tmp_path):
+def test_journal_of_another_plan_is_refused_and_torn_line_ignored(tmp_path, ring_backend):
     patterns = random_patterns(3, seed=3)
     out = tmp_path / "c.h5"
-    with RingEmulator(faults=parse_faults("disconnect-after=6")) as emu:
+    with ring_backend.emulator(faults=parse_faults("disconnect-after=6")) as emu:
         with pytest.raises(RingDisconnected):
             capture_with(emu, patterns, out, CaptureSettings(contacts=1))
     with open(journal_path(out), "ab") as fh:
         fh.write(b"ITJ1\x40\x00\x00\x00junk")  # a record torn by a crash
-    with RingEmulator() as emu:
+    with ring_backend.emulator() as emu:
         with pytest.raises(UserError, match="belongs to a different capture"):
             capture_with(emu, patterns, out, CaptureSettings(contacts=1, frames_per_pattern=2))
         result = capture_with(emu, patterns, out, CaptureSettings(contacts=1))
     assert result.frames == 7 and result.mislabeled == 0 and result.resumed_steps >= 1
 
 
-def test_averaging_and_record_contents(tmp_path):
+def test_averaging_and_record_contents(tmp_path, ring_backend):
     patterns = random_patterns(2, seed=4, leds=5)
     out = tmp_path / "c.h5"
-    with RingEmulator(led_count=5) as emu:
+    with ring_backend.emulator(led_count=5) as emu:
         result = capture_with(emu, patterns, out, CaptureSettings(contacts=1, frames_per_pattern=3,
                                                                   mm_per_px=0.05))
     rec = read_record(out, schema="capture")
@@ -213,13 +213,13 @@ def test_pattern_set_and_settings_validation():
         CaptureSettings(frames_per_pattern=0)
 
 
-def test_led_count_mismatch(tmp_path):
-    with RingEmulator(led_count=24) as emu:
+def test_led_count_mismatch(tmp_path, ring_backend):
+    with ring_backend.emulator(led_count=24) as emu:
         with pytest.raises(UserError, match="drives 5 LEDs but the ring .* has 24"):
             capture_with(emu, random_patterns(2, leds=5), tmp_path / "c.h5", CaptureSettings())
 
 
-def test_ctrl_c_between_presses_then_resume(tmp_path):
+def test_ctrl_c_between_presses_then_resume(tmp_path, ring_backend):
     """Ctrl-C while the operator is asked for press 1: the references and press 0 are kept;
     the rerun asks only for press 1 and completes."""
     patterns = random_patterns(3, seed=6)
@@ -228,7 +228,7 @@ def test_ctrl_c_between_presses_then_resume(tmp_path):
     asked = []
     spec = spec_for(patterns, 2)
 
-    with RingEmulator() as emu, RingClient(emu.path) as ring:
+    with ring_backend.emulator() as emu, RingClient(emu.path) as ring:
         cam = open_virtual_camera(spec, emu, patterns.drive, patterns.brightness)
 
         def interrupt_at_1(k):
@@ -268,12 +268,12 @@ class _DyingCamera(ContactCamera):
         return super().read()
 
 
-def test_camera_lost_mid_capture_keeps_steps_and_says_how_to_resume(tmp_path):
+def test_camera_lost_mid_capture_keeps_steps_and_says_how_to_resume(tmp_path, ring_backend):
     from pipeline.capture.camera import CameraError
 
     patterns = random_patterns(4, seed=7)
     out = tmp_path / "c.h5"
-    with RingEmulator() as emu, RingClient(emu.path) as ring:
+    with ring_backend.emulator() as emu, RingClient(emu.path) as ring:
         cam = _DyingCamera(bare_ring_illumination(SHAPE, 1.0), ring_led_state(emu), settings=EXACT,
                            fps=2000.0, reads_left=3)
         cam.open()

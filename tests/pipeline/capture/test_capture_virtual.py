@@ -58,12 +58,12 @@ def rerender(rec: Record, k: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("mode", ["point", "monochromatic", "trichromatic", "multicolour"])
-def test_every_mode_end_to_end_with_faults_truth_and_contacts(tmp_path, mode):
+def test_every_mode_end_to_end_with_faults_truth_and_contacts(tmp_path, mode, ring_backend):
     assert mode in list_modes()
     out = tmp_path / "capture.h5"
     s = spec(noise_dn=0.5)
     result = capture(out, mode=mode, emulate=True, faults="drop=0.05,corrupt=0.05", seed=4,
-                     virtual_camera=s, timeout=0.01, progress=False)
+                     virtual_camera=s, timeout=0.01, progress=False, ring_firmware=ring_backend.binary)
     patterns = load_mode(mode)
     n_p = len(patterns.frames)
     assert result.patterns == n_p and result.frames == 1 + n_p + 2 * n_p
@@ -86,20 +86,20 @@ def test_every_mode_end_to_end_with_faults_truth_and_contacts(tmp_path, mode):
         assert press[touched].mean() > 10 * max(press[~touched].mean(), 0.5)
 
 
-def test_disconnect_in_a_press_resumes_that_press_and_refuses_another_scene(tmp_path):
+def test_disconnect_in_a_press_resumes_that_press_and_refuses_another_scene(tmp_path, ring_backend):
     out = tmp_path / "c.h5"
     s = spec(noise_dn=0.0)
     # dark, 3 references, press 0 pattern 0 done; the ring dies inside press 0.
     with pytest.raises(RingDisconnected, match="rerun the same command to resume"):
         capture(out, mode="monochromatic", emulate=True, faults="disconnect-after=12",
-                virtual_camera=s, timeout=0.01, progress=False)
+                virtual_camera=s, timeout=0.01, progress=False, ring_firmware=ring_backend.binary)
     assert journal_path(out).exists() and not out.exists()
     with pytest.raises(UserError, match="belongs to a different capture"):
         capture(out, mode="monochromatic", emulate=True, virtual_camera=spec(obj="sphere", noise_dn=0.0),
-                timeout=0.01, progress=False)
+                timeout=0.01, progress=False, ring_firmware=ring_backend.binary)
     asked = []
     result = capture(out, mode="monochromatic", emulate=True, virtual_camera=s, timeout=0.01,
-                     on_contact=asked.append, progress=False)
+                     on_contact=asked.append, progress=False, ring_firmware=ring_backend.binary)
     assert 0 < result.resumed_steps < result.frames == 10 and result.mislabeled == 0
     assert asked[0] == 0 and asked == sorted(set(asked))  # the resumed press is set up again
     rec = read_record(out, schema="capture")
@@ -108,16 +108,14 @@ def test_disconnect_in_a_press_resumes_that_press_and_refuses_another_scene(tmp_
         assert np.abs(rec.data["frames"][k].astype(float) - rerender(rec, k)).max() <= 1
 
 
-def test_a_camera_object_on_a_port_with_a_contact_callback(tmp_path):
+def test_a_camera_object_on_a_port_with_a_contact_callback(tmp_path, ring_backend):
     """The real-hardware path: a ring on a serial port (an emulator we started, as a lab's ring),
     any Camera object, and a callback told which press comes next (it sets the virtual
     camera's contact, where an operator would press)."""
-    from pipeline.capture.emulator import RingEmulator
-
     s = spec(contacts=2, obj="sphere", noise_dn=0.0, fps=300.0)
     patterns = load_mode("monochromatic")
     pressed = []
-    with RingEmulator() as ring:
+    with ring_backend.emulator() as ring:
         cam = open_virtual_camera(s, ring, patterns.drive, patterns.brightness)
 
         def press(k):
@@ -206,7 +204,7 @@ def test_virtual_capture_on_each_device_matches_the_cpu_float64_rendering(tmp_pa
     assert np.allclose(rec.data["frames"][0], want, rtol=1e-4, atol=1e-3)
 
 
-def test_virtual_capture_reconstructs_to_its_truth(tmp_path):
+def test_virtual_capture_reconstructs_to_its_truth(tmp_path, ring_backend):
     """Stage 3 -> 4: the near-field solver with the sensor's own illumination recovers the
     stored truth/normals of a captured press (the frames and the truth belong together)."""
     from pipeline.reconstruct import reconstruct
@@ -214,7 +212,7 @@ def test_virtual_capture_reconstructs_to_its_truth(tmp_path):
 
     s = spec(contacts=1, obj="sphere", noise_dn=0.5)
     capture(tmp_path / "c.h5", mode="monochromatic", emulate=True, virtual_camera=s, timeout=0.01,
-            progress=False)
+            progress=False, ring_firmware=ring_backend.binary)
     ill = save_illumination(s.model(), tmp_path / "illumination.h5")
     res = reconstruct(tmp_path / "c.h5", illumination=ill, solver="nearfield", out=tmp_path / "out",
                       store=tmp_path / "store", images=False)

@@ -15,12 +15,12 @@ from pipeline.capture.client import (
     RingProtocolError,
     RingTimeout,
 )
-from pipeline.capture.emulator import FaultSpec, RingEmulator, parse_faults
+from pipeline.capture.emulator import FaultSpec, parse_faults
 from pipeline.base.errors import UserError
 
 
-def test_handshake_and_every_command():
-    with RingEmulator(led_count=6, firmware="fw-test") as emu, RingClient(emu.path) as ring:
+def test_handshake_and_every_command(ring_backend):
+    with ring_backend.emulator(led_count=6, firmware="fw-test") as emu, RingClient(emu.path) as ring:
         assert ring.info == P.Hello(P.PROTOCOL_VERSION, 6, "fw-test")
         drive = np.linspace(0, 1, 18).reshape(6, 3)
         ring.set_all(drive, 0.5)
@@ -40,8 +40,8 @@ def test_handshake_and_every_command():
         assert ring.stats.retries == 0
 
 
-def test_refused_command_is_a_clear_error():
-    with RingEmulator(led_count=4) as emu, RingClient(emu.path) as ring:
+def test_refused_command_is_a_clear_error(ring_backend):
+    with ring_backend.emulator(led_count=4) as emu, RingClient(emu.path) as ring:
         with pytest.raises(RingProtocolError, match="refused SET_ONE.*BAD_ARGUMENT"):
             ring.set_one(9, (1, 1, 1))
         with pytest.raises(RingProtocolError, match="pattern has 5 LEDs but the ring .* has 4"):
@@ -56,8 +56,8 @@ def test_wrong_port_lists_available_ports():
     assert isinstance(err.value, UserError)
 
 
-def test_wrong_protocol_version():
-    with RingEmulator(version=P.PROTOCOL_VERSION + 1, firmware="future-fw") as emu:
+def test_wrong_protocol_version(ring_backend):
+    with ring_backend.emulator(version=P.PROTOCOL_VERSION + 1, firmware="future-fw") as emu:
         with pytest.raises(RingProtocolError) as err:
             RingClient(emu.path).open()
     msg = str(err.value)
@@ -65,15 +65,15 @@ def test_wrong_protocol_version():
     assert f"this host speaks version {P.PROTOCOL_VERSION}" in msg and "future-fw" in msg
 
 
-def test_silent_port_times_out_with_a_hint():
+def test_silent_port_times_out_with_a_hint(ring_backend):
     # Every frame lost: nothing ever answers, as on a port with some other device.
-    with RingEmulator(faults=FaultSpec(drop=1.0)) as emu:
+    with ring_backend.emulator(faults=FaultSpec(drop=1.0)) as emu:
         with pytest.raises(RingTimeout, match="no IrisTac ring answered HELLO.*is this the ring"):
             RingClient(emu.path, timeout=0.005, max_timeout=0.01, retries=2).open()
 
 
-def test_disconnect_is_a_clear_error():
-    with RingEmulator(faults=parse_faults("disconnect-after=3")) as emu:
+def test_disconnect_is_a_clear_error(ring_backend):
+    with ring_backend.emulator(faults=parse_faults("disconnect-after=3")) as emu:
         ring = RingClient(emu.path, timeout=0.05)
         ring.open()  # command 1
         ring.set_all(np.zeros((24, 3)), 1.0)  # 2
@@ -83,13 +83,13 @@ def test_disconnect_is_a_clear_error():
         ring.close()
 
 
-def test_delays_give_duplicate_replies_that_are_ignored_and_never_re_executed():
+def test_delays_give_duplicate_replies_that_are_ignored_and_never_re_executed(ring_backend):
     """A stalled device answers late; the host has already retransmitted, so each command is
     answered twice. The duplicates are ignored and a retransmitted SHOW does not latch twice."""
     faults = FaultSpec(delay=0.3, delay_s=0.02)
     rng = np.random.default_rng(0)
-    with RingEmulator(faults=faults, seed=2) as emu, RingClient(emu.path, timeout=0.005,
-                                                               retries=20) as ring:
+    with ring_backend.emulator(faults=faults, seed=2) as emu, \
+            RingClient(emu.path, timeout=0.005, retries=20) as ring:
         n = 40
         for _ in range(n):
             ring.show_pattern(rng.random((24, 3)), 1.0)
@@ -100,8 +100,8 @@ def test_delays_give_duplicate_replies_that_are_ignored_and_never_re_executed():
         assert ring.stats.stale_replies > 0
 
 
-def test_state_history_intervals():
-    with RingEmulator(led_count=2) as emu, RingClient(emu.path) as ring:
+def test_state_history_intervals(ring_backend):
+    with ring_backend.emulator(led_count=2) as emu, RingClient(emu.path) as ring:
         ring.show_pattern(np.ones((2, 3)), 1.0)
         ring.off()
         h = emu.history()
@@ -133,13 +133,13 @@ def test_fault_spec_errors(spec, match):
     corrupt=st.floats(0, 0.2),
     delay=st.floats(0, 0.1),
 )
-def test_any_fault_mix_shows_each_pattern_exactly_once(seed, drop, corrupt, delay):
+def test_any_fault_mix_shows_each_pattern_exactly_once(seed, drop, corrupt, delay, ring_backend):
     """Whatever the faults, every confirmed SHOW is one latch of exactly the state sent, in
     order: retries never execute a command twice and never latch a wrong state."""
     rng = np.random.default_rng(seed)
     drives = rng.random((15, 24, 3))
     faults = FaultSpec(drop=drop, corrupt=corrupt, delay=delay, delay_s=0.01)
-    with RingEmulator(faults=faults, seed=seed) as emu, RingClient(
+    with ring_backend.emulator(faults=faults, seed=seed) as emu, RingClient(
         emu.path, timeout=0.004, retries=40, max_timeout=0.05
     ) as ring:
         for d in drives:
