@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import hashlib
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
@@ -173,7 +174,10 @@ class ContactCamera(VirtualCamera):
     def __init__(self, model, led_state, contacts: Sequence[HeightField] = (), **kw):
         super().__init__(model, led_state, script=[(0.0, c) for c in contacts], **kw)
         self._contact_lock = threading.Lock()
-        self._contact = -1
+        # (time.monotonic() of the change, contact): the camera clock looks up the contact in
+        # force when an exposure *started*, not when its thread got round to it (under load
+        # the clock thread can wake after a later set_contact).
+        self._contacts: list[tuple[float, int]] = [(-np.inf, -1)]
 
     def set_contact(self, k: int | None) -> None:
         """Show contact instance ``k`` (None: no contact) in frames whose exposure starts from now."""
@@ -181,12 +185,16 @@ class ContactCamera(VirtualCamera):
         if not -1 <= k < len(self.script):
             raise ValueError(f"ContactCamera.set_contact: k must be in [-1, {len(self.script)}), got {k}")
         with self._contact_lock:
-            self._contact = k
+            self._contacts.append((time.monotonic(), k))
 
     def contact_at(self, t: float) -> int:
-        """The contact shown now (called by the camera clock at the start of each exposure)."""
+        """The contact shown ``t`` seconds after the camera opened (the start of an exposure)."""
+        when = (self._t0 or 0.0) + t
         with self._contact_lock:
-            return self._contact
+            for since, k in reversed(self._contacts):
+                if since <= when:
+                    return k
+        return -1
 
     @property
     def exposure(self) -> float:
