@@ -51,7 +51,8 @@ def _sha(a: np.ndarray) -> str:
 
 def reconstruct_recording(recording: str, *, calibration: str | None = None, illumination: str | None = None,
                           solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
-                          store: str | None = None, images: bool = False, device: str = "cpu") -> dict[str, Any]:
+                          store: str | None = None, images: bool = False, device: str = "cpu",
+                          mask: str | None = None) -> dict[str, Any]:
     """Reconstruct one recording (the batch task; picklable as a :func:`functools.partial`).
 
     Parameters
@@ -69,6 +70,9 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
         Stage store folder (default ``$IRISTAC_CACHE`` or ``./iristac-cache``).
     device : str
         Torch device.
+    mask : str, optional
+        A mask file (PNG/NPY) of the pixels to reconstruct, for every recording (replaces a
+        capture's own ``mask``).
 
     Returns
     -------
@@ -82,7 +86,7 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
 
     dest = None if out is None else str(Path(out) / Path(recording).stem)
     res = reconstruct(recording, calibration=calibration, illumination=illumination, solver=solver,
-                      integrator=integrator, out=dest, store=store, images=images, device=device)
+                      integrator=integrator, out=dest, store=store, images=images, device=device, mask=mask)
     n, d = res.normals, res.depth
     result = {"normals_key": n.provenance.get("iristac_key") or "", "depth_key": d.provenance.get("iristac_key") or "",
               "normals_sha256": _sha(n.data["normals"]), "depth_sha256": _sha(d.data["height"]),
@@ -118,7 +122,8 @@ def expand_recordings(paths: Sequence[str]) -> list[str]:
 def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = None, illumination: str | None = None,
                       solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
                       store: str | None = None, images: bool = False, device: str = "cpu", workers: int = 1,
-                      scheduler: str | None = None, progress: bool = False, connect_timeout: float = 10.0):
+                      scheduler: str | None = None, progress: bool = False, connect_timeout: float = 10.0,
+                      mask: str | None = None):
     """Reconstruct every recording with a shared calibration or illumination model.
 
     Parameters
@@ -132,7 +137,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     scheduler : str, optional
         A Dask scheduler address (``tcp://host:8786``): the recordings are spread over its
         workers, which must see the same paths (and the store) as this machine.
-    solver, integrator, out, store, images, device, progress, connect_timeout
+    solver, integrator, out, store, images, device, progress, connect_timeout, mask
         See :func:`reconstruct_recording` and :func:`pipeline.batch.run_batch`.
 
     Returns
@@ -144,7 +149,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
 
     if calibration is not None and illumination is not None:
         raise UserError("batch: give either --calibration or --illumination, not both")
-    for flag, path in (("--calibration", calibration), ("--illumination", illumination)):
+    for flag, path in (("--calibration", calibration), ("--illumination", illumination), ("--mask", mask)):
         if path is not None and not Path(path).is_file():
             raise UserError(f"{flag} {path}: no such file")
     # Workers may run elsewhere or in another folder: hand them absolute paths.
@@ -156,6 +161,6 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
         store = str(default_store_root())
     task = partial(reconstruct_recording, calibration=absolute(calibration), illumination=absolute(illumination),
                    solver=solver, integrator=integrator, out=absolute(out), store=absolute(store), images=images,
-                   device=device)
+                   device=device, mask=absolute(mask))
     return run_batch(recs, task, workers=workers, scheduler=scheduler, progress=progress,
                      connect_timeout=connect_timeout)

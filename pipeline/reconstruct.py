@@ -19,8 +19,16 @@ Where the lights come from (first that applies):
 
 Solvers: ``lstsq`` (far field; given only per-pixel lights it uses the light field at the
 image centre, which is what a far-field calibration would measure there), ``nearfield``
-(per-pixel lights required), ``robust`` (either; excludes values within 1% of full scale of
-the dark level and saturated raw values), ``lut`` (one RGB pattern).
+(per-pixel lights required), ``robust`` (either; shadows and highlights modelled,
+:func:`pipeline.normals.solve_robust_irls`), ``cauchy`` (the earlier robust solver: trimmed
+start and Cauchy IRLS, :func:`pipeline.normals.solve_robust`); both robust solvers exclude
+values within 1% of full scale of the dark level and saturated raw values; ``lut`` (one RGB
+pattern).
+
+Where to solve: the capture's ``mask`` dataset (an object's silhouette, e.g. DiLiGenT's), or a
+user's ``mask=`` (a PNG/NPY file or an array), which replaces it. Only those pixels are read
+out of the frames, solved and integrated (rectangular integrators on the mask's bounding
+box); every pixel outside is invalid in the outputs (:mod:`pipeline.normals.masking`).
 """
 
 from __future__ import annotations
@@ -37,9 +45,9 @@ from pipeline.errors import UserError
 __all__ = ["LightSource", "ReconstructResult", "load_lights", "solve_capture", "normals_record", "depth_record",
            "reconstruct", "NORMALS_VERSION", "DEPTH_VERSION"]
 
-NORMALS_VERSION = 1
-DEPTH_VERSION = 1
-SOLVERS = ("lstsq", "nearfield", "robust", "lut")
+NORMALS_VERSION = 2  # 2: only the capture's (or the user's) mask is solved
+DEPTH_VERSION = 2  # 2: rectangular integrators on the mask's bounding box
+SOLVERS = ("lstsq", "nearfield", "robust", "cauchy", "lut")
 
 
 @dataclass
@@ -171,12 +179,61 @@ def load_lights(capture, calibration=None, illumination=None) -> LightSource:
                                    float(capture.meta.get("exposure", 1.0)), gains)
         return src
     if "lights/light_vectors" in capture.data:
-        src = LightSource(source="capture:lights/light_vectors", key="embedded")
+        name = Path(capture.path).name if capture.path else "memory"
+        src = LightSource(source=f"capture:{name}:lights/light_vectors", key="embedded")
         src.far = _check_shape(capture.data["lights/light_vectors"], (P, C, 3), capture.path,
                                "lights/light_vectors")
         return src
     raise UserError(f"{capture.path}: no light model: pass --calibration or --illumination "
                     f"(the capture has no embedded lights/light_vectors)")
+
+
+def capture_region(cap, mask=None) -> np.ndarray | None:
+    """The pixels to reconstruct: a user's ``mask`` (a ``.png``/``.npy`` path or an array), else
+    the capture's ``mask`` dataset, else None (every pixel).
+
+    Raises
+    ------
+    UserError
+        Naming the mask file (or the capture and its dataset ``mask``) when the mask does not
+        have the frames' ``(H, W)`` or selects no pixel.
+    """
+    import os
+
+    H, W = cap.data["frames"].shape[2:4]
+    if mask is None:
+        if "mask" not in cap.data:
+            return None
+        m, where = np.asarray(cap.data["mask"]), f"{cap.path or 'capture'}: dataset 'mask'"
+    elif isinstance(mask, (str, os.PathLike)):
+        from pipeline.evaluate import load_mask
+
+        m, where = load_mask(mask), f"{mask}: mask"
+    else:
+        m, where = np.asarray(mask), "mask"
+    if m.shape != (H, W):
+        raise UserError(f"{where} has shape {m.shape}, expected (H, W) = {(H, W)} to match the capture's frames")
+    if m.dtype != bool:
+        m = m != 0
+    if not m.any():
+        raise UserError(f"{where} selects no pixels (all zero): nothing to reconstruct")
+    return m
+
+
+def _check_light_count(far, P: int, C: int, source: str) -> None:
+    """One clear error when the lights cannot determine a normal anywhere: fewer than three
+    observations, or far-field light vectors ``far (P*C, 3)`` (None: per-pixel lights only)
+    that span fewer than three directions."""
+    if P * C < 3:
+        raise UserError(f"{source}: {P} pattern(s) x {C} channel(s) = {P * C} observations; photometric stereo "
+                        f"needs at least 3 lights")
+    if far is not None:
+        L = np.asarray(far)
+        ok = np.isfinite(L).all(-1)
+        rank = int(np.linalg.matrix_rank(L[ok].astype(np.float64))) if ok.any() else 0
+        if rank < 3:
+            raise UserError(f"{source}: the {P * C} light vectors span {rank} independent direction(s); "
+                            f"photometric stereo needs at least 3 lights in different directions")
 
 
 def _observations(frames_k: np.ndarray) -> np.ndarray:
@@ -195,7 +252,7 @@ def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", referen
     frames : ndarray, shape (K, P, H, W, C)
         Dark-subtracted float frames.
     lights : LightSource
-    solver : {"lstsq", "nearfield", "robust", "lut"}
+    solver : {"lstsq", "nearfield", "robust", "cauchy", "lut"}
     reference : ndarray, shape (P, H, W, C), optional
         Dark-subtracted no-contact frames (needed for ``ratio``).
     saturated : ndarray, shape (K, P, H, W, C), bool, optional
@@ -231,6 +288,8 @@ def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", referen
     if lights.field is None and lights.far is None:
         raise UserError(f"--solver {solver} needs light vectors; {lights.source} has only a lookup table")
     groups = np.tile(np.arange(C), P)
+    _check_light_count(None if lights.far is None else lights.far.reshape(P * C, 3), P, C,
+                       lights.source or "the light source")
     if solver == "lstsq":
         # Far field: the calibrated vectors, else the light field at the image centre.
         far = lights.far if lights.far is not None else lights.field[:, :, H // 2, W // 2, :]
@@ -259,11 +318,12 @@ def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", referen
         if ratio:
             r_ref = ref if flat is None else ref / np.where(flat > 0, flat, 1.0)
             obs, Lk = N.ratio_to_reference(obs, r_ref, L)
-        if solver == "robust":
+        if solver in ("robust", "cauchy"):
             if saturated is not None:
                 obs = np.where(_observations(saturated[k]), np.inf, obs)  # excluded as non-finite
             thr = dark_threshold if not ratio else 0.0
-            out.append(N.solve_robust(obs, Lk, dark_threshold=thr, **common))
+            robust = N.solve_robust_irls if solver == "robust" else N.solve_robust
+            out.append(robust(obs, Lk, dark_threshold=thr, **common))
         elif prebuilt is not None:
             out.append(prebuilt.solve(obs))
         elif solver == "lstsq":
@@ -279,18 +339,21 @@ def _stack(results, name: str) -> np.ndarray:
 
 def normals_record(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False,
                    max_condition: float = 1e3, device="cpu", dtype="float32", threads: int | None = 1,
-                   compile: bool = False):
+                   compile: bool = False, mask=None):
     """Stage 4 on records: the ``normals`` :class:`~pipeline.store.Record` of a capture (no caching).
 
     Parameters
     ----------
     cap : Record
-        Schema ``capture``: ``frames (K, P, H, W, C)``, ``reference (P, H, W, C)``, optional
-        ``dark (H, W, C)``; attributes ``mm_per_px`` and ``bit_depth``.
+        Schema ``capture``: ``frames (K, P, H, W, C)``, optional ``reference (P, H, W, C)``,
+        ``dark (H, W, C)`` and ``mask (H, W)``; attributes ``mm_per_px`` and ``bit_depth``.
     lights : LightSource
         From :func:`load_lights`.
     solver, ratio, max_condition, device, dtype, threads, compile
         As in :func:`reconstruct`.
+    mask : path or ndarray, shape (H, W), optional
+        The pixels to solve, replacing the capture's ``mask`` (:func:`capture_region`). Only
+        they are read out of the frames and solved; the others are invalid in the result.
 
     Returns
     -------
@@ -299,15 +362,29 @@ def normals_record(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bo
         ``mask``, ``count``.
     """
     from pipeline.normals._torch import torch_threads
+    from pipeline.normals.masking import PixelMask
     from pipeline.store import Record
 
     mm_per_px = float(cap.meta["mm_per_px"])
     raw = cap.data["frames"]
+    H, W = raw.shape[2:4]
+    region = capture_region(cap, mask)
+    ref = reference_frames(cap)
+    dark = cap.data.get("dark")
+    pixels = None
+    if region is not None and solver != "lut":  # the table needs whole frames: masked after
+        # Gather the region once, from the raw frames (no full-frame float copy), as a
+        # (1, M) image; the solvers then see only the region's pixels.
+        pixels = PixelMask(region, (H, W), f"{cap.path or 'capture'}: mask")
+        raw = pixels.gather(raw, axis=2)
+        ref = None if ref is None else pixels.gather(ref, axis=1)
+        dark = None if dark is None else pixels.gather(dark, axis=0)
+        lights = _gather_lights(lights, pixels, solver)
     frames = raw.astype(np.float32)
-    ref = cap.data["reference"].astype(np.float32)
-    if "dark" in cap.data:
-        frames = frames - cap.data["dark"].astype(np.float32)
-        ref = ref - cap.data["dark"].astype(np.float32)
+    ref = None if ref is None else ref.astype(np.float32)
+    if dark is not None:
+        frames = frames - dark.astype(np.float32)
+        ref = None if ref is None else ref - dark.astype(np.float32)
     bits = cap.meta.get("bit_depth")
     full = (2 ** int(bits) - 1) if bits else (np.iinfo(raw.dtype).max if raw.dtype.kind in "iu" else None)
     saturated = (raw >= full) if full is not None else None
@@ -316,14 +393,42 @@ def normals_record(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bo
         res = solve_capture(frames, lights, solver=solver, reference=ref, saturated=saturated, ratio=ratio,
                             max_condition=max_condition, dark_threshold=dark_thr, device=device, dtype=dtype,
                             compile=compile)
+    if pixels is not None:
+        res = [pixels.scatter(r) for r in res]
+    elif region is not None:
+        res = [PixelMask(region, (H, W)).restrict(r) for r in res]
     data = {name: _stack(res, name) for name in ("normals", "albedo", "residual", "condition", "mask", "count")}
     meta = {"solver": solver, "mm_per_px": mm_per_px, "ratio": bool(ratio), "max_condition": float(max_condition),
             "lights": lights.source, "valid_fraction": float(data["mask"].mean())}
+    if region is not None:
+        meta["region_pixels"] = int(region.sum())
     meta.update({k: v for k, v in res[0].meta.items() if k not in meta and isinstance(v, (str, int, float))})
     return Record("normals", data, meta)
 
 
-def depth_record(n_rec, integrator: str = "dst"):
+def reference_frames(cap) -> np.ndarray | None:
+    """The capture's no-contact ``reference (P, H, W, C)``, or None when it has none (the
+    dataset is absent, or a version-1 file marked ``has_reference = False`` holds zeros)."""
+    if "reference" not in cap.data or cap.meta.get("has_reference", True) is False:
+        return None
+    return cap.data["reference"]
+
+
+def _gather_lights(lights: LightSource, pixels, solver: str) -> LightSource:
+    """``lights`` on the gathered pixels (per-pixel fields gathered; far-field unchanged)."""
+    from dataclasses import replace
+
+    far = lights.far
+    if far is None and lights.field is not None and solver == "lstsq":
+        # lstsq uses the light field at the image centre: take it before the centre is gone.
+        H, W = pixels.shape
+        far = lights.field[:, :, H // 2, W // 2, :]
+    return replace(lights, far=far,
+                   field=None if lights.field is None else pixels.gather(lights.field, axis=2),
+                   flat_field=None if lights.flat_field is None else pixels.gather(lights.flat_field, axis=2))
+
+
+def depth_record(n_rec, integrator: str = "dst", region=None):
     """Stage 5 on records: integrate every instance of a ``normals`` record into a ``depth`` record.
 
     Parameters
@@ -331,6 +436,9 @@ def depth_record(n_rec, integrator: str = "dst"):
     n_rec : Record
         Schema ``normals``: ``normals (K, H, W, 3)``, ``mask (K, H, W)``, attribute ``mm_per_px``.
     integrator : {"fc", "dct", "dst", "sparse"}
+    region : ndarray, shape (H, W), bool, optional
+        The solved region (:func:`capture_region`): ``sparse`` integrates on it, the others on
+        its bounding box (:func:`pipeline.depth.integrate`).
 
     Returns
     -------
@@ -343,7 +451,7 @@ def depth_record(n_rec, integrator: str = "dst"):
     if integrator not in INTEGRATORS:
         raise UserError(f"--integrator must be one of {', '.join(sorted(INTEGRATORS))}, got {integrator!r}")
     mm_per_px = float(n_rec.meta["mm_per_px"])
-    outs = [integrate(n_rec.data["normals"][k], mm_per_px, n_rec.data["mask"][k], method=integrator)
+    outs = [integrate(n_rec.data["normals"][k], mm_per_px, n_rec.data["mask"][k], method=integrator, region=region)
             for k in range(n_rec.data["normals"].shape[0])]
     data = {"height": np.stack([o.height for o in outs]), "mask": np.stack([o.mask for o in outs])}
     meta = {"integrator": integrator, "mm_per_px": mm_per_px}
@@ -355,7 +463,7 @@ def depth_record(n_rec, integrator: str = "dst"):
 def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "lstsq", integrator: str = "dst",
                 out=None, store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu",
                 dtype="float32", threads: int | None = 1, images: bool = True, force: bool = False,
-                compile: bool = False) -> ReconstructResult:
+                compile: bool = False, mask=None) -> ReconstructResult:
     """Normals and depth of a capture, through the stage store.
 
     Parameters
@@ -364,7 +472,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         ``capture.h5``.
     calibration, illumination : path or Record, optional
         The light model (at most one; see the module docstring).
-    solver : {"lstsq", "nearfield", "robust", "lut"}
+    solver : {"lstsq", "nearfield", "robust", "cauchy", "lut"}
     integrator : {"fc", "dct", "dst", "sparse"}
     out : path, optional
         Folder for ``normals.h5``, ``depth.h5`` and, with ``images``, per contact instance
@@ -385,6 +493,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         (:mod:`pipeline.normals.fused`): about 4x faster per frame after a few seconds of
         compilation, so worth it for recordings of many frames. Not part of the cache key
         (the results agree with the eager solver to float rounding).
+    mask : path or ndarray, shape (H, W), optional
+        Reconstruct only these pixels (a ``.png``/``.npy`` file, non-zero inside, or an array),
+        instead of the capture's own ``mask`` dataset (or every pixel when it has none).
 
     Returns
     -------
@@ -402,32 +513,37 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     cal = None if calibration is None else _read(calibration, "calibration")
     ill = None if illumination is None else _read(illumination, "illumination")
     lights = load_lights(cap, cal, ill)
-    if ratio and cap.meta.get("has_reference", True) is False:
-        raise UserError(f"{cap.path}: --ratio needs no-contact reference frames; this capture has none "
-                        f"(source {cap.meta.get('source')!r})")
+    if ratio and reference_frames(cap) is None:
+        raise UserError(f"{cap.path}: --ratio needs no-contact reference frames (dataset 'reference'); this "
+                        f"capture has none (source {cap.meta.get('source')!r})")
+    region = capture_region(cap, mask)
     mm_per_px = float(cap.meta["mm_per_px"])
     cap_key = _record_key(cap)
     store = store if isinstance(store, StageStore) else StageStore(store)
     n_params = {"solver": solver, "ratio": bool(ratio), "max_condition": float(max_condition),
                 "dtype": str(dtype), "lights": lights.source.split(":")[0]}
+    if mask is not None:  # the capture's own mask is part of its content key already
+        from pipeline.hashing import digest
+
+        n_params["mask"] = digest(region)
     n_key = store.key("normals", NORMALS_VERSION, n_params, inputs=[cap_key, lights.key])
 
     def compute_normals():
         return normals_record(cap, lights, solver=solver, ratio=ratio, max_condition=max_condition,
-                              device=device, dtype=dtype, threads=threads, compile=compile)
+                              device=device, dtype=dtype, threads=threads, compile=compile, mask=region)
 
     n_rec, n_cached = store.get_or_compute(n_key, compute_normals, force=force)
     d_key = store.key("depth", DEPTH_VERSION, {"integrator": integrator, "mm_per_px": mm_per_px}, inputs=[n_key])
 
     def compute_depth():
-        return depth_record(n_rec, integrator)
+        return depth_record(n_rec, integrator, region)
 
     d_rec, d_cached = store.get_or_compute(d_key, compute_depth, force=force)
     seconds = time.perf_counter() - t0
     summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": round(seconds, 4),
                                "valid_fraction": float(np.asarray(n_rec.data["mask"]).mean()),
                                "cached": bool(n_cached and d_cached)}
-    summary.update(_truth_errors(cap, n_rec, d_rec))
+    summary.update(_truth_errors(cap, n_rec, d_rec, region))
     files: list[Path] = []
     if out is not None:
         files = _write_outputs(Path(out), n_rec, d_rec, mm_per_px, images)
@@ -435,12 +551,12 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     return ReconstructResult(normals=n_rec, depth=d_rec, summary=summary, files=files)
 
 
-def _truth_errors(cap, n_rec, d_rec) -> dict:
-    """Mean normal error (deg) and depth RMSE (mm) against the capture's truth, if any."""
+def _truth_errors(cap, n_rec, d_rec, region=None) -> dict:
+    """Mean normal error (deg) and depth RMSE (mm) against the capture's truth, if any, over
+    ``region`` (the solved mask; None: every pixel)."""
     from pipeline.evaluate import normal_error_stats
 
     out: dict[str, float] = {}
-    region = cap.data.get("mask")  # an object mask (DiLiGenT); tactile captures use every pixel
     if "truth/normals" in cap.data:
         gt = cap.data["truth/normals"]
         errs = []

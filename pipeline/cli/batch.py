@@ -15,7 +15,9 @@ def register(sub, name, help_text):
     src = p.add_mutually_exclusive_group()
     src.add_argument("--calibration", metavar="CAL", help="shared calibration.h5")
     src.add_argument("--illumination", metavar="ILL", help="shared illumination.h5")
-    p.add_argument("--solver", choices=["lstsq", "nearfield", "robust", "lut"], default="lstsq")
+    p.add_argument("--solver", choices=["lstsq", "nearfield", "robust", "cauchy", "lut"], default="lstsq")
+    p.add_argument("--mask", metavar="FILE.png",
+                   help="reconstruct only these pixels (PNG/NPY, non-zero inside; replaces the capture's mask)")
     p.add_argument("--integrator", choices=["fc", "dct", "dst", "sparse"], default="dst")
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
@@ -38,7 +40,7 @@ def _run(args) -> int:
                               solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                               images=args.images, device=args.device, workers=args.workers,
                               scheduler=args.scheduler, progress=not args.json,
-                              connect_timeout=args.connect_timeout)
+                              connect_timeout=args.connect_timeout, mask=args.mask)
     failed = sum(not i.ok for i in items)
     if args.json:
         print_json({"items": [i.to_json() for i in items], "processed": len(items) - failed, "failed": failed})

@@ -14,7 +14,9 @@ def register(sub, name, help_text):
     src = p.add_mutually_exclusive_group()
     src.add_argument("--calibration", metavar="CAL", help="calibration.h5 (light_field / light_vectors / LUT)")
     src.add_argument("--illumination", metavar="ILL", help="illumination.h5 (V or light_matrices)")
-    p.add_argument("--solver", choices=["lstsq", "nearfield", "robust", "lut"], default="lstsq")
+    p.add_argument("--solver", choices=["lstsq", "nearfield", "robust", "cauchy", "lut"], default="lstsq")
+    p.add_argument("--mask", metavar="FILE.png",
+                   help="reconstruct only these pixels (PNG/NPY, non-zero inside; replaces the capture's mask)")
     p.add_argument("--integrator", choices=["fc", "dct", "dst", "sparse"], default="dst")
     p.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
     p.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
@@ -35,7 +37,7 @@ def _run(args) -> int:
     res = reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
                       solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
-                      images=not args.no_images, force=args.force, compile=args.compile)
+                      images=not args.no_images, force=args.force, compile=args.compile, mask=args.mask)
     s = res.summary
     if args.json:
         print_json(s)

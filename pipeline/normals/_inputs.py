@@ -56,7 +56,9 @@ def integer_tensor(x, device) -> torch.Tensor:
     if isinstance(x, torch.Tensor):
         return x.to(device)
     a = np.asarray(x)
-    if a.dtype in (np.uint16, np.uint32, np.uint64):
+    if a.dtype == np.uint16:
+        a = a.astype(np.int32)  # torch lacks arithmetic on uint16; int32 holds it at half int64's traffic
+    elif a.dtype in (np.uint32, np.uint64):
         a = a.astype(np.int64)  # torch lacks arithmetic on these unsigned types
     if not a.flags.writeable:
         a = np.array(a)
