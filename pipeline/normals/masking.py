@@ -16,13 +16,15 @@ temporaries (``N x batch`` floats each).
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
 from pipeline.normals import _torch as T
 from pipeline.normals.result import NormalResult
 
-__all__ = ["PixelMask", "masked_solve", "pixel_batches", "BATCH_ELEMENTS"]
+__all__ = ["PixelMask", "masked_solve", "solves_in_mask", "pixel_batches", "BATCH_ELEMENTS"]
 
 #: Elements (observations x pixels) of one batch: 8 M floats = 32 MB per float32 temporary.
 BATCH_ELEMENTS = 1 << 23
@@ -172,6 +174,20 @@ def masked_solve(solve, observations, mask, *, lights=None, name: str = "solver"
                              f"got {tuple(lights.shape)}")
         L = pm.gather(lights, axis=1)
     return pm.scatter(solve(obs, L))
+
+
+def solves_in_mask(func):
+    """Decorator: give a solver ``func(observations (N, H, W), lights, **options)`` a ``mask=``
+    keyword that runs it through :func:`masked_solve` (``mask=None``: the whole frame)."""
+
+    @functools.wraps(func)
+    def wrapper(observations, lights, *args, mask=None, **kwargs):
+        if mask is None:
+            return func(observations, lights, *args, **kwargs)
+        return masked_solve(lambda obs, L: func(obs, L, *args, **kwargs), observations, mask, lights=lights,
+                            name=func.__name__)
+
+    return wrapper
 
 
 def pixel_batches(M: int, N: int, elements: int = BATCH_ELEMENTS) -> list[tuple[int, int]]:

@@ -53,7 +53,7 @@ import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
-from pipeline.normals.masking import BATCH_ELEMENTS, masked_solve, pixel_batches
+from pipeline.normals.masking import pixel_batches, solves_in_mask
 from pipeline.normals.result import NormalResult, concat, finalize_tensors, to_result
 
 __all__ = ["solve_robust_irls", "WEIGHTS"]
@@ -158,9 +158,10 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
     """One batch of pixels: ``I`` ``(N, M)`` (finite), ``L`` ``(N, 3)`` or ``(N, 3, M)``, ``usable``
     bool ``(N, M)``; returns :func:`finalize_tensors`' dict.
 
-    Pixels whose normal moved less than ``tol`` in a step have converged; once they are most
-    of the working set they are finalised and dropped from it, so the later steps cost only
-    what the slow pixels (near the terminator, in a highlight's flank) need.
+    A pixel whose normal moved less than ``tol`` in a step has converged and is finalised
+    then, so its result depends on its own data only (not on the batch it was solved in);
+    converged pixels leave the working arrays once they are half of them, so the later steps
+    cost only what the slow pixels (near the terminator, in a highlight's flank) need.
     """
     dt = I.dtype
     M = I.shape[1]
@@ -177,6 +178,7 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
     floor = floor.clamp_min(torch.finfo(dt).tiny)
     c = WEIGHTS[weight]
     pos = torch.arange(M, device=I.device)  # original column of each working pixel
+    done = torch.zeros(M, dtype=torch.bool, device=I.device)  # finalised already
     parts, where = [], []
 
     def retire(idx):
@@ -210,27 +212,35 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
             kept = kept + e * (keep - kept)
         m = _lstsq.moments(I, L, w, selectors, count=ones @ kept)
         b = _lstsq.solve(m, T.inverse3(m.Q.sum(0))[0], 1)
-        moving = torch.sqrt(((_lstsq.unit(b)[0] - n) ** 2).sum(0)) > tol
-        n_moving = int(moving.sum())
-        if n_moving == 0 or it == iterations - 1:
+        if it == iterations - 1:
             break
-        if n_moving < moving.numel() // 2:  # compact: finalise the converged pixels
-            retire(torch.nonzero(~moving).flatten())
-            act = torch.nonzero(moving).flatten()
+        # Converged pixels are finalised now (their result is then their own, whatever the
+        # batch); they leave the working arrays once they are half of them.
+        newly = (torch.sqrt(((_lstsq.unit(b)[0] - n) ** 2).sum(0)) <= tol) & ~done
+        if bool(newly.any()):
+            retire(torch.nonzero(newly).flatten())
+            done |= newly
+        left = int((~done).sum())
+        if left == 0:
+            break
+        if left <= done.numel() // 2:
+            act = torch.nonzero(~done).flatten()
             I, usable, w, kept = I[:, act], usable[:, act], w[:, act], kept[:, act]
             L = L if L.dim() == 2 else L[..., act]
-            b, m, floor, pos = b[:, act], _take(m, act), floor[act], pos[act]
-    retire(torch.arange(pos.numel(), device=I.device))
+            b, m, floor, pos, done = b[:, act], _take(m, act), floor[act], pos[act], done[act]
+    if not bool(done.all()):
+        retire(torch.nonzero(~done).flatten())
     out = concat(parts)
     order = torch.argsort(torch.cat(where))
     return {k: v.index_select(-1, order) for k, v in out.items()}
 
 
+@solves_in_mask
 def solve_robust_irls(observations, lights, *, groups=None, dark_threshold: float = 0.0,
                       saturation: float = math.inf, weight: str = "tukey", iterations: int = 20, tol: float = 1e-4,
                       highlight_sigma: float = 3.0, trim_low: float = 0.25, trim_high: float = 0.1,
                       noise_floor: float | None = None, min_inliers: int = 3, max_condition: float = 1e3,
-                      device="cpu", dtype="float32", mask=None, batch_elements: int = 1 << 20) -> NormalResult:
+                      device="cpu", dtype="float32", batch_elements: int = 1 << 20) -> NormalResult:
     """Normals robust to shadows and highlights (see the module docstring for the algorithm).
 
     Parameters
@@ -290,18 +300,7 @@ def solve_robust_irls(observations, lights, *, groups=None, dark_threshold: floa
     """
     if weight not in WEIGHTS:
         raise ValueError(f"solve_robust_irls: weight must be one of {tuple(WEIGHTS)}, got {weight!r}")
-    if mask is not None:
-        kw = dict(groups=groups, dark_threshold=dark_threshold, saturation=saturation, weight=weight,
-                  iterations=iterations, highlight_sigma=highlight_sigma, trim_low=trim_low, trim_high=trim_high,
-                  noise_floor=noise_floor, min_inliers=min_inliers, max_condition=max_condition, device=device,
-                  dtype=dtype)
-        return masked_solve(lambda obs, L: solve_robust_irls(obs, L, **kw), observations, mask, lights=lights,
-                            name="solve_robust_irls")
-    N, H, W = _inputs.check_observations(observations, "solve_robust_irls")
-    _inputs.check_lights(lights, N, (H, W), "solve_robust_irls")
-    dev = torch.device(device)
-    dt = T.torch_dtype(dtype)
-    g, num_groups = _inputs.check_groups(groups, N, "solve_robust_irls", dev)
+    N, H, W, dev, dt, g, num_groups = _inputs.check_stack(observations, lights, groups, device, dtype, "solve_robust_irls")
     # Observations of one albedo group made contiguous (channel-major): every per-group
     # product then reads a block instead of every third row.
     order = None if g is None else torch.sort(g, stable=True).indices
