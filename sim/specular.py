@@ -11,7 +11,7 @@ irradiance ``V_i`` (direction ``l = V_i / |V_i|``), the camera looking along ``v
 
 with the GGX distribution ``D = a^2 / (pi ((n.h)^2 (a^2 - 1) + 1)^2)``, ``a = roughness^2``,
 Schlick's Fresnel ``F = F0 + (1 - F0) (1 - v.h)^5`` (``F0`` = ``specular``, the reflectance at
-normal incidence: about 0.04 for plastics and paints) and the Smith-Schlick shadowing
+normal incidence: about 0.04 for plastics and paints; ``F0 = 0`` is a matte material, no lobe) and the Smith-Schlick shadowing
 ``G = G1(n.l) G1(n.v)``, ``G1(x) = x / (x (1 - k) + k)``, ``k = a / 2``. The specular term is
 white (dielectric highlights keep the light's colour) and is zero where ``n.l <= 0`` or
 ``n.v <= 0`` whatever the ``attached_shadows`` setting: a lobe below the horizon has no meaning.
@@ -27,9 +27,13 @@ __all__ = ["specular_shading", "ggx_brdf"]
 
 
 def ggx_brdf(n_l: torch.Tensor, n_v: torch.Tensor, n_h: torch.Tensor, v_h: torch.Tensor, roughness,
-             f0) -> torch.Tensor:
+             f0, sin2_h: torch.Tensor | None = None) -> torch.Tensor:
     """Cook-Torrance GGX BRDF ``f_s`` from the cosines (any broadcastable shapes); 0 where
-    ``n.l <= 0`` or ``n.v <= 0``.
+    ``n.l <= 0`` or ``n.v <= 0``, and where ``f0 == 0`` (a matte material: no lobe, not even
+    Schlick's grazing Fresnel term).
+
+    ``sin2_h = |n x h|^2`` may be given: ``D``'s denominator ``sin^2 + a^2 cos^2`` then has no
+    cancellation near the peak (``1 - cos^2`` loses float32 digits when ``a`` is small).
 
     Examples
     --------
@@ -42,7 +46,8 @@ def ggx_brdf(n_l: torch.Tensor, n_v: torch.Tensor, n_h: torch.Tensor, v_h: torch
     """
     a = roughness * roughness
     a2 = a * a
-    d = n_h * n_h * (a2 - 1.0) + 1.0
+    s2 = (1.0 - n_h * n_h).clamp_min(0.0) if sin2_h is None else sin2_h
+    d = s2 + n_h * n_h * a2
     D = a2 / (math.pi * d * d)
     F = f0 + (1.0 - f0) * (1.0 - v_h).clamp(0.0, 1.0) ** 5
     k = a / 2.0
@@ -51,7 +56,7 @@ def ggx_brdf(n_l: torch.Tensor, n_v: torch.Tensor, n_h: torch.Tensor, v_h: torch
     G1l = nl / (nl * (1.0 - k) + k)
     G1v = nv / (nv * (1.0 - k) + k)
     denom = 4.0 * nl * nv
-    ok = (n_l > 0) & (n_v > 0)
+    ok = (n_l > 0) & (n_v > 0) & (torch.as_tensor(f0) > 0)
     f = D * F * G1l * G1v / torch.where(ok, denom, torch.ones_like(denom))
     return torch.where(ok, f, torch.zeros_like(f))
 
@@ -91,9 +96,12 @@ def specular_shading(V: torch.Tensor, n: torch.Tensor, roughness, f0) -> torch.T
     # v = (0, 0, 1): h = (l + v) / |l + v|, with l = V / |V|.
     lz = V[2] / safe
     hx, hy, hz = V[0] / safe, V[1] / safe, lz + 1.0
-    hn = torch.sqrt(hx * hx + hy * hy + hz * hz).clamp_min(torch.finfo(V.dtype).tiny)
+    hn2 = (hx * hx + hy * hy + hz * hz).clamp_min(torch.finfo(V.dtype).tiny)
+    hn = torch.sqrt(hn2)
     n_h = (hx * n[0] + hy * n[1] + hz * n[2]) / hn
     v_h = hz / hn
+    cx, cy, cz = n[1] * hz - n[2] * hy, n[2] * hx - n[0] * hz, n[0] * hy - n[1] * hx  # n x h
+    sin2 = (cx * cx + cy * cy + cz * cz) / hn2
     n_v = n[2].expand_as(n_l)
-    f = ggx_brdf(n_l, n_v, n_h, v_h, roughness, f0)
+    f = ggx_brdf(n_l, n_v, n_h, v_h, roughness, f0, sin2)
     return f * n_dot_V.clamp_min(0.0)

@@ -177,6 +177,7 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
     floor = rms * 1e-3 if noise_floor is None else torch.full_like(rms, float(noise_floor))
     floor = floor.clamp_min(torch.finfo(dt).tiny)
     c = WEIGHTS[weight]
+    final_albedo_iters = 8 if albedo_iters else 0
     pos = torch.arange(M, device=I.device)  # original column of each working pixel
     done = torch.zeros(M, dtype=torch.bool, device=I.device)  # finalised already
     parts, where = [], []
@@ -184,7 +185,12 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
     def retire(idx):
         Li = L if L.dim() == 2 else L.index_select(-1, idx)
         cond = _lstsq.condition(Li, kept.index_select(1, idx))
-        parts.append(finalize_tensors(b.index_select(1, idx), _take(m, idx), cond, max_condition=max_condition))
+        mi = _take(m, idx)
+        # The steps refine per-group albedo by one alternation each (from the joint solve);
+        # the final normal gets the full alternation on the final weights (3x3 per pixel: cheap).
+        bi = _lstsq.solve(mi, T.inverse3(mi.Q.sum(0))[0], final_albedo_iters) if final_albedo_iters else \
+            b.index_select(1, idx)
+        parts.append(finalize_tensors(bi, mi, cond, max_condition=max_condition))
         where.append(pos.index_select(0, idx))
 
     for it in range(iterations):
