@@ -230,7 +230,8 @@ def _check_light_count(far, P: int, C: int, source: str) -> None:
     if far is not None:
         L = np.asarray(far)
         ok = np.isfinite(L).all(-1)
-        rank = int(np.linalg.matrix_rank(L[ok].astype(np.float64))) if ok.any() else 0
+        sv = np.linalg.svd(L[ok].astype(np.float64), compute_uv=False) if ok.any() else np.zeros(1)
+        rank = int((sv > 1e-6 * sv.max()).sum()) if sv.max() > 0 else 0  # 1e-6: float32-stored lights
         if rank < 3:
             raise UserError(f"{source}: the {P * C} light vectors span {rank} independent direction(s); "
                             f"photometric stereo needs at least 3 lights in different directions")

@@ -139,7 +139,7 @@ class FarFieldSolver:
         P, H, W, C = shape
         if mask is not None:
             pm = PixelMask(mask, (H, W), "FarFieldSolver.solve_frames")
-            return pm.scatter(self.solve_frames(pm.gather(frames, axis=1)))
+            return pm.scatter(self.solve(pm.gather_frames(frames)))
         if self.compile and (_inputs.is_integer(frames) or _all_moderate(frames)):
             planes = fused.frame_planes(frames if not isinstance(frames, torch.Tensor) else frames.to(self.device))
             out = self._solve_fused([p.to(self.device) for p in planes], H, W)

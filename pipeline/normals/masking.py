@@ -74,6 +74,7 @@ class PixelMask:
         if self.count == 0:
             raise ValueError(f"{name}: the mask selects no pixels")
         self._index_t: dict = {}
+        self._runs = None
 
     def bbox(self, margin: int = 0) -> tuple[slice, slice]:
         """Row and column slices of the mask's bounding box, grown by ``margin`` pixels (clipped)."""
@@ -96,9 +97,39 @@ class PixelMask:
             if idx is None:
                 idx = self._index_t[a.device] = torch.as_tensor(self.index, device=a.device)
             out = a.reshape(flat_shape).index_select(ax, idx)
+        elif len(self.runs) * 4 <= self.count:
+            # A compact region (an object's silhouette) is a few runs of pixels per row:
+            # copying runs is ~3x faster than a per-pixel take (15.8k-pixel disc: 2 against 6.5 ms).
+            a = np.asarray(a)
+            out = np.empty(shape[:ax] + (self.count,) + shape[ax + 2:], dtype=a.dtype)
+            lead = (slice(None),) * ax
+            pos = 0
+            for r, c0, c1 in self.runs:
+                out[lead + (slice(pos, pos + c1 - c0),)] = a[lead + (r, slice(c0, c1))]
+                pos += c1 - c0
         else:
             out = np.take(np.asarray(a).reshape(flat_shape), self.index, axis=ax)
         return out.reshape(shape[:ax] + (1, self.count) + shape[ax + 2:])
+
+    def gather_frames(self, frames):
+        """Frames ``(P, H, W, C)`` -> the mask's observations ``(P * C, 1, M)`` (pattern-major,
+        channel-minor, the solvers' order), contiguous, in the frames' dtype (no float copy of
+        the full frames)."""
+        P, H, W, C = tuple(frames.shape)
+        g = self.gather(frames, axis=1)[:, 0]  # (P, M, C)
+        if isinstance(g, torch.Tensor):
+            return g.permute(0, 2, 1).reshape(P * C, 1, self.count)
+        return np.ascontiguousarray(g.transpose(0, 2, 1)).reshape(P * C, 1, self.count)
+
+    @property
+    def runs(self) -> list[tuple[int, int, int]]:
+        """``(row, first col, end col)`` of each horizontal run of mask pixels, row-major."""
+        if self._runs is None:
+            edges = np.diff(np.pad(self.mask.astype(np.int8), ((0, 0), (1, 1))), axis=1)
+            r0, c0 = np.nonzero(edges == 1)
+            _, c1 = np.nonzero(edges == -1)  # same row-major order: one end per start
+            self._runs = list(zip(r0.tolist(), c0.tolist(), c1.tolist()))
+        return self._runs
 
     def scatter_array(self, values, fill, axis: int = 0) -> np.ndarray:
         """Put per-pixel ``values`` (``(..., M, ...)`` with the pixel axis at ``axis``, or

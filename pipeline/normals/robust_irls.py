@@ -66,11 +66,13 @@ _KAPPA = {"tukey": 0.82807, "cauchy": 0.79484}
 
 
 def _weight(u: torch.Tensor, kind: str) -> torch.Tensor:
-    """Heavy-tailed IRLS weight of standardised residuals ``u = r / (c sigma)``."""
+    """Heavy-tailed IRLS weight of standardised residuals ``u = r / (c sigma)``, computed in
+    ``u``'s memory (which it overwrites)."""
+    u.mul_(u)
     if kind == "tukey":
-        t = (1.0 - u * u).clamp_min(0.0)
-        return t * t
-    return 1.0 / (1.0 + u * u)
+        t = u.neg_().add_(1.0).clamp_min_(0.0)
+        return t.mul_(t)
+    return u.add_(1.0).reciprocal_()
 
 
 def sorted_rows(x: torch.Tensor) -> torch.Tensor:
@@ -177,39 +179,33 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
     floor = rms * 1e-3 if noise_floor is None else torch.full_like(rms, float(noise_floor))
     floor = floor.clamp_min(torch.finfo(dt).tiny)
     c = WEIGHTS[weight]
-    final_albedo_iters = 8 if albedo_iters else 0
+    final_albedo_iters = 8 if albedo_iters else 0  # cheap: once per pixel, 3x3
     pos = torch.arange(M, device=I.device)  # original column of each working pixel
     done = torch.zeros(M, dtype=torch.bool, device=I.device)  # finalised already
-    parts, where = [], []
+    done_parts = []
 
-    def retire(idx):
-        Li = L if L.dim() == 2 else L.index_select(-1, idx)
-        cond = _lstsq.condition(Li, kept.index_select(1, idx))
-        mi = _take(m, idx)
-        # The steps refine per-group albedo by one alternation each (from the joint solve);
-        # the final normal gets the full alternation on the final weights (3x3 per pixel: cheap).
-        bi = _lstsq.solve(mi, T.inverse3(mi.Q.sum(0))[0], final_albedo_iters) if final_albedo_iters else \
-            b.index_select(1, idx)
-        parts.append(finalize_tensors(bi, mi, cond, max_condition=max_condition))
-        where.append(pos.index_select(0, idx))
+    def retire(idx):  # keep what the final solve needs of the converged pixels
+        done_parts.append((pos.index_select(0, idx), _take(m, idx), kept.index_select(1, idx),
+                           None if L.dim() == 2 else L.index_select(-1, idx)))
 
     for it in range(iterations):
         n, _ = _lstsq.unit(b)
         rho, _, _ = _lstsq.group_albedo(m, n)
         pred = _predict(L, n, rho, selectors)
-        r = I - pred
         lit = usable & (pred > 0)  # attached shadows (n . L <= 0) out: from the light matrix
+        r = pred.neg_().add_(I)  # I - prediction, in place (fewer fresh pages: faster on the CPU)
         if it == 0:  # robust scale of the start's residuals
             sigma = _mad(r, lit)
         else:  # then the weighted M-estimate of scale (no sort per step), Gaussian-consistent
-            sigma = torch.sqrt((ones @ (w * r * r)) / (_KAPPA[weight] * (ones @ w)).clamp_min(torch.finfo(dt).tiny))
+            wr2 = torch.mul(w, r).mul_(r)
+            sigma = torch.sqrt((ones @ wr2) / (_KAPPA[weight] * (ones @ w)).clamp_min(torch.finfo(dt).tiny))
         sigma = torch.maximum(sigma, floor)
         inl = lit & (r <= highlight_sigma * sigma)  # highlights out: a lobe only adds light
         if weight == "tukey":
             inl &= r > -c * sigma  # Tukey's weight is 0 beyond c sigma (cast shadows, outliers)
         keep = inl.to(dt)
         enough = (ones @ keep) >= min_inliers  # else the pixel keeps its previous weights
-        w_new = _weight(r / (c * sigma), weight) * keep
+        w_new = _weight(r.mul_(1.0 / (c * sigma)), weight).mul_(keep)  # r is not needed after this
         if bool(enough.all()):
             w, kept = w_new, keep
         else:
@@ -236,9 +232,20 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
             b, m, floor, pos, done = b[:, act], _take(m, act), floor[act], pos[act], done[act]
     if not bool(done.all()):
         retire(torch.nonzero(~done).flatten())
-    out = concat(parts)
-    order = torch.argsort(torch.cat(where))
-    return {k: v.index_select(-1, order) for k, v in out.items()}
+    # One final solve for every pixel: the steps refined per-group albedo by one alternation
+    # each (from the joint solve); the final normal gets the full alternation on its final weights.
+    order = torch.argsort(torch.cat([d[0] for d in done_parts]))
+
+    def cat(items, dim):  # the retired pieces, back in the batch's pixel order
+        return torch.cat(items, dim).index_select(dim, order)
+
+    ms = [d[1] for d in done_parts]
+    m = _lstsq.Moments(Q=cat([x.Q for x in ms], -1), r=cat([x.r for x in ms], -1), S=cat([x.S for x in ms], -1),
+                       wsum=cat([x.wsum for x in ms], 0), count=cat([x.count for x in ms], 0))
+    kept = cat([d[2] for d in done_parts], 1)
+    L = L if L.dim() == 2 else cat([d[3] for d in done_parts], -1)
+    b = _lstsq.solve(m, T.inverse3(m.Q.sum(0))[0], final_albedo_iters)
+    return finalize_tensors(b, m, _lstsq.condition(L, kept), max_condition=max_condition)
 
 
 @solves_in_mask
