@@ -138,8 +138,12 @@ class PixelMask:
         if v.ndim > axis + 1 and v.shape[axis] == 1 and v.shape[axis + 1] == self.count:
             v = v.reshape(v.shape[:axis] + (self.count,) + v.shape[axis + 2:])
         H, W = self.shape
-        out = np.empty(v.shape[:axis] + (H * W,) + v.shape[axis + 1:], dtype=v.dtype)
-        out[...] = np.asarray(fill, dtype=v.dtype).reshape((1,) * (axis + 1) + np.shape(fill))
+        fill = np.asarray(fill, dtype=v.dtype)
+        if not fill.any():  # zero pages come free from the OS: no pass over the frame
+            out = np.zeros(v.shape[:axis] + (H * W,) + v.shape[axis + 1:], dtype=v.dtype)
+        else:
+            out = np.empty(v.shape[:axis] + (H * W,) + v.shape[axis + 1:], dtype=v.dtype)
+            out[...] = fill.reshape((1,) * (axis + 1) + fill.shape)
         index = (slice(None),) * axis + (self.index,)
         out[index] = v
         return out.reshape(v.shape[:axis] + (H, W) + v.shape[axis + 1:])
