@@ -17,7 +17,7 @@ import math
 import numpy as np
 import torch
 
-from sim.frames import recon_to_optical
+from pipeline.base.frames import recon_to_optical
 from sim.illumination_model import IlluminationModel
 
 __all__ = ["dome_lights", "far_field_illumination", "far_field_visibility"]
@@ -135,7 +135,7 @@ def far_field_visibility(height, directions, mm_per_px: float, *, eps_px: float 
         return vis
     eps = eps_px * mm_per_px
     for i, (dx, dy, dz) in enumerate(d):
-        dcol, drow = dx, -dy  # rows grow along -y (sim.frames)
+        dcol, drow = dx, -dy  # rows grow along -y (pipeline.base.frames)
         horiz = math.hypot(dcol, drow)
         if dz <= 0 or horiz <= 1e-12:
             continue  # overhead light: no cast shadow; below the horizon: attached shadow

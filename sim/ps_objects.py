@@ -156,11 +156,11 @@ def render_ps_capture(obj: PSObject, directions, intensities, *, specular: float
 
     Returns
     -------
-    pipeline.store.Record
+    pipeline.base.store.Record
         Schema ``capture`` (attributes ``source = "synthetic-ps"``, ``object``, ``mm_per_px``,
         ``bit_depth``, ``exposure``, ``render_settings``, ``pattern_names``, ``mode = "point"``).
     """
-    from pipeline.store import Record
+    from pipeline.base.store import Record
 
     d = np.asarray(directions, dtype=np.float64)
     e = np.asarray(intensities, dtype=np.float64)
@@ -229,11 +229,11 @@ def write_ps_capture(out, object: str = "sphere", *, size: int = 160, radius_px:
 
     Raises
     ------
-    pipeline.errors.UserError
+    pipeline.base.errors.UserError
         An unknown object or impossible sizes, naming the option.
     """
-    from pipeline.errors import UserError
-    from pipeline.store import write_record
+    from pipeline.base.errors import UserError
+    from pipeline.base.capture import write_capture
 
     if object not in OBJECTS:
         raise UserError(f"--object must be one of {', '.join(OBJECTS)}, got {object!r}")
@@ -245,7 +245,7 @@ def write_ps_capture(out, object: str = "sphere", *, size: int = 160, radius_px:
                                 read_noise=read_noise, shot_noise=shot_noise, frame_shape=frame, seed=seed)
     except ValueError as exc:
         raise UserError(f"sim ps-object: {exc}") from None
-    path = write_record(out, rec)
+    path = write_capture(out, rec)
     _, P, H, W, _ = rec.data["frames"].shape
     return {"out": str(path), "object": object, "lights": int(P), "height": int(H), "width": int(W),
             "mask_pixels": int(rec.data["mask"].sum()), "specular": float(specular), "roughness": float(roughness),

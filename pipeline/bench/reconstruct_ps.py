@@ -128,11 +128,11 @@ def _paste(res, pixels):
 def _end_to_end(rec, device: str) -> dict:
     """``reconstruct`` of the specular sphere from its file, per solver (fresh store: no cache)."""
     from pipeline.reconstruct import reconstruct
-    from pipeline.store import write_record
+    from pipeline.base.capture import write_capture
 
     res = {}
     with tempfile.TemporaryDirectory() as tmp:
-        path = write_record(Path(tmp) / "capture.h5", rec)
+        path = write_capture(Path(tmp) / "capture.h5", rec)
         for solver in ("lstsq", "robust"):
             t = time.perf_counter()
             r = reconstruct(path, solver=solver, integrator="dst", out=Path(tmp) / solver, store=Path(tmp) / "cache",

@@ -15,6 +15,10 @@ One module per solver, all batched over pixels in torch (``device=`` picks CPU o
 - :class:`PixelMask`, :func:`masked_solve`: every solver's ``mask=`` (gather the masked pixels,
   solve them, scatter back with the rest invalid).
 
+:func:`pipeline.normals.solve.solve_capture` solves a capture's frame stack with the solver
+a name picks from the registry (:data:`pipeline.base.registry.SOLVERS`), where a new solver
+is registered.
+
 Observations are ``(N_obs, H, W)`` (patterns x channels flattened), lights ``(N_obs, 3)`` or
 ``(N_obs, H, W, 3)``. Every result is a :class:`NormalResult` with finite arrays.
 """
@@ -30,7 +34,4 @@ from pipeline.normals.robust_irls import solve_robust_irls
 
 __all__ = ["NormalResult", "FarFieldSolver", "solve_farfield", "NearFieldSolver", "solve_nearfield",
            "solve_robust", "solve_robust_irls", "LUTSolver", "solve_lut", "ratio_to_reference", "PixelMask",
-           "masked_solve", "SOLVERS"]
-
-#: Solver names accepted by the CLI and :func:`pipeline.reconstruct.reconstruct`.
-SOLVERS = ("lstsq", "nearfield", "robust", "cauchy", "lut")
+           "masked_solve"]

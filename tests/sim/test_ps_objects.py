@@ -12,7 +12,7 @@ import torch
 from scipy.ndimage import map_coordinates
 
 from helpers import run_cli
-from pipeline.store import read_record, write_record
+from pipeline.base.store import read_record, write_record
 from sim.far_field import dome_lights, far_field_illumination, far_field_visibility
 from sim.ps_objects import bumpy_object, render_ps_capture, sphere_object
 from sim.render import RenderSettings, Renderer
