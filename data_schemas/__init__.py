@@ -9,6 +9,10 @@ Three extension keywords sit beside the JSON Schema keywords of a stage schema:
 
 ``x-version``
     The layout's version, written into every file; bump it when the layout changes.
+``x-reads``
+    Optional: the versions this package still reads (default: only ``x-version``), for a
+    change that only relaxed the layout (e.g. capture version 2 made ``reference`` optional,
+    so a version-1 file is a valid version-2 file).
 ``x-dims``
     Symbolic shapes such as ``{"frames": ["K", "P", "H", "W", "C"]}``: a symbol must take
     the same value in every dataset it appears in, an integer must match exactly, ``"*"``
@@ -40,6 +44,7 @@ __all__ = [
     "stage_schema_names",
     "config_schema_names",
     "schema_version",
+    "readable_versions",
     "validate_description",
     "check_dims",
     "validate_config",
@@ -107,6 +112,19 @@ def config_schema_names() -> list[str]:
 def schema_version(name: str) -> int:
     """``x-version`` of a stage schema."""
     return int(stage_schema(name).get("x-version", 1))
+
+
+def readable_versions(name: str) -> tuple[int, ...]:
+    """The file versions of stage schema ``name`` that this package reads (``x-reads``, else
+    just ``x-version``).
+
+    Examples
+    --------
+    >>> readable_versions("capture")
+    (1, 2)
+    """
+    s = stage_schema(name)
+    return tuple(int(v) for v in s.get("x-reads", [s.get("x-version", 1)]))
 
 
 def _path_of(error: jsonschema.ValidationError) -> str:

@@ -8,6 +8,12 @@ through the stage store: the same keys ``iristac run`` and ``iristac batch`` use
 repeated call, or work ``run`` already did, is a cache hit. It copies both results to the
 output folder and writes a normal-map PNG, a colour-mapped depth PNG and a PLY point cloud
 per contact instance.
+
+Where to solve: the capture's ``mask`` dataset (an object's silhouette, e.g. DiLiGenT's), or a
+user's ``mask=`` (a PNG/NPY file or an array), which replaces it
+(:func:`pipeline.stages.normals.capture_region`). Only those pixels are read out of the
+frames, solved and integrated (rectangular integrators on the mask's bounding box); every
+pixel outside is invalid in the outputs (:mod:`pipeline.normals.masking`).
 """
 
 from __future__ import annotations
@@ -55,7 +61,7 @@ def _read(path_or_record, schema: str):
 def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "lstsq", integrator: str = "dst",
                 out=None, store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu",
                 dtype="float32", threads: int | None = 1, images: bool = True, force: bool = False,
-                compile: bool = False, heal: bool = True) -> ReconstructResult:
+                compile: bool = False, heal: bool = True, mask=None) -> ReconstructResult:
     """Normals and depth of a capture, through the stage store.
 
     Parameters
@@ -66,7 +72,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         The light model (at most one; see :func:`pipeline.stages.normals.load_lights`).
     solver : str
         A name in :data:`pipeline.base.registry.SOLVERS` (``lstsq``, ``nearfield``, ``robust``,
-        ``lut``).
+        ``cauchy``, ``lut``).
     integrator : str
         A name in :data:`pipeline.base.registry.INTEGRATORS` (``fc``, ``dct``, ``dst``, ``sparse``).
     out : path, optional
@@ -91,6 +97,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     heal : bool
         A corrupt or schema-violating cache entry is quarantined, reported in one warning
         line and recomputed (False: it is an error, as ``--no-heal``).
+    mask : path or ndarray, shape (H, W), optional
+        Reconstruct only these pixels (a ``.png``/``.npy`` file, non-zero inside, or an array),
+        instead of the capture's own ``mask`` dataset (or every pixel when it has none).
 
     Returns
     -------
@@ -109,21 +118,24 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     cal = None if calibration is None else _read(calibration, "calibration")
     ill = None if illumination is None else _read(illumination, "illumination")
     lights = normals_stage.load_lights(cap, cal, ill)
-    if ratio and cap.meta.get("has_reference", True) is False:
-        raise UserError(f"{cap.path}: --ratio needs no-contact reference frames; this capture has none "
-                        f"(source {cap.meta.get('source')!r})")
+    if ratio and normals_stage.reference_frames(cap) is None:
+        raise UserError(f"{cap.path}: --ratio needs no-contact reference frames (dataset 'reference'); this "
+                        f"capture has none (source {cap.meta.get('source')!r})")
+    region = normals_stage.capture_region(cap, mask)
+    user_region = None if mask is None else region  # the capture's own mask is part of its identity
     mm_per_px = float(cap.meta["mm_per_px"])
     store = store if isinstance(store, StageStore) else StageStore(store)
     n_rec, n_key, n_cached = normals_stage.run(
         store, cap, capture_stage.capture_key(store, cap), lights, solver=solver, ratio=ratio,
         max_condition=max_condition, device=device, dtype=dtype, threads=threads, compile=compile, force=force,
-        heal=heal)
-    d_rec, _, d_cached = depth_stage.run(store, n_rec, n_key, integrator=integrator, force=force, heal=heal)
+        heal=heal, mask=user_region)
+    d_rec, _, d_cached = depth_stage.run(store, n_rec, n_key, integrator=integrator, force=force, heal=heal,
+                                         region=region)
     seconds = time.perf_counter() - t0
     summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": round(seconds, 4),
                                "valid_fraction": float(np.asarray(n_rec.data["mask"]).mean()),
                                "cached": bool(n_cached and d_cached)}
-    summary.update(_truth_errors(cap, n_rec, d_rec))
+    summary.update(_truth_errors(cap, n_rec, d_rec, region))
     files: list[Path] = []
     if out is not None:
         files = _write_outputs(Path(out), n_rec, d_rec, mm_per_px, images)
@@ -131,12 +143,12 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     return ReconstructResult(normals=n_rec, depth=d_rec, summary=summary, files=files)
 
 
-def _truth_errors(cap, n_rec, d_rec) -> dict:
-    """Mean normal error (deg) and depth RMSE (mm) against the capture's truth, if any."""
+def _truth_errors(cap, n_rec, d_rec, region=None) -> dict:
+    """Mean normal error (deg) and depth RMSE (mm) against the capture's truth, if any, over
+    ``region`` (the solved mask; None: every pixel)."""
     from pipeline.evaluate import normal_error_stats
 
     out: dict[str, float] = {}
-    region = cap.data.get("mask")  # an object mask (DiLiGenT); tactile captures use every pixel
     if "truth/normals" in cap.data:
         gt = cap.data["truth/normals"]
         errs = []

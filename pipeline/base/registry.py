@@ -17,7 +17,7 @@ Lighting modes are data, not code: a built-in mode registers by its YAML file in
 Examples
 --------
 >>> SOLVERS.names()
-('lstsq', 'nearfield', 'robust', 'lut')
+('lstsq', 'nearfield', 'robust', 'cauchy', 'lut')
 >>> INTEGRATORS.check("dst")
 'dst'
 >>> INTEGRATORS.check("poisson")
@@ -131,7 +131,8 @@ class Registry:
 #: :func:`pipeline.normals.solve.solve_capture`). ``info["needs"]``: the lights the solver
 #: uses (``vectors``: far-field vectors or a light field, ``field``: per-pixel light
 #: vectors, ``table``: a lookup table); ``info["patterns"]``: ``any``, or ``one-rgb`` for a
-#: solver that reads one RGB frame per contact.
+#: solver that reads one RGB frame per contact; ``info["variant"]``: an alternative that
+#: comparisons leave out unless asked for by name.
 SOLVERS = Registry("solver", "--solver", [
     Entry("lstsq", "pipeline.normals.solve:solve_lstsq",
           "far field (Woodham): one light vector per observation, else the light field at the image centre",
@@ -140,8 +141,12 @@ SOLVERS = Registry("solver", "--solver", [
           "per-pixel light vectors (an illumination model or a calibrated light field)",
           {"needs": "field", "patterns": "any"}),
     Entry("robust", "pipeline.normals.solve:solve_robust",
-          "excludes dark and saturated observations (light field if present, else far field)",
+          "shadows and highlights modelled: attached shadows from the light matrix, highlights above and cast "
+          "shadows below the Lambertian prediction rejected (Tukey IRLS); light field if present, else far field",
           {"needs": "vectors", "patterns": "any"}),
+    Entry("cauchy", "pipeline.normals.solve:solve_cauchy",
+          "the earlier robust solver: dark and saturated observations excluded, trimmed start, Cauchy IRLS",
+          {"needs": "vectors", "patterns": "any", "variant": True}),
     Entry("lut", "pipeline.normals.solve:solve_lut",
           "the calibration's colour lookup table (one RGB pattern)",
           {"needs": "table", "patterns": "one-rgb"}),

@@ -377,9 +377,11 @@ def read_record(path: str | os.PathLike, schema: str | None = None, *, load: boo
         known = data_schemas.schema_version(found)
     except data_schemas.SchemaError as exc:
         raise StoreError(path, str(exc)) from None
-    if int(provenance["iristac_schema_version"]) != known:
+    readable = data_schemas.readable_versions(found)
+    if int(provenance["iristac_schema_version"]) not in readable:
         raise StoreError(path, f"schema {found!r} version {provenance['iristac_schema_version']} "
-                               f"but this package reads version {known}; recompute it")
+                               f"but this package reads version {' or '.join(map(str, readable))} "
+                               f"(writes {known}); recompute it")
     try:
         data_schemas.validate_description(found, description, str(path))
     except data_schemas.SchemaError as exc:

@@ -26,6 +26,12 @@ def add_solver_flags(parser, *, solver: bool = True, integrator: bool = True) ->
                             help=f"depth integrator (default dst): {INTEGRATORS.help()}")
 
 
+def add_mask_flag(parser) -> None:
+    """``--mask FILE``: the pixels to reconstruct (``reconstruct``, ``batch``)."""
+    parser.add_argument("--mask", metavar="FILE.png",
+                        help="reconstruct only these pixels (PNG/NPY, non-zero inside; replaces the capture's mask)")
+
+
 def mode_help(what: str = "lighting mode") -> str:
     """Help text naming the built-in lighting modes (:func:`pipeline.base.registry.list_modes`)."""
     from pipeline.base.registry import list_modes

@@ -120,12 +120,17 @@ def divergence_neumann(gc, gr):
 def anchor_to_border(h, mask):
     """Shift ``h`` so the median height of valid pixels on the image border is zero.
 
-    The gel is flat away from contact, so the border is the natural zero; when no border
-    pixel is valid the median over all valid pixels is used instead.
+    The gel is flat away from contact, so the border is the natural zero. When no border
+    pixel is valid (an object inside the frame, solved on its mask) the valid region's own
+    rim is used: the valid pixels with an invalid 4-neighbour (an object resting on a table
+    meets it at height 0 along its silhouette).
     """
     border = np.zeros(h.shape, dtype=bool)
     border[0, :] = border[-1, :] = border[:, 0] = border[:, -1] = True
     ref = mask & border
+    if not ref.any():
+        p = np.pad(mask, 1)
+        ref = mask & ~(p[:-2, 1:-1] & p[2:, 1:-1] & p[1:-1, :-2] & p[1:-1, 2:])
     if not ref.any():
         ref = mask
     if not ref.any():

@@ -11,8 +11,11 @@ the solver's adapter. Each adapter below turns the stack into the solver's obser
   with ``compile``;
 - :func:`solve_nearfield`: per-pixel light vectors (divided by the flat field first when the
   lights have one);
-- :func:`solve_robust`: the light field if present, else the far field; dark values (within
-  ``dark_threshold`` of the dark level) and saturated raw values are excluded;
+- :func:`solve_robust` (``robust``, :func:`pipeline.normals.robust_irls.solve_robust_irls`:
+  explicit shadow and highlight models) and :func:`solve_cauchy` (``cauchy``, the earlier
+  robust solver :func:`pipeline.normals.robust.solve_robust`): the light field if present, else
+  the far field; dark values (within ``dark_threshold`` of the dark level) and saturated raw
+  values are excluded;
 - :func:`solve_lut`: the lookup table, one RGB pattern per contact.
 
 A new solver is its module in ``pipeline/normals/`` plus an adapter with the signature of
@@ -30,8 +33,8 @@ import numpy as np
 from pipeline.base.errors import UserError
 from pipeline.base.registry import SOLVERS
 
-__all__ = ["LightSource", "solve_capture", "solve_lstsq", "solve_nearfield", "solve_robust", "solve_lut",
-           "applicable_solvers"]
+__all__ = ["LightSource", "solve_capture", "solve_lstsq", "solve_nearfield", "solve_robust", "solve_cauchy",
+           "solve_lut", "applicable_solvers"]
 
 
 @dataclass
@@ -73,9 +76,10 @@ class LightSource:
         return out
 
 
-def applicable_solvers(patterns: int, channels: int, kinds: set[str]) -> tuple[str, ...]:
+def applicable_solvers(patterns: int, channels: int, kinds: set[str], variants: bool = False) -> tuple[str, ...]:
     """The registered solvers that can solve ``patterns`` x ``channels`` observations with lights
-    offering ``kinds`` (:meth:`LightSource.kinds`), in registry order.
+    offering ``kinds`` (:meth:`LightSource.kinds`), in registry order; ``variants`` includes the
+    entries marked as alternatives (``info["variant"]``).
 
     Examples
     --------
@@ -85,6 +89,7 @@ def applicable_solvers(patterns: int, channels: int, kinds: set[str]) -> tuple[s
     ('lstsq', 'nearfield', 'robust', 'lut')
     """
     return tuple(e.name for e in SOLVERS if e.info.get("needs") in kinds
+                 and (variants or not e.info.get("variant"))
                  and (e.info.get("patterns", "any") != "one-rgb" or (patterns == 1 and channels == 3)))
 
 
@@ -101,6 +106,26 @@ def _check_lights(solver: str, lights: LightSource, P: int, C: int) -> None:
                         f"with light_field); {lights.source} has only far-field light vectors")
     if needs in ("vectors", "field") and lights.field is None and lights.far is None:
         raise UserError(f"--solver {solver} needs light vectors; {lights.source} has only a lookup table")
+    if needs in ("vectors", "field"):
+        _check_light_count(None if lights.far is None else lights.far.reshape(P * C, 3), P, C,
+                           lights.source or "the light source")
+
+
+def _check_light_count(far, P: int, C: int, source: str) -> None:
+    """One clear error when the lights cannot determine a normal anywhere: fewer than three
+    observations, or far-field light vectors ``far (P*C, 3)`` (None: per-pixel lights only)
+    that span fewer than three directions."""
+    if P * C < 3:
+        raise UserError(f"{source}: {P} pattern(s) x {C} channel(s) = {P * C} observations; photometric stereo "
+                        f"needs at least 3 lights")
+    if far is not None:
+        L = np.asarray(far)
+        ok = np.isfinite(L).all(-1)
+        sv = np.linalg.svd(L[ok].astype(np.float64), compute_uv=False) if ok.any() else np.zeros(1)
+        rank = int((sv > 1e-6 * sv.max()).sum()) if sv.max() > 0 else 0  # 1e-6: float32-stored lights
+        if rank < 3:
+            raise UserError(f"{source}: the {P * C} light vectors span {rank} independent direction(s); "
+                            f"photometric stereo needs at least 3 lights in different directions")
 
 
 def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", reference=None, saturated=None,
@@ -209,11 +234,24 @@ def solve_nearfield(frames, lights: LightSource, *, reference=None, ratio=False,
                         lambda obs, Lk: (prebuilt if prebuilt is not None else NearFieldSolver(Lk, **common)).solve(obs))
 
 
-def solve_robust(frames, lights: LightSource, *, reference=None, saturated=None, ratio=False, max_condition=1e3,
-                 dark_threshold=0.0, device="cpu", dtype="float32", **_) -> list:
-    """The light field if present, else the far field; dark and saturated values excluded."""
-    from pipeline.normals.robust import solve_robust as robust
+def solve_robust(frames, lights: LightSource, **options) -> list:
+    """Shadows and highlights modelled (:func:`pipeline.normals.robust_irls.solve_robust_irls`):
+    the light field if present, else the far field; dark and saturated values excluded."""
+    from pipeline.normals.robust_irls import solve_robust_irls
 
+    return _robust(solve_robust_irls, frames, lights, **options)
+
+
+def solve_cauchy(frames, lights: LightSource, **options) -> list:
+    """The earlier robust solver (:func:`pipeline.normals.robust.solve_robust`: trimmed start,
+    Cauchy IRLS), on the same observations as :func:`solve_robust`."""
+    from pipeline.normals.robust import solve_robust as cauchy
+
+    return _robust(cauchy, frames, lights, **options)
+
+
+def _robust(robust, frames, lights: LightSource, *, reference=None, saturated=None, ratio=False, max_condition=1e3,
+            dark_threshold=0.0, device="cpu", dtype="float32", **_) -> list:
     K, P, H, W, C = frames.shape
     L = lights.field.reshape(P * C, H, W, 3) if lights.field is not None else lights.far.reshape(P * C, 3)
     common = _common(C, P, max_condition, device, dtype)

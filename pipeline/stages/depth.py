@@ -18,7 +18,8 @@ from pipeline.stages.base import StageSpec
 
 __all__ = ["SPEC", "params", "compute", "run", "node"]
 
-SPEC = StageSpec("depth", version=1, schema="depth", defaults={"integrator": "dst"})
+SPEC = StageSpec("depth", version=2, schema="depth",  # 2: on the capture's mask (its bounding box)
+                 defaults={"integrator": "dst"})
 
 
 def params(integrator: str, mm_per_px: float | None) -> dict:
@@ -33,7 +34,7 @@ def params(integrator: str, mm_per_px: float | None) -> dict:
     return {"integrator": INTEGRATORS.check(integrator), "mm_per_px": None if mm_per_px is None else float(mm_per_px)}
 
 
-def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None):
+def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, region=None):
     """Integrate every instance of a ``normals`` record into a ``depth`` record (no caching).
 
     Parameters
@@ -44,6 +45,10 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None):
         A name in :data:`pipeline.base.registry.INTEGRATORS`.
     mm_per_px : float, optional
         The pitch the stage was keyed with; it must be the normals record's.
+    region : ndarray, shape (H, W), bool, optional
+        The solved region (:func:`pipeline.stages.normals.capture_region`): ``sparse``
+        integrates on it, the others on its bounding box (:func:`pipeline.depth.integrate`).
+        It is decided by the normals stage's inputs, so it needs no key of its own.
 
     Returns
     -------
@@ -58,7 +63,7 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None):
     if mm_per_px is not None and not np.isclose(pitch, mm_per_px, rtol=1e-9, atol=0.0):
         raise UserError(f"depth: the normals are at {pitch} mm/px but the stage was keyed with {mm_per_px} "
                         f"(the capture's pitch differs from its config section's)")
-    outs = [integrate(n_rec.data["normals"][k], pitch, n_rec.data["mask"][k], method=integrator)
+    outs = [integrate(n_rec.data["normals"][k], pitch, n_rec.data["mask"][k], method=integrator, region=region)
             for k in range(n_rec.data["normals"].shape[0])]
     data = {"height": np.stack([o.height for o in outs]), "mask": np.stack([o.mask for o in outs])}
     meta: dict[str, Any] = {"integrator": integrator, "mm_per_px": pitch}
@@ -67,11 +72,12 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None):
     return Record("depth", data, meta)
 
 
-def run(store, n_rec, n_key, *, integrator: str = "dst", force: bool = False, heal: bool = True):
-    """``(record, key, cached)`` of the depth of ``n_rec`` (identified by ``n_key``) through ``store``."""
+def run(store, n_rec, n_key, *, integrator: str = "dst", force: bool = False, heal: bool = True, region=None):
+    """``(record, key, cached)`` of the depth of ``n_rec`` (identified by ``n_key``) through
+    ``store``, integrated on ``region`` (see :func:`compute`)."""
     mm = float(n_rec.meta["mm_per_px"])
     return SPEC.get_or_compute(store, params(integrator, mm), [n_key],
-                               lambda: compute(n_rec, integrator, mm), force=force, heal=heal)
+                               lambda: compute(n_rec, integrator, mm, region), force=force, heal=heal)
 
 
 def node(config: Mapping[str, Any], ctx):

@@ -20,6 +20,7 @@ MU = 2e5
 ON = {
     "depth_field": dict(depth_field=True),
     "attached_shadows": dict(attached_shadows=True),
+    "specular": dict(specular=0.04, roughness=0.3),
     "cast_shadows": dict(cast_shadows=True),
     "crosstalk": dict(crosstalk=[[0.9, 0.1, 0.0], [0.05, 0.9, 0.05], [0.0, 0.2, 0.8]]),
     "vignetting": dict(vignetting=0.5),
@@ -31,7 +32,8 @@ ON = {
     "quantization": dict(bit_depth=8),
 }
 # The function that does each effect's work; patched to raise when the effect is off.
-WORKER = {"depth_field": "_depth_field", "cast_shadows": "_cast_visibility", "vignetting": "_make_vignette",
+WORKER = {"depth_field": "_depth_field", "specular": "_specular_lobe", "cast_shadows": "_cast_visibility",
+          "vignetting": "_make_vignette",
           "distortion": "_make_distortion_grid"}
 
 
