@@ -39,6 +39,9 @@ class Capture:
         ``{"center_xy": (K, 2), "radius_px": (K,)}`` hand labels (comparison only).
     truth : dict, optional
         ``{"height": (K, H, W), "normals": (K, H, W, 3)}`` for rendered captures.
+    markers : ndarray, shape (H, W), bool, optional
+        Printed gel markers (:mod:`calibration.markers`): filled in before normals are solved,
+        left out of calibration samples, False in validity masks.
     meta : dict
         Other attributes (``source``, ``pattern_names``, ``bit_depth`` ...).
     """
@@ -52,6 +55,7 @@ class Capture:
     labels: dict[str, np.ndarray] | None = None
     truth: dict[str, np.ndarray] | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    markers: np.ndarray | None = None
 
     def __post_init__(self):
         f = np.asarray(self.frames)
@@ -68,6 +72,11 @@ class Capture:
             raise UserError(f"capture: brightness must have shape ({f.shape[1]},) (P,), got {b.shape}")
         if self.dark is not None and np.asarray(self.dark).shape != f.shape[2:]:
             raise UserError(f"capture: dark must have shape {f.shape[2:]} (H, W, C), got {np.asarray(self.dark).shape}")
+        if self.markers is not None:
+            if np.asarray(self.markers).shape != f.shape[2:4]:
+                raise UserError(f"capture: markers must have shape {f.shape[2:4]} (H, W), got "
+                                f"{np.asarray(self.markers).shape}")
+            self.markers = np.asarray(self.markers).astype(bool)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -84,7 +93,7 @@ class Capture:
         return frames, ref
 
 
-_OPTIONAL = {"labels/center_xy", "labels/radius_px", "truth/height", "truth/normals", "truth/albedo", "dark"}
+_OPTIONAL = {"labels/center_xy", "labels/radius_px", "truth/height", "truth/normals", "truth/albedo", "dark", "markers"}
 
 
 def write_capture(path: str | Path, cap: Capture) -> Path:
@@ -100,6 +109,8 @@ def write_capture(path: str | Path, cap: Capture) -> Path:
     }
     if cap.dark is not None:
         data["dark"] = np.asarray(cap.dark)
+    if cap.markers is not None:
+        data["markers"] = np.asarray(cap.markers).astype(np.uint8)
     for group, arrays in (("labels", cap.labels), ("truth", cap.truth)):
         for k, v in (arrays or {}).items():
             data[f"{group}/{k}"] = np.asarray(v)
@@ -132,6 +143,6 @@ def read_capture(path: str | Path) -> Capture:
     try:
         return Capture(frames=frames, reference=data["reference"], drive=drive, brightness=brightness,
                        mm_per_px=None if mm is None else float(mm), dark=data.get("dark"), labels=labels,
-                       truth=truth, meta=meta)
+                       truth=truth, meta=meta, markers=data.get("markers"))
     except UserError as exc:
         raise UserError(f"{path}: {exc}") from None

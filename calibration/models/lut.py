@@ -36,7 +36,10 @@ class LookupTable:
         Bins with a value (measured or hole-filled).
     """
 
-    def __init__(self, reference: np.ndarray, lo: np.ndarray, hi: np.ndarray, table: np.ndarray, filled: np.ndarray):
+    def __init__(self, reference: np.ndarray, lo: np.ndarray, hi: np.ndarray, table: np.ndarray, filled: np.ndarray,
+                 support: np.ndarray | None = None):
+        # support (B, B, B): smoothed count of training samples per bin (None: 1 where filled).
+        self.support = np.asarray(filled, np.float32) if support is None else np.asarray(support, np.float32)
         self.reference = np.asarray(reference, dtype=np.float32)
         self.lo = np.asarray(lo, dtype=np.float64)
         self.hi = np.asarray(hi, dtype=np.float64)
@@ -88,14 +91,22 @@ class LookupTable:
         g = np.where(valid[..., None], self.table[i, j, k], 0.0).astype(np.float32)
         return g, valid
 
+    def confidence_diff(self, diff: np.ndarray) -> np.ndarray:
+        """``support / (support + 1)`` of the bins of colour changes ``diff (..., 3)``: near 1 in
+        well-sampled bins, small in sparsely sampled or hole-filled ones, 0 outside the table."""
+        idx, inside = self._index(np.asarray(diff, dtype=np.float64))
+        sup = self.support[idx[..., 0], idx[..., 1], idx[..., 2]]
+        return np.where(inside & self.filled[idx[..., 0], idx[..., 1], idx[..., 2]], sup / (sup + 1.0), 0.0)
+
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Arrays for calibration.h5 (inverse: :meth:`from_arrays`)."""
         return {"reference": self.reference, "lo": self.lo, "hi": self.hi, "table": self.table,
-                "filled": self.filled}
+                "filled": self.filled, "support": self.support}
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "LookupTable":
-        return cls(arrays["reference"], arrays["lo"], arrays["hi"], arrays["table"], arrays["filled"])
+        return cls(arrays["reference"], arrays["lo"], arrays["hi"], arrays["table"], arrays["filled"],
+                   arrays.get("support"))
 
     @classmethod
     def build(cls, diff: np.ndarray, gradients: np.ndarray, reference: np.ndarray, bins: int = 32,
@@ -145,7 +156,8 @@ class LookupTable:
         report = {"bins": bins, "bins_measured": int(has.sum()), "bins_filled": int(filled.sum()),
                   "bins_total": bins ** 3, "samples_in_range": float(inside.mean()),
                   "fill_radius_bins": fill_radius_bins, "smooth_bins": smooth_bins}
-        return cls(reference, lut.lo, lut.hi, table, filled), report
+        support = np.where(filled, count_s, 0.0)
+        return cls(reference, lut.lo, lut.hi, table, filled, support), report
 
 
 class LUTModel(CalibrationModel):
@@ -173,9 +185,22 @@ class LUTModel(CalibrationModel):
         rep["coverage"] = self.coverage
         return rep
 
-    def predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray]:
-        g, ok = self.table.lookup_diff((samples.intensities - samples.reference)[:, 0])
-        return gradients_to_normals(g[:, 0], g[:, 1]), ok
+    confidence_meaning = "support / (support + 1), support the smoothed count of training samples in the pixel's bin"
+
+    def _predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        diff = (samples.intensities - samples.reference)[:, 0]
+        g, ok = self.table.lookup_diff(diff)
+        return gradients_to_normals(g[:, 0], g[:, 1]), ok, self.table.confidence_diff(diff)
+
+    def stored_reference(self) -> np.ndarray | None:
+        return None if self.table is None else self.table.reference[None]
 
     def to_arrays(self) -> dict[str, np.ndarray]:
         return self.table.to_arrays()
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "LUTModel":
+        """A fitted model from :meth:`to_arrays`' output."""
+        model = cls(bins=int(np.asarray(arrays["table"]).shape[0]))
+        model.table = LookupTable.from_arrays(arrays)
+        return model
