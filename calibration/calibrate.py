@@ -162,6 +162,8 @@ class CalibrationResult:
             "circle_columns": list(CIRCLE_COLUMNS),
             "circle_reasons": [c.reason for c in self.circles],
             "validation": {k: r for k, r in self.reports.items()},
+            # How the circles were found, so that a test capture's truth is found the same way.
+            "circle_settings": self.meta.get("circle_settings", {}),
             "summary": {k: v for k, v in self.summary().items() if k != "circles"},
         }
         meta = json.loads(json.dumps(meta, default=float))
@@ -520,4 +522,8 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
                              num_patterns=int(frames.shape[1]), num_channels=int(frames.shape[4]),
                              light_rank_ratio=rank,
                              meta={"detect_seconds": t_detect, "refine": refine_report, "samples": len(samples),
-                                   "contact_samples": int(samples.contact.sum())}, markers=found.markers)
+                                   "contact_samples": int(samples.contact.sum()),
+                                   "circle_settings": {"refine_model": refine_report["model"],
+                                                       "refine_iterations": int(refine_iterations),
+                                                       "shrink_px": float(shrink_px), "folds": int(folds)}},
+                             markers=found.markers)

@@ -82,6 +82,26 @@ class Capture:
     def shape(self) -> tuple[int, int]:
         return int(self.frames.shape[2]), int(self.frames.shape[3])
 
+    def select(self, presses) -> "Capture":
+        """The capture restricted to some presses (index array or slice), reference and all else shared.
+
+        Examples
+        --------
+        >>> cap = Capture(np.zeros((5, 1, 2, 2, 3)), np.zeros((1, 2, 2, 3)), np.ones((1, 1, 3)), np.ones(1))
+        >>> cap.select(slice(0, 3)).frames.shape
+        (3, 1, 2, 2, 3)
+        """
+        idx = np.arange(self.frames.shape[0])[presses]
+        sub = {k: np.asarray(v)[idx] for k, v in (self.labels or {}).items()} or None
+        truth = {k: (np.asarray(v)[idx] if np.asarray(v).ndim and k != "albedo" else v)
+                 for k, v in (self.truth or {}).items()} or None
+        meta = dict(self.meta)
+        if isinstance(meta.get("frame_names"), list) and len(meta["frame_names"]) == self.frames.shape[0]:
+            meta["frame_names"] = [meta["frame_names"][i] for i in idx]
+        return Capture(frames=np.asarray(self.frames)[idx], reference=self.reference, drive=self.drive,
+                       brightness=self.brightness, mm_per_px=self.mm_per_px, dark=self.dark, labels=sub, truth=truth,
+                       meta=meta, markers=self.markers)
+
     def linear(self) -> tuple[np.ndarray, np.ndarray]:
         """Frames ``(K, P, H, W, C)`` and reference ``(P, H, W, C)`` as float32, dark level removed."""
         frames = np.asarray(self.frames, dtype=np.float32)

@@ -84,7 +84,7 @@ def _ball_fits(models, found, ball_radius_mm: float, depths: list[float | None],
     for name, model in models.items():
         per = []
         t = time.perf_counter()
-        maps = model.normal_maps(found.frames, found.reference)
+        maps = model.normal_maps(found.frames, found.reference, markers=found.markers)
         for k in range(len(found.frames)):
             r = ball_fit(maps.normals[k], found.mm_per_px, ball_radius_mm, mask=maps.mask[k], level=level,
                          true_depth_mm=depths[k])
@@ -103,14 +103,18 @@ def _press_depths(cap: Capture, circles: list[Circle], ball_radius_mm: float, mm
     """Each press's depth: from rendered truth when the capture has it, else from the detected radius."""
     if cap.truth and "height" in cap.truth:
         return [float(np.max(h)) for h in np.asarray(cap.truth["height"])], "truth/height maximum"
-    # The contact radius the calibration's truth uses (the detected radius, clamped below the ball).
-    return ([sphere_depth_mm(ball_radius_mm, c.contact_radius_px * mm_per_px) if c.accepted else None
-             for c in circles], "R - sqrt(R^2 - a^2), a the detected contact radius (clamped to 0.95 R)")
+    # The detected radius, not the truth's clamped one: a visible edge at or beyond the ball's
+    # radius means a press about as deep as the ball's equator (depth ~ R), whatever the truth
+    # disc keeps for safety.
+    return ([sphere_depth_mm(ball_radius_mm, c.radius_px * mm_per_px) if c.accepted else None for c in circles],
+            "R - sqrt(R^2 - a^2), a the detected contact radius capped at R")
 
 
 def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None = None, *,
                          mm_per_px: float | None = None, models: list[str] | None = None, ball_level: float = 0.5,
-                         refine_iterations: int = 2, shrink_px: float = 2.0, folds: int = 5) -> dict[str, Any]:
+                         refine_iterations: int | None = None, refine_model: str | None = None,
+                         shrink_px: float | None = None, folds: int | None = None, circles=None,
+                         markers=None) -> dict[str, Any]:
     """Every model of a calibration applied to presses it never saw.
 
     Parameters
@@ -128,8 +132,15 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         Names to evaluate (default: all in the calibration).
     ball_level : float
         Fraction of the peak height fitted by the ball check (:func:`calibration.ballfit.cap_region`).
-    refine_iterations, shrink_px, folds
-        How the test capture's circles are found (:func:`calibration.calibrate.find_circles`).
+    refine_iterations, refine_model, shrink_px, folds
+        How the test capture's circles are found (:func:`calibration.calibrate.find_circles`);
+        default: as the calibration found its own (its ``circle_settings``), else 2 passes of
+        the ``auto`` model, 2 px, 5 folds.
+    circles : CircleFit, optional
+        The test capture's circles from an earlier ``find_circles`` call with the same
+        settings (reused instead of found again: benchmarks evaluate many calibrations).
+    markers : None, "none", "auto", a mask image path or an (H, W) bool array
+        Printed gel markers; None: the test capture's own, else the calibration's.
 
     Returns
     -------
@@ -151,7 +162,8 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     elif hasattr(calibration, "models") and hasattr(calibration, "reports"):  # a CalibrationResult
         loaded = dict(calibration.models)
         meta = {"validation": calibration.reports, "ball_radius_mm": calibration.ball_radius_mm,
-                "mm_per_px": calibration.mm_per_px}
+                "mm_per_px": calibration.mm_per_px, "markers": calibration.markers,
+                "circle_settings": calibration.meta.get("circle_settings", {})}
     else:
         loaded = dict(calibration)
     if models:
@@ -177,8 +189,16 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     if shape is not None and tuple(shape) != cap.shape:
         raise UserError(f"{src}: frames are {cap.shape[0]}x{cap.shape[1]} px, the calibration was made at "
                         f"{shape[0]}x{shape[1]} px")
-    found = find_circles(cap, float(radius), mm, refine_iterations=refine_iterations, shrink_px=shrink_px,
-                         folds=folds)
+    if markers is None and cap.markers is None:
+        markers = meta.get("markers")
+    cs = meta.get("circle_settings") or {}
+    refine_iterations = int(cs.get("refine_iterations", 2)) if refine_iterations is None else refine_iterations
+    refine_model = cs.get("refine_model", "auto") if refine_model is None else refine_model
+    shrink_px = float(cs.get("shrink_px", 2.0)) if shrink_px is None else shrink_px
+    folds = int(cs.get("folds", 5)) if folds is None else folds
+    found = circles if circles is not None else find_circles(
+        cap, float(radius), mm, refine_iterations=refine_iterations, refine_model=refine_model, shrink_px=shrink_px,
+        folds=folds, markers=markers)
     det = evaluate_models(loaded, found.samples)
     cv = {k: (v.get("cv") or {}).get("cv_mean_angular_error_deg")
           for k, v in (meta.get("validation") or {}).items() if isinstance(v, dict)}
@@ -192,7 +212,8 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
                          if gap is not None and abs(gap) > CV_GAP_WARN_DEG else None)
     truth: dict[str, Any] = {"detected": {
         "method": "edge detector + photometric centre refinement cross-fitted on the test presses "
-                  f"({found.refine.get('model')} model, {refine_iterations} passes); never the calibration's models",
+                  f"({found.refine.get('model')} model, {found.refine.get('iterations')} passes), as the calibration "
+                  "found its own; never the calibration's models",
         "circles": [c.to_dict() for c in found.circles]}}
     if cap.labels and "center_xy" in cap.labels and "radius_px" in cap.labels:
         circles = label_circles(cap.labels["center_xy"], cap.labels["radius_px"], float(radius) / found.mm_per_px)

@@ -61,10 +61,13 @@ class StoredLightField(LightFieldModel):
 
 
 def load_calibration(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
-    """``(models, meta)`` of a calibration.h5: name -> fitted model, and the file's attributes."""
+    """``(models, meta)`` of a calibration.h5: name -> fitted model, and the file's attributes
+    (plus ``meta["markers"]``, an (H, W) bool array, when the calibration has a marker mask)."""
     from calibration import h5io
 
     data, meta = h5io.read(path, "calibration")
+    if "markers" in data:  # the printed gel markers the calibration filled in (CalibrationResult.markers)
+        meta["markers"] = np.asarray(data["markers"]).astype(bool)
     groups: dict[str, dict[str, np.ndarray]] = {}
     for key, arr in data.items():
         if key.startswith("models/"):
