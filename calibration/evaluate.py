@@ -159,6 +159,8 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     meta: dict[str, Any] = {}
     if isinstance(calibration, (str, Path)):
         loaded, meta = load_calibration(calibration)
+        order = list(meta.get("models") or [])  # the order calibrate fitted them in
+        loaded = dict(sorted(loaded.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
     elif hasattr(calibration, "models") and hasattr(calibration, "reports"):  # a CalibrationResult
         loaded = dict(calibration.models)
         meta = {"validation": calibration.reports, "ball_radius_mm": calibration.ball_radius_mm,
