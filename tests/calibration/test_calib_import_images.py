@@ -196,3 +196,30 @@ def test_no_output_when_the_source_is_bad(tmp_path):
     source, extra, _ = _bad(tmp_path, "size")
     r = run_cli("import", "images", source, "--out", tmp_path / "new.h5", "--mm-per-px", "0.1", *extra)
     assert r.returncode == 2 and not (tmp_path / "new.h5").exists()
+
+
+def test_markers_auto_on_import_and_a_bad_mask(tmp_path):
+    """--markers auto stores the dark dots of the reference; a mask of the wrong size is one clear error."""
+    from calibration.capture import read_capture
+    from calibration.markers import draw_markers
+
+    folder = tmp_path / "dots"
+    folder.mkdir()
+    yy, xx = np.mgrid[:48, :64]
+    gel = np.stack([120 + xx, 90 + yy, 140 - xx // 2], -1).astype(np.uint8)  # uneven light
+    for k in range(4):
+        img = gel.copy()
+        if k:
+            img[10:20, 8 + 14 * k: 16 + 14 * k] = (40, 160, 200)
+        marked, truth = draw_markers(img, spacing_px=10.0, radius_px=1.5, offset_px=(5.0, 5.0))
+        _write_rgb(folder / f"f{k}.png", marked)
+    out = tmp_path / "cap.h5"
+    r = run_cli("import", "images", folder, "--out", out, "--mm-per-px", "0.1", "--reference", "f0", "--markers",
+                "auto", "--json")
+    assert r.returncode == 0, r.stderr
+    cap = read_capture(out)
+    assert cap.markers is not None and cap.markers[truth].mean() > 0.95 and json.loads(r.stdout)["markers"] > 0
+    bad = tmp_path / "mask.png"
+    assert cv2.imwrite(str(bad), np.zeros((10, 10), np.uint8))
+    r = run_cli("calibrate", out, "--ball-radius", "1", "--markers", bad, "--out", tmp_path / "cal.h5")
+    assert r.returncode == 2 and "mask.png" in r.stderr and "10x10" in r.stderr and "Traceback" not in r.stderr
