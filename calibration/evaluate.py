@@ -86,7 +86,10 @@ def _ball_fits(models, found, ball_radius_mm: float, depths: list[float | None],
         t = time.perf_counter()
         maps = model.normal_maps(found.frames, found.reference, markers=found.markers)
         for k in range(len(found.frames)):
-            r = ball_fit(maps.normals[k], found.mm_per_px, ball_radius_mm, mask=maps.mask[k], level=level,
+            # Filled-in marker pixels are guesses (False in the mask) but good enough to integrate
+            # through: treating them as flat gel would dent every cap they cross.
+            usable = maps.mask[k] if maps.filled is None else maps.mask[k] | maps.filled
+            r = ball_fit(maps.normals[k], found.mm_per_px, ball_radius_mm, mask=usable, level=level,
                          true_depth_mm=depths[k])
             per.append({"press": k, **r})
         rad = [abs(p["radius_error"]) for p in per if p["radius_error"] is not None]

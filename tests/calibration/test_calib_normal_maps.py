@@ -69,7 +69,7 @@ def test_markers_are_filled_and_masked(fitted):
     ref_m, _ = draw_markers(ref, spacing_px=9.0, radius_px=1.2)
     clean = res.models["near"].normal_maps(frames[:2], ref)
     nm = res.models["near"].normal_maps(marked, ref_m, markers=mask)
-    assert not nm.mask[:, mask].any() and nm.meta["markers"] == int(mask.sum())
+    assert not nm.mask[:, mask].any() and nm.meta["markers"] == int(mask.sum()) and (nm.filled == mask).all()
     # Filled-in markers stay close to the marker-free prediction (they are interpolated, not dark).
     err = np.degrees(np.arccos(np.clip(np.sum(nm.normals * clean.normals, -1), -1, 1)))
     assert np.median(err[:, mask]) < 3.0
