@@ -247,3 +247,27 @@ def _check_compatible(models: dict[str, Any], cap: Capture, src: str) -> None:
             raise UserError(f"{src}: frames are {p} pattern(s) x {h}x{w} px x {c} channel(s), but the calibration's "
                             f"'{name}' model was made for {want[0]} x {want[1]}x{want[2]} px x {want[3]}; a "
                             "calibration holds for the sensor and image size it was made with")
+
+
+def format_report(result: dict[str, Any]) -> str:
+    """The human-readable table of :func:`evaluate_calibration`'s result."""
+    def f(v, spec=".2f", unit=""):
+        return "-" if v is None else f"{v:{spec}}{unit}"
+
+    lab = (result["truth"].get("labels") or {}).get("models", {})
+    lines = [f"{result['accepted']} of {result['presses']} test presses accepted",
+             f"  {'model':6s} {'test mean':>9s} {'median':>7s} {'p90':>6s} {'invalid':>7s} {'CV mean':>8s} "
+             f"{'labels':>7s} {'ball radius':>11s} {'depth':>7s}"]
+    for name, m in result["models"].items():
+        b = result["ball_fit"].get(name, {})
+        rad = None if b.get("radius_error_median") is None else 100 * b["radius_error_median"]
+        dep = None if b.get("depth_error_median") is None else 100 * b["depth_error_median"]
+        lines.append(f"  {name:6s} {f(m['mean_deg']):>9s} {f(m['median_deg']):>7s} {f(m['p90_deg']):>6s} "
+                     f"{f(m['invalid_fraction'], '.1%'):>7s} {f(m.get('cv_mean_deg')):>8s} "
+                     f"{f(lab.get(name, {}).get('mean_deg')):>7s} {f(rad, '.1f', ' %'):>11s} {f(dep, '.1f', ' %'):>7s}")
+    lines.append("  (degrees; test = against the test capture's own detected circles; labels = against its hand "
+                 "labels; ball radius/depth = median relative error of a sphere fitted to each reconstructed press)")
+    for name, m in result["models"].items():
+        if m.get("note"):
+            lines.append(f"  note: {name}: {m['note']}")
+    return "\n".join(lines)

@@ -53,6 +53,16 @@ def test_cv_and_test_agree_or_the_report_says_so(split):
         assert (abs(gap) > 2.0) == (r["note"] is not None), r
 
 
+def test_text_report_names_every_model_and_flags_gaps(split):
+    from calibration.evaluate import format_report
+
+    text = format_report(split["evaluation"])
+    assert "10 of 10 test presses accepted" in text
+    for r in split["rows"]:
+        assert f"  {r['model']:6s} {r['test_mean_deg']:9.2f}" in text
+        assert (f"note: {r['model']}:" in text) == (r["note"] is not None)
+
+
 def test_label_truth_is_reported_separately_with_its_bias(split):
     ev = split["evaluation"]
     lab = ev["truth"]["labels"]
