@@ -223,3 +223,20 @@ def test_markers_auto_on_import_and_a_bad_mask(tmp_path):
     assert cv2.imwrite(str(bad), np.zeros((10, 10), np.uint8))
     r = run_cli("calibrate", out, "--ball-radius", "1", "--markers", bad, "--out", tmp_path / "cal.h5")
     assert r.returncode == 2 and "mask.png" in r.stderr and "10x10" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_float_tiff_keeps_float_values(tmp_path):
+    from calibration.importers import load_images
+
+    folder = tmp_path / "tif"
+    folder.mkdir()
+    base = np.zeros((6, 8, 3), np.float32)
+    base[..., 0], base[..., 1], base[..., 2] = 0.25, 0.5, 0.75
+    for k in range(3):
+        img = base.copy()
+        img[1, k] = (0.9, 0.1, 0.3)
+        _write_rgb(folder / f"f{k}.tif", img)
+    cap, rep = load_images(folder, mm_per_px=0.1, reference="f0")
+    assert rep["bit_depth"] == 32 and cap.frames.dtype == np.float32
+    assert cap.reference[0, 3, 3].tolist() == [0.25, 0.5, 0.75] and cap.frames[1, 0, 1, 2].tolist() == pytest.approx(
+        [0.9, 0.1, 0.3])
