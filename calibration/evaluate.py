@@ -27,12 +27,12 @@ from typing import Any
 import numpy as np
 
 from calibration.ballfit import ball_fit, sphere_depth_mm
-from calibration.capture import Capture, read_capture
+from pipeline.base.capture import Capture, read_capture
 from calibration.detect import Circle
 from calibration.models.base import angular_error_deg
 from calibration.samples import Samples, collect_samples
 from calibration.validate import INVALID_ERROR_DEG
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["evaluate_calibration", "evaluate_models", "angular_stats", "label_circles", "format_report", "CV_GAP_WARN_DEG"]
 

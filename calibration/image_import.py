@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from calibration.capture import Capture, write_capture
-from pipeline.errors import UserError
+from pipeline.base.capture import Capture, write_capture
+from pipeline.base.errors import UserError
 
 __all__ = ["IMAGE_SUFFIXES", "VIDEO_SUFFIXES", "read_image", "read_video", "load_images", "import_images",
            "template_regex", "auto_reference", "read_labels_csv"]

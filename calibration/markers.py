@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["detect_markers", "read_marker_mask", "resolve_markers", "fill_markers", "check_marker_mask",
            "draw_markers"]

@@ -13,7 +13,7 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from calibration.capture import Capture
+from pipeline.base.capture import Capture
 
 __all__ = ["TRAIN_PRESSES", "TEST_PRESSES", "split_evaluation", "split_rows", "best_row"]
 

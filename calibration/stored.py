@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from calibration.models.base import LightFieldModel
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["StoredLightField", "load_models", "load_calibration"]
 
@@ -63,9 +63,12 @@ class StoredLightField(LightFieldModel):
 def load_calibration(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
     """``(models, meta)`` of a calibration.h5: name -> fitted model, and the file's attributes
     (plus ``meta["markers"]``, an (H, W) bool array, when the calibration has a marker mask)."""
-    from calibration import h5io
+    from pipeline.base.store import read_record
 
-    data, meta = h5io.read(path, "calibration")
+    if not Path(path).is_file():
+        raise UserError(f"{path}: no such file (expected a 'calibration' HDF5 record from iristac calibrate)")
+    rec = read_record(path, schema="calibration")
+    data, meta = dict(rec.data), dict(rec.meta)
     if "markers" in data:  # the printed gel markers the calibration filled in (CalibrationResult.markers)
         meta["markers"] = np.asarray(data["markers"]).astype(bool)
     groups: dict[str, dict[str, np.ndarray]] = {}

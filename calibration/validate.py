@@ -60,9 +60,9 @@ def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples,
         Each held-out contact sample's prediction by the model that did not see its press
         (``evaluated`` marks them; elsewhere ``(0, 0, 1)`` and False).
     """
-    from threadpoolctl import threadpool_limits
+    from pipeline.base.threads import limit_threads
 
-    with threadpool_limits(limits=1, user_api="blas"):  # why: see calibration.calibrate.calibrate
+    with limit_threads(blas=1):  # why: see calibration.calibrate.calibrate
         report, preds = _cross_validate(make_model, samples, reference, folds, seed)
     return (report, preds) if return_predictions else report
 

@@ -79,7 +79,7 @@ def run(args) -> dict:
     only = set((getattr(args, "only", None) or "rays,newton,multi,effects,targets").split(","))
     bad = only - {"rays", "newton", "multi", "effects", "targets"}
     if bad:
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         raise UserError(f"bench sim: --only: unknown sections {sorted(bad)}; expected rays,newton,multi,effects,targets")
     res: dict = {"device": device, "quick": quick, "repeats": reps, "threads": torch.get_num_threads(),

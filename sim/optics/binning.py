@@ -31,7 +31,7 @@ SPARE = 16  # bins past the last pixel that take off-grid hits (see bin_passes)
 
 @dataclass(frozen=True)
 class PixelGrid:
-    """A pixel grid on a plane ``z`` of the optical frame, centred on the axis (:mod:`sim.frames`).
+    """A pixel grid on a plane ``z`` of the optical frame, centred on the axis (:mod:`pipeline.base.frames`).
 
     ``pitch = (mm per row, mm per col)``. Pixel ``(row, col)`` has its centre at
     ``x = (col - cx) * pitch[1]``, ``y = (row - cy) * pitch[0]``.

@@ -39,7 +39,7 @@ def _colour_folder(tmp_path, dtype=np.uint16, presses=3):
 
 
 def test_16bit_png_keeps_depth_and_rgb_order(tmp_path):
-    from calibration.capture import read_capture
+    from pipeline.base.capture import read_capture
 
     folder, base = _colour_folder(tmp_path, np.uint16)
     out = tmp_path / "cap.h5"
@@ -79,7 +79,7 @@ def test_jpeg_colours_and_automatic_reference(tmp_path):
 @needs_data
 def test_real_frames_as_png_folder_equal_the_npz_import(tmp_path):
     """The shared frames written as PNGs (+ labels CSV) import to exactly the npz import's capture."""
-    from calibration.capture import read_capture
+    from pipeline.base.capture import read_capture
     from calibration.importers import load_gelsight_npz
 
     raw = np.load(DATA)
@@ -105,7 +105,7 @@ def test_real_frames_as_png_folder_equal_the_npz_import(tmp_path):
 
 def test_pattern_template_point_mode(tmp_path):
     """A ring captured one LED at a time: files press{press}_led{pattern}.png, grey 8-bit."""
-    from calibration.capture import read_capture
+    from pipeline.base.capture import read_capture
 
     folder = tmp_path / "ring"
     folder.mkdir()
@@ -200,7 +200,7 @@ def test_no_output_when_the_source_is_bad(tmp_path):
 
 def test_markers_auto_on_import_and_a_bad_mask(tmp_path):
     """--markers auto stores the dark dots of the reference; a mask of the wrong size is one clear error."""
-    from calibration.capture import read_capture
+    from pipeline.base.capture import read_capture
     from calibration.markers import draw_markers
 
     folder = tmp_path / "dots"

@@ -74,7 +74,7 @@ def test_label_truth_is_reported_separately_with_its_bias(split):
 
 
 def test_eval_calibration_cli(tmp_path, capture, split):
-    from calibration.capture import write_capture
+    from pipeline.base.capture import write_capture
     from calibration.split import TEST_PRESSES
 
     cal = split["calibration"].save(tmp_path / "cal.h5")
@@ -97,7 +97,7 @@ def test_eval_calibration_cli(tmp_path, capture, split):
 def test_markers_on_the_real_frames_cost_less_than_a_degree(capture, split):
     """Dark dots printed on every frame (reference included) at fixed places: detected in the reference,
     filled in and left out; the test-press error stays within 1 deg of the marker-free error."""
-    from calibration.capture import Capture
+    from pipeline.base.capture import Capture
     from calibration.markers import draw_markers
     from calibration.split import split_evaluation
 
