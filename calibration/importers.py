@@ -1,4 +1,5 @@
-"""Import of the shared GelSight-style ball-press format (``.npz``) as a ``capture.h5``.
+"""Imports of ball presses as ``capture.h5``: the GelSight-style ``.npz`` (here) and a folder of
+images or a video (:mod:`calibration.image_import`, re-exported: :func:`import_images`).
 
 The npz holds ``background (H, W, 3)``, ``images (K, H, W, 3)`` (uint8, **BGR**: read with
 OpenCV), hand labels ``touch_center_xy (K, 2)`` and ``touch_radius_px (K,)``, ``names``,
@@ -14,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
+from calibration.image_import import import_images, load_images  # folders of images and videos
 from pipeline.base.capture import Capture, write_capture
 from pipeline.base.errors import UserError
 
-__all__ = ["load_gelsight_npz", "import_gelsight_npz"]
+__all__ = ["load_gelsight_npz", "import_gelsight_npz", "import_images", "load_images"]
 
 _REQUIRED = {"background": 3, "images": 4}
 

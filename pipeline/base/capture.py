@@ -43,6 +43,9 @@ class Capture:
         ``{"center_xy": (K, 2), "radius_px": (K,)}`` hand labels (comparison only).
     truth : dict, optional
         ``{"height": (K, H, W), "normals": (K, H, W, 3)}`` for rendered captures.
+    markers : ndarray, shape (H, W), bool, optional
+        Printed gel markers (:mod:`calibration.markers`): filled in before normals are solved,
+        left out of calibration samples, False in validity masks.
     meta : dict
         Other attributes (``source``, ``pattern_names``, ``bit_depth`` ...).
     """
@@ -56,6 +59,7 @@ class Capture:
     labels: dict[str, np.ndarray] | None = None
     truth: dict[str, np.ndarray] | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    markers: np.ndarray | None = None
 
     def __post_init__(self):
         f = np.asarray(self.frames)
@@ -72,10 +76,35 @@ class Capture:
             raise UserError(f"capture: brightness must have shape ({f.shape[1]},) (P,), got {b.shape}")
         if self.dark is not None and np.asarray(self.dark).shape != f.shape[2:]:
             raise UserError(f"capture: dark must have shape {f.shape[2:]} (H, W, C), got {np.asarray(self.dark).shape}")
+        if self.markers is not None:
+            if np.asarray(self.markers).shape != f.shape[2:4]:
+                raise UserError(f"capture: markers must have shape {f.shape[2:4]} (H, W), got "
+                                f"{np.asarray(self.markers).shape}")
+            self.markers = np.asarray(self.markers).astype(bool)
 
     @property
     def shape(self) -> tuple[int, int]:
         return int(self.frames.shape[2]), int(self.frames.shape[3])
+
+    def select(self, presses) -> "Capture":
+        """The capture restricted to some presses (index array or slice), reference and all else shared.
+
+        Examples
+        --------
+        >>> cap = Capture(np.zeros((5, 1, 2, 2, 3)), np.zeros((1, 2, 2, 3)), np.ones((1, 1, 3)), np.ones(1))
+        >>> cap.select(slice(0, 3)).frames.shape
+        (3, 1, 2, 2, 3)
+        """
+        idx = np.arange(self.frames.shape[0])[presses]
+        sub = {k: np.asarray(v)[idx] for k, v in (self.labels or {}).items()} or None
+        truth = {k: (np.asarray(v)[idx] if np.asarray(v).ndim and k != "albedo" else v)
+                 for k, v in (self.truth or {}).items()} or None
+        meta = dict(self.meta)
+        if isinstance(meta.get("frame_names"), list) and len(meta["frame_names"]) == self.frames.shape[0]:
+            meta["frame_names"] = [meta["frame_names"][i] for i in idx]
+        return Capture(frames=np.asarray(self.frames)[idx], reference=self.reference, drive=self.drive,
+                       brightness=self.brightness, mm_per_px=self.mm_per_px, dark=self.dark, labels=sub, truth=truth,
+                       meta=meta, markers=self.markers)
 
     def linear(self) -> tuple[np.ndarray, np.ndarray]:
         """Frames ``(K, P, H, W, C)`` and reference ``(P, H, W, C)`` as float32, dark level removed."""
@@ -88,7 +117,7 @@ class Capture:
         return frames, ref
 
 
-_OPTIONAL = {"labels/center_xy", "labels/radius_px", "truth/height", "truth/normals", "truth/albedo", "dark"}
+_OPTIONAL = {"labels/center_xy", "labels/radius_px", "truth/height", "truth/normals", "truth/albedo", "dark", "markers"}
 
 
 def write_capture(path: str | Path, cap) -> Path:
@@ -120,6 +149,8 @@ def write_capture(path: str | Path, cap) -> Path:
     }
     if cap.dark is not None:
         data["dark"] = np.asarray(cap.dark)
+    if cap.markers is not None:
+        data["markers"] = np.asarray(cap.markers).astype(np.uint8)
     for group, arrays in (("labels", cap.labels), ("truth", cap.truth)):
         for k, v in (arrays or {}).items():
             data[f"{group}/{k}"] = np.asarray(v)
@@ -159,7 +190,7 @@ def capture_from_record(rec) -> Capture:
     try:
         return Capture(frames=frames, reference=data["reference"], drive=drive, brightness=brightness,
                        mm_per_px=None if mm is None else float(mm), dark=data.get("dark"), labels=labels,
-                       truth=truth, meta=meta)
+                       truth=truth, meta=meta, markers=data.get("markers"))
     except UserError as exc:
         if rec.path is None:
             raise
