@@ -15,7 +15,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 from pipeline.errors import UserError
 from sim.frames import optical_to_recon
@@ -29,7 +28,8 @@ __all__ = ["STAGE_VERSION", "synthesize", "synthesize_to_store", "synthesize_par
            "model_from_record", "load_illumination", "save_illumination", "default_illumination"]
 
 #: Bump when the computation of the illumination model changes (old store entries stop matching).
-STAGE_VERSION = 1
+#: 2: traced by the compiled kernel by default (its random and Sobol samplers draw their own points).
+STAGE_VERSION = 2
 
 
 def _as_scene(scene) -> Scene:
@@ -54,7 +54,7 @@ def _check_inputs(scene: Scene, shape, mm_per_px, drive, brightness, gains):
 
 def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, gains=None, exposure: float = 1.0,
                rays: int | None = None, sampler: str | None = None, seed: int | None = None, method: str = "hits",
-               device="cpu", dtype=torch.float32, store=None, compile: bool = False) -> IlluminationModel:
+               device="cpu", dtype=None, store=None, engine: str | None = None) -> IlluminationModel:
     """Trace ``scene`` onto a camera pixel grid and return its illumination model.
 
     Parameters
@@ -78,7 +78,9 @@ def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, g
     method : {"hits", "image", "trace"}
         How every LED is obtained (:mod:`sim.optics.multisource`).
     device, dtype :
-        Torch device and float type of the trace (V is returned as float32).
+        Device and float type (float32 default, or float64) of the trace (V is returned as float32).
+    engine : {"kernel", "torch"}, optional
+        The compiled kernel (default) or the eager torch reference (:mod:`sim.optics.engine`).
     store : pipeline.store.StageStore, optional
         When given, the result is read from / written to the store under its key.
 
@@ -100,7 +102,7 @@ def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, g
     _check_inputs(scene, shape, mm_per_px, drive, brightness, gains)
     shape = (int(shape[0]), int(shape[1]))
     kw = dict(drive=drive, brightness=brightness, gains=gains, exposure=exposure, rays=rays, sampler=sampler,
-              seed=seed, method=method, device=device, dtype=dtype, compile=compile)
+              seed=seed, method=method, device=device, dtype=dtype, engine=engine)
     if store is None:
         return model_from_record(synthesize_record(scene, shape, mm_per_px, **kw))
     return synthesize_to_store(scene, shape, mm_per_px, store, **kw)[0]
@@ -115,7 +117,7 @@ def synthesize_to_store(scene, shape, mm_per_px: float, store, **kw):
     """
     scene = _as_scene(scene)
     full = dict(drive=None, brightness=None, gains=None, exposure=1.0, rays=None, sampler=None, seed=None,
-                method="hits", device="cpu", dtype=torch.float32, compile=False)
+                method="hits", device="cpu", dtype=None, engine=None)
     full.update(kw)
     if full["method"] not in METHODS:
         raise UserError(f"synthesize: method must be one of {METHODS}, got {full['method']!r}")
@@ -127,19 +129,23 @@ def synthesize_to_store(scene, shape, mm_per_px: float, store, **kw):
 
 
 def synthesize_params(scene, shape, mm_per_px, *, drive=None, brightness=None, gains=None, exposure=1.0, rays=None,
-                      sampler=None, seed=None, method="hits", device="cpu", dtype=torch.float32, compile=False) -> dict:
+                      sampler=None, seed=None, method="hits", device="cpu", dtype=None, engine=None) -> dict:
     """The parameters that key a synthesize result in the stage store (stage ``synthesize``).
 
     Everything that changes the result: the scene (minus its description), the grid, the
-    tracing parameters, exposure, patterns and gains. Device and ``compile`` do not enter.
+    tracing parameters (with the engine: the two draw different random and Sobol points),
+    exposure, patterns and gains. The device does not enter.
     """
+    from sim.optics.engine import float_dtype, resolve_engine
+
     tr = scene.trace
     d = scene_to_dict(scene)
     d.pop("description", None)
     p: dict[str, Any] = {"scene": d, "shape": list(shape), "mm_per_px": float(mm_per_px),
                          "rays": int(rays if rays is not None else tr.rays), "sampler": sampler or tr.sampler,
                          "seed": int(tr.seed if seed is None else seed), "method": method,
-                         "dtype": str(dtype).replace("torch.", ""), "exposure": float(exposure)}
+                         "dtype": float_dtype(dtype).name, "exposure": float(exposure),
+                         "engine": resolve_engine(engine, tr.intersection)}
     for name, arr in (("drive", drive), ("brightness", brightness), ("gains", gains)):
         if arr is not None:
             p[name] = np.asarray(arr, dtype=np.float64)
@@ -148,7 +154,7 @@ def synthesize_params(scene, shape, mm_per_px, *, drive=None, brightness=None, g
 
 def synthesize_record(scene, shape, mm_per_px: float, *, drive=None, brightness=None, gains=None,
                       exposure: float = 1.0, rays=None, sampler=None, seed=None, method="hits", device="cpu",
-                      dtype=torch.float32, compile=False):
+                      dtype=None, engine=None):
     """Compute the ``illumination`` :class:`pipeline.store.Record` (no caching)."""
     from pipeline.store import Record
 
@@ -163,7 +169,7 @@ def synthesize_record(scene, shape, mm_per_px: float, *, drive=None, brightness=
     fields, traces = [], []
     for n_ch in indices:
         res = trace_all(scene, grid, method=method, heights=heights, rays=rays, sampler=sampler, seed=seed,
-                        device=device, dtype=dtype, compile=compile, refractive_index=n_ch)
+                        device=device, dtype=dtype, engine=engine, refractive_index=n_ch)
         fields.append(optical_to_recon(res.V.astype(np.float64)))  # (D, L, H, W, 3)
         traces.extend(res.traces)
     Vc = np.stack(fields)  # (C, D, L, H, W, 3), C = 3 with dispersion else 1
@@ -248,11 +254,4 @@ def default_illumination(shape=(60, 80), mm_per_px: float = 0.5, rays: int = 250
     >>> m.V.shape, m.num_leds
     ((24, 12, 16, 3), 24)
     """
-    # One intra-op thread: on a shared 2-core machine a second thread mostly waits on barriers
-    # (measured 0.65 s single-threaded vs 3-30 s with two under load); restored afterwards.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)
-    finally:
-        torch.set_num_threads(threads)
+    return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)

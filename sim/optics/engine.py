@@ -278,6 +278,7 @@ def trace_led(scene, layouts=(), *, led: int = 0, rays: int | None = None, sampl
         from sim.optics import kernel_cuda
 
         flat, books, counts = kernel_cuda.trace(P, F, seeds, tab, PT, PI, offsets[-1], device)
+        flat = flat.astype(ft, copy=False)
     else:
         S = kernel_threads(threads)
         bins = np.zeros((S, max(offsets[-1], 1)), dtype=ft)

@@ -194,6 +194,10 @@ class ImageBins:
     def layout(self) -> BinLayout:
         return BinLayout(self.grid, tuple(self.heights), tuple(self.angles[i] for i in self.binned), self.vector)
 
+    def add_binned(self, binned) -> None:
+        """Add the kernel's images of this :attr:`layout`, (D, B, H * W, C)."""
+        self.acc += binned
+
     def images(self):
         """``E`` (D, K, H, W) and ``V`` (D, K, H, W, 3) or None, optical frame, one image per angle."""
         return assemble_images(self.acc, self.grid, self.angles, self.binned, self.quarter, self.vector)

@@ -601,29 +601,31 @@ def _block_redo(P, F, m, EX, EY, EZ, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE):
     return bounces
 
 
+@njit(**INLINE)
+def on_screen(P, ox, oy, oz, dx, dy, dz):
+    """Whether a ray leaving the optics crosses the scene's imaging plane inside its rectangle."""
+    zero = P[P_ONE] - P[P_ONE]
+    t = (P[P_PLANE_Z] - oz) / dz
+    x = ox + t * dx
+    y = oy + t * dy
+    return (dz != zero) & (t > zero) & (abs(x) <= P[P_HALF_X]) & (abs(y) <= P[P_HALF_Y])
+
+
 @njit(**JIT)
 def _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, books, cnt):
     """Energy books (float64) and fate counts of a block."""
-    zero = P[P_ONE] - P[P_ONE]
     on = 0.0
     off = 0.0
     rf = 0.0
     ab = 0.0
-    z0 = P[P_PLANE_Z]
-    hx, hy = P[P_HALF_X], P[P_HALF_Y]
     for i in range(m):
         cnt[CODE[i]] += 1
         rf += RF[i]
         ab += AB[i]
-        w = W[i]
-        t = (z0 - OZ[i]) / DZ[i]
-        x = OX[i] + t * DX[i]
-        y = OY[i] + t * DY[i]
-        inside = (DZ[i] != zero) & (t > zero) & (abs(x) <= hx) & (abs(y) <= hy)
-        if inside:
-            on += w
+        if on_screen(P, OX[i], OY[i], OZ[i], DX[i], DY[i], DZ[i]):
+            on += W[i]
         else:
-            off += w
+            off += W[i]
     books[0] += on
     books[1] += off
     books[2] += rf
@@ -632,39 +634,47 @@ def _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, books, cnt):
 
 @njit(**JIT)
 def _block_plane(m, z0, inv_a, reach2, OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY):
-    """Where a block's rays cross the plane ``z0`` and what each adds there: ``E = w / A`` and
-    ``V_x, V_y`` of ``V = w l / (A |l_z|)`` (``l = -d``, ``|l_z| = d_z > 0`` toward the gel); 0 for rays
-    that do not reach it or cannot land on the grid under any rotation (beyond ``reach2``)."""
-    zero = z0 - z0
+    """:func:`plane_values` of a block's rays (a vector loop)."""
     for i in range(m):
-        dz = DZ[i]
-        t = (z0 - OZ[i]) / dz
-        x = OX[i] + t * DX[i]
-        y = OY[i] + t * DY[i]
-        ok = (dz != zero) & (t > zero) & (x * x + y * y <= reach2)
-        e = (W[i] * inv_a) if ok else zero
-        sv = -e / dz
-        X[i] = x if ok else zero
-        Y[i] = y if ok else zero
-        E[i] = e
-        VX[i] = sv * DX[i]
-        VY[i] = sv * DY[i]
+        X[i], Y[i], E[i], VX[i], VY[i] = plane_values(z0, inv_a, reach2, OX[i], OY[i], OZ[i], DX[i], DY[i], DZ[i],
+                                                      W[i])
+
+
+@njit(**INLINE)
+def pixel_index(ca, sa, ipx, ipy, cx, cy, wf, hf, W, C, off, x, y, e):
+    """Where ``(x, y)`` turned by ``(ca, sa)`` lands in a pass's flat images (``cx, cy`` include the
+    half pixel, ``wf, hf`` are ``W, H`` as floats), or -1 off the grid or for ``e = 0``."""
+    zero = cx - cx
+    cf = (ca * x - sa * y) * ipx + cx
+    rf = (sa * x + ca * y) * ipy + cy
+    inb = (cf >= zero) & (rf >= zero) & (cf < wf) & (rf < hf) & (e != zero)
+    col = np.int64(cf if inb else zero)
+    row = np.int64(rf if inb else zero)
+    return (off + (row * W + col) * C) if inb else -1
+
+
+@njit(**INLINE)
+def plane_values(z0, inv_a, reach2, ox, oy, oz, dx, dy, dz, w):
+    """Where a ray crosses the plane ``z0`` and what it adds there: ``(x, y, E, V_x, V_y)`` with
+    ``E = w / A`` and ``V = w l / (A |l_z|)`` (``l = -d``, ``|l_z| = d_z > 0`` toward the gel);
+    ``E = 0`` for a ray that does not reach it or cannot land on the grid under any rotation."""
+    zero = z0 - z0
+    t = (z0 - oz) / dz
+    x = ox + t * dx
+    y = oy + t * dy
+    ok = (dz != zero) & (t > zero) & (x * x + y * y <= reach2)
+    e = (w * inv_a) if ok else zero
+    sv = -e / dz
+    return (x if ok else zero), (y if ok else zero), e, sv * dx, sv * dy
 
 
 @njit(**JIT)
 def _block_scatter(m, ca, sa, ipx, ipy, cx, cy, H, W, C, off, X, Y, E, VX, VY, IDX, out):
     """Bin a block on one pass (rotated by ``(ca, sa)``): pixel indices in a vector loop, then the adds."""
-    zero = cx - cx
     wf = _fl(W, cx)
     hf = _fl(H, cx)
     for i in range(m):
-        x, y = X[i], Y[i]
-        cf = (ca * x - sa * y) * ipx + cx
-        rf = (sa * x + ca * y) * ipy + cy
-        inb = (cf >= zero) & (rf >= zero) & (cf < wf) & (rf < hf) & (E[i] != zero)
-        col = np.int64(cf if inb else zero)
-        row = np.int64(rf if inb else zero)
-        IDX[i] = (off + (row * W + col) * C) if inb else -1
+        IDX[i] = pixel_index(ca, sa, ipx, ipy, cx, cy, wf, hf, W, C, off, X[i], Y[i], E[i])
     if C == 1:
         for i in range(m):
             j = IDX[i]
