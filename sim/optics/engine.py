@@ -26,8 +26,8 @@ from sim.optics.emitter import actual_rays, emitter_frame, profile_constants
 from sim.optics.energy import Energy, SourceTrace
 from sim.optics.grid import BinLayout
 
-__all__ = ["ENGINES", "resolve_engine", "float_dtype", "kernel_params", "pass_tables", "trace_led", "warm_up",
-           "compile_seconds", "kernel_threads"]
+__all__ = ["ENGINES", "resolve_engine", "float_dtype", "kernel_params", "as_tuple", "grid_tables", "pass_tables",
+           "trace_led", "lens_rays", "warm_up", "compile_seconds", "kernel_threads", "cuda_available"]
 
 ENGINES = ("kernel", "torch")
 
@@ -228,6 +228,13 @@ def warm_up(dtype=np.float32, device: str = "cpu") -> float:
     return _COMPILED[key]
 
 
+def cuda_available() -> tuple[bool, str]:
+    """``(ok, why not)``: whether the kernel can run on a CUDA device here (:mod:`sim.optics.kernel_cuda`)."""
+    from sim.optics.kernel_cuda import cuda_available as available
+
+    return available()
+
+
 def compile_seconds() -> float:
     """Seconds this process spent compiling or loading the kernel (every float type and device)."""
     return float(sum(_COMPILED.values()))
@@ -301,6 +308,42 @@ def trace_led(scene, layouts=(), *, led: int = 0, rays: int | None = None, sampl
                 "aperture_absorbed": int(c[2]), "numerical_lost": int(c[3]), "newton_unconverged": int(c[4])}
     return images, SourceTrace(led=led, rays=n, seconds=time.perf_counter() - t0, energy=energy, counters=counters,
                                engine="kernel", compile_seconds=comp)
+
+
+def lens_rays(scene, origins, directions, *, powers=None, dtype=None, refractive_index: float | None = None,
+              newton_iterations: int | None = None):
+    """Given rays through ``scene``'s lens with the kernel's scalar path (:func:`sim.optics.kernel.trace_ray`).
+
+    Parameters
+    ----------
+    origins, directions : array_like, shape (N, 3)
+        Rays in the optical frame (unit directions); ``powers`` (N,) default 1.
+
+    Returns
+    -------
+    dict of ndarray: ``origin`` (N, 3) and ``direction`` (N, 3) of the ray leaving the optics,
+    ``power``, ``reflected``, ``absorbed`` (N,), ``code`` (N,) int (0 out, 1 TIR lost, 2 aperture
+    stop, 3 numerical loss, 4 unconverged) and ``bounces`` (N,) int.
+
+    Examples
+    --------
+    >>> from sim.scene import load_scene
+    >>> r = lens_rays(load_scene("default"), [[0.0, 0.0, -5.0]], [[0.0, 0.0, 1.0]], dtype="float64")
+    >>> r["direction"].round(6).tolist(), int(r["code"][0]), bool(0.9 < r["power"][0] < 1.0)
+    ([[0.0, 0.0, 1.0]], 0, True)
+    """
+    from sim.optics import kernel as K
+
+    ft = float_dtype(dtype)
+    O = np.ascontiguousarray(np.asarray(origins, dtype=ft).reshape(-1, 3))
+    D = np.ascontiguousarray(np.asarray(directions, dtype=ft).reshape(-1, 3))
+    W = np.ones(len(O), dtype=ft) if powers is None else np.ascontiguousarray(np.asarray(powers, dtype=ft))
+    P, F, _ = kernel_params(scene, rays=1, sampler="random", dtype=ft, refractive_index=refractive_index,
+                            newton_iterations=newton_iterations or 10)
+    out = np.zeros((len(O), 11), dtype=np.float64)
+    K.trace_rays(as_tuple(P), as_tuple(F), O, D, W, out)
+    return {"origin": out[:, 0:3], "direction": out[:, 3:6], "power": out[:, 6], "reflected": out[:, 7],
+            "absorbed": out[:, 8], "code": out[:, 9].astype(int), "bounces": out[:, 10].astype(int)}
 
 
 def _count_effects(scene, layouts, F):

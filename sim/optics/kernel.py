@@ -41,7 +41,7 @@ from numba import njit, prange, types
 from numba.extending import overload
 
 __all__ = ["P_SLOTS", "F_SLOTS", "BOOKS", "COUNTS", "SAMPLER_CODES", "BLOCK", "VECTOR_STEPS", "trace_cpu",
-           "trace_range", "trace_ray", "FASTMATH"]
+           "trace_range", "trace_ray", "trace_rays", "FASTMATH"]
 
 # -- parameter slots (P: floats of the kernel's type; F: int64) --------------------------------
 P_SLOTS = ("one", "src_x", "src_y", "src_z", "m00", "m01", "m02", "m10", "m11", "m12", "m20", "m21", "m22",
@@ -730,6 +730,17 @@ def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi):
     counts[2] += cnt[STOPPED]
     counts[3] += cnt[LOST]
     counts[4] += cnt[UNCONVERGED]
+
+
+@njit(cache=True, **JIT)
+def trace_rays(P, F, O, D, W, out):
+    """Given rays (origins ``O`` (N, 3), unit directions ``D`` (N, 3), powers ``W`` (N,)) through the lens
+    with :func:`trace_ray`: ``out`` (N, 11) gets the ray leaving the optics (origin, direction,
+    power), the power reflected and absorbed, the fate code and the TIR bounces."""
+    for i in range(O.shape[0]):
+        r = trace_ray(P, F, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], W[i])
+        out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4], out[i, 5] = r[0], r[1], r[2], r[3], r[4], r[5]
+        out[i, 6], out[i, 7], out[i, 8], out[i, 9], out[i, 10] = r[6], r[7], r[8], r[9], r[10]
 
 
 @njit(parallel=True, cache=True, nogil=True, **JIT)

@@ -15,19 +15,17 @@ Tested on CPU with numba's CUDA simulator (``NUMBA_ENABLE_CUDASIM=1``,
 from __future__ import annotations
 
 import numpy as np
+from numba import cuda
+
+from sim.optics import kernel as K
 
 __all__ = ["cuda_available", "trace", "warm_up"]
 
-_KERNEL: list = []
 THREADS_PER_BLOCK = 256
 
 
 def cuda_available() -> tuple[bool, str]:
     """``(ok, why not)``: whether ``numba.cuda`` can run kernels here (a driver, a device, NVVM)."""
-    try:
-        from numba import cuda
-    except Exception as exc:  # noqa: BLE001 - any import failure means no CUDA kernel
-        return False, f"numba.cuda cannot be imported ({type(exc).__name__}: {exc})"
     try:
         if not cuda.is_available():
             return False, "numba.cuda finds no CUDA driver or device"
@@ -36,75 +34,65 @@ def cuda_available() -> tuple[bool, str]:
     return True, ""
 
 
-def _kernel():
-    """The ``@cuda.jit`` kernel (built on first use: importing ``numba.cuda`` costs time)."""
-    if _KERNEL:
-        return _KERNEL[0]
-    from numba import cuda
+@cuda.jit
+def trace_kernel(P, F, seeds, tab, PT, PI, bins, books, counts):
+    n = F[K.F_N]
+    Q = PT.shape[0]
+    one = P[K.P_ONE]
+    zero = one - one
+    ox, oy, oz = P[K.P_SRC_X], P[K.P_SRC_Y], P[K.P_SRC_Z]
+    w0 = P[K.P_W0]
+    on = 0.0
+    off = 0.0
+    rf = 0.0
+    ab = 0.0
+    c_tir = 0
+    c_bounce = 0
+    c_stop = 0
+    c_lost = 0
+    c_unconv = 0
+    for ray in range(cuda.grid(1), n, cuda.gridsize(1)):
+        dx, dy, dz = K.emit(P, F, seeds, tab, ray)
+        qx, qy, qz, w = ox, oy, oz, w0
+        if F[K.F_LENS]:
+            qx, qy, qz, dx, dy, dz, w, refl, absb, code, nb = K.trace_ray(P, F, ox, oy, oz, dx, dy, dz, w0)
+            rf += refl
+            ab += absb
+            c_bounce += nb
+            c_tir += code == K.TIR_LOST
+            c_stop += code == K.STOPPED
+            c_lost += code == K.LOST
+            c_unconv += code == K.UNCONVERGED
+        if K.on_screen(P, qx, qy, qz, dx, dy, dz):
+            on += w
+        else:
+            off += w
+        if w == zero:
+            continue
+        zp = -one
+        x = y = e = vx = vy = zero
+        for p in range(Q):
+            if p == 0 or PT[p, 0] != zp:
+                zp = PT[p, 0]
+                x, y, e, vx, vy = K.plane_values(zp, PT[p, 7], PT[p, 8], qx, qy, qz, dx, dy, dz, w)
+            W = PI[p, 1]
+            j = K.pixel_index(PT[p, 1], PT[p, 2], PT[p, 3], PT[p, 4], PT[p, 5], PT[p, 6], K._fl(W, one),
+                              K._fl(PI[p, 0], one), W, PI[p, 2], PI[p, 3], x, y, e)
+            if j >= 0:
+                cuda.atomic.add(bins, j, e)
+                if PI[p, 2] == 3:
+                    cuda.atomic.add(bins, j + 1, vx)
+                    cuda.atomic.add(bins, j + 2, vy)
+    cuda.atomic.add(books, 0, on)
+    cuda.atomic.add(books, 1, off)
+    cuda.atomic.add(books, 2, rf)
+    cuda.atomic.add(books, 3, ab)
+    cuda.atomic.add(counts, 0, c_tir)
+    cuda.atomic.add(counts, 1, c_bounce)
+    cuda.atomic.add(counts, 2, c_stop)
+    cuda.atomic.add(counts, 3, c_lost)
+    cuda.atomic.add(counts, 4, c_unconv)
 
-    from sim.optics import kernel as K
-
-    @cuda.jit
-    def trace_kernel(P, F, seeds, tab, PT, PI, bins, books, counts):
-        n = F[K.F_N]
-        Q = PT.shape[0]
-        one = P[K.P_ONE]
-        zero = one - one
-        ox, oy, oz = P[K.P_SRC_X], P[K.P_SRC_Y], P[K.P_SRC_Z]
-        w0 = P[K.P_W0]
-        on = 0.0
-        off = 0.0
-        rf = 0.0
-        ab = 0.0
-        c_tir = 0
-        c_bounce = 0
-        c_stop = 0
-        c_lost = 0
-        c_unconv = 0
-        for ray in range(cuda.grid(1), n, cuda.gridsize(1)):
-            dx, dy, dz = K.emit(P, F, seeds, tab, ray)
-            qx, qy, qz, w = ox, oy, oz, w0
-            if F[K.F_LENS]:
-                qx, qy, qz, dx, dy, dz, w, refl, absb, code, nb = K.trace_ray(P, F, ox, oy, oz, dx, dy, dz, w0)
-                rf += refl
-                ab += absb
-                c_bounce += nb
-                c_tir += code == K.TIR_LOST
-                c_stop += code == K.STOPPED
-                c_lost += code == K.LOST
-                c_unconv += code == K.UNCONVERGED
-            if K.on_screen(P, qx, qy, qz, dx, dy, dz):
-                on += w
-            else:
-                off += w
-            if w == zero:
-                continue
-            zp = -one
-            x = y = e = vx = vy = zero
-            for p in range(Q):
-                if p == 0 or PT[p, 0] != zp:
-                    zp = PT[p, 0]
-                    x, y, e, vx, vy = K.plane_values(zp, PT[p, 7], PT[p, 8], qx, qy, qz, dx, dy, dz, w)
-                W = PI[p, 1]
-                j = K.pixel_index(PT[p, 1], PT[p, 2], PT[p, 3], PT[p, 4], PT[p, 5], PT[p, 6], K._fl(W, one),
-                                  K._fl(PI[p, 0], one), W, PI[p, 2], PI[p, 3], x, y, e)
-                if j >= 0:
-                    cuda.atomic.add(bins, j, e)
-                    if PI[p, 2] == 3:
-                        cuda.atomic.add(bins, j + 1, vx)
-                        cuda.atomic.add(bins, j + 2, vy)
-        cuda.atomic.add(books, 0, on)
-        cuda.atomic.add(books, 1, off)
-        cuda.atomic.add(books, 2, rf)
-        cuda.atomic.add(books, 3, ab)
-        cuda.atomic.add(counts, 0, c_tir)
-        cuda.atomic.add(counts, 1, c_bounce)
-        cuda.atomic.add(counts, 2, c_stop)
-        cuda.atomic.add(counts, 3, c_lost)
-        cuda.atomic.add(counts, 4, c_unconv)
-
-    _KERNEL.append(trace_kernel)
-    return trace_kernel
 
 
 def _device_index(device) -> int:
@@ -118,9 +106,6 @@ def trace(P, F, seeds, tab, PT, PI, total: int, device="cuda"):
     ``P, F`` are the parameter arrays of :func:`sim.optics.engine.kernel_params` (passed as tuples),
     the rest as :func:`sim.optics.kernel.trace_cpu`'s.
     """
-    from numba import cuda
-
-    from sim.optics import kernel as K
     from sim.optics.engine import as_tuple
 
     ok, why = cuda_available()
@@ -133,9 +118,12 @@ def trace(P, F, seeds, tab, PT, PI, total: int, device="cuda"):
     d_counts = cuda.to_device(np.zeros(len(K.COUNTS), dtype=np.int64))
     n = int(F[K.F_N])
     # Enough threads to fill the device, each looping over several rays (its books in registers).
-    sms = getattr(cuda.get_current_device(), "MULTIPROCESSOR_COUNT", 1)
+    try:
+        sms = int(cuda.get_current_device().MULTIPROCESSOR_COUNT)
+    except AttributeError:  # the CUDA simulator
+        sms = 1
     blocks = max(1, min((n + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK, 32 * sms))
-    _kernel()[blocks, THREADS_PER_BLOCK](as_tuple(P), as_tuple(F), cuda.to_device(seeds), cuda.to_device(tab),
+    trace_kernel[blocks, THREADS_PER_BLOCK](as_tuple(P), as_tuple(F), cuda.to_device(seeds), cuda.to_device(tab),
                                          cuda.to_device(PT), cuda.to_device(PI), d_bins, d_books, d_counts)
     cuda.synchronize()
     return d_bins.copy_to_host(), d_books.copy_to_host()[None], d_counts.copy_to_host()[None]
@@ -143,8 +131,6 @@ def trace(P, F, seeds, tab, PT, PI, total: int, device="cuda"):
 
 def warm_up(dtype) -> None:
     """Compile the kernel for ``dtype`` by tracing no rays (``numba.cuda`` caches in memory only)."""
-    from sim.optics import kernel as K
-
     ft = np.dtype(dtype)
     P = np.zeros(K.P_COUNT, dtype=ft)
     F = np.zeros(K.F_COUNT, dtype=np.int64)
