@@ -15,7 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from pipeline.errors import UserError
-from sim.optics.binning import PixelGrid
+from sim.optics.grid import PixelGrid
 from sim.optics.metrics import image_metrics
 from sim.optics.multisource import trace_all
 from sim.scene import Scene, load_scene

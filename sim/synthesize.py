@@ -20,7 +20,7 @@ from pipeline.errors import UserError
 from sim.frames import optical_to_recon
 from sim.illumination_model import IlluminationModel, light_matrices
 from sim.optics import instrument
-from sim.optics.binning import PixelGrid
+from sim.optics.grid import PixelGrid
 from sim.optics.multisource import METHODS, trace_all
 from sim.scene import Scene, load_scene, scene_to_dict
 

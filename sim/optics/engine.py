@@ -27,7 +27,7 @@ from sim.optics.energy import Energy, SourceTrace
 from sim.optics.grid import BinLayout
 
 __all__ = ["ENGINES", "resolve_engine", "float_dtype", "kernel_params", "as_tuple", "grid_tables", "pass_tables",
-           "trace_led", "lens_rays", "warm_up", "compile_seconds", "kernel_threads", "cuda_available"]
+           "trace_led", "trace_cpu", "lens_rays", "warm_up", "compile_seconds", "kernel_threads", "cuda_available"]
 
 ENGINES = ("kernel", "torch")
 
@@ -174,7 +174,7 @@ def grid_tables(P, F) -> np.ndarray:
 
 
 def pass_tables(layouts, dtype):
-    """``(PT, PI, offsets)`` of the kernel's binning passes for ``layouts`` (see :func:`sim.optics.kernel.trace_cpu`):
+    """``(PT, PI, offsets)`` of the kernel's binning passes for ``layouts`` (see :func:`sim.optics.kernel.trace_range`):
     every (height, angle) pass of every layout, and where each layout's passes start in a slot's bins."""
     ft = float_dtype(dtype).type
     PT, PI, offsets = [], [], []
@@ -199,10 +199,37 @@ def pass_tables(layouts, dtype):
 
 def kernel_threads(threads: int | None = None) -> int:
     """Threads (and so bin slots) of the CPU kernel: ``threads``, else ``$IRISTAC_TRACE_THREADS``, else every core."""
-    import numba
+    cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    t = threads or int(os.environ.get("IRISTAC_TRACE_THREADS", "0") or 0) or cores
+    return max(1, int(t))
 
-    t = threads or int(os.environ.get("IRISTAC_TRACE_THREADS", "0") or 0) or numba.config.NUMBA_NUM_THREADS
-    return max(1, min(int(t), numba.config.NUMBA_NUM_THREADS))
+
+_POOL: list = []
+
+
+def trace_cpu(P, F, seeds, tab, PT, PI, bins, books, counts) -> None:
+    """Trace the rays ``0 .. F[F_N]-1`` of one LED on the CPU, slot ``s`` of ``bins`` (S, total),
+    ``books`` (S, 4) and ``counts`` (S, 5) taking the ``s``-th contiguous range on its own thread.
+    ``P, F`` are the parameter arrays (:func:`kernel_params`)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    from sim.optics import kernel as K
+
+    Pt, Ft = as_tuple(P), as_tuple(F)
+    n = int(F[K.F_N])
+    S = bins.shape[0]
+    per = (n + S - 1) // S
+
+    def slot(s):
+        K.trace_range(Pt, Ft, seeds, tab, PT, PI, bins[s], books[s], counts[s], min(n, s * per),
+                      min(n, (s + 1) * per))
+
+    if S == 1:
+        slot(0)
+        return
+    if not _POOL or _POOL[0]._max_workers < S:
+        _POOL[:] = [ThreadPoolExecutor(S, thread_name_prefix="iristac-trace")]
+    list(_POOL[0].map(slot, range(S)))
 
 
 def warm_up(dtype=np.float32, device: str = "cpu") -> float:
@@ -220,10 +247,9 @@ def warm_up(dtype=np.float32, device: str = "cpu") -> float:
     else:
         from sim.optics import kernel as K
 
-        P = as_tuple(np.zeros(K.P_COUNT, dtype=ft))
-        F = as_tuple(np.zeros(K.F_COUNT, dtype=np.int64))
-        K.trace_cpu(P, F, np.zeros(3, np.uint64), np.zeros((4, 1), ft), np.zeros((1, 9), ft),
-                    np.zeros((1, 4), np.int64), np.zeros((1, 1), ft), np.zeros((1, 4)), np.zeros((1, 5), np.int64))
+        trace_cpu(np.zeros(K.P_COUNT, dtype=ft), np.zeros(K.F_COUNT, dtype=np.int64), np.zeros(3, np.uint64),
+                  np.zeros((4, 1), ft), np.zeros((1, 9), ft), np.zeros((1, 4), np.int64), np.zeros((1, 1), ft),
+                  np.zeros((1, 4)), np.zeros((1, 5), np.int64))
     _COMPILED[key] = time.perf_counter() - t0
     return _COMPILED[key]
 
@@ -291,7 +317,7 @@ def trace_led(scene, layouts=(), *, led: int = 0, rays: int | None = None, sampl
         bins = np.zeros((S, max(offsets[-1], 1)), dtype=ft)
         books = np.zeros((S, len(K.BOOKS)))
         counts = np.zeros((S, len(K.COUNTS)), dtype=np.int64)
-        K.trace_cpu(as_tuple(P), as_tuple(F), seeds, tab, PT, PI, bins, books, counts)
+        trace_cpu(P, F, seeds, tab, PT, PI, bins, books, counts)
         flat = bins[0] if S == 1 else bins.sum(0, dtype=ft)
     images = []
     for i, lay in enumerate(layouts):

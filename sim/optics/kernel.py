@@ -25,10 +25,12 @@ and one line in ``kernel_params``; no signature changes. The per-ray functions a
 ``@njit`` functions, so the CUDA kernel (:mod:`sim.optics.kernel_cuda`) compiles the same code
 as device functions.
 
-CPU parallelism: :func:`trace_cpu` gives each of ``S`` bin slots a contiguous range of rays and
-runs the slots with ``prange``; each slot has its own images and books (no atomics), summed
-at the end in slot order, so a result is reproducible for a given slot count. Compiled once
-per float type and cached on disk (``cache=True``; ``NUMBA_CACHE_DIR`` moves the cache).
+CPU parallelism: :func:`sim.optics.engine.trace_led` gives each of ``S`` bin slots a contiguous
+range of rays and runs :func:`trace_range` (which releases the GIL) on one thread per slot;
+each slot has its own images and books (no atomics), summed at the end in slot order, so a
+result is reproducible for a given slot count. (Python threads rather than ``prange``: the
+same speed, and no parallel-loop machinery to compile.) Compiled once per float type and
+cached on disk (``cache=True``; ``NUMBA_CACHE_DIR`` moves the cache).
 Division follows IEEE (``error_model="numpy"``: no zero checks, which would also stop SIMD).
 """
 
@@ -40,8 +42,7 @@ import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
 
-__all__ = ["P_SLOTS", "F_SLOTS", "BOOKS", "COUNTS", "SAMPLER_CODES", "BLOCK", "VECTOR_STEPS", "trace_cpu",
-           "trace_range", "trace_ray", "trace_rays", "FASTMATH"]
+__all__ = ["P_SLOTS", "F_SLOTS", "BOOKS", "COUNTS", "SAMPLER_CODES", "BLOCK", "VECTOR_STEPS", "trace_range", "trace_ray", "trace_rays", "FASTMATH"]
 
 # -- parameter slots (P: floats of the kernel's type; F: int64) --------------------------------
 P_SLOTS = ("one", "src_x", "src_y", "src_z", "m00", "m01", "m02", "m10", "m11", "m12", "m20", "m21", "m22",
@@ -689,9 +690,23 @@ def _block_scatter(m, ca, sa, ipx, ipy, cx, cy, H, W, C, off, X, Y, E, VX, VY, I
                 out[j + 2] += VY[i]
 
 
-@njit(**JIT)
+@njit(cache=True, nogil=True, **JIT)
 def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi):
-    """Rays ``lo .. hi-1`` into one slot's images ``out`` (flat), books (float64 (4,)) and counts (int64 (5,))."""
+    """Trace rays ``lo .. hi-1`` of one LED into one slot's images, books and counters.
+
+    Parameters
+    ----------
+    P, F : tuples of the scene's parameters (:func:`sim.optics.engine.kernel_params`, :data:`P_SLOTS`, :data:`F_SLOTS`).
+    seeds : uint64 (3,) sampler seeds.
+    tab : (4, k) grid tables (:func:`sim.optics.engine.grid_tables`; any (4, 1) array for other samplers).
+    PT : (Q, 9) per binning pass: plane ``z``, cos and sin of its angle, ``1/px``, ``1/py``,
+        ``cx + 0.5``, ``cy + 0.5``, ``1/A`` and the grid's reach squared (kernel float type).
+    PI : (Q, 4) int64 per pass: ``H``, ``W``, channels ``C`` (3 with V, else 1), offset in ``out``.
+    out : (total,) the slot's images of every pass, (H * W, C) each, flat; added to.
+    books : (4,) float64 (:data:`BOOKS`) and counts : (5,) int64 (:data:`COUNTS`), added to.
+
+    Releases the GIL: :func:`sim.optics.engine.trace_led` runs one slot per thread.
+    """
     Q = PT.shape[0]
     one = P[P_ONE]
     zero = one - one
@@ -741,25 +756,3 @@ def trace_rays(P, F, O, D, W, out):
         r = trace_ray(P, F, O[i, 0], O[i, 1], O[i, 2], D[i, 0], D[i, 1], D[i, 2], W[i])
         out[i, 0], out[i, 1], out[i, 2], out[i, 3], out[i, 4], out[i, 5] = r[0], r[1], r[2], r[3], r[4], r[5]
         out[i, 6], out[i, 7], out[i, 8], out[i, 9], out[i, 10] = r[6], r[7], r[8], r[9], r[10]
-
-
-@njit(parallel=True, cache=True, nogil=True, **JIT)
-def trace_cpu(P, F, seeds, tab, PT, PI, bins, books, counts):
-    """Trace rays ``0 .. F[F_N]-1`` of one LED, in ``bins.shape[0]`` parallel slots.
-
-    Parameters
-    ----------
-    P, F : tuples of the scene's parameters (:func:`sim.optics.engine.kernel_params`, :data:`P_SLOTS`, :data:`F_SLOTS`).
-    seeds : uint64 (3,) sampler seeds.
-    tab : (4, k) grid tables (:func:`sim.optics.engine.grid_tables`; any (4, 1) array for other samplers).
-    PT : (Q, 9) per binning pass: plane ``z``, cos and sin of its angle, ``1/px``, ``1/py``,
-        ``cx + 0.5``, ``cy + 0.5``, ``1/A`` and the grid's reach squared (kernel float type).
-    PI : (Q, 4) int64 per pass: ``H``, ``W``, channels ``C`` (3 with V, else 1), offset in a slot's bins.
-    bins : (S, total) zeros, every pass's (H * W, C) image of each slot, flat.
-    books : (S, 4) float64 zeros (:data:`BOOKS`); counts : (S, 5) int64 zeros (:data:`COUNTS`).
-    """
-    S = bins.shape[0]
-    n = F[F_N]
-    per = (n + S - 1) // S
-    for s in prange(S):
-        trace_range(P, F, seeds, tab, PT, PI, bins[s], books[s], counts[s], min(n, s * per), min(n, (s + 1) * per))

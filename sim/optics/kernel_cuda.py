@@ -104,7 +104,7 @@ def trace(P, F, seeds, tab, PT, PI, total: int, device="cuda"):
     """Run the kernel on ``device``: returns ``(bins (total,), books (1, 4) float64, counts (1, 5) int64)`` on the host.
 
     ``P, F`` are the parameter arrays of :func:`sim.optics.engine.kernel_params` (passed as tuples),
-    the rest as :func:`sim.optics.kernel.trace_cpu`'s.
+    the rest as :func:`sim.optics.engine.trace_cpu`'s.
     """
     from sim.optics.engine import as_tuple
 
