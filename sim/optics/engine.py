@@ -205,6 +205,7 @@ def kernel_threads(threads: int | None = None) -> int:
 
 
 _POOL: list = []
+_REDO = 1 << 16  # rays a slot hands to the scalar path at a time
 
 
 def trace_cpu(P, F, seeds, tab, PT, PI, bins, books, counts) -> None:
@@ -221,8 +222,12 @@ def trace_cpu(P, F, seeds, tab, PT, PI, bins, books, counts) -> None:
     per = (n + S - 1) // S
 
     def slot(s):
-        K.trace_range(Pt, Ft, seeds, tab, PT, PI, bins[s], books[s], counts[s], min(n, s * per),
-                      min(n, (s + 1) * per))
+        pos, hi = min(n, s * per), min(n, (s + 1) * per)
+        redo = np.empty(min(_REDO, max(hi - pos, 1) + K.BLOCK), dtype=np.int64)
+        while pos < hi:
+            pos, r = K.trace_range(Pt, Ft, seeds, tab, PT, PI, bins[s], books[s], counts[s], pos, hi, redo)
+            if r:  # rays only the scalar path finishes (compiled when a scene first needs it)
+                K.trace_redo(Pt, Ft, seeds, tab, PT, PI, bins[s], books[s], counts[s], redo, r)
 
     if S == 1:
         slot(0)
@@ -247,9 +252,10 @@ def warm_up(dtype=np.float32, device: str = "cpu") -> float:
     else:
         from sim.optics import kernel as K
 
-        trace_cpu(np.zeros(K.P_COUNT, dtype=ft), np.zeros(K.F_COUNT, dtype=np.int64), np.zeros(3, np.uint64),
-                  np.zeros((4, 1), ft), np.zeros((1, 9), ft), np.zeros((1, 4), np.int64), np.zeros((1, 1), ft),
-                  np.zeros((1, 4)), np.zeros((1, 5), np.int64))
+        # No rays: compiles (or loads) trace_range; trace_redo waits until a scene needs it.
+        K.trace_range(as_tuple(np.zeros(K.P_COUNT, dtype=ft)), as_tuple(np.zeros(K.F_COUNT, dtype=np.int64)),
+                      np.zeros(3, np.uint64), np.zeros((4, 1), ft), np.zeros((1, 9), ft), np.zeros((1, 4), np.int64),
+                      np.zeros(1, ft), np.zeros(4), np.zeros(5, np.int64), 0, 0, np.zeros(1, np.int64))
     _COMPILED[key] = time.perf_counter() - t0
     return _COMPILED[key]
 

@@ -9,14 +9,15 @@ books (float64) and the binning of ``E`` and ``V`` on every pass of a
 (:mod:`sim.optics.tracer`, the reference) operation for operation, so on the grid sampler the
 two agree ray by ray to float rounding.
 
-Speed comes from SIMD. Rays go in blocks of :data:`BLOCK`: a scalar loop emits them, one
-branch-free loop (:func:`_block_lens`; selects, no early exits, a fixed number
-:data:`VECTOR_STEPS` of masked Newton steps) takes every ray of the block through the lens
-at once, which LLVM vectorizes (AVX-512: 16 float32 lanes), and flags the few rays whose
-answer it cannot finish that way (a swept-arc entry still moving after those steps, an exit
-through the side, total internal reflection to follow); those are traced again by the scalar
-:func:`trace_ray`, built from the same functions with the full loops. A scalar loop then
-books and bins the block.
+Speed comes from SIMD. Rays go in blocks of :data:`BLOCK`: a scalar loop emits them, then
+branch-free loops over the block's arrays (selects, no early exits; LLVM vectorizes them,
+AVX-512: 16 float32 lanes) take every ray through the lens at once: the swept-arc entry solve
+as masked Newton steps of the whole block (stopping when no lane moves), then both surfaces,
+Snell, Fresnel, TIR and the exit, then the books and a vector loop of pixel indices per
+binning pass before the scalar adds. The rare rays that loop cannot finish (an exit through
+the side, total internal reflection to follow) go to :func:`trace_redo`, the scalar
+:func:`trace_ray` built from the same functions with the full loops, compiled only when a
+scene first needs it.
 
 The scene enters as two small arrays built by :func:`sim.optics.engine.kernel_params`:
 ``P`` (floats of the kernel's type: geometry, tolerances and constants, slots ``P_*``) and
@@ -42,7 +43,7 @@ import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
 
-__all__ = ["P_SLOTS", "F_SLOTS", "BOOKS", "COUNTS", "SAMPLER_CODES", "BLOCK", "VECTOR_STEPS", "trace_range", "trace_ray", "trace_rays", "FASTMATH"]
+__all__ = ["P_SLOTS", "F_SLOTS", "BOOKS", "COUNTS", "SAMPLER_CODES", "BLOCK", "trace_range", "trace_redo", "trace_ray", "trace_rays", "FASTMATH"]
 
 # -- parameter slots (P: floats of the kernel's type; F: int64) --------------------------------
 P_SLOTS = ("one", "src_x", "src_y", "src_z", "m00", "m01", "m02", "m10", "m11", "m12", "m20", "m21", "m22",
@@ -70,15 +71,15 @@ OUT, TIR_LOST, STOPPED, LOST, UNCONVERGED, REDO = 0, 1, 2, 3, 4, 5
 
 SIDE, TOP, BOTTOM = 0, 1, 2
 
-# Rays per block, and masked Newton steps of the vectorized swept-arc entry solve (the rays
-# still moving after them, ~1 % of the default scene's, go through the scalar path).
+# Rays per block: the block's arrays stay in the L1 cache.
 BLOCK = 256
-VECTOR_STEPS = 5
 
 # fastmath without "nnan"/"ninf": the lens code uses +-inf as "no intersection" (both flags
 # would let LLVM delete those tests). Contraction (FMA) and reciprocal division are allowed.
 FASTMATH = {"contract", "arcp", "nsz"}
 JIT = dict(fastmath=FASTMATH, error_model="numpy")
+
+
 INLINE = dict(JIT, inline="always")
 
 _M32 = np.uint64(0xFFFFFFFF)
@@ -535,13 +536,49 @@ def _block_emit(P, F, seeds, tab, start, m, EX, EY, EZ):
 
 
 @njit(**JIT)
-def _block_lens(P, F, m, EX, EY, EZ, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE):
-    """Rays ``0 .. m-1`` of a block (directions ``EX, EY, EZ`` from the LED) through the lens, branch-free.
+def _block_start(P, F, m, EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD, THI, INS, BOX):
+    """The box and the swept-arc entry solve's start of each ray of a block (a vector loop);
+    returns how many rays need the solve."""
+    ox, oy, oz = P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z]
+    arc = F[F_ARC] != 0
+    need = 0
+    for i in range(m):
+        t_lo, t_hi, t, sn, dsn, rho, s, active, inside = side_entry_start(P, F, ox, oy, oz, EX[i], EY[i], EZ[i])
+        active = active & arc
+        T[i], SN[i], DSN[i], RHO[i], S[i], THI[i] = t, sn, dsn, rho, s, t_hi
+        ACT[i], DEAD[i], INS[i], BOX[i] = active, False, inside, t_lo <= t_hi
+        need += active
+    return need
+
+
+@njit(**JIT)
+def _block_newton(P, m, EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD):
+    """One masked Newton step of every ray of a block (a vector loop); returns how many still move."""
+    ox, oy, oz = P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z]
+    moving = 0
+    for i in range(m):
+        t, sn, dsn, rho, s, active, dead = newton_step(P, ox, oy, oz, EX[i], EY[i], EZ[i], T[i], SN[i], DSN[i],
+                                                       RHO[i], S[i], ACT[i], DEAD[i], True)
+        T[i], SN[i], DSN[i], RHO[i], S[i], ACT[i], DEAD[i] = t, sn, dsn, rho, s, active, dead
+        moving += active
+    return moving
+
+
+@njit(**JIT)
+def _block_entry(P, m, T, SN, DSN, S, DEAD, THI, INS, E0, UNC):
+    """The side set's entry ``E0`` (and ``UNC``: unconverged) of each ray after the solve (a vector loop)."""
+    for i in range(m):
+        E0[i], UNC[i] = side_entry_end(P, THI[i], T[i], SN[i], DSN[i], S[i], DEAD[i], INS[i])
+
+
+@njit(**JIT)
+def _block_rest(P, F, m, EX, EY, EZ, E0, UNC, BOX, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE):
+    """The rest of the lens for every ray of a block, branch-free (a vector loop), after the entry solve
+    (few arrays in: LLVM gives up vectorizing past a number of possibly overlapping ones).
 
     Writes the ray leaving the optics (``OX .. DZ``, ``W``; only rays with power left need a
     path), the power reflected ``RF`` and absorbed ``AB`` and the fate ``CODE``; :data:`REDO`
-    marks rays :func:`trace_ray` must trace (entry solve unfinished, exit through the side, TIR
-    to follow).
+    marks the rays only :func:`trace_ray` can finish (an exit through the side, TIR to follow).
     """
     one = P[P_ONE]
     zero = one - one
@@ -549,29 +586,19 @@ def _block_lens(P, F, m, EX, EY, EZ, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE):
     w0 = P[P_W0]
     arc = F[F_ARC] != 0
     follow = F[F_BOUNCES] > 0
-    steps = min(VECTOR_STEPS, F[F_ITERATIONS])
     for i in range(m):
         dx, dy, dz = EX[i], EY[i], EZ[i]
-        # entry: box, the swept-arc solve (a fixed number of masked steps), the other surfaces
-        t_lo, t_hi, t, sn, dsn, rho, s, active, inside = side_entry_start(P, F, ox, oy, oz, dx, dy, dz)
-        boxok = t_lo <= t_hi
-        active = active & arc
-        dead = False
-        for k in range(VECTOR_STEPS):
-            t, sn, dsn, rho, s, active, dead = newton_step(P, ox, oy, oz, dx, dy, dz, t, sn, dsn, rho, s,
-                                                           active & (k < steps), dead, True)
-        e0, unconv = side_entry_end(P, t_hi, t, sn, dsn, s, dead, inside)
-        redo = active & (steps < F[F_ITERATIONS])
-        t, sid, hit = enter_rest(P, F, ox, oy, oz, dx, dy, dz, boxok, e0)
+        unconv = UNC[i]
+        t, sid, hit = enter_rest(P, F, ox, oy, oz, dx, dy, dz, BOX[i], E0[i])
         px, py, pz, ex, ey, ez, w_in, refl, stop_in = cross_in(P, F, ox, oy, oz, dx, dy, dz, t, sid, w0)
-        # exit: through the top or bottom here; a ray whose side solve would start outside the
-        # side set (it leaves through the side) is traced again
+        # exit through the top or bottom; a ray whose side solve would start outside the side
+        # set leaves through the side: only trace_ray finishes it
         x1, x2, x12, l_lo, l_hi, x0 = leave_start(P, F, px, py, pz, ex, ey, ez)
         sn2, _, _, _ = arc_parts(P, px, py, pz, ex, ey, ez, min(l_hi, x12))
         inside_lens = hit & (not stop_in)
-        redo = redo | (inside_lens & arc & (sn2 > zero) & (l_lo <= l_hi))
+        redo = inside_lens & arc & (sn2 > zero) & (l_lo <= l_hi)
         t2, sid2, good = leave_end(P, x0, x1, x2, x12)
-        qx, qy, qz, tx, ty, tz, T, tir, stop_out, _, _, _ = cross_out(P, F, px, py, pz, ex, ey, ez, t2, sid2)
+        qx, qy, qz, tx, ty, tz, T2, tir, stop_out, _, _, _ = cross_out(P, F, px, py, pz, ex, ey, ez, t2, sid2)
         out = inside_lens & good & (not stop_out)
         redo = redo | (out & tir & follow)
         leaves = out & (not tir)
@@ -581,25 +608,13 @@ def _block_lens(P, F, m, EX, EY, EZ, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE):
         DX[i] = tx if leaves else dx
         DY[i] = ty if leaves else dy
         DZ[i] = tz if leaves else dz
-        W[i] = (w_in * T) if leaves else (w0 if not hit else zero)
-        RF[i] = (refl + w_in * (one - T)) if leaves else (refl if inside_lens else zero)
+        W[i] = (w_in * T2) if leaves else (w0 if not hit else zero)
+        RF[i] = (refl + w_in * (one - T2)) if leaves else (refl if inside_lens else zero)
         AB[i] = zero if (leaves | (not hit)) else (w0 if stop_in else w_in)
         code = OUT if (leaves | (not hit)) else (STOPPED if stop_in else (LOST if not good else (
             STOPPED if stop_out else TIR_LOST)))
         code = (UNCONVERGED if unconv else OUT) if not hit else code
         CODE[i] = REDO if redo else code
-
-
-@njit(**JIT)
-def _block_redo(P, F, m, EX, EY, EZ, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE):
-    """The rays :func:`_block_lens` marked :data:`REDO`, through :func:`trace_ray`; returns their TIR bounces."""
-    bounces = 0
-    for i in range(m):
-        if CODE[i] == REDO:
-            OX[i], OY[i], OZ[i], DX[i], DY[i], DZ[i], W[i], RF[i], AB[i], CODE[i], nb = trace_ray(
-                P, F, P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z], EX[i], EY[i], EZ[i], P[P_W0])
-            bounces += nb
-    return bounces
 
 
 @njit(**INLINE)
@@ -690,8 +705,21 @@ def _block_scatter(m, ca, sa, ipx, ipy, cx, cy, H, W, C, off, X, Y, E, VX, VY, I
                 out[j + 2] += VY[i]
 
 
+@njit(**JIT)
+def _block_bin(P, PT, PI, m, OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY, IDX, out):
+    """Bin a block's rays on every pass (a plane crossing per height, shared by its angles)."""
+    one = P[P_ONE]
+    zp = -one
+    for p in range(PT.shape[0]):
+        if p == 0 or PT[p, 0] != zp:
+            zp = PT[p, 0]
+            _block_plane(m, zp, PT[p, 7], PT[p, 8], OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY)
+        _block_scatter(m, PT[p, 1], PT[p, 2], PT[p, 3], PT[p, 4], PT[p, 5], PT[p, 6], PI[p, 0], PI[p, 1],
+                       PI[p, 2], PI[p, 3], X, Y, E, VX, VY, IDX, out)
+
+
 @njit(cache=True, nogil=True, **JIT)
-def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi):
+def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi, redo):
     """Trace rays ``lo .. hi-1`` of one LED into one slot's images, books and counters.
 
     Parameters
@@ -704,15 +732,22 @@ def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi):
     PI : (Q, 4) int64 per pass: ``H``, ``W``, channels ``C`` (3 with V, else 1), offset in ``out``.
     out : (total,) the slot's images of every pass, (H * W, C) each, flat; added to.
     books : (4,) float64 (:data:`BOOKS`) and counts : (5,) int64 (:data:`COUNTS`), added to.
+    redo : (R,) int64: receives the rays only :func:`trace_ray` can finish (neither booked nor binned
+        here; :func:`trace_redo` does that).
 
-    Releases the GIL: :func:`sim.optics.engine.trace_led` runs one slot per thread.
+    Returns ``(next, r)``: the first ray not traced (``hi`` unless ``redo`` filled up first) and the
+    number of rays written to ``redo``. Releases the GIL: :func:`sim.optics.engine.trace_cpu` runs
+    one slot per thread.
     """
-    Q = PT.shape[0]
     one = P[P_ONE]
     zero = one - one
     ft = tab.dtype
     B = BLOCK
     EX, EY, EZ = np.empty(B, ft), np.empty(B, ft), np.empty(B, ft)
+    T, SN, DSN, RHO, S, THI = (np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft),
+                               np.empty(B, ft))
+    ACT, DEAD, INS = np.empty(B, np.bool_), np.empty(B, np.bool_), np.empty(B, np.bool_)
+    BOX, UNC, E0 = np.empty(B, np.bool_), np.empty(B, np.bool_), np.empty(B, ft)
     OX, OY, OZ = np.empty(B, ft), np.empty(B, ft), np.empty(B, ft)
     DX, DY, DZ = np.empty(B, ft), np.empty(B, ft), np.empty(B, ft)
     W, RF, AB = np.empty(B, ft), np.empty(B, ft), np.empty(B, ft)
@@ -720,26 +755,66 @@ def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi):
     CODE = np.empty(B, np.int32)
     IDX = np.empty(B, np.int64)
     cnt = np.zeros(6, np.int64)
-    bounces = 0
     lens = F[F_LENS] != 0
-    for start in range(lo, hi, B):
+    r = 0
+    start = lo
+    while start < hi:
         m = min(B, hi - start)
+        if r + m > redo.shape[0]:
+            break
         _block_emit(P, F, seeds, tab, start, m, EX, EY, EZ)
         if lens:
-            _block_lens(P, F, m, EX, EY, EZ, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE)
-            bounces += _block_redo(P, F, m, EX, EY, EZ, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE)
+            if _block_start(P, F, m, EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD, THI, INS, BOX):
+                for _ in range(F[F_ITERATIONS]):  # every ray of the block stepped together, masked
+                    if not _block_newton(P, m, EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD):
+                        break
+            _block_entry(P, m, T, SN, DSN, S, DEAD, THI, INS, E0, UNC)
+            _block_rest(P, F, m, EX, EY, EZ, E0, UNC, BOX, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE)
+            for i in range(m):
+                if CODE[i] == REDO:
+                    redo[r] = start + i
+                    r += 1
+                    CODE[i] = OUT
+                    W[i] = RF[i] = AB[i] = zero  # booked and binned by trace_redo
         else:
             for i in range(m):
                 OX[i], OY[i], OZ[i], DX[i], DY[i], DZ[i] = P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z], EX[i], EY[i], EZ[i]
                 W[i], RF[i], AB[i], CODE[i] = P[P_W0], zero, zero, OUT
         _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, books, cnt)
-        zp = -one
-        for p in range(Q):
-            if p == 0 or PT[p, 0] != zp:  # passes of one height share its crossing
-                zp = PT[p, 0]
-                _block_plane(m, zp, PT[p, 7], PT[p, 8], OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY)
-            _block_scatter(m, PT[p, 1], PT[p, 2], PT[p, 3], PT[p, 4], PT[p, 5], PT[p, 6], PI[p, 0], PI[p, 1],
-                           PI[p, 2], PI[p, 3], X, Y, E, VX, VY, IDX, out)
+        _block_bin(P, PT, PI, m, OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY, IDX, out)
+        start += m
+    cnt[OUT] -= r  # the redo rays were counted as OUT above
+    counts[0] += cnt[TIR_LOST]
+    counts[2] += cnt[STOPPED]
+    counts[3] += cnt[LOST]
+    counts[4] += cnt[UNCONVERGED]
+    return start, r
+
+
+@njit(cache=True, nogil=True, **JIT)
+def trace_redo(P, F, seeds, tab, PT, PI, out, books, counts, redo, r):
+    """Rays ``redo[:r]`` through the scalar :func:`trace_ray`, booked and binned like :func:`trace_range`'s.
+
+    A separate entry point, compiled the first time a scene needs it (a ray leaving through the
+    side, TIR to follow): the default scene's trace never does.
+    """
+    ft = tab.dtype
+    m = r
+    OX, OY, OZ = np.empty(m, ft), np.empty(m, ft), np.empty(m, ft)
+    DX, DY, DZ = np.empty(m, ft), np.empty(m, ft), np.empty(m, ft)
+    W, RF, AB = np.empty(m, ft), np.empty(m, ft), np.empty(m, ft)
+    X, Y, E, VX, VY = np.empty(m, ft), np.empty(m, ft), np.empty(m, ft), np.empty(m, ft), np.empty(m, ft)
+    CODE = np.empty(m, np.int32)
+    IDX = np.empty(m, np.int64)
+    cnt = np.zeros(6, np.int64)
+    bounces = 0
+    for i in range(m):
+        dx, dy, dz = emit(P, F, seeds, tab, redo[i])
+        OX[i], OY[i], OZ[i], DX[i], DY[i], DZ[i], W[i], RF[i], AB[i], CODE[i], nb = trace_ray(
+            P, F, P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z], dx, dy, dz, P[P_W0])
+        bounces += nb
+    _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, books, cnt)
+    _block_bin(P, PT, PI, m, OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY, IDX, out)
     counts[0] += cnt[TIR_LOST]
     counts[1] += bounces
     counts[2] += cnt[STOPPED]
