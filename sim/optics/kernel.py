@@ -75,12 +75,15 @@ SIDE, TOP, BOTTOM = 0, 1, 2
 BLOCK = 256
 
 # fastmath without "nnan"/"ninf": the lens code uses +-inf as "no intersection" (both flags
-# would let LLVM delete those tests). Contraction (FMA) and reciprocal division are allowed.
+# would let LLVM delete those tests). Contraction (FMA) and reciprocal division are allowed
+# (measured ~10 % faster). The per-ray functions are forced inline at the LLVM level
+# (forceinline): every call in a block loop must be inlined for the loop to vectorize, and
+# numba's own IR inlining (inline="always") compiled 25 % slower for the same code.
 FASTMATH = {"contract", "arcp", "nsz"}
 JIT = dict(fastmath=FASTMATH, error_model="numpy")
 
 
-INLINE = dict(JIT, inline="always")
+INLINE = dict(JIT, forceinline=True)
 
 _M32 = np.uint64(0xFFFFFFFF)
 

@@ -24,6 +24,29 @@ __all__ = ["cuda_available", "trace", "warm_up"]
 THREADS_PER_BLOCK = 256
 
 
+def _device_functions_without_fastmath() -> None:
+    """Give every ``@njit`` function of :mod:`sim.optics.kernel` its CUDA device dispatcher now, without
+    fastmath: ``numba.cuda`` would otherwise copy the CPU options, and its fastmath is all or
+    nothing (no-NaN, no-inf), which would let the compiler drop the kernel's ``inf`` tests. This
+    fills the cache ``numba.cuda`` itself keeps on the CPU dispatcher (see
+    ``numba.cuda.target.CUDATypingContext.resolve_value_type``)."""
+    from numba.core import config
+    from numba.core.dispatcher import Dispatcher
+
+    if config.ENABLE_CUDASIM:  # the simulator runs Python: nothing is compiled for a device
+        return
+    from numba.cuda.dispatcher import CUDADispatcher
+
+    for value in vars(K).values():
+        if isinstance(value, Dispatcher) and not isinstance(value, CUDADispatcher):
+            if not hasattr(value, "_CUDATypingContext__dispatcher"):
+                value._CUDATypingContext__dispatcher = CUDADispatcher(
+                    value.py_func, dict(device=True, debug=False, opt=True, inline=True))
+
+
+_device_functions_without_fastmath()
+
+
 def cuda_available() -> tuple[bool, str]:
     """``(ok, why not)``: whether ``numba.cuda`` can run kernels here (a driver, a device, NVVM)."""
     try:
