@@ -16,7 +16,7 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from calibration.capture import Capture, read_capture
+from pipeline.base.capture import Capture, read_capture
 from calibration.detect import Circle, DetectOptions, detect_contacts
 from calibration.models import (MODEL_NAMES, CalibrationModel, FarFieldModel, LightFieldModel, LUTModel, MLPModel,
                                 NearFieldModel, TracedModel, check_light_rank)
@@ -24,7 +24,7 @@ from calibration.models.led_geometry import geometry_basis
 from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
 from calibration.validate import cross_validate
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.illumination_model import IlluminationModel
 
 __all__ = ["CalibrationResult", "calibrate", "label_errors", "read_illumination", "CIRCLE_COLUMNS"]
@@ -119,7 +119,7 @@ class CalibrationResult:
         ``LookupTable.from_arrays``-ready); attributes ``chosen_model`` (best by CV),
         ``circle_reasons``, ``validation`` (per model: fit report and CV report), ``summary``.
         """
-        from calibration import h5io
+        from pipeline.base.store import Record, write_record
 
         # One row per press (the stage schema's (K, *) ``circles``); columns in CIRCLE_COLUMNS.
         data: dict[str, np.ndarray] = {"circles": np.array(
@@ -151,7 +151,7 @@ class CalibrationResult:
             "summary": {k: v for k, v in self.summary().items() if k != "circles"},
         }
         meta = json.loads(json.dumps(meta, default=float))
-        return h5io.write(path, "calibration", data, meta)
+        return write_record(Path(path), Record(schema="calibration", data=data, meta=meta))
 
 
 def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np.ndarray) -> dict[str, Any]:
@@ -280,11 +280,11 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         Missing scale, no usable press, or patterns with fewer than three independent
         light directions.
     """
-    from threadpoolctl import threadpool_limits
+    from pipeline.base.threads import limit_threads
 
     # Small, many solves: a single BLAS thread is several times faster on a loaded machine
     # than threads that spin waiting for a core (see pyproject.toml).
-    with threadpool_limits(limits=1, user_api="blas"):
+    with limit_threads(blas=1):
         return _calibrate(capture, ball_radius_mm, mm_per_px, models, illumination=illumination, folds=folds,
                           shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
                           refine_iterations=refine_iterations, refine_model=refine_model, seed=seed)

@@ -14,8 +14,8 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.capture import Capture, write_capture
-from pipeline.errors import UserError
+from pipeline.base.capture import Capture, write_capture
+from pipeline.base.errors import UserError
 
 __all__ = ["load_gelsight_npz", "import_gelsight_npz"]
 
@@ -54,7 +54,7 @@ def load_gelsight_npz(path: str | Path) -> Capture:
         if "ball_radius_mm" in npz.files:
             meta["ball_radius_mm"] = float(npz["ball_radius_mm"])
         mm = float(npz["mm_per_px"]) if "mm_per_px" in npz.files else None
-    # OpenCV frames are BGR; the project is RGB everywhere (sim.frames.CHANNELS).
+    # OpenCV frames are BGR; the project is RGB everywhere (pipeline.base.frames.CHANNELS).
     frames = np.ascontiguousarray(imgs[:, None, ..., ::-1])
     reference = np.ascontiguousarray(bg[None, ..., ::-1])
     return Capture(frames=frames, reference=reference, drive=np.eye(3, dtype=np.float32)[None],

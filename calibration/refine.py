@@ -27,7 +27,7 @@ from calibration.models.base import CalibrationModel
 from calibration.models.nearfield import NearFieldModel
 from calibration.samples import collect_samples
 from calibration.validate import fold_assignment
-from sim.frames import pixel_to_recon
+from pipeline.base.frames import pixel_to_recon
 
 __all__ = ["recon_to_pixel_offsets", "centre_votes", "refine_centres"]
 
@@ -36,8 +36,8 @@ def recon_to_pixel_offsets(dx: np.ndarray, dy: np.ndarray, shape: tuple[int, int
                            ) -> tuple[np.ndarray, np.ndarray]:
     """Pixel offsets ``(d_row, d_col)`` of reconstruction-frame offsets ``(dx, dy)`` in mm.
 
-    Inverts the (affine) :func:`sim.frames.pixel_to_recon`, so the axis signs come from
-    :mod:`sim.frames` and nowhere else.
+    Inverts the (affine) :func:`pipeline.base.frames.pixel_to_recon`, so the axis signs come from
+    :mod:`pipeline.base.frames` and nowhere else.
 
     Examples
     --------
@@ -124,9 +124,9 @@ def refine_centres(frames: np.ndarray, reference: np.ndarray, circles: list[Circ
     report : dict
         ``iterations``, ``median_move_px`` (per iteration), ``kept_detected`` (press indices).
     """
-    from threadpoolctl import threadpool_limits
+    from pipeline.base.threads import limit_threads
 
-    with threadpool_limits(limits=1, user_api="blas"):  # why: see calibration.calibrate.calibrate
+    with limit_threads(blas=1):  # why: see calibration.calibrate.calibrate
         return _refine(frames, reference, circles, ball_radius_mm, mm_per_px, iterations, folds, seed, shrink_px,
                        saturation, max_shift_px, make_model)
 

@@ -55,9 +55,9 @@ def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples,
         (press -> mean, median, samples), ``folds`` (list of ``{"train_presses", "test_presses"}``),
         ``invalid_fraction``.
     """
-    from threadpoolctl import threadpool_limits
+    from pipeline.base.threads import limit_threads
 
-    with threadpool_limits(limits=1, user_api="blas"):  # why: see calibration.calibrate.calibrate
+    with limit_threads(blas=1):  # why: see calibration.calibrate.calibrate
         return _cross_validate(make_model, samples, reference, folds, seed)
 
 

@@ -186,8 +186,14 @@ def _fmt_rule(rule) -> str:
     return "(" + ", ".join(str(s) for s in rule) + ")"
 
 
-def validate_config(kind: str, obj: Any, source: str = "<memory>") -> Any:
+def validate_config(kind: str, obj: Any, source: str = "<memory>",
+                    choices: Mapping[str, Any] | None = None) -> Any:
     """Validate a parsed config (YAML/JSON) against ``configs/<kind>.json``; return it.
+
+    A schema node with ``"x-choices": NAME`` takes its allowed values (``enum``) from
+    ``choices[NAME]``: the registries that own those names (solvers, integrators, contact
+    objects) live above this package, so the caller passes them in. Without them the node
+    only checks its type.
 
     Raises
     ------
@@ -201,7 +207,7 @@ def validate_config(kind: str, obj: Any, source: str = "<memory>") -> Any:
     ...
     data_schemas.SchemaError: run.yaml: unknown key 'colour' at top level; allowed keys: ...
     """
-    schema = config_schema(kind)
+    schema = _with_choices(config_schema(kind), choices or {})
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(obj), key=lambda e: (len(list(e.absolute_path)), list(map(str, e.absolute_path))))
     if errors:
@@ -209,6 +215,19 @@ def validate_config(kind: str, obj: Any, source: str = "<memory>") -> Any:
         errors.sort(key=lambda e: e.validator != "additionalProperties")
         raise SchemaError(f"{source}: {_explain(errors[0])}")
     return obj
+
+
+def _with_choices(schema: Any, choices: Mapping[str, Any]) -> Any:
+    """A copy of ``schema`` whose ``x-choices`` nodes carry the ``enum`` of their registry."""
+    if isinstance(schema, Mapping):
+        out = {k: _with_choices(v, choices) for k, v in schema.items()}
+        name = schema.get("x-choices")
+        if name in choices:
+            out["enum"] = list(choices[name])
+        return out
+    if isinstance(schema, list):
+        return [_with_choices(v, choices) for v in schema]
+    return schema
 
 
 def load_config_file(kind: str, path: str | Path) -> Any:

@@ -7,7 +7,7 @@ A DiLiGenT object folder holds ``filenames.txt`` (one image name per line),
 silently change results) and converted from OpenCV's BGR to RGB.
 
 Frames: DiLiGenT's camera frame is x right, y up, z toward the camera, the same axes as our
-reconstruction frame (:mod:`sim.frames`), so directions and normals are taken as they are.
+reconstruction frame (:mod:`pipeline.base.frames`), so directions and normals are taken as they are.
 
 The capture (schema ``capture``) gets: ``frames (1, P, H, W, 3)`` uint16, ``drive (P, P, 3)``
 (image ``p`` lit by light ``p`` alone at its RGB intensity), ``brightness`` ones,
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["DiligentObject", "read_diligent", "diligent_record", "import_diligent"]
 
@@ -121,8 +121,8 @@ def read_diligent(folder) -> DiligentObject:
 
 
 def diligent_record(obj: DiligentObject):
-    """The capture :class:`pipeline.store.Record` of a DiLiGenT object."""
-    from pipeline.store import Record
+    """The capture :class:`pipeline.base.store.Record` of a DiLiGenT object."""
+    from pipeline.base.store import Record
 
     P = len(obj.names)
     frames = obj.images.astype(np.uint16 if obj.images.dtype.itemsize <= 2 else obj.images.dtype)[None]
@@ -142,10 +142,10 @@ def diligent_record(obj: DiligentObject):
 def import_diligent(folder, out) -> dict:
     """Read a DiLiGenT folder and write it as ``out`` (capture.h5). Returns a summary dict
     with keys ``out``, ``images``, ``height``, ``width``, ``mask_pixels``, ``has_ground_truth``."""
-    from pipeline.store import write_record
+    from pipeline.base.capture import write_capture
 
     obj = read_diligent(folder)
-    path = write_record(out, diligent_record(obj))
+    path = write_capture(out, diligent_record(obj))
     return {"out": str(path), "images": len(obj.names), "height": int(obj.images.shape[1]),
             "width": int(obj.images.shape[2]), "mask_pixels": int(obj.mask.sum()),
             "has_ground_truth": obj.normals_gt is not None}

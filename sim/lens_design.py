@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.optics.grid import PixelGrid
 from sim.optics.metrics import image_metrics
 from sim.optics.multisource import trace_all

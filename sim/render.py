@@ -31,7 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sim.frames import optical_to_recon
+from pipeline.base.frames import optical_to_recon
 from sim.geometry.surface import HeightField, flat
 from sim.illumination_model import IlluminationModel
 from sim.point_source import point_source_field, ring_geometry
@@ -181,10 +181,10 @@ def load_render_settings(path) -> RenderSettings:
 
     Raises
     ------
-    pipeline.errors.UserError
+    pipeline.base.errors.UserError
         Unreadable file, unknown key or wrong type, naming the file and the key.
     """
-    from sim.modes import _read_yaml, _validate_config
+    from pipeline.base.modes import _read_yaml, _validate_config
 
     path = Path(path)
     obj = _read_yaml(path)
@@ -192,7 +192,7 @@ def load_render_settings(path) -> RenderSettings:
     try:
         return RenderSettings(**obj)
     except ValueError as exc:
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         raise UserError(f"{path}: {exc}") from None
 

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from calibration.samples import Samples
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["CalibrationModel", "LightFieldModel", "solve_normals", "check_light_rank", "angular_error_deg"]
 

@@ -16,7 +16,7 @@ from scipy import ndimage
 
 from calibration.models.base import CalibrationModel
 from calibration.samples import Samples
-from sim.frames import gradients_to_normals, normals_to_gradients
+from pipeline.base.frames import gradients_to_normals, normals_to_gradients
 
 __all__ = ["LookupTable", "LUTModel"]
 
@@ -159,7 +159,7 @@ class LUTModel(CalibrationModel):
         self.coverage: dict[str, Any] = {}
 
     def fit(self, samples: Samples, reference: np.ndarray | None = None) -> dict[str, Any]:
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         if samples.intensities.shape[1:] != (1, 3):
             raise UserError(f"lut model: needs a single RGB pattern (P = 1, C = 3), the capture has (P, C) = "

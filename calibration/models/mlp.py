@@ -18,7 +18,7 @@ import numpy as np
 from calibration.models.base import CalibrationModel
 from calibration.models.nearfield import poly_terms
 from calibration.samples import Samples
-from sim.frames import normals_to_gradients
+from pipeline.base.frames import normals_to_gradients
 
 __all__ = ["MLPModel"]
 
@@ -27,20 +27,19 @@ __all__ = ["MLPModel"]
 def _deterministic(seed: int, threads: int | None = 1):
     import torch
 
+    from pipeline.base.threads import limit_threads
+
     was = torch.are_deterministic_algorithms_enabled()
-    was_threads = torch.get_num_threads()
     torch.use_deterministic_algorithms(True, warn_only=True)
     # A net this small gains nothing from intra-op threads, and on a loaded 2-core machine
     # the spinning workers cost 30x (measured: 150 steps of 2000 samples, 17 s with 2 threads,
     # 0.5 s with 1).
-    if threads:
-        torch.set_num_threads(int(threads))
     try:
-        torch.manual_seed(seed)
-        yield
+        with limit_threads(torch=int(threads) if threads else None):
+            torch.manual_seed(seed)
+            yield
     finally:
         torch.use_deterministic_algorithms(was)
-        torch.set_num_threads(was_threads)
 
 
 class MLPModel(CalibrationModel):

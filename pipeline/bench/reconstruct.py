@@ -125,7 +125,9 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
         results[name] = res
         out["solvers"][name] = {"seconds": sec, "fps": 1.0 / sec, "cpu_seconds": _CPU.pop(id(res)),
                                 "mean_deg": err(res), "valid_fraction": res.valid_fraction}
-    for method in ("fc", "dct", "dst", "sparse"):
+    from pipeline.base.registry import INTEGRATORS
+
+    for method in INTEGRATORS.names():  # every registered integrator
         for src in ("nearfield", "lstsq (far field)"):
             res = results[src]
             reps = repeats if method != "sparse" else max(1, repeats // 10)
@@ -161,13 +163,13 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
 
 
 def run(args) -> dict:
-    from pipeline.normals._torch import torch_threads
+    from pipeline.base.threads import limit_threads
 
     sizes = getattr(args, "sizes", None) or (["160x120"] if getattr(args, "quick", False) else ["320x240", "640x480"])
     repeats = getattr(args, "repeats", None) or (3 if getattr(args, "quick", False) else 20)
     device = getattr(args, "device", "cpu")
     per_size = []
-    with torch_threads(getattr(args, "threads", 1)):
+    with limit_threads(torch=getattr(args, "threads", 1)):
         for spec in sizes:
             w, h = (int(v) for v in spec.lower().split("x"))
             per_size.append(measure_size(w, h, repeats, device, getattr(args, "no_compile", False)))

@@ -103,7 +103,7 @@ def run(args) -> dict:
     only = set((getattr(args, "only", None) or ",".join(SECTIONS)).split(","))
     bad = only - set(SECTIONS)
     if bad:
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         raise UserError(f"bench sim: --only: unknown sections {sorted(bad)}; expected {','.join(SECTIONS)}")
     if device.startswith("cuda"):
@@ -111,7 +111,7 @@ def run(args) -> dict:
 
         ok, why = cuda_available()
         if not ok:
-            from pipeline.errors import UserError
+            from pipeline.base.errors import UserError
 
             raise UserError(f"bench sim: --device {device}: {why}")
     from sim.optics import engine

@@ -35,7 +35,7 @@ def _run(args) -> int:
 
     ill = read_illumination(args.illumination) if args.illumination else None
     if args.correct_led_geometry and ill is None:
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
     opts = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else None
@@ -44,7 +44,7 @@ def _run(args) -> int:
                     refine_model=args.refine_model)
     res.save(args.out)
     if args.overlay:
-        from calibration.capture import read_capture
+        from pipeline.base.capture import read_capture
         from calibration.overlay import write_overlay
 
         cap = read_capture(args.capture)

@@ -3,7 +3,7 @@
 Each command parses its options and calls one documented function:
 ``trace`` -> :func:`sim.lens_design.trace_report`, ``section`` -> :func:`sim.section.draw_section`,
 ``optimize-lens`` -> :func:`sim.lens_design.optimize_lens`, ``synthesize`` ->
-:func:`sim.synthesize.synthesize_to_store`.
+:func:`pipeline.stages.synthesize.synthesize_to_store`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.cli._common import add_json_flag, print_json
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 SAMPLERS = ("grid", "random", "stratified", "sobol")
 METHODS = ("hits", "image", "trace")
@@ -250,8 +250,9 @@ def _load_npy(path, name):
 def _synthesize(args) -> int:
     import time
 
-    from pipeline.store import StageStore
-    from sim.synthesize import save_illumination, synthesize_to_store
+    from pipeline.base.store import StageStore
+    from pipeline.stages.synthesize import synthesize_to_store
+    from sim.synthesize import save_illumination
 
     _check_rays(args)
     t0 = time.perf_counter()

@@ -10,6 +10,10 @@ One module per solver, all batched over pixels in torch (``device=`` picks CPU o
 - :class:`LUTSolver` / :func:`solve_lut` (``lut``): the calibration's lookup table;
 - :func:`ratio_to_reference`: optional preprocessing that cancels albedo and vignetting.
 
+:func:`pipeline.normals.solve.solve_capture` solves a capture's frame stack with the solver
+a name picks from the registry (:data:`pipeline.base.registry.SOLVERS`), where a new solver
+is registered.
+
 Observations are ``(N_obs, H, W)`` (patterns x channels flattened), lights ``(N_obs, 3)`` or
 ``(N_obs, H, W, 3)``. Every result is a :class:`NormalResult` with finite arrays.
 """
@@ -22,7 +26,4 @@ from pipeline.normals.result import NormalResult
 from pipeline.normals.robust import solve_robust
 
 __all__ = ["NormalResult", "FarFieldSolver", "solve_farfield", "NearFieldSolver", "solve_nearfield",
-           "solve_robust", "LUTSolver", "solve_lut", "ratio_to_reference", "SOLVERS"]
-
-#: Solver names accepted by the CLI and :func:`pipeline.reconstruct.reconstruct`.
-SOLVERS = ("lstsq", "nearfield", "robust", "lut")
+           "solve_robust", "LUTSolver", "solve_lut", "ratio_to_reference"]

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.frames import gradients_to_normals
+from pipeline.base.frames import gradients_to_normals
 from pipeline.normals.result import NormalResult
 
 __all__ = ["LUTSolver", "solve_lut"]

@@ -33,7 +33,7 @@ __all__ = ["PixelGrid", "BinLayout", "quarter_plan", "assemble_images", "on_grid
 
 @dataclass(frozen=True)
 class PixelGrid:
-    """A pixel grid on a plane ``z`` of the optical frame, centred on the axis (:mod:`sim.frames`).
+    """A pixel grid on a plane ``z`` of the optical frame, centred on the axis (:mod:`pipeline.base.frames`).
 
     ``pitch = (mm per row, mm per col)``. Pixel ``(row, col)`` has its centre at
     ``x = (col - cx) * pitch[1]``, ``y = (row - cy) * pitch[0]``.

@@ -34,7 +34,7 @@ class FieldResult:
         Flat-gel irradiance per LED (W/mm^2 per W emitted) at each of the D gel heights
         (float32, or float64 for a float64 trace).
     V : ndarray, shape (D, L, H, W, 3) or None
-        Vector irradiance, **optical** frame (convert with :func:`sim.frames.optical_to_recon`).
+        Vector irradiance, **optical** frame (convert with :func:`pipeline.base.frames.optical_to_recon`).
     grid : PixelGrid
     heights : tuple of float
     traces : list of SourceTrace
@@ -180,7 +180,7 @@ def rotate_images(E, V, angles):
     C = chans.shape[1]
     batch = chans[None].expand(K, D, C, H, W).reshape(K, D * C, H, W)
     # kornia rotates counter-clockwise as displayed with rows downward, i.e. by -angle in a
-    # frame whose y grows with the row index (ours, sim.frames): hence the minus sign.
+    # frame whose y grows with the row index (ours, pipeline.base.frames): hence the minus sign.
     deg = torch.tensor([-math.degrees(a) for a in angles], dtype=batch.dtype, device=batch.device)
     out = kornia.geometry.transform.rotate(batch, deg, mode="bilinear", padding_mode="zeros")
     out = out.reshape(K, D, C, H, W).permute(1, 0, 2, 3, 4)  # (D, K, C, H, W)

@@ -11,9 +11,9 @@ from plyfile import PlyData
 
 from helpers import run_cli
 from pipeline.bench.recon_scene import scene_records
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from pipeline.reconstruct import reconstruct
-from pipeline.store import StageStore, read_record, write_record
+from pipeline.base.store import StageStore, read_record, write_record
 from support_recon import _one_torch_thread, render_sphere_scene  # noqa: F401
 
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from sim.frames import optical_to_recon, pixel_to_recon
+from pipeline.base.frames import optical_to_recon, pixel_to_recon
 from sim.geometry import sphere
-from sim.modes import mode_drive
+from pipeline.base.modes import mode_drive
 from sim.point_source import point_source_field, ring_geometry
 from sim.render import (EFFECTS, IMAGE_EFFECTS, RenderSettings, Renderer, bare_ring_illumination,
                         render_images)
