@@ -26,7 +26,7 @@ from sim.optics.emitter import actual_rays, emitter_frame, profile_constants
 from sim.optics.energy import Energy, SourceTrace
 from sim.optics.grid import BinLayout
 
-__all__ = ["ENGINES", "resolve_engine", "float_dtype", "kernel_params", "as_tuple", "grid_tables", "pass_tables",
+__all__ = ["ENGINES", "resolve_engine", "float_dtype", "kernel_params", "grid_tables", "pass_tables",
            "trace_led", "trace_cpu", "lens_rays", "warm_up", "compile_seconds", "kernel_threads", "cuda_available"]
 
 ENGINES = ("kernel", "torch")
@@ -151,12 +151,6 @@ def kernel_params(scene, *, led: int = 0, rays: int, sampler: str, seed: int = 0
     return P.astype(ft), F, seeds
 
 
-def as_tuple(a) -> tuple:
-    """A parameter array as the tuple the kernel takes (typed scalars: values in registers, not memory
-    the compiler must assume its stores may change)."""
-    return tuple(a.dtype.type(x) for x in a)
-
-
 def grid_tables(P, F) -> np.ndarray:
     """(4, k): per-row ``cos, sin`` of the grid sampler's polar angle and per-column ``cos, sin`` of its
     azimuth, in the kernel's float type with the reference's operations (:func:`sim.optics.sampling.grid_points`,
@@ -216,7 +210,7 @@ def trace_cpu(P, F, seeds, tab, PT, PI, bins, books, counts) -> None:
 
     from sim.optics import kernel as K
 
-    Pt, Ft = as_tuple(P), as_tuple(F)
+    Pt, Ft = K.as_tuple(P), K.as_tuple(F)
     n = int(F[K.F_N])
     S = bins.shape[0]
     per = (n + S - 1) // S
@@ -253,8 +247,8 @@ def warm_up(dtype=np.float32, device: str = "cpu") -> float:
         from sim.optics import kernel as K
 
         # No rays: compiles (or loads) trace_range; trace_redo waits until a scene needs it.
-        K.trace_range(as_tuple(np.zeros(K.P_COUNT, dtype=ft)), as_tuple(np.zeros(K.F_COUNT, dtype=np.int64)),
-                      np.zeros(3, np.uint64), np.zeros((4, 1), ft), np.zeros((1, 9), ft), np.zeros((1, 4), np.int64),
+        K.trace_range(K.as_tuple(np.zeros(K.P_COUNT, dtype=ft)),
+                      K.as_tuple(np.zeros(K.F_COUNT, dtype=np.int64)), np.zeros(3, np.uint64), np.zeros((4, 1), ft), np.zeros((1, 9), ft), np.zeros((1, 4), np.int64),
                       np.zeros(1, ft), np.zeros(4), np.zeros(5, np.int64), 0, 0, np.zeros(1, np.int64))
     _COMPILED[key] = time.perf_counter() - t0
     return _COMPILED[key]
@@ -373,7 +367,7 @@ def lens_rays(scene, origins, directions, *, powers=None, dtype=None, refractive
     P, F, _ = kernel_params(scene, rays=1, sampler="random", dtype=ft, refractive_index=refractive_index,
                             newton_iterations=newton_iterations or 10)
     out = np.zeros((len(O), 11), dtype=np.float64)
-    K.trace_rays(as_tuple(P), as_tuple(F), O, D, W, out)
+    K.trace_rays(K.as_tuple(P), K.as_tuple(F), O, D, W, out)
     return {"origin": out[:, 0:3], "direction": out[:, 3:6], "power": out[:, 6], "reflected": out[:, 7],
             "absorbed": out[:, 8], "code": out[:, 9].astype(int), "bounces": out[:, 10].astype(int)}
 

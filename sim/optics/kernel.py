@@ -43,7 +43,7 @@ import numpy as np
 from numba import njit, prange, types
 from numba.extending import overload
 
-__all__ = ["P_SLOTS", "F_SLOTS", "BOOKS", "COUNTS", "SAMPLER_CODES", "BLOCK", "trace_range", "trace_redo", "trace_ray", "trace_rays", "FASTMATH"]
+__all__ = ["P_SLOTS", "F_SLOTS", "BOOKS", "COUNTS", "SAMPLER_CODES", "BLOCK", "as_tuple", "trace_range", "trace_redo", "trace_ray", "trace_rays", "FASTMATH"]
 
 # -- parameter slots (P: floats of the kernel's type; F: int64) --------------------------------
 P_SLOTS = ("one", "src_x", "src_y", "src_z", "m00", "m01", "m02", "m10", "m11", "m12", "m20", "m21", "m22",
@@ -86,6 +86,12 @@ JIT = dict(fastmath=FASTMATH, error_model="numpy")
 INLINE = dict(JIT, forceinline=True)
 
 _M32 = np.uint64(0xFFFFFFFF)
+
+
+def as_tuple(a) -> tuple:
+    """A parameter array (``P`` or ``F``) as the tuple the compiled functions take: typed scalars,
+    kept in registers rather than in memory the compiler must assume a store may change."""
+    return tuple(a.dtype.type(x) for x in a)
 
 
 # -- the float type follows P ------------------------------------------------------------------

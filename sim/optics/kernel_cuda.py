@@ -129,8 +129,6 @@ def trace(P, F, seeds, tab, PT, PI, total: int, device="cuda"):
     ``P, F`` are the parameter arrays of :func:`sim.optics.engine.kernel_params` (passed as tuples),
     the rest as :func:`sim.optics.engine.trace_cpu`'s.
     """
-    from sim.optics.engine import as_tuple
-
     ok, why = cuda_available()
     if not ok:
         raise RuntimeError(f"the CUDA kernel cannot run: {why}")
@@ -146,7 +144,7 @@ def trace(P, F, seeds, tab, PT, PI, total: int, device="cuda"):
     except AttributeError:  # the CUDA simulator
         sms = 1
     blocks = max(1, min((n + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK, 32 * sms))
-    trace_kernel[blocks, THREADS_PER_BLOCK](as_tuple(P), as_tuple(F), cuda.to_device(seeds), cuda.to_device(tab),
+    trace_kernel[blocks, THREADS_PER_BLOCK](K.as_tuple(P), K.as_tuple(F), cuda.to_device(seeds), cuda.to_device(tab),
                                          cuda.to_device(PT), cuda.to_device(PI), d_bins, d_books, d_counts)
     cuda.synchronize()
     return d_bins.copy_to_host(), d_books.copy_to_host()[None], d_counts.copy_to_host()[None]

@@ -71,7 +71,7 @@ def test_samplers_are_what_they_claim():
 
     def points(kind, n, seed=0):
         P, F, seeds = engine.kernel_params(s, rays=n, sampler=kind, seed=seed, dtype="float64")
-        Pt, Ft = engine.as_tuple(P), engine.as_tuple(F)
+        Pt, Ft = K.as_tuple(P), K.as_tuple(F)
         return np.array([K.sample(Pt, Ft, seeds, i) for i in range(n)])
 
     # grid: the reference's cell centres exactly
