@@ -13,10 +13,9 @@ import time
 from dataclasses import dataclass, replace
 
 import numpy as np
-import torch
 
 from pipeline.base.errors import UserError
-from sim.optics.binning import PixelGrid
+from sim.optics.grid import PixelGrid
 from sim.optics.metrics import image_metrics
 from sim.optics.multisource import trace_all
 from sim.scene import Scene, load_scene
@@ -25,8 +24,8 @@ __all__ = ["TRACE_KEYS", "trace_report", "compare_lens", "optimize_lens", "LensC
 
 #: The stable key set of ``iristac sim trace --json``.
 TRACE_KEYS = ("fraction_on_screen", "mean_intensity", "uniformity_cv", "min_max", "channels", "rays", "seconds",
-              "rays_per_second", "energy_residual", "scene", "lens", "sampler", "method", "intersection", "device",
-              "counters")
+              "rays_per_second", "compile_seconds", "energy_residual", "scene", "lens", "sampler", "method",
+              "intersection", "device", "engine", "dtype", "counters")
 
 
 def _scene(scene) -> Scene:
@@ -34,14 +33,18 @@ def _scene(scene) -> Scene:
 
 
 def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, seed: int | None = None,
-                 no_lens: bool = False, method: str = "hits", device="cpu", dtype=torch.float32,
-                 compile: bool = False, images: bool = False, intersection: str | None = None) -> dict:
+                 no_lens: bool = False, method: str = "hits", device="cpu", dtype=None,
+                 images: bool = False, intersection: str | None = None, engine: str | None = None,
+                 threads: int | None = None) -> dict:
     """Trace every LED of ``scene`` onto its imaging plane and report the paper's figures.
 
     Returns a dict with the keys :data:`TRACE_KEYS` (``rays`` per traced source; ``seconds``
-    the wall time of the whole trace including binning; ``energy_residual`` the largest
-    ``|emitted - (on screen + elsewhere + reflected + absorbed)|`` of the traced sources),
-    plus ``image`` (H, W, 3) when ``images`` is set.
+    the wall time of the whole trace including binning, without ``compile_seconds``, the
+    kernel's one-time compile or cache load in this process; ``rays_per_second`` the traced rays
+    over ``seconds``; ``energy_residual`` the largest
+    ``|emitted - (on screen + elsewhere + reflected + absorbed)|`` of the traced sources;
+    ``engine`` the tracer that ran, :func:`sim.optics.engine.resolve_engine`), plus ``image``
+    (H, W, 3) when ``images`` is set.
 
     Examples
     --------
@@ -52,11 +55,15 @@ def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, 
     s = _scene(scene)
     if no_lens:
         s = s.with_effects(remove=["lens"])
+    from sim.optics import engine as _engine
+
+    kind = _engine.resolve_engine(engine, intersection or s.trace.intersection)
+    comp = _engine.warm_up(dtype, device) if kind == "kernel" else 0.0
     t0 = time.perf_counter()
     indices = s.lens.channel_indices() if s.has("dispersion") else (None,)
     results = [trace_all(s, PixelGrid.from_plane(s.plane), method=method, rays=rays, sampler=sampler, seed=seed,
-                         vector=False, device=device, dtype=dtype, compile=compile, refractive_index=n_ch,
-                         intersection=intersection)
+                         vector=False, device=device, dtype=dtype, refractive_index=n_ch,
+                         intersection=intersection, engine=kind, threads=threads)
                for n_ch in indices]
     secs = time.perf_counter() - t0
     Es = [r.E[0].astype(np.float64) for r in results]
@@ -70,9 +77,10 @@ def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, 
         for k, v in t.counters.items():
             counters[k] = counters.get(k, 0) + v
     out = {**m, "rays": int(res.traces[0].rays), "seconds": secs, "rays_per_second": n / secs if secs > 0 else 0.0,
-           "energy_residual": max(abs(t.energy.residual) for t in traces), "scene": s.name,
+           "compile_seconds": comp, "energy_residual": max(abs(t.energy.residual) for t in traces), "scene": s.name,
            "lens": s.has("lens"), "sampler": sampler or s.trace.sampler, "method": method, "device": str(device),
-           "intersection": intersection or s.trace.intersection, "counters": counters}
+           "intersection": intersection or s.trace.intersection, "engine": kind,
+           "dtype": _engine.float_dtype(dtype).name, "counters": counters}
     if images:
         from sim.optics.metrics import pattern_image
 
@@ -100,12 +108,13 @@ class LensCandidate:
 
 def optimize_lens(scene, *, arc_radius=(10.0, 16.0), centre_rho=(24.0, 32.0), centre_z=(6.0, 14.0),
                   top_radius=(200.0, 1000.0), steps: int = 3, max_cv: float = 0.5, rays: int = 20_000,
-                  refine: int = 1, device="cpu") -> dict:
+                  refine: int = 1, device="cpu", engine: str | None = None) -> dict:
     """Grid search (then a finer grid around the best) over the lens shape.
 
     Maximises the flux fraction on screen subject to the 24-LED white image's coefficient of
-    variation ``<= max_cv`` (if no design meets it, the most uniform one). Geometries that do not close into a valid lens (or that would put
-    an LED inside it) are skipped and counted.
+    variation ``<= max_cv`` (if no design meets it, the most uniform one). Geometries that do not
+    close into a valid lens (or that would put an LED inside it) are skipped and counted. Every
+    candidate is traced by ``engine`` (default: the compiled kernel, :func:`trace_report`).
 
     Returns ``{"best": LensCandidate, "start": LensCandidate, "evaluated": int, "invalid": int,
     "scene": Scene (the best design), "start_scene": Scene}``.
@@ -128,7 +137,7 @@ def optimize_lens(scene, *, arc_radius=(10.0, 16.0), centre_rho=(24.0, 32.0), ce
         # Uniformity on a coarse 30 x 30 grid of the same screen: with few rays per candidate
         # the full-resolution CV would measure Monte Carlo noise rather than the design.
         coarse = replace(s, plane=replace(s.plane, resolution=(30, 30)))
-        r = trace_report(coarse, rays=rays, sampler="sobol", device=device)
+        r = trace_report(coarse, rays=rays, sampler="sobol", device=device, engine=engine)
         c.fraction_on_screen, c.uniformity_cv = r["fraction_on_screen"], r["uniformity_cv"]
         return c, s
 

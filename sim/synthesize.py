@@ -15,13 +15,12 @@ import math
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from pipeline.base.errors import UserError
 from pipeline.base.frames import optical_to_recon
 from sim.illumination_model import IlluminationModel, light_matrices
 from sim.optics import instrument
-from sim.optics.binning import PixelGrid
+from sim.optics.grid import PixelGrid
 from sim.optics.multisource import METHODS, trace_all
 from sim.scene import Scene, load_scene
 
@@ -52,7 +51,7 @@ def check_inputs(scene: Scene, shape, mm_per_px, drive, brightness, gains):
 
 def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, gains=None, exposure: float = 1.0,
                rays: int | None = None, sampler: str | None = None, seed: int | None = None, method: str = "hits",
-               device="cpu", dtype=torch.float32, compile: bool = False) -> IlluminationModel:
+               device="cpu", dtype=None, engine: str | None = None) -> IlluminationModel:
     """Trace ``scene`` onto a camera pixel grid and return its illumination model.
 
     Parameters
@@ -76,7 +75,9 @@ def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, g
     method : {"hits", "image", "trace"}
         How every LED is obtained (:mod:`sim.optics.multisource`).
     device, dtype :
-        Torch device and float type of the trace (V is returned as float32).
+        Device and float type (float32 default, or float64) of the trace (V is returned as float32).
+    engine : {"kernel", "torch"}, optional
+        The compiled kernel (default) or the eager torch reference (:mod:`sim.optics.engine`).
 
     Returns
     -------
@@ -96,13 +97,13 @@ def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, g
     check_inputs(scene, shape, mm_per_px, drive, brightness, gains)
     shape = (int(shape[0]), int(shape[1]))
     kw = dict(drive=drive, brightness=brightness, gains=gains, exposure=exposure, rays=rays, sampler=sampler,
-              seed=seed, method=method, device=device, dtype=dtype, compile=compile)
+              seed=seed, method=method, device=device, dtype=dtype, engine=engine)
     return model_from_record(synthesize_record(scene, shape, mm_per_px, **kw))
 
 
 def synthesize_record(scene, shape, mm_per_px: float, *, drive=None, brightness=None, gains=None,
                       exposure: float = 1.0, rays=None, sampler=None, seed=None, method="hits", device="cpu",
-                      dtype=torch.float32, compile=False):
+                      dtype=None, engine=None):
     """Compute the ``illumination`` :class:`pipeline.base.store.Record` (no caching)."""
     from pipeline.base.store import Record
 
@@ -117,7 +118,7 @@ def synthesize_record(scene, shape, mm_per_px: float, *, drive=None, brightness=
     fields, traces = [], []
     for n_ch in indices:
         res = trace_all(scene, grid, method=method, heights=heights, rays=rays, sampler=sampler, seed=seed,
-                        device=device, dtype=dtype, compile=compile, refractive_index=n_ch)
+                        device=device, dtype=dtype, engine=engine, refractive_index=n_ch)
         fields.append(optical_to_recon(res.V.astype(np.float64)))  # (D, L, H, W, 3)
         traces.extend(res.traces)
     Vc = np.stack(fields)  # (C, D, L, H, W, 3), C = 3 with dispersion else 1
@@ -202,9 +203,4 @@ def default_illumination(shape=(60, 80), mm_per_px: float = 0.5, rays: int = 250
     >>> m.V.shape, m.num_leds
     ((24, 12, 16, 3), 24)
     """
-    # One intra-op thread: on a shared 2-core machine a second thread mostly waits on barriers
-    # (measured 0.65 s single-threaded vs 3-30 s with two under load); restored afterwards.
-    from pipeline.base.threads import limit_threads
-
-    with limit_threads(torch=1):
-        return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)
+    return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)

@@ -27,6 +27,7 @@ def register(group):
     p.add_argument("--intersection", choices=("robust", "paper"), default=None,
                    help="lens intersections: robust (default) or the paper's cases 1-3 with counted fallbacks")
     p.add_argument("--image", metavar="PNG", help="also save the 24-LED flat-gel image")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads of the kernel (default: every core)")
     add_json_flag(p)
     p.set_defaults(func=_trace)
 
@@ -54,6 +55,8 @@ def register(group):
     p.add_argument("--rays", type=int, default=20_000, help="rays per candidate (default 20000)")
     p.add_argument("--out-dir", default="optimize-lens", help="folder for the before/after images")
     p.add_argument("--device", default="cpu")
+    p.add_argument("--engine", choices=("kernel", "torch"), default=None,
+                   help="tracer of every candidate: the compiled kernel (default) or the eager torch reference")
     add_json_flag(p)
     p.set_defaults(func=_optimize)
 
@@ -80,30 +83,47 @@ def _trace_options(p):
     p.add_argument("--seed", type=int, default=None, help="sampler seed (default: the scene's)")
     p.add_argument("--method", choices=METHODS, default="hits",
                    help="every LED by hit rotation (exact, default), image rotation (the paper's) or tracing each")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, ...)")
+    p.add_argument("--device", default="cpu", help="cpu, or a CUDA device (cuda, cuda:1): the kernel on the GPU")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    p.add_argument("--compile", action="store_true",
-                   help="trace each chunk with one torch.compiled function (robust intersection; the first "
-                        "call compiles for tens of seconds)")
+    p.add_argument("--engine", choices=("kernel", "torch"), default=None,
+                   help="the compiled kernel (default; compiles once, then cached on disk) or the eager torch "
+                        "reference (the only one for --intersection paper)")
 
 
-def _dtype(name):
-    import torch
+def _device(name: str, engine: str | None = None, intersection: str | None = None) -> str:
+    """Check ``--device`` up front: a clear error instead of a traceback from deep in numba or torch."""
+    import re
 
-    return {"float32": torch.float32, "float64": torch.float64}[name]
+    from sim.optics.engine import resolve_engine
+
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", name):
+        raise UserError(f"--device {name!r}: not a device; expected cpu, cuda or cuda:N")
+    if not name.startswith("cuda"):
+        return name
+    try:
+        kind = resolve_engine(engine, intersection or "robust")
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if kind == "kernel":
+        from sim.optics.kernel_cuda import cuda_available
+
+        ok, why = cuda_available()
+    else:
+        import torch
+
+        ok, why = torch.cuda.is_available(), "torch sees no CUDA device"
+    if not ok:
+        raise UserError(f"--device {name!r}: CUDA is not available on this machine ({why}); use --device cpu")
+    return name
 
 
-def _device(name: str) -> str:
-    """Check ``--device`` up front: a clear error instead of a traceback from deep in torch."""
-    import torch
+def _engine(args):
+    from sim.optics.engine import resolve_engine
 
     try:
-        dev = torch.device(name)
-    except RuntimeError as exc:
-        raise UserError(f"--device {name!r}: not a torch device ({exc})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"--device {name!r}: CUDA is not available on this machine; use --device cpu")
-    return name
+        return resolve_engine(args.engine, getattr(args, "intersection", None) or "robust")
+    except ValueError as exc:
+        raise UserError(f"--engine {args.engine}: {exc}") from None
 
 
 def _check_rays(args):
@@ -115,9 +135,16 @@ def _trace(args) -> int:
     from sim.lens_design import TRACE_KEYS, trace_report
 
     _check_rays(args)
+    if args.engine == "kernel" and args.intersection == "paper":
+        raise UserError("--engine kernel implements the robust intersection only; use --engine torch with "
+                        "--intersection paper")
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be a positive integer, got {args.threads}")
+    engine = args.engine
     r = trace_report(args.scene, rays=args.rays, sampler=args.sampler, seed=args.seed, no_lens=args.no_lens,
-                     method=args.method, device=_device(args.device), dtype=_dtype(args.dtype), compile=args.compile,
-                     images=bool(args.image), intersection=args.intersection)
+                     method=args.method, device=_device(args.device, args.engine, args.intersection),
+                     dtype=args.dtype, images=bool(args.image), intersection=args.intersection, engine=engine,
+                     threads=args.threads)
     if args.image:
         _save_image(r.pop("image"), args.image, f"{r['scene']} ({'lens' if r['lens'] else 'no lens'})")
     out = {k: r[k] for k in TRACE_KEYS}
@@ -125,13 +152,16 @@ def _trace(args) -> int:
         print_json(out)
     else:
         print(f"scene {out['scene']} ({'with' if out['lens'] else 'without'} lens), {out['rays']} rays per traced "
-              f"LED ({out['sampler']}, {out['method']}, {out['intersection']} intersections) on {out['device']}")
+              f"LED ({out['sampler']}, {out['method']}, {out['intersection']} intersections) on {out['device']}, "
+              f"{out['engine']} engine, {out['dtype']}")
         print(f"  fraction on screen  {100 * out['fraction_on_screen']:.2f} %")
         print(f"  mean intensity      {out['mean_intensity']:.4g} W/m^2 per W per LED")
         print(f"  uniformity          CV {out['uniformity_cv']:.4f}, min/max {out['min_max']:.4f}")
         for ch, v in out["channels"].items():
             print(f"    {ch}: CV {v['uniformity_cv']:.4f}, min/max {v['min_max']:.4f}")
-        print(f"  time                {out['seconds']:.3f} s ({out['rays_per_second'] / 1e6:.2f} M rays/s)")
+        print(f"  time                {out['seconds']:.3f} s ({out['rays_per_second'] / 1e6:.2f} M rays/s)"
+              + (f", plus {out['compile_seconds']:.2f} s to compile or load the kernel" if out["compile_seconds"] else
+                 ""))
         print(f"  energy residual     {out['energy_residual']:.3g}")
         shown = {k: v for k, v in out["counters"].items() if v}
         if shown:
@@ -180,12 +210,13 @@ def _optimize(args) -> int:
         raise UserError(f"--steps and --rays must be positive, got {args.steps} and {args.rays}")
     r = optimize_lens(args.scene, arc_radius=tuple(args.arc_radius), centre_rho=tuple(args.centre_rho),
                       centre_z=tuple(args.centre_z), top_radius=tuple(args.top_radius), steps=args.steps,
-                      max_cv=args.max_cv, rays=args.rays, refine=args.refine, device=_device(args.device))
+                      max_cv=args.max_cv, rays=args.rays, refine=args.refine,
+                      device=_device(args.device, args.engine), engine=_engine(args))
     out_dir = Path(args.out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     images = {}
     for tag, scene in (("before", r["start_scene"]), ("after", r["scene"])):
-        rep = trace_report(scene, rays=args.rays, sampler="sobol", images=True)
+        rep = trace_report(scene, rays=args.rays, sampler="sobol", images=True, engine=_engine(args))
         path = out_dir / f"{tag}.png"
         _save_image(rep.pop("image"), path, f"{tag}: {100 * rep['fraction_on_screen']:.1f}% on screen, "
                                             f"CV {rep['uniformity_cv']:.2f}")
@@ -230,7 +261,7 @@ def _synthesize(args) -> int:
         args.scene, tuple(args.shape), args.mm_per_px, store, drive=_load_npy(args.drive, "drive"),
         brightness=_load_npy(args.brightness, "brightness"), gains=_load_npy(args.gains, "gains"),
         exposure=args.exposure, rays=args.rays, sampler=args.sampler, seed=args.seed, method=args.method,
-        device=_device(args.device), dtype=_dtype(args.dtype), compile=args.compile)
+        device=_device(args.device, args.engine), dtype=args.dtype, engine=_engine(args))
     path = save_illumination(model, args.out)
     res = {"out": str(path), "key": key.digest, "cached": cached, "shape": list(model.shape),
            "leds": model.num_leds, "mm_per_px": model.mm_per_px, "seconds": time.perf_counter() - t0,

@@ -5,8 +5,9 @@ and ``bare_ring`` (:func:`sim.render.bare_ring_illumination`, the LED ring witho
 closed form). Parameters that change the result, and so enter the key (:func:`params`):
 the model, the image grid (``shape``, ``mm_per_px``) and, traced, the scene's content (not
 its name, path or description), rays, sampler, seed, method, float type, exposure and the
-optional patterns and gains; bare ring, the gel's ``gel_z``. The device and ``compile`` stay
-out. ``iristac run``, ``iristac demo``, ``compare-modes`` and ``iristac sim synthesize`` all
+optional patterns and gains, and the tracing engine (the compiled kernel and the torch
+reference draw different random and Sobol points); bare ring, the gel's ``gel_z``. The device
+stays out. ``iristac run``, ``iristac demo``, ``compare-modes`` and ``iristac sim synthesize`` all
 key a trace here, so the same trace is one cache entry whoever asks.
 """
 
@@ -22,7 +23,8 @@ from pipeline.stages.base import StageSpec, config_path
 
 __all__ = ["SPEC", "params", "synthesize_to_store", "illumination_record", "illumination_model", "resolve", "node"]
 
-SPEC = StageSpec("synthesize", version=1, schema="illumination",
+# version 2: traced by the compiled kernel by default (sim.optics.engine), "engine" in the key.
+SPEC = StageSpec("synthesize", version=2, schema="illumination",
                  # rays, sampler and seed of a traced model default to the scene's ``trace`` section.
                  defaults={"model": "traced", "scene": "default", "method": "hits", "gel_z": 35.0, "height": 60,
                            "width": 80, "mm_per_px": 0.5})
@@ -30,7 +32,7 @@ SPEC = StageSpec("synthesize", version=1, schema="illumination",
 
 def params(model: str = "traced", *, shape, mm_per_px: float, scene=None, gel_z: float = 35.0, rays=None,
            sampler=None, seed=None, method: str = "hits", dtype="float32", exposure: float = 1.0, drive=None,
-           brightness=None, gains=None) -> dict:
+           brightness=None, gains=None, engine=None) -> dict:
     """The key parameters of a synthesize result.
 
     Parameters
@@ -44,8 +46,8 @@ def params(model: str = "traced", *, shape, mm_per_px: float, scene=None, gel_z:
         Optical z of the gel (bare ring).
     rays, sampler, seed : optional
         Traced: default to the scene's ``trace`` section.
-    method, dtype, exposure, drive, brightness, gains
-        Traced: as in :func:`sim.synthesize.synthesize`.
+    method, dtype, exposure, drive, brightness, gains, engine
+        Traced: as in :func:`sim.synthesize.synthesize` (``engine`` None: the default one).
 
     Examples
     --------
@@ -63,13 +65,16 @@ def params(model: str = "traced", *, shape, mm_per_px: float, scene=None, gel_z:
         sc = scene if isinstance(scene, Scene) else load_scene(scene)
     except UserError as exc:
         raise UserError(f"synthesize: scene: {exc}") from None
+    from sim.optics.engine import float_dtype, resolve_engine
+
     tr = sc.trace
     d = scene_to_dict(sc)
     d.pop("description", None)  # words do not change the light
     p: dict[str, Any] = {"model": "traced", "scene": d, "shape": shape, "mm_per_px": float(mm_per_px),
                          "rays": int(rays if rays is not None else tr.rays), "sampler": sampler or tr.sampler,
                          "seed": int(tr.seed if seed is None else seed), "method": method,
-                         "dtype": str(dtype).replace("torch.", ""), "exposure": float(exposure)}
+                         "dtype": float_dtype(dtype).name, "exposure": float(exposure),
+                         "engine": resolve_engine(engine, tr.intersection)}
     for name, arr in (("drive", drive), ("brightness", brightness), ("gains", gains)):
         if arr is not None:
             p[name] = np.asarray(arr, dtype=np.float64)
@@ -81,18 +86,16 @@ def synthesize_to_store(scene, shape, mm_per_px: float, store, *, force: bool = 
 
     ``kw`` are :func:`sim.synthesize.synthesize`'s options (``drive``, ``brightness``,
     ``gains``, ``exposure``, ``rays``, ``sampler``, ``seed``, ``method``, ``device``,
-    ``dtype``, ``compile``). ``key`` is this stage's key (:func:`params`); ``cached`` says
+    ``dtype``, ``engine``). ``key`` is this stage's key (:func:`params`); ``cached`` says
     whether the entry was read back instead of traced.
     """
-    import torch
-
     from sim.optics.multisource import METHODS
     from sim.synthesize import check_inputs, model_from_record, synthesize_record
     from sim.scene import Scene, load_scene
 
     sc = scene if isinstance(scene, Scene) else load_scene(scene)
     full = dict(drive=None, brightness=None, gains=None, exposure=1.0, rays=None, sampler=None, seed=None,
-                method="hits", device="cpu", dtype=torch.float32, compile=False)
+                method="hits", device="cpu", dtype=None, engine=None)
     full.update(kw)
     if full["method"] not in METHODS:
         raise UserError(f"synthesize: method must be one of {METHODS}, got {full['method']!r}")
@@ -100,7 +103,7 @@ def synthesize_to_store(scene, shape, mm_per_px: float, store, *, force: bool = 
     shape = (int(shape[0]), int(shape[1]))
     p = params("traced", scene=sc, shape=shape, mm_per_px=mm_per_px,
                **{k: full[k] for k in ("rays", "sampler", "seed", "method", "dtype", "exposure", "drive", "brightness",
-                                       "gains")})
+                                       "gains", "engine")})
     rec, key, cached = SPEC.get_or_compute(store, p, [], lambda: synthesize_record(sc, shape, mm_per_px, **full),
                                            force=force, heal=heal)
     return model_from_record(rec), key, cached
