@@ -16,22 +16,29 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from calibration.capture import Capture, read_capture
+from pipeline.base.capture import Capture, read_capture
 from calibration.detect import Circle, DetectOptions, detect_contacts
 from calibration.models import (MODEL_NAMES, CalibrationModel, FarFieldModel, LightFieldModel, LUTModel, MLPModel,
                                 NearFieldModel, TracedModel, check_light_rank)
 from calibration.models.led_geometry import geometry_basis
 from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
-from calibration.validate import cross_validate
-from pipeline.errors import UserError
+from calibration.models.base import angular_error_deg, fit_tilt_gain, scale_tilt
+from calibration.validate import INVALID_ERROR_DEG, cross_validate, cv_report
+from pipeline.base.errors import UserError
 from sim.illumination_model import IlluminationModel
 
-__all__ = ["CalibrationResult", "calibrate", "label_errors", "read_illumination", "CIRCLE_COLUMNS"]
+__all__ = ["CalibrationResult", "CircleFit", "calibrate", "find_circles", "label_errors", "read_illumination", "CIRCLE_COLUMNS"]
 
 #: Columns of the ``circles (K, 8)`` dataset of calibration.h5.
 CIRCLE_COLUMNS = ("center_x", "center_y", "radius_px", "contact_radius_px", "quality", "accepted", "snr",
                   "residual_px", "shift_x", "shift_y")
+
+
+#: Said with every calibration report (``summary()["cv_note"]``): CV figures are not what new presses see.
+CV_NOTE = ("CV is optimistic (the held-out presses shaped the circles and the choice of model); for the error on "
+           "presses the calibration never saw, import a separate test capture of the same sensor and run "
+           "iristac eval calibration CAL.h5 TEST_CAPTURE.h5")
 
 
 @dataclass
@@ -51,6 +58,8 @@ class CalibrationResult:
     shape : (H, W)
     num_patterns, num_channels : int
     light_rank_ratio : float
+    markers : ndarray, shape (H, W), bool, or None
+        Printed gel markers the calibration filled in and left out (saved as ``markers``).
     """
 
     circles: list[Circle]
@@ -64,6 +73,7 @@ class CalibrationResult:
     num_channels: int
     light_rank_ratio: float
     meta: dict[str, Any] = field(default_factory=dict)
+    markers: np.ndarray | None = None
 
     @property
     def best_model(self) -> str | None:
@@ -102,11 +112,13 @@ class CalibrationResult:
                 "cv_invalid_fraction": cv["invalid_fraction"],
                 "seconds": rep["seconds"],
                 "fit": rep["fit"],
+                "tilt_gain": cv.get("tilt_gain", 1.0),
             }
             if none_valid:
                 out["models"][name]["note"] = "no valid predictions on the held-out presses"
         if self.labels is not None:
             out.update(self.labels)
+        out["cv_note"] = CV_NOTE
         return out
 
     def save(self, path: str | Path) -> Path:
@@ -119,7 +131,7 @@ class CalibrationResult:
         ``LookupTable.from_arrays``-ready); attributes ``chosen_model`` (best by CV),
         ``circle_reasons``, ``validation`` (per model: fit report and CV report), ``summary``.
         """
-        from calibration import h5io
+        from pipeline.base.store import Record, write_record
 
         # One row per press (the stage schema's (K, *) ``circles``); columns in CIRCLE_COLUMNS.
         data: dict[str, np.ndarray] = {"circles": np.array(
@@ -134,8 +146,10 @@ class CalibrationResult:
                 data["flat_field"] = np.asarray(flat, dtype=np.float32)
         if "far" in self.models:
             data["light_vectors"] = self.models["far"].lights.astype(np.float32)
+        if self.markers is not None:
+            data["markers"] = np.asarray(self.markers).astype(np.uint8)
         for name, model in self.models.items():
-            for k, v in model.to_arrays().items():
+            for k, v in {**model.to_arrays(), **model.output_arrays()}.items():
                 data[f"models/{name}/{k}"] = np.asarray(v)
             if isinstance(model, LightFieldModel):
                 data[f"models/{name}/light_field"] = model.light_field(self.shape)
@@ -148,10 +162,12 @@ class CalibrationResult:
             "circle_columns": list(CIRCLE_COLUMNS),
             "circle_reasons": [c.reason for c in self.circles],
             "validation": {k: r for k, r in self.reports.items()},
+            # How the circles were found, so that a test capture's truth is found the same way.
+            "circle_settings": self.meta.get("circle_settings", {}),
             "summary": {k: v for k, v in self.summary().items() if k != "circles"},
         }
         meta = json.loads(json.dumps(meta, default=float))
-        return h5io.write(path, "calibration", data, meta)
+        return write_record(Path(path), Record(schema="calibration", data=data, meta=meta))
 
 
 def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np.ndarray) -> dict[str, Any]:
@@ -229,10 +245,11 @@ def _factories(names, capture: Capture, illumination, saturation, model_options)
     return out
 
 
-def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: float | None = None,
+def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_per_px: float | None = None,
               models: str | Sequence[str] = "all", *, illumination=None, folds: int = 5, shrink_px: float = 2.0,
               detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
-              refine_iterations: int = 2, refine_model: str = "auto", seed: int = 0) -> CalibrationResult:
+              refine_iterations: int = 2, refine_model: str = "auto", seed: int = 0,
+              markers=None, tilt_correction: bool = True) -> CalibrationResult:
     """Calibrate light models from a sphere-indentation capture.
 
     Parameters
@@ -240,8 +257,9 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
     capture : Capture or path
         Frames ``(K, P, H, W, C)``, reference ``(P, H, W, C)``, drive ``(P, L, 3)`` ...
         (``capture.h5`` layout).
-    ball_radius_mm : float
-        Radius of the pressed ball.
+    ball_radius_mm : float or None
+        Radius of the pressed ball; None: the capture's ``ball_radius_mm`` attribute
+        (``iristac import images --ball-radius``).
     mm_per_px : float, optional
         Pixel pitch; default: the capture's ``mm_per_px`` attribute.
     models : "all", a name, or a list of names
@@ -269,6 +287,13 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         near field cannot, and on the default lens scene its 15 deg error moved the centres
         the wrong way), else ``near``. Options come from ``model_options``.
     seed : int
+    markers : None, "none", "auto", a mask image path or an (H, W) bool array
+        Printed gel markers (:mod:`calibration.markers`): filled in before anything else and
+        left out of the samples. None: the capture's own ``markers`` dataset, if any.
+    tilt_correction : bool
+        Scale each model's predicted tilt by the gain that undoes its shrinkage toward flat on
+        held-out presses, and clip it to the tilts the truth covered (:func:`_correct_output`).
+        Measured on the shared real frames (train presses 0-19, test 20-29; docs/calibration.md).
 
     Returns
     -------
@@ -280,14 +305,15 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: f
         Missing scale, no usable press, or patterns with fewer than three independent
         light directions.
     """
-    from threadpoolctl import threadpool_limits
+    from pipeline.base.threads import limit_threads
 
     # Small, many solves: a single BLAS thread is several times faster on a loaded machine
     # than threads that spin waiting for a core (see pyproject.toml).
-    with threadpool_limits(limits=1, user_api="blas"):
+    with limit_threads(blas=1):
         return _calibrate(capture, ball_radius_mm, mm_per_px, models, illumination=illumination, folds=folds,
                           shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
-                          refine_iterations=refine_iterations, refine_model=refine_model, seed=seed)
+                          refine_iterations=refine_iterations, refine_model=refine_model, seed=seed,
+                          markers=markers, tilt_correction=tilt_correction)
 
 
 #: Models that can vote for contact centres (they predict normals from a few patterns).
@@ -305,23 +331,97 @@ def _refine_factory(refine_model: str, cap: Capture, illumination, saturation, m
     return name, make
 
 
-def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, folds, shrink_px, detect_options,
-               model_options, refine_iterations, refine_model, seed) -> CalibrationResult:
+@dataclass
+class CircleFit:
+    """The contact circles of a capture and the samples around them (:func:`find_circles`).
+
+    Attributes
+    ----------
+    capture : Capture
+    source : str
+        The file name (or "capture") for messages.
+    mm_per_px : float
+    frames, reference : ndarray
+        Linear frames ``(K, P, H, W, C)`` and reference ``(P, H, W, C)`` (dark removed).
+    saturation : float or None
+        Observations at or above this (linear) value are left out of the samples.
+    circles : list of Circle
+    samples : Samples
+        Gathered around the (refined) circles.
+    light_rank_ratio : float
+    detect_seconds : float
+    refine : dict
+        :func:`calibration.refine.refine_centres`' report plus ``seconds`` and ``model``.
+    markers : ndarray, shape (H, W), bool, or None
+        Printed gel markers: filled in ``frames`` and ``reference``, absent from ``samples``.
+    ball_radius_mm : float
+    """
+
+    capture: Capture
+    source: str
+    mm_per_px: float
+    frames: np.ndarray
+    reference: np.ndarray
+    saturation: float | None
+    circles: list[Circle]
+    samples: Samples
+    light_rank_ratio: float
+    detect_seconds: float
+    refine: dict[str, Any]
+    markers: np.ndarray | None = None
+    ball_radius_mm: float = 0.0
+
+
+def find_circles(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: float | None = None, *,
+                 illumination=None, folds: int = 5, shrink_px: float = 2.0,
+                 detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
+                 refine_iterations: int = 2, refine_model: str = "auto", seed: int = 0, markers=None) -> CircleFit:
+    """Detect and refine the contact circles of a sphere-indentation capture (the truth of calibration).
+
+    The first half of :func:`calibrate` (same parameters): edge detection, the light-rank
+    check, photometric centre refinement with a model cross-fitted on this capture's own
+    presses, and the samples around the circles. :func:`calibration.evaluate.evaluate_calibration`
+    uses it for the circles of a test capture, so that the truth never comes from the
+    calibration being judged.
+
+    Raises
+    ------
+    UserError
+        Missing scale, fewer than two accepted presses, or fewer than three light directions.
+    """
+    from pipeline.base.threads import limit_threads
+
+    with limit_threads(blas=1):  # why: see calibrate
+        return _find_circles(capture, ball_radius_mm, mm_per_px, illumination=illumination, folds=folds,
+                             shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
+                             refine_iterations=refine_iterations, refine_model=refine_model, seed=seed,
+                             markers=markers)
+
+
+def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, shrink_px, detect_options,
+                  model_options, refine_iterations, refine_model, seed, markers=None) -> CircleFit:
     src = str(capture) if not isinstance(capture, Capture) else "capture"
     cap = read_capture(capture) if not isinstance(capture, Capture) else capture
     mm = mm_per_px if mm_per_px is not None else cap.mm_per_px
     if mm is None or not mm > 0:
         raise UserError(f"{src}: no mm_per_px attribute and no --mm-per-px given (expected a positive pixel pitch)")
+    if ball_radius_mm is None:
+        ball_radius_mm = cap.meta.get("ball_radius_mm")
+        if ball_radius_mm is None:
+            raise UserError(f"{src}: no ball_radius_mm attribute and no --ball-radius given (the pressed ball's "
+                            "radius in mm)")
+    ball_radius_mm = float(ball_radius_mm)
     if not ball_radius_mm > 0:
         raise UserError(f"calibrate: --ball-radius must be a positive radius in mm, got {ball_radius_mm}")
-    names = [models] if isinstance(models, str) else list(models)
-    explicit = "all" not in names
-    if not explicit:
-        names = list(MODEL_NAMES)
     frames, ref = cap.linear()
     sat = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(np.asarray(cap.frames).dtype)
     if sat is not None and cap.dark is not None:
         sat = sat - float(np.asarray(cap.dark).min())
+    mask = _marker_mask(markers, cap, ref)
+    if mask is not None:
+        from calibration.markers import fill_markers
+
+        frames, ref = fill_markers(frames, mask), fill_markers(ref, mask)
     t0 = time.perf_counter()
     circles = detect_contacts(frames, ref, ball_radius_mm / mm, detect_options)
     t_detect = time.perf_counter() - t0
@@ -329,18 +429,74 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
     if accepted < 2:
         reasons = "; ".join(f"press {k}: {c.reason}" for k, c in enumerate(circles) if not c.accepted)
         raise UserError(f"{src}: only {accepted} press(es) accepted, calibration needs at least 2 ({reasons})")
-    samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat)
+    samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
+                              exclude=mask)
     # Before any light model is fitted: refinement fits one, which needs three directions.
     rank = check_light_rank(samples.subset(samples.press >= 0), what=src)
     t0 = time.perf_counter()
     refine_name, make_refine = _refine_factory(refine_model, cap, illumination, sat, model_options)
     circles, refine_report = refine_centres(frames, ref, circles, ball_radius_mm, mm, iterations=refine_iterations,
                                             folds=folds, seed=seed, shrink_px=shrink_px, saturation=sat,
-                                            make_model=make_refine)
+                                            make_model=make_refine, exclude=mask)
     refine_report["seconds"] = time.perf_counter() - t0
     refine_report["model"] = refine_name
     if refine_iterations > 0:
-        samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat)
+        samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
+                                  exclude=mask)
+    return CircleFit(cap, src, float(mm), frames, ref, sat, circles, samples, rank, t_detect, refine_report, mask,
+                     ball_radius_mm)
+
+
+def _marker_mask(markers, cap: Capture, reference: np.ndarray) -> np.ndarray | None:
+    """The marker mask to use: ``None`` -> the capture's own, ``"none"`` -> none, else
+    :func:`calibration.markers.resolve_markers` (``"auto"``, a mask image, an array)."""
+    if markers is None:
+        return cap.markers
+    from calibration.markers import resolve_markers
+
+    return resolve_markers(markers, reference)
+
+
+def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: Samples) -> dict[str, Any]:
+    """Set the model's tilt gain (from its out-of-fold predictions) and tilt limit; CV report of the result.
+
+    The gain undoes the shrinkage toward flat that every model shows on presses it did not see
+    (:func:`calibration.models.base.fit_tilt_gain`); the limit keeps answers within the tilts the
+    truth covered (beyond them, at the rim and in the bulge, a model only extrapolates). The CV
+    report's errors become those of the corrected predictions (one number fitted on about ten
+    thousand out-of-fold pixels); the uncorrected mean is kept as ``cv_uncorrected_mean_angular_error_deg``.
+    """
+    pred, valid, evaluated = oof
+    use = evaluated & valid
+    truth_tilt = np.hypot(samples.normals[samples.contact, 0], samples.normals[samples.contact, 1])
+    model.max_tilt = float(min(0.999, 1.05 * truth_tilt.max())) if truth_tilt.size else None
+    model.tilt_gain = fit_tilt_gain(pred[use, :2], samples.normals[use, :2]) if use.any() else 1.0
+    corrected, _ = scale_tilt(pred, model.tilt_gain, model.max_tilt)
+    errors = np.full(len(samples), np.nan)
+    e = angular_error_deg(corrected, samples.normals)
+    errors[evaluated] = np.where(valid & np.isfinite(e), e, INVALID_ERROR_DEG)[evaluated]
+    out = cv_report(errors, samples, cv["folds"])
+    out["cv_uncorrected_mean_angular_error_deg"] = cv["cv_mean_angular_error_deg"]
+    out["tilt_gain"] = model.tilt_gain
+    out["max_tilt"] = model.max_tilt
+    return out
+
+
+def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, folds, shrink_px, detect_options,
+               model_options, refine_iterations, refine_model, seed, markers=None,
+               tilt_correction=True) -> CalibrationResult:
+    names = [models] if isinstance(models, str) else list(models)
+    explicit = "all" not in names
+    if not explicit:
+        names = list(MODEL_NAMES)
+    found = _find_circles(capture, ball_radius_mm, mm_per_px, illumination=illumination, folds=folds,
+                          shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
+                          refine_iterations=refine_iterations, refine_model=refine_model, seed=seed,
+                          markers=markers)
+    cap, mm, ref, sat, circles, samples = (found.capture, found.mm_per_px, found.reference, found.saturation,
+                                           found.circles, found.samples)
+    ball_radius_mm = found.ball_radius_mm
+    frames, rank, t_detect, refine_report = found.frames, found.light_rank_ratio, found.detect_seconds, found.refine
     factories = _factories(names, cap, illumination, sat, model_options)
     fitted: dict[str, CalibrationModel] = {}
     reports: dict[str, dict[str, Any]] = {}
@@ -351,9 +507,11 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
             reports[name] = {"skipped": make}
             continue
         t = time.perf_counter()
-        cv = cross_validate(make, samples, ref, folds=folds, seed=seed)
+        cv, oof = cross_validate(make, samples, ref, folds=folds, seed=seed, return_predictions=True)
         model = make()
         fit = model.fit(samples, ref)
+        if tilt_correction:
+            cv = _correct_output(model, cv, oof, samples)
         reports[name] = {"fit": fit, "cv": cv, "seconds": time.perf_counter() - t}
         fitted[name] = model
     labels = None
@@ -364,4 +522,8 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
                              num_patterns=int(frames.shape[1]), num_channels=int(frames.shape[4]),
                              light_rank_ratio=rank,
                              meta={"detect_seconds": t_detect, "refine": refine_report, "samples": len(samples),
-                                   "contact_samples": int(samples.contact.sum())})
+                                   "contact_samples": int(samples.contact.sum()),
+                                   "circle_settings": {"refine_model": refine_report["model"],
+                                                       "refine_iterations": int(refine_iterations),
+                                                       "shrink_px": float(shrink_px), "folds": int(folds)}},
+                             markers=found.markers)

@@ -1,4 +1,5 @@
-"""Import of the shared GelSight-style ball-press format (``.npz``) as a ``capture.h5``.
+"""Imports of ball presses as ``capture.h5``: the GelSight-style ``.npz`` (here) and a folder of
+images or a video (:mod:`calibration.image_import`, re-exported: :func:`import_images`).
 
 The npz holds ``background (H, W, 3)``, ``images (K, H, W, 3)`` (uint8, **BGR**: read with
 OpenCV), hand labels ``touch_center_xy (K, 2)`` and ``touch_radius_px (K,)``, ``names``,
@@ -14,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.capture import Capture, write_capture
-from pipeline.errors import UserError
+from calibration.image_import import import_images, load_images  # folders of images and videos
+from pipeline.base.capture import Capture, write_capture
+from pipeline.base.errors import UserError
 
-__all__ = ["load_gelsight_npz", "import_gelsight_npz"]
+__all__ = ["load_gelsight_npz", "import_gelsight_npz", "import_images", "load_images"]
 
 _REQUIRED = {"background": 3, "images": 4}
 
@@ -54,7 +56,7 @@ def load_gelsight_npz(path: str | Path) -> Capture:
         if "ball_radius_mm" in npz.files:
             meta["ball_radius_mm"] = float(npz["ball_radius_mm"])
         mm = float(npz["mm_per_px"]) if "mm_per_px" in npz.files else None
-    # OpenCV frames are BGR; the project is RGB everywhere (sim.frames.CHANNELS).
+    # OpenCV frames are BGR; the project is RGB everywhere (pipeline.base.frames.CHANNELS).
     frames = np.ascontiguousarray(imgs[:, None, ..., ::-1])
     reference = np.ascontiguousarray(bg[None, ..., ::-1])
     return Capture(frames=frames, reference=reference, drive=np.eye(3, dtype=np.float32)[None],

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.capture import Capture
+from pipeline.base.capture import Capture
 from calibration.detect import Circle
 
 __all__ = ["overlay_image", "write_overlay"]
@@ -51,7 +51,7 @@ def write_overlay(path: str | Path, capture: Capture, circles: list[Circle]) -> 
     img = overlay_image(capture, circles, columns=min(6, max(1, len(circles))))
     path = Path(path)
     if not cv2.imwrite(str(path), img[..., ::-1]):
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         raise UserError(f"{path}: could not write the overlay PNG")
     return path

@@ -27,7 +27,7 @@ from calibration.models.base import CalibrationModel
 from calibration.models.nearfield import NearFieldModel
 from calibration.samples import collect_samples
 from calibration.validate import fold_assignment
-from sim.frames import pixel_to_recon
+from pipeline.base.frames import pixel_to_recon
 
 __all__ = ["recon_to_pixel_offsets", "centre_votes", "refine_centres"]
 
@@ -36,8 +36,8 @@ def recon_to_pixel_offsets(dx: np.ndarray, dy: np.ndarray, shape: tuple[int, int
                            ) -> tuple[np.ndarray, np.ndarray]:
     """Pixel offsets ``(d_row, d_col)`` of reconstruction-frame offsets ``(dx, dy)`` in mm.
 
-    Inverts the (affine) :func:`sim.frames.pixel_to_recon`, so the axis signs come from
-    :mod:`sim.frames` and nowhere else.
+    Inverts the (affine) :func:`pipeline.base.frames.pixel_to_recon`, so the axis signs come from
+    :mod:`pipeline.base.frames` and nowhere else.
 
     Examples
     --------
@@ -94,7 +94,7 @@ def centre_votes(rows: np.ndarray, cols: np.ndarray, normals: np.ndarray, ball_r
 def refine_centres(frames: np.ndarray, reference: np.ndarray, circles: list[Circle], ball_radius_mm: float,
                    mm_per_px: float, *, iterations: int = 2, folds: int = 5, seed: int = 0, shrink_px: float = 2.0,
                    saturation: float | None = None, max_shift_px: float = 4.0,
-                   make_model: Callable[[], CalibrationModel] = NearFieldModel
+                   make_model: Callable[[], CalibrationModel] = NearFieldModel, exclude: np.ndarray | None = None
                    ) -> tuple[list[Circle], dict[str, Any]]:
     """Move each accepted circle's centre to where its measured normals point (see module doc).
 
@@ -116,6 +116,8 @@ def refine_centres(frames: np.ndarray, reference: np.ndarray, circles: list[Circ
         Largest total move from the detected centre; beyond it the detector's centre is kept.
     make_model : callable
         Returns a fresh light model used to measure normals (default: near-field, degree 2).
+    exclude : ndarray, shape (H, W), bool, optional
+        Pixels never sampled (gel markers).
 
     Returns
     -------
@@ -124,15 +126,15 @@ def refine_centres(frames: np.ndarray, reference: np.ndarray, circles: list[Circ
     report : dict
         ``iterations``, ``median_move_px`` (per iteration), ``kept_detected`` (press indices).
     """
-    from threadpoolctl import threadpool_limits
+    from pipeline.base.threads import limit_threads
 
-    with threadpool_limits(limits=1, user_api="blas"):  # why: see calibration.calibrate.calibrate
+    with limit_threads(blas=1):  # why: see calibration.calibrate.calibrate
         return _refine(frames, reference, circles, ball_radius_mm, mm_per_px, iterations, folds, seed, shrink_px,
-                       saturation, max_shift_px, make_model)
+                       saturation, max_shift_px, make_model, exclude)
 
 
 def _refine(frames, reference, circles, ball_radius_mm, mm_per_px, iterations, folds, seed, shrink_px, saturation,
-            max_shift_px, make_model):
+            max_shift_px, make_model, exclude=None):
     out = list(circles)
     accepted = [k for k, c in enumerate(out) if c.accepted]
     report: dict[str, Any] = {"iterations": int(iterations), "median_move_px": [], "kept_detected": []}
@@ -143,7 +145,7 @@ def _refine(frames, reference, circles, ball_radius_mm, mm_per_px, iterations, f
     kept: set[int] = set()
     for _ in range(int(iterations)):
         samples = collect_samples(frames, reference, out, ball_radius_mm, mm_per_px, shrink_px=shrink_px,
-                                  saturation=saturation)
+                                  saturation=saturation, exclude=exclude)
         moves = []
         new = list(out)
         for f in sorted(set(assign.values())):

@@ -65,7 +65,7 @@ class Samples:
 
 def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Circle], ball_radius_mm: float,
                     mm_per_px: float, *, shrink_px: float = 2.0, flat_outside: float = 2.0, flat_step: int = 4,
-                    saturation: float | None = None) -> Samples:
+                    saturation: float | None = None, exclude: np.ndarray | None = None) -> Samples:
     """Gather samples from the accepted presses.
 
     Parameters
@@ -85,6 +85,8 @@ def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Cir
         Grid step of the flat pixels.
     saturation : float, optional
         Observations at or above this value are dropped.
+    exclude : ndarray, shape (H, W), bool, optional
+        Pixels never sampled (printed gel markers, :mod:`calibration.markers`).
 
     Returns
     -------
@@ -125,4 +127,6 @@ def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Cir
     s = Samples(I.astype(np.float32), R.astype(np.float32), rr, cc, n, pr, ct.astype(bool), (h, w))
     if saturation is not None:
         s = s.subset((s.intensities < saturation).all(axis=(1, 2)))
+    if exclude is not None:
+        s = s.subset(~np.asarray(exclude, bool)[s.rows, s.cols])
     return s

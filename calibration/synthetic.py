@@ -5,7 +5,7 @@ A thin wrapper over the project's one image-formation path, the renderer
 bare-LED ring field :func:`sim.point_source.point_source_field`, or with ``far_field=True``
 each LED's field at the image centre everywhere), a lighting mode from a drive matrix, one
 :func:`sim.geometry.sphere` press per requested contact circle, and turns the rendered
-``capture`` record into a :class:`calibration.capture.Capture` plus a :class:`SyntheticTruth`
+``capture`` record into a :class:`pipeline.base.capture.Capture` plus a :class:`SyntheticTruth`
 that remembers what the frames were made from (fields, gains, exposure, LED geometry).
 """
 
@@ -15,11 +15,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from calibration.capture import Capture
-from sim.frames import pixel_to_recon
+from pipeline.base.capture import Capture
+from pipeline.base.frames import pixel_to_recon
 from sim.geometry import sphere
 from sim.illumination_model import IlluminationModel
-from sim.modes import LightingMode, ModeFrame
+from pipeline.base.modes import LightingMode, ModeFrame
 from sim.point_source import point_source_field, ring_geometry
 from sim.render import RenderSettings, auto_exposure
 from sim.rendered_capture import render_capture
@@ -88,7 +88,7 @@ def lighting_drive(mode: str, num_leds: int, leds: list[int] | None = None) -> n
 
 
 def drive_mode(drive: np.ndarray, name: str = "custom", brightness=None) -> LightingMode:
-    """A :class:`sim.modes.LightingMode` whose frame ``p`` drives the LEDs with ``drive[p]``.
+    """A :class:`pipeline.base.modes.LightingMode` whose frame ``p`` drives the LEDs with ``drive[p]``.
 
     Examples
     --------

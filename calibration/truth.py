@@ -5,8 +5,8 @@ A ball of radius ``R`` (mm) pressed into the gel leaves a contact disc of radius
 Inside, at reconstruction-frame offset ``(dx, dy)`` from the disc centre (``d^2 = dx^2 +
 dy^2``), the height is ``h = sqrt(R^2 - d^2) - sqrt(R^2 - a^2)`` (a bump toward the camera,
 zero on the rim) and the gradients are ``dh/dx = -dx / sqrt(R^2 - d^2)`` (same for ``y``),
-turned into normals by :func:`sim.frames.gradients_to_normals`. Pixel offsets are mapped to
-mm by :func:`sim.frames.pixel_to_recon`, so the signs follow the project's conventions.
+turned into normals by :func:`pipeline.base.frames.gradients_to_normals`. Pixel offsets are mapped to
+mm by :func:`pipeline.base.frames.pixel_to_recon`, so the signs follow the project's conventions.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.frames import gradients_to_normals, pixel_to_recon
+from pipeline.base.frames import gradients_to_normals, pixel_to_recon
 
 __all__ = ["SphereCap", "sphere_cap"]
 
@@ -81,7 +81,7 @@ def sphere_cap(shape: tuple[int, int], center_rc: tuple[float, float], contact_r
             f"{ball_radius_mm} mm)")
     rows, cols = np.meshgrid(np.arange(h, dtype=float), np.arange(w, dtype=float), indexing="ij")
     # Offsets from the centre in the reconstruction frame: map both through the same camera
-    # model so that the row -> -y flip comes from sim.frames, not from here.
+    # model so that the row -> -y flip comes from pipeline.base.frames, not from here.
     x, y = pixel_to_recon(rows, cols, (h, w), mm_per_px)
     x0, y0 = pixel_to_recon(center_rc[0], center_rc[1], (h, w), mm_per_px)
     dx, dy = x - x0, y - y0

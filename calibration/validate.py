@@ -15,7 +15,7 @@ import numpy as np
 from calibration.models.base import CalibrationModel, angular_error_deg
 from calibration.samples import Samples
 
-__all__ = ["cross_validate", "fold_assignment"]
+__all__ = ["cross_validate", "cv_report", "fold_assignment"]
 
 INVALID_ERROR_DEG = 90.0
 
@@ -35,7 +35,7 @@ def fold_assignment(presses: np.ndarray, folds: int, seed: int = 0) -> dict[int,
 
 
 def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples, reference: np.ndarray,
-                   folds: int = 5, seed: int = 0) -> dict[str, Any]:
+                   folds: int = 5, seed: int = 0, return_predictions: bool = False):
     """Cross-validated angular error of the model built by ``make_model``.
 
     Parameters
@@ -47,6 +47,8 @@ def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples,
     folds : int
         Number of press groups (leave-one-press-out when ``folds >= presses``).
     seed : int
+    return_predictions : bool
+        Also return the out-of-fold predictions.
 
     Returns
     -------
@@ -54,20 +56,40 @@ def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples,
         ``cv_mean_angular_error_deg``, ``cv_median_angular_error_deg``, ``per_press``
         (press -> mean, median, samples), ``folds`` (list of ``{"train_presses", "test_presses"}``),
         ``invalid_fraction``.
+    predictions : (normals (N, 3), valid (N,), evaluated (N,)), only with ``return_predictions``
+        Each held-out contact sample's prediction by the model that did not see its press
+        (``evaluated`` marks them; elsewhere ``(0, 0, 1)`` and False).
     """
-    from threadpoolctl import threadpool_limits
+    from pipeline.base.threads import limit_threads
 
-    with threadpool_limits(limits=1, user_api="blas"):  # why: see calibration.calibrate.calibrate
-        return _cross_validate(make_model, samples, reference, folds, seed)
+    with limit_threads(blas=1):  # why: see calibration.calibrate.calibrate
+        report, preds = _cross_validate(make_model, samples, reference, folds, seed)
+    return (report, preds) if return_predictions else report
 
 
-def _cross_validate(make_model, samples: Samples, reference: np.ndarray, folds: int, seed: int) -> dict[str, Any]:
+def cv_report(errors: np.ndarray, samples: Samples, fold_log: list) -> dict[str, Any]:
+    """The CV statistics of per-sample errors ``(N,)`` (NaN where not evaluated; invalid = 90)."""
+    evaluated = np.isfinite(errors)
+    per_press = {}
+    for p in np.unique(samples.press[evaluated]):
+        e = errors[(samples.press == p) & evaluated]
+        per_press[int(p)] = {"mean_deg": float(e.mean()), "median_deg": float(np.median(e)), "samples": int(e.size)}
+    e = errors[evaluated]
+    return {"cv_mean_angular_error_deg": float(e.mean()), "cv_median_angular_error_deg": float(np.median(e)),
+            "per_press": per_press, "folds": fold_log,
+            "invalid_fraction": float(np.mean(e >= INVALID_ERROR_DEG))}
+
+
+def _cross_validate(make_model, samples: Samples, reference: np.ndarray, folds: int, seed: int):
     presses = np.unique(samples.press[(samples.press >= 0) & samples.contact])
     if len(presses) < 2:
         raise ValueError(f"cross_validate: needs at least two accepted presses, got {len(presses)}")
     assign = fold_assignment(presses, folds, seed)
     fold_of = np.array([assign.get(int(p), -1) for p in samples.press])
     errors = np.full(len(samples), np.nan)
+    pred = np.zeros((len(samples), 3))
+    pred[:, 2] = 1.0
+    valid = np.zeros(len(samples), bool)
     fold_log = []
     for f in sorted(set(assign.values())):
         test_p = sorted(p for p, g in assign.items() if g == f)
@@ -76,16 +98,9 @@ def _cross_validate(make_model, samples: Samples, reference: np.ndarray, folds: 
         model.fit(samples.subset(train), reference)
         test = (fold_of == f) & samples.contact
         n, ok = model.predict(samples.subset(test))
+        pred[test], valid[test] = n, ok
         e = angular_error_deg(n, samples.normals[test])
         errors[test] = np.where(ok & np.isfinite(e), e, INVALID_ERROR_DEG)
         fold_log.append({"test_presses": test_p,
                          "train_presses": sorted(int(p) for p in np.unique(samples.press[train]) if p >= 0)})
-    evaluated = np.isfinite(errors)
-    per_press = {}
-    for p in presses:
-        e = errors[(samples.press == p) & evaluated]
-        per_press[int(p)] = {"mean_deg": float(e.mean()), "median_deg": float(np.median(e)), "samples": int(e.size)}
-    e = errors[evaluated]
-    return {"cv_mean_angular_error_deg": float(e.mean()), "cv_median_angular_error_deg": float(np.median(e)),
-            "per_press": per_press, "folds": fold_log,
-            "invalid_fraction": float(np.mean(e >= INVALID_ERROR_DEG))}
+    return cv_report(errors, samples, fold_log), (pred, valid, np.isfinite(errors))

@@ -9,6 +9,10 @@ Three extension keywords sit beside the JSON Schema keywords of a stage schema:
 
 ``x-version``
     The layout's version, written into every file; bump it when the layout changes.
+``x-reads``
+    Optional: the versions this package still reads (default: only ``x-version``), for a
+    change that only relaxed the layout (e.g. capture version 2 made ``reference`` optional,
+    so a version-1 file is a valid version-2 file).
 ``x-dims``
     Symbolic shapes such as ``{"frames": ["K", "P", "H", "W", "C"]}``: a symbol must take
     the same value in every dataset it appears in, an integer must match exactly, ``"*"``
@@ -40,6 +44,7 @@ __all__ = [
     "stage_schema_names",
     "config_schema_names",
     "schema_version",
+    "readable_versions",
     "validate_description",
     "check_dims",
     "validate_config",
@@ -107,6 +112,19 @@ def config_schema_names() -> list[str]:
 def schema_version(name: str) -> int:
     """``x-version`` of a stage schema."""
     return int(stage_schema(name).get("x-version", 1))
+
+
+def readable_versions(name: str) -> tuple[int, ...]:
+    """The file versions of stage schema ``name`` that this package reads (``x-reads``, else
+    just ``x-version``).
+
+    Examples
+    --------
+    >>> readable_versions("capture")
+    (1, 2)
+    """
+    s = stage_schema(name)
+    return tuple(int(v) for v in s.get("x-reads", [s.get("x-version", 1)]))
 
 
 def _path_of(error: jsonschema.ValidationError) -> str:
@@ -186,8 +204,14 @@ def _fmt_rule(rule) -> str:
     return "(" + ", ".join(str(s) for s in rule) + ")"
 
 
-def validate_config(kind: str, obj: Any, source: str = "<memory>") -> Any:
+def validate_config(kind: str, obj: Any, source: str = "<memory>",
+                    choices: Mapping[str, Any] | None = None) -> Any:
     """Validate a parsed config (YAML/JSON) against ``configs/<kind>.json``; return it.
+
+    A schema node with ``"x-choices": NAME`` takes its allowed values (``enum``) from
+    ``choices[NAME]``: the registries that own those names (solvers, integrators, contact
+    objects) live above this package, so the caller passes them in. Without them the node
+    only checks its type.
 
     Raises
     ------
@@ -201,7 +225,7 @@ def validate_config(kind: str, obj: Any, source: str = "<memory>") -> Any:
     ...
     data_schemas.SchemaError: run.yaml: unknown key 'colour' at top level; allowed keys: ...
     """
-    schema = config_schema(kind)
+    schema = _with_choices(config_schema(kind), choices or {})
     validator = jsonschema.Draft202012Validator(schema)
     errors = sorted(validator.iter_errors(obj), key=lambda e: (len(list(e.absolute_path)), list(map(str, e.absolute_path))))
     if errors:
@@ -209,6 +233,19 @@ def validate_config(kind: str, obj: Any, source: str = "<memory>") -> Any:
         errors.sort(key=lambda e: e.validator != "additionalProperties")
         raise SchemaError(f"{source}: {_explain(errors[0])}")
     return obj
+
+
+def _with_choices(schema: Any, choices: Mapping[str, Any]) -> Any:
+    """A copy of ``schema`` whose ``x-choices`` nodes carry the ``enum`` of their registry."""
+    if isinstance(schema, Mapping):
+        out = {k: _with_choices(v, choices) for k, v in schema.items()}
+        name = schema.get("x-choices")
+        if name in choices:
+            out["enum"] = list(choices[name])
+        return out
+    if isinstance(schema, list):
+        return [_with_choices(v, choices) for v in schema]
+    return schema
 
 
 def load_config_file(kind: str, path: str | Path) -> Any:

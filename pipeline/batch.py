@@ -22,7 +22,7 @@ from dataclasses import dataclass, field
 from multiprocessing import get_context
 from typing import Any, Callable, Sequence
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from pipeline.report import format_number
 
 __all__ = ["BatchItem", "run_batch", "format_summary"]

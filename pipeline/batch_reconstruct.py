@@ -13,14 +13,17 @@ Examples
 --------
 >>> import tempfile, os
 >>> from sim.render import bare_ring_illumination
->>> from sim.rendered_capture import render_capture, write_capture
->>> from pipeline.stages import contact_surfaces, illumination_record
->>> from pipeline.store import write_record
+>>> from sim.rendered_capture import render_capture
+>>> from pipeline.base.capture import write_capture
+>>> from pipeline.stages.synthesize import illumination_record
+>>> from sim.contacts import contact_surfaces
+>>> from pipeline.base.store import write_record
 >>> d = tempfile.mkdtemp()
 >>> model = bare_ring_illumination((12, 16), 0.5)
 >>> ill = str(write_record(os.path.join(d, "ill.h5"), illumination_record(model)))
 >>> rec = os.path.join(d, "rec.h5")
->>> _ = write_capture(rec, render_capture(model, "monochromatic", contact_surfaces((12, 16), 0.5, size_mm=1.5)))
+>>> surfaces = contact_surfaces("sphere", (12, 16), 0.5, 2, size_mm=1.5)
+>>> _ = write_capture(rec, render_capture(model, "monochromatic", surfaces))
 >>> items = batch_reconstruct([rec], illumination=ill, solver="nearfield", store=os.path.join(d, "cache"))
 >>> r = items[0].result
 >>> items[0].ok, r["contacts"], r["normal_mean_error_deg"] < 5, len(r["depth_sha256"])
@@ -36,7 +39,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["reconstruct_recording", "batch_reconstruct", "expand_recordings", "SUMMARY_COLUMNS"]
 
@@ -51,7 +54,8 @@ def _sha(a: np.ndarray) -> str:
 
 def reconstruct_recording(recording: str, *, calibration: str | None = None, illumination: str | None = None,
                           solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
-                          store: str | None = None, images: bool = False, device: str = "cpu") -> dict[str, Any]:
+                          store: str | None = None, images: bool = False, device: str = "cpu",
+                          heal: bool = True, mask: str | None = None) -> dict[str, Any]:
     """Reconstruct one recording (the batch task; picklable as a :func:`functools.partial`).
 
     Parameters
@@ -69,6 +73,11 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
         Stage store folder (default ``$IRISTAC_CACHE`` or ``./iristac-cache``).
     device : str
         Torch device.
+    heal : bool
+        Quarantine and recompute a corrupt cache entry (False: the recording fails on it).
+    mask : str, optional
+        A mask file (PNG/NPY) of the pixels to reconstruct, for every recording (replaces a
+        capture's own ``mask``).
 
     Returns
     -------
@@ -82,7 +91,8 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
 
     dest = None if out is None else str(Path(out) / Path(recording).stem)
     res = reconstruct(recording, calibration=calibration, illumination=illumination, solver=solver,
-                      integrator=integrator, out=dest, store=store, images=images, device=device)
+                      integrator=integrator, out=dest, store=store, images=images, device=device, heal=heal,
+                      mask=mask)
     n, d = res.normals, res.depth
     result = {"normals_key": n.provenance.get("iristac_key") or "", "depth_key": d.provenance.get("iristac_key") or "",
               "normals_sha256": _sha(n.data["normals"]), "depth_sha256": _sha(d.data["height"]),
@@ -118,7 +128,8 @@ def expand_recordings(paths: Sequence[str]) -> list[str]:
 def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = None, illumination: str | None = None,
                       solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
                       store: str | None = None, images: bool = False, device: str = "cpu", workers: int = 1,
-                      scheduler: str | None = None, progress: bool = False, connect_timeout: float = 10.0):
+                      scheduler: str | None = None, progress: bool = False, connect_timeout: float = 10.0,
+                      heal: bool = True, mask: str | None = None):
     """Reconstruct every recording with a shared calibration or illumination model.
 
     Parameters
@@ -132,7 +143,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     scheduler : str, optional
         A Dask scheduler address (``tcp://host:8786``): the recordings are spread over its
         workers, which must see the same paths (and the store) as this machine.
-    solver, integrator, out, store, images, device, progress, connect_timeout
+    solver, integrator, out, store, images, device, heal, progress, connect_timeout, mask
         See :func:`reconstruct_recording` and :func:`pipeline.batch.run_batch`.
 
     Returns
@@ -144,18 +155,18 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
 
     if calibration is not None and illumination is not None:
         raise UserError("batch: give either --calibration or --illumination, not both")
-    for flag, path in (("--calibration", calibration), ("--illumination", illumination)):
+    for flag, path in (("--calibration", calibration), ("--illumination", illumination), ("--mask", mask)):
         if path is not None and not Path(path).is_file():
             raise UserError(f"{flag} {path}: no such file")
     # Workers may run elsewhere or in another folder: hand them absolute paths.
     absolute = (lambda p: None if p is None else str(Path(p).resolve()))
     recs = [str(Path(r).resolve()) for r in expand_recordings(recordings)]
     if store is None:
-        from pipeline.store import default_store_root
+        from pipeline.base.store import default_store_root
 
         store = str(default_store_root())
     task = partial(reconstruct_recording, calibration=absolute(calibration), illumination=absolute(illumination),
                    solver=solver, integrator=integrator, out=absolute(out), store=absolute(store), images=images,
-                   device=device)
+                   device=device, heal=heal, mask=absolute(mask))
     return run_batch(recs, task, workers=workers, scheduler=scheduler, progress=progress,
                      connect_timeout=connect_timeout)

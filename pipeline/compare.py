@@ -17,15 +17,11 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from pipeline.report import format_number
 
 __all__ = ["ModeRun", "Comparison", "compare_captures", "compare_modes", "render_mode_captures",
-           "default_test_object", "object_from_spec", "solvers_for", "add_to_report"]
-
-#: Solvers tried for multi-pattern and single-RGB-frame modes.
-MULTI_PATTERN_SOLVERS = ("lstsq", "nearfield", "robust")
-SINGLE_FRAME_SOLVERS = ("lstsq", "nearfield", "robust", "lut")
+           "lut_calibrations", "add_to_report"]
 
 
 @dataclass
@@ -78,109 +74,74 @@ class Comparison:
                 "best_per_mode": {m: r.to_json() for m, r in self.best_per_mode().items()}}
 
 
-def default_test_object(shape: tuple[int, int], mm_per_px: float):
-    """The demo's test object: a ball, a cylinder and a flat punch pressed at once, with a fine
-    texture on the ball.
+def render_mode_captures(store, model, model_key, modes: Sequence[str], object: str, out: str | Path, *,
+                         noise_dn: float = 1.0, camera_fps: float = 30.0, seed: int = 21, emulate: bool = False,
+                         faults: str | None = None, progress: Callable[[str], None] | None = None):
+    """Capture ``object`` under each mode with the virtual sensor, through the capture stage;
+    write a copy of each capture to ``out/<mode>.h5``.
 
-    Returns
-    -------
-    sim.geometry.surface.HeightField
+    With ``emulate`` the capture runs for real (:func:`pipeline.stages.capture.virtual_sensor_capture`):
+    the LED-ring emulator behind a pseudo-terminal (with ``faults``), the host client over
+    pyserial, and the virtual camera rendering whatever the emulated LEDs show at
+    ``camera_fps``, with stale-frame flushing; the capture time is then measured (dark frame,
+    a reference and a contact frame per pattern) and recorded in the capture. Without it the
+    frames are rendered directly and the time is the number of frames at ``camera_fps``.
 
-    Examples
-    --------
-    >>> f = default_test_object((60, 80), 0.3)
-    >>> f.height.shape, bool(f.height.max() > 0.3)
-    ((60, 80), True)
-    """
-    from sim.geometry.shapes import cylinder, flat_punch, sphere
-    from sim.geometry.surface import combine
-    from sim.geometry.texture import add_texture
-
-    h, w = shape
-    half_w, half_h = (w - 1) / 2 * mm_per_px, (h - 1) / 2 * mm_per_px
-    ball = sphere(shape, mm_per_px, radius=0.22 * min(half_w, half_h) * 2, depth=0.6,
-                  center=(-0.45 * half_w, 0.25 * half_h))
-    ball = add_texture(ball, amplitude=0.02, period=0.8, angle_deg=30.0)
-    rod = cylinder(shape, mm_per_px, radius=1.5, depth=0.4, center=(0.35 * half_w, 0.3 * half_h), angle_deg=60.0)
-    punch = flat_punch(shape, mm_per_px, radius=0.2 * min(half_w, half_h), depth=0.3,
-                       center=(0.1 * half_w, -0.5 * half_h))
-    return combine([ball, rod, punch])
-
-
-def object_from_spec(spec: str, shape: tuple[int, int], mm_per_px: float):
-    """The contact geometry named by ``--object``: ``indenters`` (the demo's test object),
-    ``sphere`` (a 4 mm ball pressed 0.6 mm at the centre) or a height-map file (``.npy`` in mm,
-    or a 16-bit ``.png`` scaled to 1 mm full scale)."""
-    from sim.geometry.from_file import height_from_file
-    from sim.geometry.shapes import sphere
-
-    if spec == "indenters":
-        return default_test_object(shape, mm_per_px)
-    if spec == "sphere":
-        return sphere(shape, mm_per_px, radius=2.0, depth=0.6)
-    p = Path(spec)
-    if not p.is_file():
-        raise UserError(f"--object: {spec!r} is neither 'indenters', 'sphere' nor an existing height-map file")
-    return height_from_file(p, mm_per_px, shape=shape)
-
-
-def render_mode_captures(model, modes: Sequence[str], obj, out: str | Path, *, noise_dn: float = 1.0,
-                         bit_depth: int = 8, camera_fps: float = 30.0, seed: int = 21, emulate: bool = False,
-                         faults: str | None = None):
-    """Capture ``obj`` under each mode with the virtual sensor; write ``out/<mode>.h5``.
-
-    With ``emulate`` the capture runs for real: the LED-ring emulator behind a pseudo-terminal
-    (with ``faults``), the host client over pyserial, and the virtual camera rendering whatever
-    the emulated LEDs show at ``camera_fps``, with stale-frame flushing; the capture time is then
-    measured (dark frame, a reference and a contact frame per pattern). Without it the frames
-    are rendered directly and the time is the number of frames at ``camera_fps``.
+    Parameters
+    ----------
+    store : StageStore
+    model : IlluminationModel
+    model_key : StageKey or str
+        The illumination's identity (its synthesize key, or its file's).
+    modes : sequence of str
+    object : str
+        A contact object (:func:`sim.contacts.contact_surfaces`): one contact, a 2 mm
+        radius pressed 0.6 mm at the centre where the object has a size.
 
     Returns ``(captures, capture_seconds)`` for :func:`compare_captures`.
     """
-    from pipeline.store import write_record
-    from sim.rendered_capture import render_capture
+    from pipeline.base.capture import write_capture
+    from pipeline.base.modes import load_mode
+    from pipeline.stages import capture as capture_stage
 
     captures: dict[str, Path] = {}
     seconds: dict[str, tuple[float, str]] = {}
-    if emulate:
-        from pipeline.capture.session import capture
-        from pipeline.capture.virtual import VirtualSensorSpec
-        from sim.modes import load_mode
-
-        for mode in modes:
-            name = load_mode(mode).name
-            path = Path(out) / f"{name}.h5"
-            for stale in (path, path.with_name(path.name + ".journal")):
-                stale.unlink(missing_ok=True)  # a fresh capture, not a resume of an older one
-            spec = VirtualSensorSpec(illumination=model, contacts=[obj], noise_dn=noise_dn, bit_depth=bit_depth,
-                                     fps=camera_fps, seed=seed)
-            res = capture(path, mode=mode, emulate=True, faults=faults, virtual_camera=spec, progress=False)
-            if res.mislabeled:
-                raise UserError(f"{path}: {res.mislabeled} frames were stored under the wrong pattern")
-            captures[name] = res.path
-            seconds[name] = (res.seconds, f"measured, emulated ring + {camera_fps:g} fps camera, "
-                                          f"{res.frames} frames, {res.retries} retries")
-        return captures, seconds
     for mode in modes:
-        rec = render_capture(model, mode, [obj], noise_dn=noise_dn, bit_depth=bit_depth, seed=seed)
-        name = str(rec.meta["mode"])
-        captures[name] = write_record(Path(out) / f"{name}.h5", rec)
+        name = load_mode(mode).name
+        section = {"mode": mode, "object": object, "contacts": 1, "size_mm": 2.0, "depth_mm": 0.6,
+                   "spread_mm": 0.0, "noise_dn": float(noise_dn), "seed": int(seed), "fps": float(camera_fps)}
+        if emulate:
+            section.update(emulate=True, virtual_camera=True, faults=faults)
+        else:
+            section.update(render=True)
+        rec, _, cached = capture_stage.run(store, section, model, model_key)
+        if progress:
+            progress(f"capture {name}: {'cached' if cached else 'captured'}")
+        captures[name] = write_capture(Path(out) / f"{name}.h5", rec)
         P = rec.data["frames"].shape[1]
-        seconds[name] = (P / camera_fps, f"{P} frame{'s' if P > 1 else ''} at {camera_fps:g} fps")
+        if emulate:
+            seconds[name] = (float(rec.meta["seconds"]),
+                             f"measured, emulated ring + {camera_fps:g} fps camera, {len(rec.meta['steps'])} frames, "
+                             f"{rec.meta['retries']} retries" + (" (cached)" if cached else ""))
+        else:
+            seconds[name] = (P / camera_fps, f"{P} frame{'s' if P > 1 else ''} at {camera_fps:g} fps")
     return captures, seconds
 
 
-def lut_calibrations(model, modes: Sequence[str], out: str | Path, *, ball_radius_mm: float = 2.0,
+def lut_calibrations(store, model, modes: Sequence[str], out: str | Path, *, ball_radius_mm: float = 2.0,
                      presses=None, noise_dn: float = 1.0, bit_depth: int = 8, seed: int = 13,
                      skipped: dict[str, str] | None = None) -> dict[str, Path]:
-    """A lookup-table calibration for each single-frame mode, from rendered ball presses.
+    """A lookup-table calibration for each single-frame mode, from rendered ball presses,
+    through the calibrate stage (:func:`pipeline.stages.calibrate.run`); copies go to
+    ``out/calibration_<mode>.h5``.
 
     A mode whose calibration is refused (e.g. its channels' lights are too close to coplanar)
     gets no table; the reason goes into ``skipped`` (mode -> message) when given.
     """
-    from calibration.calibrate import calibrate
-    from pipeline.store import write_record
-    from sim.modes import load_mode
+    from pipeline.base.capture import write_capture
+    from pipeline.base.modes import load_mode
+    from pipeline.base.store import Record, write_record
+    from pipeline.stages import calibrate as calibrate_stage
     from sim.rendered_capture import render_capture
 
     out = Path(out)
@@ -190,20 +151,14 @@ def lut_calibrations(model, modes: Sequence[str], out: str | Path, *, ball_radiu
         if len(m.frames) != 1:
             continue
         cap = render_capture(model, m, presses, noise_dn=noise_dn, bit_depth=bit_depth, seed=seed)
-        p = write_record(out / f"calibration_capture_{m.name}.h5", cap)
+        write_capture(out / f"calibration_capture_{m.name}.h5", Record(cap.schema, cap.data, cap.meta))
         try:
-            result[m.name] = calibrate(p, ball_radius_mm, models=["lut"]).save(out / f"calibration_{m.name}.h5")
+            rec, _, _ = calibrate_stage.run(store, cap, ball_radius_mm=ball_radius_mm, models=["lut"])
+            result[m.name] = write_record(out / f"calibration_{m.name}.h5", Record(rec.schema, rec.data, rec.meta))
         except UserError as exc:
             if skipped is not None:
                 skipped[m.name] = str(exc)
     return result
-
-
-def solvers_for(patterns: int, has_lut: bool) -> tuple[str, ...]:
-    """The solvers that apply to a mode with ``patterns`` frames."""
-    if patterns == 1:
-        return SINGLE_FRAME_SOLVERS if has_lut else MULTI_PATTERN_SOLVERS
-    return MULTI_PATTERN_SOLVERS
 
 
 def compare_captures(captures: dict[str, Any], *, illumination=None, calibrations: dict[str, Any] | None = None,
@@ -233,9 +188,10 @@ def compare_captures(captures: dict[str, Any], *, illumination=None, calibration
         Folder for per-run outputs (normals/depth files and PNGs).
     """
     from pipeline.evaluate import angular_error_deg
+    from pipeline.normals.solve import applicable_solvers
     from pipeline.outputs import depth_colormap_rgb, normal_map_rgb
     from pipeline.reconstruct import reconstruct
-    from pipeline.store import Record, read_record
+    from pipeline.base.store import Record, read_record
 
     if not captures:
         raise UserError("compare-modes: no captures to compare")
@@ -256,7 +212,10 @@ def compare_captures(captures: dict[str, Any], *, illumination=None, calibration
         cal = calibrations.get(mode)
         cal_rec = None if cal is None else (cal if isinstance(cal, Record) else read_record(cal, schema="calibration"))
         has_lut = cal_rec is not None and any(k.startswith("models/lut/") for k in cal_rec.data)
-        tried = [s for s in solvers_for(P, has_lut) if solvers is None or s in solvers]
+        # The illumination gives light vectors everywhere; a calibration with a table, the table.
+        kinds = {"vectors", "field"} | ({"table"} if has_lut else set())
+        tried = [s for s in applicable_solvers(P, rec.data["frames"].shape[-1], kinds, variants=solvers is not None)
+                 if solvers is None or s in solvers]
         secs, how = capture_seconds.get(mode, (float("nan"), "not measured"))
         for solver in tried:
             if progress:
@@ -339,25 +298,28 @@ def add_to_report(report, comp: Comparison, title: str = "Lighting modes compare
 
 
 def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene: str = "default",
-                  illumination: str | Path | None = None, object: str = "indenters",
+                  illumination: str | Path | None = None, object: str = "test-object",
                   shape: tuple[int, int] = (120, 160), mm_per_px: float = 0.15, rays: int = 2_000_000,
                   captures: dict[str, str] | None = None, calibrations: dict[str, str] | None = None,
                   lut: bool = True, integrator: str = "dst", cache: str | Path | None = None,
-                  noise_dn: float = 1.0, bit_depth: int = 8, camera_fps: float = 30.0, emulate: bool = True,
+                  noise_dn: float = 1.0, camera_fps: float = 30.0, emulate: bool = True,
                   faults: str | None = None, log: Callable[[str], None] | None = None) -> dict:
     """Which lighting mode reconstructs best, at what capture time (``iristac compare-modes``).
 
     Either the user's own ``captures`` (mode -> capture.h5 with ``truth/*``) are compared, or
     the virtual sensor renders ``object`` under each of ``modes`` from an illumination model
     (``illumination`` file, else ``scene`` traced with ``rays`` rays per LED), captured through
-    the ring emulator and virtual camera when ``emulate`` (see :func:`render_mode_captures`). Writes
+    the ring emulator and virtual camera when ``emulate`` (see :func:`render_mode_captures`).
+    The trace, the captures, the lookup-table calibrations and the reconstructions go through
+    the stage registry (:mod:`pipeline.stages`) and the store in ``cache``. Writes
     ``report.html`` and ``report.json`` into ``out`` and returns the JSON.
     """
+    from pipeline.base.modes import list_modes
+    from pipeline.base.store import StageStore, read_record
     from pipeline.report import Report
-    from pipeline.store import StageStore, read_record
-    from sim.modes import list_modes
+    from pipeline.stages.base import record_key
+    from pipeline.stages.synthesize import illumination_model, synthesize_to_store
     from sim.rendered_capture import sphere_presses
-    from sim.synthesize import load_illumination, synthesize_to_store
 
     say = log or (lambda m: None)
     out = Path(out)
@@ -366,9 +328,13 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
     t0 = time.perf_counter()
     ill_path = None
     model = None
+    key = None
     if illumination is not None:
         ill_path = Path(illumination)
-        model = load_illumination(ill_path)
+        if not ill_path.is_file():
+            raise UserError(f"--illumination {ill_path}: no such file")
+        ill_rec = read_record(ill_path, schema="illumination")
+        model, key = illumination_model(ill_rec), record_key(ill_rec)
     elif not captures:
         say(f"tracing scene {scene!r}: {rays:,} rays per LED onto {shape}")
         model, key, _ = synthesize_to_store(scene, shape, mm_per_px, store, rays=rays, sampler="sobol")
@@ -384,11 +350,9 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
             seconds[m] = (float(secs), "measured") if secs is not None else (float("nan"), "not recorded")
     else:
         modes = list(modes or list_modes())
-        obj = object_from_spec(object, model.shape, model.mm_per_px)
-        say(f"rendering the {object} object under {', '.join(modes)}")
-        caps, seconds = render_mode_captures(model, modes, obj, out / "captures", noise_dn=noise_dn,
-                                             bit_depth=bit_depth, camera_fps=camera_fps, emulate=emulate,
-                                             faults=faults)
+        say(f"capturing the {object} object under {', '.join(modes)}")
+        caps, seconds = render_mode_captures(store, model, key, modes, object, out / "captures", noise_dn=noise_dn,
+                                             camera_fps=camera_fps, emulate=emulate, faults=faults)
         if lut:
             say("calibrating lookup tables for the single-frame modes")
             h, w = model.shape
@@ -396,8 +360,8 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
             centres = [(0.0, 0.0), (0.4 * half, 0.3 * half), (-0.4 * half, 0.3 * half),
                        (0.3 * half, -0.4 * half), (-0.3 * half, -0.4 * half)]
             presses = sphere_presses(model.shape, model.mm_per_px, 2.0, [0.7, 0.6, 0.8, 0.65, 0.75], centres)
-            for m, p in lut_calibrations(model, modes, out, presses=presses, noise_dn=noise_dn,
-                                         bit_depth=bit_depth, skipped=lut_skipped).items():
+            for m, p in lut_calibrations(store, model, modes, out, presses=presses, noise_dn=noise_dn,
+                                         skipped=lut_skipped).items():
                 cals.setdefault(m, p)
             for m, why in lut_skipped.items():
                 say(f"no lookup table for {m}: {why}")

@@ -9,6 +9,10 @@
    every shipped lighting mode.
 4. **normals** and 5. **depth**: every applicable solver per mode, DST Poisson integration.
 
+Every stage goes through the stage registry (:mod:`pipeline.stages`) and the store in
+``out/cache`` (or ``--cache``): a second demo reads back what the first computed, and the
+same work asked for by ``iristac run`` or ``compare-modes`` is the same cache entry.
+
 The report (``report.html`` + ``report.json``) shows the frames, normal maps, depth maps and
 error maps per mode and solver, with a table of errors and times.
 """
@@ -91,13 +95,13 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
         The content of ``report.json``: per-stage seconds, calibration figures, and per mode and
         solver the normal and depth errors and times.
     """
-    from calibration.calibrate import calibrate
-    from pipeline.compare import (add_to_report, compare_captures, default_test_object, lut_calibrations,
-                                  render_mode_captures)
+    from pipeline.base.capture import write_capture
+    from pipeline.base.store import Record, StageStore, write_record
+    from pipeline.compare import add_to_report, compare_captures, lut_calibrations, render_mode_captures
     from pipeline.report import Report
-    from pipeline.store import StageStore, write_record
+    from pipeline.stages import calibrate as calibrate_stage
+    from pipeline.stages.synthesize import synthesize_to_store
     from sim.rendered_capture import render_capture, sphere_presses
-    from sim.synthesize import synthesize_to_store
     from sim.uniformity import uniformity_report
 
     t_start = time.perf_counter()
@@ -127,31 +131,33 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     say(f"calibrate: {len(presses)} rendered ball presses under every LED in turn")
     cal_cap = render_capture(model, "point", presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
                              seed=11)
-    cal_cap_path = write_record(out / "calibration_capture.h5", cal_cap)
+    write_capture(out / "calibration_capture.h5", Record(cal_cap.schema, cal_cap.data, cal_cap.meta))
     # Centre refinement votes with the traced model (refine_model="auto" with an illumination
     # model): on the quick demo with the pre-issue-16 lens (scene default-v1) traced CV 0.69 deg
     # refined vs 1.01 deg unrefined; the polynomial near field (15 deg there: it cannot follow that
     # lens's sharp LED footprints) made it 2.9 deg. With the current default: traced 0.18 deg.
-    cal = calibrate(cal_cap_path, settings.ball_radius_mm, models=["far", "near", "traced"], illumination=model)
-    cal.save(out / "calibration.h5")
-    cal_summary = cal.summary()
+    cal, _, cal_cached = calibrate_stage.run(store, cal_cap, ball_radius_mm=settings.ball_radius_mm,
+                                             models=["far", "near", "traced"], illumination=model,
+                                             illumination_key=ill_key)
+    write_record(out / "calibration.h5", Record(cal.schema, cal.data, cal.meta))
+    cal_summary = cal.meta["summary"]
     say("calibrate: colour lookup tables for the single-frame modes")
     lut_skipped: dict[str, str] = {}
-    luts = lut_calibrations(model, settings.modes, out, ball_radius_mm=settings.ball_radius_mm, presses=presses,
-                            noise_dn=settings.noise_dn, bit_depth=settings.bit_depth, skipped=lut_skipped)
+    luts = lut_calibrations(store, model, settings.modes, out, ball_radius_mm=settings.ball_radius_mm,
+                            presses=presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
+                            skipped=lut_skipped)
     for m, why in lut_skipped.items():
         say(f"calibrate: no lookup table for {m}: {why}")
-    stages["calibrate"] = {"seconds": time.perf_counter() - t0, "presses": len(presses),
+    stages["calibrate"] = {"seconds": time.perf_counter() - t0, "presses": len(presses), "cached": cal_cached,
                            "accepted": int(cal_summary.get("accepted", 0)),
                            "models": cal_summary.get("models", {}), "lut_skipped": lut_skipped}
 
     # 3. capture ----------------------------------------------------------------------------
     t0 = time.perf_counter()
-    obj = default_test_object(settings.shape, settings.mm_per_px)
     say(f"capture: the test object under {', '.join(settings.modes)} through the ring emulator (pty, "
         f"{settings.faults}) and the virtual camera")
-    captures, capture_seconds = render_mode_captures(model, settings.modes, obj, out / "captures",
-                                                     noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
+    captures, capture_seconds = render_mode_captures(store, model, ill_key, settings.modes, "test-object",
+                                                     out / "captures", noise_dn=settings.noise_dn,
                                                      camera_fps=settings.camera_fps, emulate=True,
                                                      faults=settings.faults)
     stages["capture"] = {"seconds": time.perf_counter() - t0, "modes": list(settings.modes)}

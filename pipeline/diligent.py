@@ -7,15 +7,16 @@ A DiLiGenT object folder holds ``filenames.txt`` (one image name per line),
 silently change results) and converted from OpenCV's BGR to RGB.
 
 Frames: DiLiGenT's camera frame is x right, y up, z toward the camera, the same axes as our
-reconstruction frame (:mod:`sim.frames`), so directions and normals are taken as they are.
+reconstruction frame (:mod:`pipeline.base.frames`), so directions and normals are taken as they are.
 
 The capture (schema ``capture``) gets: ``frames (1, P, H, W, 3)`` uint16, ``drive (P, P, 3)``
 (image ``p`` lit by light ``p`` alone at its RGB intensity), ``brightness`` ones,
 ``lights/light_vectors (P, 3, 3)`` (direction times the channel's intensity: the far-field
-calibration :func:`pipeline.reconstruct.reconstruct` uses when given no other), ``mask (H, W)``,
-``truth/normals (1, H, W, 3)`` when ``Normal_gt.mat`` exists. DiLiGenT has no no-contact
-frame: ``reference`` is zeros and the attribute ``has_reference`` is False (``--ratio`` is
-refused). Pixel pitch is unknown: ``mm_per_px`` is 1 (heights come out in pixels).
+calibration :func:`pipeline.reconstruct.reconstruct` uses when given no other), ``mask (H, W)``
+(reconstruction then solves only those pixels), ``truth/normals (1, H, W, 3)`` when
+``Normal_gt.mat`` exists. DiLiGenT has no no-contact frame, so the capture has no
+``reference`` (``--ratio`` is refused; version-1 captures held zeros and ``has_reference =
+False``). Pixel pitch is unknown: ``mm_per_px`` is 1 (heights come out in pixels).
 """
 
 from __future__ import annotations
@@ -25,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["DiligentObject", "read_diligent", "diligent_record", "import_diligent"]
 
@@ -95,6 +96,8 @@ def read_diligent(folder) -> DiligentObject:
     for path, a in ((folder / "light_directions.txt", dirs), (folder / "light_intensities.txt", ints)):
         if len(a) != len(names):
             raise UserError(f"{path}: {len(a)} lines, but filenames.txt lists {len(names)} images")
+    if len(names) < 3:
+        raise UserError(f"{list_path}: lists {len(names)} image(s); photometric stereo needs at least 3 lights")
     images = np.stack([_read_png(folder / n) for n in names])
     shapes = {im.shape for im in images}
     if len(shapes) != 1:
@@ -107,6 +110,8 @@ def read_diligent(folder) -> DiligentObject:
         mask = load_mask(mask_path)
         if mask.shape != (H, W):
             raise UserError(f"{mask_path}: shape {mask.shape}, the images are {(H, W)}")
+        if not mask.any():
+            raise UserError(f"{mask_path}: the mask selects no pixels (all zero)")
     else:
         mask = np.ones((H, W), bool)
     gt = None
@@ -121,31 +126,31 @@ def read_diligent(folder) -> DiligentObject:
 
 
 def diligent_record(obj: DiligentObject):
-    """The capture :class:`pipeline.store.Record` of a DiLiGenT object."""
-    from pipeline.store import Record
+    """The capture :class:`pipeline.base.store.Record` of a DiLiGenT object."""
+    from pipeline.base.store import Record
 
     P = len(obj.names)
     frames = obj.images.astype(np.uint16 if obj.images.dtype.itemsize <= 2 else obj.images.dtype)[None]
     drive = np.zeros((P, P, 3), np.float32)
     drive[np.arange(P), np.arange(P)] = obj.intensities
     lights = (obj.directions[:, None, :] * obj.intensities[:, :, None]).astype(np.float32)  # (P, C, 3)
-    data = {"frames": frames, "reference": np.zeros(frames.shape[1:], frames.dtype), "drive": drive,
-            "brightness": np.ones(P, np.float32), "lights/light_vectors": lights, "mask": obj.mask}
+    data = {"frames": frames, "drive": drive, "brightness": np.ones(P, np.float32),
+            "lights/light_vectors": lights, "mask": obj.mask}
     if obj.normals_gt is not None:
         data["truth/normals"] = obj.normals_gt.astype(np.float32)[None]
     bits = 16 if frames.dtype == np.uint16 else 8 * frames.dtype.itemsize
     meta = {"mm_per_px": 1.0, "pattern_names": list(obj.names), "source": "diligent", "mode": "point",
-            "bit_depth": int(bits), "exposure": 1.0, "has_reference": False, "object": obj.folder.name}
+            "bit_depth": int(bits), "exposure": 1.0, "object": obj.folder.name}
     return Record("capture", data, meta)
 
 
 def import_diligent(folder, out) -> dict:
     """Read a DiLiGenT folder and write it as ``out`` (capture.h5). Returns a summary dict
     with keys ``out``, ``images``, ``height``, ``width``, ``mask_pixels``, ``has_ground_truth``."""
-    from pipeline.store import write_record
+    from pipeline.base.capture import write_capture
 
     obj = read_diligent(folder)
-    path = write_record(out, diligent_record(obj))
+    path = write_capture(out, diligent_record(obj))
     return {"out": str(path), "images": len(obj.names), "height": int(obj.images.shape[1]),
             "width": int(obj.images.shape[2]), "mask_pixels": int(obj.mask.sum()),
             "has_ground_truth": obj.normals_gt is not None}

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["angular_error_deg", "normal_error_stats", "load_normals", "load_mask", "evaluate_normals"]
 
@@ -81,7 +81,7 @@ def load_normals(path, *, index: int = 0, key: str | None = None) -> tuple[np.nd
         raise UserError(f"{path}: file not found")
     suffix = path.suffix.lower()
     if suffix in (".h5", ".hdf5"):
-        from pipeline.store import read_record
+        from pipeline.base.store import read_record
 
         rec = read_record(path)
         if rec.schema == "normals":

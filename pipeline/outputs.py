@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim.frames import pixel_to_recon
+from pipeline.base.frames import pixel_to_recon
 
 __all__ = ["normal_map_rgb", "depth_colormap_rgb", "write_png", "write_normal_png", "write_depth_png", "write_ply"]
 
@@ -94,7 +94,7 @@ def write_ply(path, height, mm_per_px: float, mask=None, colors=None, *, binary:
     height : ndarray, shape (H, W)
         Heights in mm.
     mm_per_px : float
-        Pixel pitch; ``x, y`` follow :func:`sim.frames.pixel_to_recon` (origin on the axis).
+        Pixel pitch; ``x, y`` follow :func:`pipeline.base.frames.pixel_to_recon` (origin on the axis).
     mask : ndarray, shape (H, W), bool, optional
         Only these pixels become vertices.
     colors : ndarray, shape (H, W, 3), uint8, optional

@@ -1,10 +1,13 @@
 """``iristac run CONFIG.yaml``: the five stages from one config file, each through the stage store.
 
 :func:`run_pipeline` reads and checks the config (:func:`load_pipeline_config`), builds the
-stage graph (:func:`pipeline.stages.build_stages`) and hands it to
-:func:`pipeline.orchestrate.run_stages`: a stage is computed only when the store has no entry
-for its key, so a rerun of the same config reads everything back, and a changed parameter
-recomputes that stage and what depends on it. The run manifest (``<cache>/runs/<name>.json``)
+stage graph from the stage registry (:func:`pipeline.stages.config.build_stages`: each stage
+module's node, with the key every other entry point computes for the same work) and hands
+it to :func:`pipeline.stages.graph.run_stages`: a stage is computed only when the store has
+no entry for its key, so a rerun of the same config reads everything back, and a changed
+parameter recomputes that stage and what depends on it. A corrupt or schema-violating entry
+is quarantined, reported in one warning line and recomputed (``heal=False``, ``--no-heal``:
+it stops the run). The run manifest (``<cache>/runs/<name>.json``)
 lets ``--dry-run`` say why a stage would run. When the config names ``out``, the normals and
 depth are also copied there with PNG/PLY pictures, and the run's summary (per stage ``name``,
 ``cached``, ``seconds``, ``key``, and errors against the capture's truth when it has one) is
@@ -41,7 +44,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = ["RunReport", "load_pipeline_config", "plan_pipeline", "run_pipeline"]
 
@@ -91,7 +94,7 @@ def load_pipeline_config(path: str | Path) -> dict[str, Any]:
     """
     import yaml
 
-    from pipeline.stages import resolve_config
+    from pipeline.stages.config import resolve_config
 
     p = Path(path)
     if not p.is_file():
@@ -114,7 +117,7 @@ def _run_name(config_path: Path) -> str:
 
 
 def _store(config: dict, cache):
-    from pipeline.store import StageStore
+    from pipeline.base.store import StageStore
 
     return StageStore(cache if cache is not None else config.get("cache"))
 
@@ -130,8 +133,8 @@ def plan_pipeline(config_path: str | Path, *, cache: str | Path | None = None,
         ``reason`` (``cached``, ``never computed``, ``parameters changed (...)``, ``input
         stage 'x' will be recomputed``, ``forced`` ...).
     """
-    from pipeline.orchestrate import plan_stages
-    from pipeline.stages import build_stages
+    from pipeline.stages.config import build_stages
+    from pipeline.stages.graph import plan_stages
 
     config = load_pipeline_config(config_path)
     store = _store(config, cache)
@@ -141,7 +144,8 @@ def plan_pipeline(config_path: str | Path, *, cache: str | Path | None = None,
 
 
 def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, out: str | Path | None = None,
-                 force: Sequence[str] = (), device: str | None = None, progress: bool = True, recompute_bad: bool = False) -> RunReport:
+                 force: Sequence[str] = (), device: str | None = None, progress: bool = True,
+                 heal: bool = True) -> RunReport:
     """Run the stages of a pipeline config through the stage store.
 
     Parameters
@@ -158,8 +162,9 @@ def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, ou
         Torch device; overrides the config's ``device``.
     progress : bool
         One line per stage on stderr and progress bars in long stages.
-    recompute_bad : bool
-        Move corrupt store entries aside and recompute them instead of failing.
+    heal : bool
+        A corrupt or schema-violating store entry is quarantined (moved aside, never deleted),
+        reported in one warning line and recomputed; False stops the run on it instead.
 
     Returns
     -------
@@ -167,14 +172,14 @@ def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, ou
 
     Raises
     ------
-    pipeline.orchestrate.StageFailed
+    pipeline.stages.graph.StageFailed
         A stage failed (its message names the stage and the bad input); the stages before
         it are in the store and ``exc.results`` says what ran.
     UserError
         The config is invalid.
     """
-    from pipeline.orchestrate import run_stages
-    from pipeline.stages import build_stages
+    from pipeline.stages.config import build_stages
+    from pipeline.stages.graph import run_stages
 
     t0 = time.perf_counter()
     config = load_pipeline_config(config_path)
@@ -188,7 +193,7 @@ def run_pipeline(config_path: str | Path, *, cache: str | Path | None = None, ou
                 s.compute = _ticking(s.name, s.compute)
     say = (lambda msg: print(f"iristac run: {msg}", file=sys.stderr, flush=True)) if progress else None
     results = run_stages(stages, store, force=force, run_name=_run_name(Path(config_path)), progress=say,
-                         recompute_bad=recompute_bad)
+                         heal=heal)
     report = RunReport(stages=[r.to_json() for r in results], seconds=0.0, cache=str(store.root))
     keys = {r.name: r for r in results}
     if "normals" in keys:
@@ -232,11 +237,12 @@ def _finish(config: dict, results) -> tuple[dict, list[str]]:
     """Errors against the capture's truth, and the copies/pictures in ``out``."""
     import numpy as np
 
+    from pipeline.base.store import read_record
     from pipeline.reconstruct import _truth_errors, _write_outputs
-    from pipeline.store import STAGE_SCHEMAS, read_record
+    from pipeline.stages import stage_module
 
     def rec(name):
-        return read_record(results[name].path, schema=STAGE_SCHEMAS[name]) if name in results else None
+        return read_record(results[name].path, schema=stage_module(name).SPEC.schema) if name in results else None
 
     n_rec, d_rec, cap = rec("normals"), rec("depth"), rec("capture")
     summary: dict[str, Any] = {"valid_fraction": float(np.asarray(n_rec.data["mask"]).mean())}

@@ -37,6 +37,11 @@ class IlluminationModel:
         Gel heights (mm, toward the camera) at which ``V_depth`` was sampled.
     V_depth : ndarray, shape (D, L, H, W, 3), optional
         The field at those heights (depth-dependent light field effect).
+    directions : ndarray, shape (L, 3), optional
+        Far-field (directional) lights: the unit direction toward each light, reconstruction
+        frame (:func:`sim.far_field.far_field_illumination`). ``V`` is then the same at every
+        pixel, and cast shadows are traced along these directions instead of toward
+        ``led_positions``.
     meta : dict
         Provenance: scene name, rays, sampler, effects, ...
     """
@@ -48,6 +53,7 @@ class IlluminationModel:
     depth_heights: np.ndarray | None = None
     V_depth: np.ndarray | None = None
     meta: dict[str, Any] = field(default_factory=dict)
+    directions: np.ndarray | None = None
 
     def __post_init__(self):
         V = np.asarray(self.V)
@@ -59,6 +65,12 @@ class IlluminationModel:
                 f"IlluminationModel: led_positions must have shape ({V.shape[0]}, 3), got {pos.shape}")
         if not np.all(np.isfinite(V)):
             raise ValueError("IlluminationModel: V contains NaN or Inf")
+        if self.directions is not None:
+            d = np.asarray(self.directions, dtype=np.float64)
+            if d.shape != (V.shape[0], 3) or not np.all(np.isfinite(d)):
+                raise ValueError(f"IlluminationModel: directions must be finite with shape ({V.shape[0]}, 3), "
+                                 f"got {d.shape}")
+            self.directions = d
 
     @property
     def shape(self) -> tuple[int, int]:

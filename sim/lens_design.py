@@ -11,10 +11,9 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import torch
 
-from pipeline.errors import UserError
-from sim.optics.binning import PixelGrid
+from pipeline.base.errors import UserError
+from sim.optics.grid import PixelGrid
 from sim.optics.metrics import image_metrics
 from sim.optics.multisource import trace_all
 from sim.scene import Scene, load_scene
@@ -23,8 +22,8 @@ __all__ = ["TRACE_KEYS", "OPTIMIZE_KEYS", "trace_report", "compare_lens", "optim
 
 #: The stable key set of ``iristac sim trace --json``.
 TRACE_KEYS = ("fraction_on_screen", "mean_intensity", "uniformity_cv", "min_max", "channels", "rays", "seconds",
-              "rays_per_second", "energy_residual", "scene", "lens", "sampler", "method", "intersection", "device",
-              "counters")
+              "rays_per_second", "compile_seconds", "energy_residual", "scene", "lens", "sampler", "method",
+              "intersection", "device", "engine", "dtype", "counters")
 
 
 def _scene(scene) -> Scene:
@@ -32,14 +31,18 @@ def _scene(scene) -> Scene:
 
 
 def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, seed: int | None = None,
-                 no_lens: bool = False, method: str = "hits", device="cpu", dtype=torch.float32,
-                 compile: bool = False, images: bool = False, intersection: str | None = None) -> dict:
+                 no_lens: bool = False, method: str = "hits", device="cpu", dtype=None,
+                 images: bool = False, intersection: str | None = None, engine: str | None = None,
+                 threads: int | None = None) -> dict:
     """Trace every LED of ``scene`` onto its imaging plane and report the paper's figures.
 
     Returns a dict with the keys :data:`TRACE_KEYS` (``rays`` per traced source; ``seconds``
-    the wall time of the whole trace including binning; ``energy_residual`` the largest
-    ``|emitted - (on screen + elsewhere + reflected + absorbed)|`` of the traced sources),
-    plus ``image`` (H, W, 3) when ``images`` is set.
+    the wall time of the whole trace including binning, without ``compile_seconds``, the
+    kernel's one-time compile or cache load in this process; ``rays_per_second`` the traced rays
+    over ``seconds``; ``energy_residual`` the largest
+    ``|emitted - (on screen + elsewhere + reflected + absorbed)|`` of the traced sources;
+    ``engine`` the tracer that ran, :func:`sim.optics.engine.resolve_engine`), plus ``image``
+    (H, W, 3) when ``images`` is set.
 
     Examples
     --------
@@ -50,11 +53,15 @@ def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, 
     s = _scene(scene)
     if no_lens:
         s = s.with_effects(remove=["lens"])
+    from sim.optics import engine as _engine
+
+    kind = _engine.resolve_engine(engine, intersection or s.trace.intersection, s)
+    comp = _engine.warm_up(dtype, device) if kind == "kernel" else 0.0
     t0 = time.perf_counter()
     indices = s.lens.channel_indices() if s.has("dispersion") else (None,)
     results = [trace_all(s, PixelGrid.from_plane(s.plane), method=method, rays=rays, sampler=sampler, seed=seed,
-                         vector=False, device=device, dtype=dtype, compile=compile, refractive_index=n_ch,
-                         intersection=intersection)
+                         vector=False, device=device, dtype=dtype, refractive_index=n_ch,
+                         intersection=intersection, engine=kind, threads=threads)
                for n_ch in indices]
     secs = time.perf_counter() - t0
     Es = [r.E[0].astype(np.float64) for r in results]
@@ -68,9 +75,10 @@ def trace_report(scene, *, rays: int | None = None, sampler: str | None = None, 
         for k, v in t.counters.items():
             counters[k] = counters.get(k, 0) + v
     out = {**m, "rays": int(res.traces[0].rays), "seconds": secs, "rays_per_second": n / secs if secs > 0 else 0.0,
-           "energy_residual": max(abs(t.energy.residual) for t in traces), "scene": s.name,
+           "compile_seconds": comp, "energy_residual": max(abs(t.energy.residual) for t in traces), "scene": s.name,
            "lens": s.has("lens"), "sampler": sampler or s.trace.sampler, "method": method, "device": str(device),
-           "intersection": intersection or s.trace.intersection, "counters": counters}
+           "intersection": intersection or s.trace.intersection, "engine": kind,
+           "dtype": _engine.float_dtype(dtype).name, "counters": counters}
     if images:
         from sim.optics.metrics import pattern_image
 
@@ -91,8 +99,8 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
                   seed: int | None = None, sigma0: float | None = None, popsize: int | None = None,
                   max_condition: float | None = None, region: float | None = None,
                   confirm_rays: int | None = None, tolerance_rays: int | None = None, tolerance: bool = True,
-                  out=None, plot=None, device="cpu", threads: int | None = None, progress: bool = True,
-                  log=None) -> dict:
+                  out=None, plot=None, device="cpu", threads: int | None = None, engine: str | None = None,
+                  progress: bool = True, log=None) -> dict:
     """Optimise the lens of ``scene`` (``iristac sim optimize-lens``).
 
     The design brief (objective, lighting modes, metric constraints, manufacturing limits, the
@@ -130,7 +138,9 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
     plot : path, optional
         Where to write the trajectory figure (default ``out/trajectory.png`` when ``out`` is given).
     threads : int, optional
-        torch threads during the run (restored after).
+        CPU threads of every trace (the kernel's; torch's for the torch engine).
+    engine : {"kernel", "torch"}, optional
+        Tracer of every candidate (default: the compiled kernel; a conic top needs torch).
 
     Returns
     -------
@@ -167,125 +177,119 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
         rays=rays, sampler=sampler, grid=grid, evaluations=evaluations, seconds=seconds, seed=seed, sigma0=sigma0,
         popsize=popsize, max_condition=max_condition, region=region, confirm_rays=confirm_rays,
         tolerance_rays=tolerance_rays)
-    old_threads = torch.get_num_threads()
-    if threads is not None:
-        torch.set_num_threads(int(threads))
-    try:
-        t_all = time.perf_counter()
-        ev = Evaluator(rays=brief.rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid, modes=brief.modes,
-                       max_condition=brief.max_condition, region=brief.region, device=device)
-        first = {**design_of(base), **brief.start}
-        start_scene = apply_design(base, first)
-        # The bare LEDs: the scene without its lens (with the brief's reference changes, e.g. the
-        # LEDs facing the gel when their tilt is part of the design).
-        bare_scene = (apply_design(base, brief.reference) if brief.reference else base).with_effects(remove=["lens"])
-        needs_bare = any(v == "bare" for v in brief.constraints.values())
-        bare_search = ev(bare_scene) if needs_bare else None
-        limits = {}
-        for k, v in brief.constraints.items():
-            if v is None:
-                continue
-            limits[k] = bare_limit(k, bare_search) if v == "bare" else float(v)
-        space = DesignSpace(base, dict(brief.vary))
-        problem = Problem(space, ev, brief.objective, limits, brief.manufacturing)
-        confirm_ev = Evaluator(rays=brief.confirm_rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid,
-                               modes=brief.modes, max_condition=brief.max_condition, region=brief.region,
-                               device=device)
+    trace_kw = dict(device=device, engine=engine, threads=threads)
+    t_all = time.perf_counter()
+    ev = Evaluator(rays=brief.rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid, modes=brief.modes,
+                   max_condition=brief.max_condition, region=brief.region, **trace_kw)
+    first = {**design_of(base), **brief.start}
+    start_scene = apply_design(base, first)
+    # The bare LEDs: the scene without its lens (with the brief's reference changes, e.g. the
+    # LEDs facing the gel when their tilt is part of the design).
+    bare_scene = (apply_design(base, brief.reference) if brief.reference else base).with_effects(remove=["lens"])
+    needs_bare = any(v == "bare" for v in brief.constraints.values())
+    bare_search = ev(bare_scene) if needs_bare else None
+    limits = {}
+    for k, v in brief.constraints.items():
+        if v is None:
+            continue
+        limits[k] = bare_limit(k, bare_search) if v == "bare" else float(v)
+    space = DesignSpace(base, dict(brief.vary))
+    problem = Problem(space, ev, brief.objective, limits, brief.manufacturing)
+    confirm_ev = Evaluator(rays=brief.confirm_rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid,
+                           modes=brief.modes, max_condition=brief.max_condition, region=brief.region, **trace_kw)
 
-        def figures(s):
-            rep = trace_report(s, rays=brief.confirm_rays, device=device)
-            m = confirm_ev(s)
-            return {"fraction_on_screen": rep["fraction_on_screen"], "uniformity_cv": rep["uniformity_cv"],
-                    "min_max": rep["min_max"], "valid_fraction": m.valid_fraction,
-                    "median_condition": m.median_condition, "channel_cv": m.channel_cv,
-                    "coarse_uniformity_cv": m.uniformity_cv}
+    def figures(s):
+        rep = trace_report(s, rays=brief.confirm_rays, **trace_kw)
+        m = confirm_ev(s)
+        return {"fraction_on_screen": rep["fraction_on_screen"], "uniformity_cv": rep["uniformity_cv"],
+                "min_max": rep["min_max"], "valid_fraction": m.valid_fraction,
+                "median_condition": m.median_condition, "channel_cv": m.channel_cv,
+                "coarse_uniformity_cv": m.uniformity_cv}
 
-        say(f"confirming the start and the bare LEDs with {brief.confirm_rays:,} rays")
-        bare_fig = figures(bare_scene)
-        start_fig = figures(start_scene)
-        # The constraints as `sim trace` measures them: "bare" from the bare LEDs' confirmed figures.
-        confirm_limits = {k: (bare_limit(k, Metrics(**{m: bare_fig[m] for m in _METRIC_KEYS})) if v == "bare"
-                              else float(v)) for k, v in brief.constraints.items() if v is not None}
-        say(f"searching {len(space.names)} parameters ({', '.join(space.names)}) by {brief.method}: "
-            f"{brief.evaluations} designs of {brief.rays:,} {brief.sampler} rays on a {brief.grid}-row grid")
-        traj, rounds, here, best, first_c = None, [], first, None, None
-        name = f"{base.name}-optimized"
-        for round_no in range(_ROUNDS):
-            budget = brief.evaluations if round_no == 0 else max(brief.evaluations // 2, 1)
-            # Later rounds polish the winner locally under the corrected limit: Nelder-Mead with a
-            # smaller simplex (CMA-ES restarted there wandered off: 77.3 % -> 69.8 % on the paper brief).
-            b, f_c, tr = run_search(problem, here, method=brief.method if round_no == 0 else "nelder-mead",
-                                    evaluations=budget,
-                                    seconds=brief.seconds, seed=brief.seed, sigma0=brief.sigma0 / (1 + round_no),
-                                    popsize=brief.popsize, progress=progress)
-            first_c = first_c or f_c
-            traj = tr if traj is None else _join(traj, tr)
-            if best is None or (b.feasible, -b.loss) > (best.feasible, -best.loss) or round_no > 0:
-                best = b
-            winner = space.full(best.design)
-            best_scene = apply_design(base, winner, name=name, description=(
-                f"Scene {base.name} with its lens optimised by `iristac sim optimize-lens` (objective "
-                f"{brief.objective}" + (f" for {', '.join(brief.modes)}" if brief.modes else "")
-                + f"; constraints {confirm_limits or 'none'})."))
-            say(f"round {round_no + 1}: confirming the winner with {brief.confirm_rays:,} rays")
-            win = figures(best_scene)
-            misses = _confirm_misses(win, confirm_limits)
-            rounds.append({"evaluations": budget, "search_limits": dict(problem.limits), "confirmed": win,
-                           "misses": misses})
-            if not best.feasible or not misses:
-                break
-            # The search's coarse grid reads this design's figure differently from `sim trace` (a
-            # caustic finer than its pixels): tighten the search's limit by that measured ratio and
-            # search on from the design.
-            for k in misses:
-                metric, kind = CONSTRAINTS[k]
-                searched = getattr(best.metrics, metric)
-                ratio = searched / win[metric] if win[metric] else 1.0
-                problem.limits[k] = confirm_limits[k] * ratio * (1.005 if kind == "min" else 0.995)
-            say(f"round {round_no + 1}: the winner misses {', '.join(misses)} as `sim trace` measures it; "
-                f"searching on with search limits {problem.limits}")
-            here = winner
-        search_seconds = traj.seconds[-1] if traj.seconds else 0.0
-        confirmed_ok = bool(best.feasible) and not rounds[-1]["misses"]
+    say(f"confirming the start and the bare LEDs with {brief.confirm_rays:,} rays")
+    bare_fig = figures(bare_scene)
+    start_fig = figures(start_scene)
+    # The constraints as `sim trace` measures them: "bare" from the bare LEDs' confirmed figures.
+    confirm_limits = {k: (bare_limit(k, Metrics(**{m: bare_fig[m] for m in _METRIC_KEYS})) if v == "bare"
+                          else float(v)) for k, v in brief.constraints.items() if v is not None}
+    say(f"searching {len(space.names)} parameters ({', '.join(space.names)}) by {brief.method}: "
+        f"{brief.evaluations} designs of {brief.rays:,} {brief.sampler} rays on a {brief.grid}-row grid")
+    traj, rounds, here, best, first_c = None, [], first, None, None
+    name = f"{base.name}-optimized"
+    for round_no in range(_ROUNDS):
+        budget = brief.evaluations if round_no == 0 else max(brief.evaluations // 2, 1)
+        # Later rounds polish the winner locally under the corrected limit: Nelder-Mead with a
+        # smaller simplex (CMA-ES restarted there wandered off: 77.3 % -> 69.8 % on the paper brief).
+        b, f_c, tr = run_search(problem, here, method=brief.method if round_no == 0 else "nelder-mead",
+                                evaluations=budget,
+                                seconds=brief.seconds, seed=brief.seed, sigma0=brief.sigma0 / (1 + round_no),
+                                popsize=brief.popsize, progress=progress)
+        first_c = first_c or f_c
+        traj = tr if traj is None else _join(traj, tr)
+        if best is None or (b.feasible, -b.loss) > (best.feasible, -best.loss) or round_no > 0:
+            best = b
+        winner = space.full(best.design)
+        best_scene = apply_design(base, winner, name=name, description=(
+            f"Scene {base.name} with its lens optimised by `iristac sim optimize-lens` (objective "
+            f"{brief.objective}" + (f" for {', '.join(brief.modes)}" if brief.modes else "")
+            + f"; constraints {confirm_limits or 'none'})."))
+        say(f"round {round_no + 1}: confirming the winner with {brief.confirm_rays:,} rays")
+        win = figures(best_scene)
+        misses = _confirm_misses(win, confirm_limits)
+        rounds.append({"evaluations": budget, "search_limits": dict(problem.limits), "confirmed": win,
+                       "misses": misses})
+        if not best.feasible or not misses:
+            break
+        # The search's coarse grid reads this design's figure differently from `sim trace` (a
+        # caustic finer than its pixels): tighten the search's limit by that measured ratio and
+        # search on from the design.
+        for k in misses:
+            metric, kind = CONSTRAINTS[k]
+            searched = getattr(best.metrics, metric)
+            ratio = searched / win[metric] if win[metric] else 1.0
+            problem.limits[k] = confirm_limits[k] * ratio * (1.005 if kind == "min" else 0.995)
+        say(f"round {round_no + 1}: the winner misses {', '.join(misses)} as `sim trace` measures it; "
+            f"searching on with search limits {problem.limits}")
+        here = winner
+    search_seconds = traj.seconds[-1] if traj.seconds else 0.0
+    confirmed_ok = bool(best.feasible) and not rounds[-1]["misses"]
 
-        result = {
-            "scene": base.name, "objective": brief.objective, "modes": list(brief.modes), "method": brief.method,
-            "constraints": confirm_limits, "constraints_requested": dict(brief.constraints),
-            "search_constraints": limits,
-            "manufacturing": problem.manufacturing.as_dict(), "varied": space.names,
-            "fraction_on_screen": win["fraction_on_screen"], "uniformity_cv": win["uniformity_cv"],
-            "valid_fraction": win["valid_fraction"], "median_condition": win["median_condition"],
-            "channel_cv": win["channel_cv"], "min_max": win["min_max"],
-            "design": winner, "feasible": confirmed_ok, "search_feasible": bool(best.feasible),
-            "rounds": rounds,
-            "geometry": violations(best_scene, problem.manufacturing),
-            "evaluations": len(traj.loss), "traced": problem.traced, "seconds": search_seconds,
-            "search": {"rays": brief.rays, "sampler": brief.sampler, "grid": brief.grid, "seed": brief.seed,
-                       "metrics": best.metrics.as_dict() if best.metrics else None, "note": best.note},
-            "start": {"design": {k: first[k] for k in winner}, **start_fig,
-                      "feasible": bool(first_c.feasible), "note": first_c.note},
-            "bare": {**bare_fig, "reference": dict(brief.reference)},
-            # The winner's own LEDs without its lens: what the lens itself adds.
-            "lens_off": figures(best_scene.with_effects(remove=["lens"])),
-            "confirm_rays": brief.confirm_rays,
-            "threads": torch.get_num_threads(),
-            "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
-        }
-        if tolerance:
-            from sim.lensopt.tolerance import tolerance_table
+    result = {
+        "scene": base.name, "objective": brief.objective, "modes": list(brief.modes), "method": brief.method,
+        "constraints": confirm_limits, "constraints_requested": dict(brief.constraints),
+        "search_constraints": limits,
+        "manufacturing": problem.manufacturing.as_dict(), "varied": space.names,
+        "fraction_on_screen": win["fraction_on_screen"], "uniformity_cv": win["uniformity_cv"],
+        "valid_fraction": win["valid_fraction"], "median_condition": win["median_condition"],
+        "channel_cv": win["channel_cv"], "min_max": win["min_max"],
+        "design": winner, "feasible": confirmed_ok, "search_feasible": bool(best.feasible),
+        "rounds": rounds,
+        "geometry": violations(best_scene, problem.manufacturing),
+        "evaluations": len(traj.loss), "traced": problem.traced, "seconds": search_seconds,
+        "search": {"rays": brief.rays, "sampler": brief.sampler, "grid": brief.grid, "seed": brief.seed,
+                   "metrics": best.metrics.as_dict() if best.metrics else None, "note": best.note},
+        "start": {"design": {k: first[k] for k in winner}, **start_fig,
+                  "feasible": bool(first_c.feasible), "note": first_c.note},
+        "bare": {**bare_fig, "reference": dict(brief.reference)},
+        # The winner's own LEDs without its lens: what the lens itself adds.
+        "lens_off": figures(best_scene.with_effects(remove=["lens"])),
+        "confirm_rays": brief.confirm_rays,
+        "threads": threads,
+        "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
+    }
+    if tolerance:
+        from sim.lensopt.tolerance import tolerance_table
 
-            say(f"tolerance: every dimension +-0.1 mm, {brief.tolerance_rays:,} rays per design")
-            tol_ev = Evaluator(rays=brief.tolerance_rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid,
-                               device=device)
-            result["tolerance"] = tolerance_table(best_scene, tol_ev, names=space.names)
-        else:
-            result["tolerance"] = None
-        result["files"] = _write_outputs(result, traj, base, best_scene, start_scene, out, plot)
-        result["total_seconds"] = time.perf_counter() - t_all
-        result["scene_object"] = best_scene
-        return result
-    finally:
-        torch.set_num_threads(old_threads)
+        say(f"tolerance: every dimension +-0.1 mm, {brief.tolerance_rays:,} rays per design")
+        tol_ev = Evaluator(rays=brief.tolerance_rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid,
+                           **trace_kw)
+        result["tolerance"] = tolerance_table(best_scene, tol_ev, names=space.names)
+    else:
+        result["tolerance"] = None
+    result["files"] = _write_outputs(result, traj, base, best_scene, start_scene, out, plot)
+    result["total_seconds"] = time.perf_counter() - t_all
+    result["scene_object"] = best_scene
+    return result
 
 
 #: Search rounds at most: a winner that misses a constraint as `sim trace` measures it sends the

@@ -10,7 +10,7 @@ At a gel point ``X`` the vector irradiance is ``V = I(theta) / |S - X|^2 * l`` w
 ``l = (S - X) / |S - X|`` the unit vector toward the LED. A surface with unit normal ``n``
 receives irradiance ``max(0, n . V)`` (W / mm^2). This is the Quéau et al. near-field model
 with ``mu = m``; positions are in the optical frame, the returned vectors in the
-reconstruction frame (see :mod:`sim.frames`).
+reconstruction frame (see :mod:`pipeline.base.frames`).
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import math
 
 import numpy as np
 
-from sim.frames import optical_to_recon, pixel_to_optical
+from pipeline.base.frames import optical_to_recon, pixel_to_optical
 
 __all__ = ["ring_geometry", "led_intensity_scale", "point_source_field"]
 
@@ -70,7 +70,7 @@ def point_source_field(positions, axes, shape, mm_per_px: float, gel_z: float, *
     positions, axes : ndarray, shape (L, 3)
         LED positions (mm) and unit emission axes in the optical frame.
     shape : (H, W)
-        Pixel grid of the camera; pixels map to the gel by :func:`sim.frames.pixel_to_optical`.
+        Pixel grid of the camera; pixels map to the gel by :func:`pipeline.base.frames.pixel_to_optical`.
     mm_per_px : float
         Pixel pitch on the gel.
     gel_z : float

@@ -8,8 +8,9 @@ Camera and scene effects are composed around it, each computed only when
 :class:`RenderSettings` asks for it, in this order:
 
 1. per-LED shading ``s_i = n . V_i`` with ``depth_field`` (V at the displaced surface),
-   ``attached_shadows`` (the max) and ``cast_shadows`` (visibility by marching the height
-   map toward each LED);
+   ``attached_shadows`` (the max), ``specular`` (a Cook-Torrance lobe, :mod:`sim.specular`)
+   and ``cast_shadows`` (visibility by marching the height map toward each LED, or along
+   each light's direction for far-field lights, :mod:`sim.far_field`);
 2. pattern sum, exposure, gains, albedo;
 3. ``crosstalk`` (3 x 3 LED colour -> camera channel), ``vignetting``, ``distortion`` (radial
    lens distortion of the camera), ``dark_level``;
@@ -31,7 +32,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sim.frames import optical_to_recon
+from pipeline.base.frames import optical_to_recon
 from sim.geometry.surface import HeightField, flat
 from sim.illumination_model import IlluminationModel
 from sim.point_source import point_source_field, ring_geometry
@@ -49,7 +50,7 @@ __all__ = [
 ]
 
 #: Effects that depend on the surface (computed by :meth:`Renderer.set_surface`), in order.
-SURFACE_EFFECTS = ("depth_field", "attached_shadows", "cast_shadows")
+SURFACE_EFFECTS = ("depth_field", "attached_shadows", "specular", "cast_shadows")
 #: Effects applied to each rendered image (:meth:`Renderer.render`), in order.
 IMAGE_EFFECTS = ("crosstalk", "vignetting", "distortion", "dark_level", "shot_noise", "read_noise", "saturation",
                  "quantization")
@@ -69,8 +70,14 @@ class RenderSettings:
         Per-LED (per-colour) brightness ``sigma_i``.
     attached_shadows : bool
         ``max(0, n . V_i)`` per LED (physical). Off: the linear model.
+    specular : float
+        Fresnel reflectance ``F0`` at normal incidence of a Cook-Torrance (GGX) specular lobe
+        added to the Lambertian term (about 0.04 for plastics); 0 = off (:mod:`sim.specular`).
+    roughness : float
+        GGX roughness of that lobe, in (0, 1] (small = sharp highlights).
     cast_shadows : bool
-        Shadows the indenter casts: march the height map toward each LED.
+        Shadows the surface casts: march the height map toward each LED (or along each
+        far-field light's direction).
     cast_shadow_step_px : float
         Marching step (pixels) for cast shadows.
     depth_field : bool
@@ -102,6 +109,8 @@ class RenderSettings:
     exposure: float = 1.0
     gains: Any = None
     attached_shadows: bool = True
+    specular: float = 0.0
+    roughness: float = 0.3
     cast_shadows: bool = False
     cast_shadow_step_px: float = 1.0
     depth_field: bool = False
@@ -123,6 +132,10 @@ class RenderSettings:
             v = getattr(self, name)
             if not (isinstance(v, (int, float, np.number)) and math.isfinite(v) and v >= 0):
                 raise ValueError(f"RenderSettings: {name} must be a finite number >= 0, got {v!r}")
+        if not (isinstance(self.specular, (int, float, np.number)) and 0 <= self.specular <= 1):
+            raise ValueError(f"RenderSettings: specular (F0) must be in [0, 1], got {self.specular!r}")
+        if not (isinstance(self.roughness, (int, float, np.number)) and 0 < self.roughness <= 1):
+            raise ValueError(f"RenderSettings: roughness must be in (0, 1], got {self.roughness!r}")
         if not self.cast_shadow_step_px > 0:
             raise ValueError(f"RenderSettings: cast_shadow_step_px must be > 0, got {self.cast_shadow_step_px}")
         if self.crosstalk is not None:
@@ -153,6 +166,7 @@ class RenderSettings:
         on = {
             "depth_field": self.depth_field,
             "attached_shadows": self.attached_shadows,
+            "specular": self.specular > 0,
             "cast_shadows": self.cast_shadows,
             "crosstalk": self.crosstalk is not None,
             "vignetting": self.vignetting > 0,
@@ -181,10 +195,10 @@ def load_render_settings(path) -> RenderSettings:
 
     Raises
     ------
-    pipeline.errors.UserError
+    pipeline.base.errors.UserError
         Unreadable file, unknown key or wrong type, naming the file and the key.
     """
-    from sim.modes import _read_yaml, _validate_config
+    from pipeline.base.modes import _read_yaml, _validate_config
 
     path = Path(path)
     obj = _read_yaml(path)
@@ -192,7 +206,7 @@ def load_render_settings(path) -> RenderSettings:
     try:
         return RenderSettings(**obj)
     except ValueError as exc:
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         raise UserError(f"{path}: {exc}") from None
 
@@ -352,7 +366,7 @@ class Renderer:
         self.set_surface(None)
 
     # -- geometry-dependent part ----------------------------------------------------------
-    def set_surface(self, surface: HeightField | None, albedo=1.0) -> None:
+    def set_surface(self, surface: HeightField | None, albedo=1.0, *, specular=None, roughness=None) -> None:
         """Compute the per-LED shading ``s_i(x)`` of a surface (``None``: the flat gel).
 
         Parameters
@@ -360,6 +374,9 @@ class Renderer:
         surface : HeightField or None
         albedo : float or ndarray, shape (H, W) or (H, W, 3)
             Lambertian albedo per camera channel.
+        specular, roughness : ndarray, shape (H, W), optional
+            Per-pixel materials for the ``specular`` effect (``F0`` in [0, 1], roughness in
+            (0, 1]), replacing the settings' single values; only with the effect on.
         """
         h, w = self.model.shape
         if surface is None:
@@ -387,10 +404,20 @@ class Renderer:
         if "attached_shadows" in on:
             shading = shading.clamp_min(0.0)
             done.append("attached_shadows")
+        spec = None
+        if "specular" in on:
+            spec = self._specular_lobe(V, n, specular, roughness)
+            done.append("specular")
+        elif specular is not None or roughness is not None:
+            raise ValueError("Renderer.set_surface: specular/roughness maps need the specular effect "
+                             "(RenderSettings.specular > 0)")
         if "cast_shadows" in on:
-            shading = shading * self._cast_visibility(surface)
+            vis = self._cast_visibility(surface)
+            shading = shading * vis
+            spec = None if spec is None else spec * vis
             done.append("cast_shadows")
         self._shading = shading
+        self._specular = spec
         self._albedo = torch.as_tensor(rho.reshape(h * w, 3).T, dtype=self.dtype, device=self.device)  # (3, H*W)
         self._surface_effects = done
         self.computed = list(done)
@@ -417,14 +444,44 @@ class Renderer:
         tt = tt.reshape(-1, 1, 1)
         return (lo * (1 - tt) + hi * tt).permute(2, 1, 0)  # (3, L, H*W) component planes
 
+    def _specular_lobe(self, V: torch.Tensor, n: torch.Tensor, specular, roughness) -> torch.Tensor:
+        """``f_s max(0, n . V_i)`` (L, H*W) of the Cook-Torrance lobe (:func:`sim.specular.specular_shading`)."""
+        from sim.specular import specular_shading
+
+        h, w = self.model.shape
+        s = self.settings
+
+        def material(value, default, name, lo_open):
+            if value is None:
+                return float(default)
+            a = np.asarray(value, dtype=np.float64)
+            if a.ndim == 0:
+                a = np.full((h, w), float(a))
+            ok = np.isfinite(a).all() and a.max() <= 1 and (a.min() > 0 if lo_open else a.min() >= 0)
+            if a.shape != (h, w) or not ok:
+                raise ValueError(f"Renderer.set_surface: {name} must be a scalar or ({h}, {w}) map in "
+                                 f"{'(0, 1]' if lo_open else '[0, 1]'}, got shape {a.shape}")
+            return torch.as_tensor(a.reshape(-1), dtype=self.dtype, device=self.device)
+
+        return specular_shading(V, n, material(roughness, s.roughness, "roughness", True),
+                                material(specular, s.specular, "specular", False))
+
     def _cast_visibility(self, surface: HeightField) -> torch.Tensor:
         """1 where the segment from the surface point to LED ``i`` clears the height map, else 0.
+
+        Far-field lights (``model.directions``) are traced along their direction by
+        :func:`sim.far_field.far_field_visibility`; the rest of this docstring is about LEDs.
 
         Marches from each surface point toward each LED in steps of ``cast_shadow_step_px``
         and stops once the ray is above the highest point of the map. Outside the image the
         gel is taken as flat (height 0). Returns (L, H*W).
         """
         m = self.model
+        if m.directions is not None:
+            from sim.far_field import far_field_visibility
+
+            return far_field_visibility(surface.height, m.directions, m.mm_per_px, device=self.device,
+                                        dtype=self.dtype)
         h, w = m.shape
         hmax = float(surface.height.max())
         L = m.num_leds
@@ -558,6 +615,8 @@ class Renderer:
         wt = torch.as_tensor(weights, dtype=self.dtype, device=self.device)
         # (P, 3, L) @ (L, HW) -> (P, 3, HW); the 1/pi of the Lambertian BRDF folded in.
         img = torch.matmul(wt.transpose(1, 2) / math.pi, self._shading) * self._albedo
+        if self._specular is not None:  # white highlights: not scaled by the albedo
+            img = img + torch.matmul(wt.transpose(1, 2), self._specular)
         done = list(self._surface_effects)
         self._noise_gen = None
         self._noise_seed = self.settings.seed if seed is None else seed

@@ -3,7 +3,7 @@
 This is how the calibration and reconstruction code get synthetic test captures whose truth
 is known exactly: the frames come from :class:`sim.render.Renderer`, the truth (height,
 normals, albedo) from the same :class:`sim.geometry.HeightField` that was rendered, and the
-file layout is the one of ``docs/developing.md`` (written through :func:`pipeline.store.write_record`).
+file layout is the one of ``docs/developing.md`` (written by :func:`pipeline.base.capture.write_capture`).
 
 Examples
 --------
@@ -24,10 +24,10 @@ import numpy as np
 
 from sim.geometry import HeightField, sphere
 from sim.illumination_model import IlluminationModel
-from sim.modes import LightingMode, load_mode, mode_brightness, mode_drive
+from pipeline.base.modes import LightingMode, load_mode, mode_brightness, mode_drive
 from sim.render import RenderSettings, Renderer, auto_exposure
 
-__all__ = ["render_capture", "write_capture", "sphere_presses", "save_png", "render_scene_files"]
+__all__ = ["render_capture", "sphere_presses", "save_png", "render_scene_files"]
 
 
 def sphere_presses(shape: tuple[int, int], mm_per_px: float, radius: float, depths: Sequence[float],
@@ -55,7 +55,7 @@ def render_capture(model: IlluminationModel, mode, contacts: Sequence[HeightFiel
     model : IlluminationModel
         The sensor's illumination (ray-traced, or :func:`sim.render.bare_ring_illumination`).
     mode : str, Path or LightingMode
-        Lighting mode (:func:`sim.modes.load_mode`).
+        Lighting mode (:func:`pipeline.base.modes.load_mode`).
     contacts : sequence of HeightField, length K
         One surface per press.
     albedo : float or ndarray (H, W) or (H, W, 3)
@@ -73,14 +73,14 @@ def render_capture(model: IlluminationModel, mode, contacts: Sequence[HeightFiel
 
     Returns
     -------
-    pipeline.store.Record
+    pipeline.base.store.Record
         Schema ``capture``: ``frames`` (K, P, H, W, 3), ``reference`` (P, H, W, 3), ``dark``
         (H, W, 3), ``drive`` (P, L, 3), ``brightness`` (P,), ``truth/height`` (K, H, W),
         ``truth/normals`` (K, H, W, 3), ``truth/albedo`` (H, W, 3); attributes
         ``mm_per_px``, ``pattern_names``, ``mode``, ``exposure``, ``bit_depth``,
         ``source='virtual'`` and ``render_settings``, ``illumination``.
     """
-    from pipeline.store import Record
+    from pipeline.base.store import Record
 
     mode = load_mode(mode) if not isinstance(mode, LightingMode) else mode
     drive, bright = mode_drive(mode), mode_brightness(mode)
@@ -130,13 +130,6 @@ def render_capture(model: IlluminationModel, mode, contacts: Sequence[HeightFiel
     return Record(schema="capture", data=data, meta=meta)
 
 
-def write_capture(path, record) -> Path:
-    """Write a rendered capture atomically (schema-checked) with :func:`pipeline.store.write_record`."""
-    from pipeline.store import write_record
-
-    return write_record(path, record)
-
-
 def save_png(path, image: np.ndarray) -> Path:
     """Write an RGB image (H, W, 3) as PNG: uint8/uint16 as they are, float clipped to 0..255 as uint8."""
     import cv2
@@ -148,7 +141,7 @@ def save_png(path, image: np.ndarray) -> Path:
         img = np.clip(np.round(img), 0, 255).astype(np.uint8)
     path = Path(path)
     if not cv2.imwrite(str(path), np.ascontiguousarray(img[..., ::-1])):  # OpenCV writes BGR
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         raise UserError(f"{path}: could not write PNG")
     return path
@@ -191,7 +184,7 @@ def render_scene_files(out_dir, *, mode="monochromatic", height_file=None, heigh
     from sim.geometry import height_from_file
     from sim.render import bare_ring_illumination, load_render_settings
 
-    from pipeline.errors import UserError
+    from pipeline.base.errors import UserError
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -230,6 +223,8 @@ def render_scene_files(out_dir, *, mode="monochromatic", height_file=None, heigh
             pngs.append(save_png(out / f"{name}_{pname}.png", rec.data["frames"][0, p]))
         pngs.append(save_png(out / f"reference_{pname}.png", rec.data["reference"][p]))
     pngs.append(save_png(out / "dark.png", rec.data["dark"]))
+    from pipeline.base.capture import write_capture
+
     h5 = write_capture(out / f"{name}.h5", rec)
     return {"capture": str(h5), "pngs": [str(p) for p in pngs], "mode": mode_obj.name,
             "patterns": mode_obj.pattern_names, "shape": list(shape), "mm_per_px": float(mm_per_px),

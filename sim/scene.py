@@ -7,7 +7,7 @@ against ``data_schemas/configs/scene.json`` and then geometrically (the lens mus
 LEDs must sit outside it, the gel above it); every error names the file, the field and what
 was expected.
 
-Lengths are millimetres in the optical frame (:mod:`sim.frames`): origin at the ring centre
+Lengths are millimetres in the optical frame (:mod:`pipeline.base.frames`): origin at the ring centre
 on the LED plane, ``+z`` toward the gel.
 """
 
@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.point_source import ring_geometry
 
 __all__ = [
@@ -259,7 +259,7 @@ def load_scene(name_or_path: str | Path) -> Scene:
 def scene_from_dict(data: Any, source: str = "<dict>") -> Scene:
     """Validate a parsed scene mapping and build a :class:`Scene`.
 
-    Raises :class:`pipeline.errors.UserError` naming ``source``, the field and what was expected.
+    Raises :class:`pipeline.base.errors.UserError` naming ``source``, the field and what was expected.
     """
     import data_schemas
 

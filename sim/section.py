@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.optics.interface import reflect, refract
 from sim.optics.lens import LensBody
 from sim.optics.plane import plane_hit

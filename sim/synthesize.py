@@ -4,39 +4,36 @@ For a scene, LED gains and a set of lighting patterns, trace every LED onto the 
 pixel grid (on the gel plane) and produce :class:`sim.illumination_model.IlluminationModel`:
 per-LED vector irradiance ``V`` of shape (L, H, W, 3) in the reconstruction frame, per unit
 LED drive, plus per-pattern-channel light matrices (P, 3, H, W, 3) when patterns are given.
-Through the stage store the result is ``illumination.h5`` (schema ``illumination``), cached
-by a key over the scene, the grid, the tracing parameters, the patterns and the gains.
+The result is ``illumination.h5`` (schema ``illumination``); the synthesize stage
+(:mod:`pipeline.stages.synthesize`) caches it in the stage store, keyed over the scene, the
+grid, the tracing parameters, the patterns and the gains.
 """
 
 from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Any
 
 import numpy as np
-import torch
 
-from pipeline.errors import UserError
-from sim.frames import optical_to_recon
+from pipeline.base.errors import UserError
+from pipeline.base.frames import optical_to_recon
 from sim.illumination_model import IlluminationModel, light_matrices
 from sim.optics import instrument
-from sim.optics.binning import PixelGrid
+from sim.optics.grid import PixelGrid
 from sim.optics.multisource import METHODS, trace_all
-from sim.scene import Scene, load_scene, scene_to_dict
+from sim.scene import Scene, load_scene
 
-__all__ = ["STAGE_VERSION", "synthesize", "synthesize_to_store", "synthesize_params", "synthesize_record",
-           "model_from_record", "load_illumination", "save_illumination", "default_illumination"]
-
-#: Bump when the computation of the illumination model changes (old store entries stop matching).
-STAGE_VERSION = 1
+__all__ = ["synthesize", "synthesize_record", "check_inputs", "model_from_record", "load_illumination",
+           "save_illumination", "default_illumination"]
 
 
 def _as_scene(scene) -> Scene:
     return scene if isinstance(scene, Scene) else load_scene(scene)
 
 
-def _check_inputs(scene: Scene, shape, mm_per_px, drive, brightness, gains):
+def check_inputs(scene: Scene, shape, mm_per_px, drive, brightness, gains):
+    """UserError naming the argument when the grid, patterns or gains do not fit the scene."""
     if len(tuple(shape)) != 2 or min(int(s) for s in shape) < 1:
         raise UserError(f"synthesize: shape must be (H, W) with H, W >= 1, got {tuple(shape)}")
     if not (isinstance(mm_per_px, (int, float)) and math.isfinite(mm_per_px) and mm_per_px > 0):
@@ -54,7 +51,7 @@ def _check_inputs(scene: Scene, shape, mm_per_px, drive, brightness, gains):
 
 def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, gains=None, exposure: float = 1.0,
                rays: int | None = None, sampler: str | None = None, seed: int | None = None, method: str = "hits",
-               device="cpu", dtype=torch.float32, store=None, compile: bool = False) -> IlluminationModel:
+               device="cpu", dtype=None, engine: str | None = None) -> IlluminationModel:
     """Trace ``scene`` onto a camera pixel grid and return its illumination model.
 
     Parameters
@@ -63,10 +60,10 @@ def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, g
     shape : (H, W)
         Camera image size; the optical axis passes through the image centre.
     mm_per_px : float
-        Pixel pitch on the gel (orthographic camera, :mod:`sim.frames`).
+        Pixel pitch on the gel (orthographic camera, :mod:`pipeline.base.frames`).
     drive : ndarray, shape (P, L, 3), optional
         Lighting patterns (RGB drive per LED). When given the result's ``meta`` holds
-        ``light_matrices`` (P, 3, H, W, 3) and the store file has them as a dataset.
+        ``light_matrices`` (P, 3, H, W, 3) and the illumination file has them as a dataset.
     brightness : ndarray, shape (P,), optional
     gains : ndarray, shape (L,) or (L, 3), optional
         Calibrated per-LED (per-channel) brightness ``sigma_i``; they scale the light
@@ -78,9 +75,9 @@ def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, g
     method : {"hits", "image", "trace"}
         How every LED is obtained (:mod:`sim.optics.multisource`).
     device, dtype :
-        Torch device and float type of the trace (V is returned as float32).
-    store : pipeline.store.StageStore, optional
-        When given, the result is read from / written to the store under its key.
+        Device and float type (float32 default, or float64) of the trace (V is returned as float32).
+    engine : {"kernel", "torch"}, optional
+        The compiled kernel (default) or the eager torch reference (:mod:`sim.optics.engine`).
 
     Returns
     -------
@@ -97,60 +94,18 @@ def synthesize(scene, shape, mm_per_px: float, *, drive=None, brightness=None, g
     scene = _as_scene(scene)
     if method not in METHODS:
         raise UserError(f"synthesize: method must be one of {METHODS}, got {method!r}")
-    _check_inputs(scene, shape, mm_per_px, drive, brightness, gains)
+    check_inputs(scene, shape, mm_per_px, drive, brightness, gains)
     shape = (int(shape[0]), int(shape[1]))
     kw = dict(drive=drive, brightness=brightness, gains=gains, exposure=exposure, rays=rays, sampler=sampler,
-              seed=seed, method=method, device=device, dtype=dtype, compile=compile)
-    if store is None:
-        return model_from_record(synthesize_record(scene, shape, mm_per_px, **kw))
-    return synthesize_to_store(scene, shape, mm_per_px, store, **kw)[0]
-
-
-def synthesize_to_store(scene, shape, mm_per_px: float, store, **kw):
-    """:func:`synthesize` through ``store``: returns ``(model, key, cached)``.
-
-    ``key`` is the stage key (stage ``synthesize``, schema ``illumination``) over the scene,
-    the grid, the tracing parameters, the patterns and the gains; ``cached`` says whether the
-    entry was read back instead of traced.
-    """
-    scene = _as_scene(scene)
-    full = dict(drive=None, brightness=None, gains=None, exposure=1.0, rays=None, sampler=None, seed=None,
-                method="hits", device="cpu", dtype=torch.float32, compile=False)
-    full.update(kw)
-    if full["method"] not in METHODS:
-        raise UserError(f"synthesize: method must be one of {METHODS}, got {full['method']!r}")
-    _check_inputs(scene, shape, mm_per_px, full["drive"], full["brightness"], full["gains"])
-    shape = (int(shape[0]), int(shape[1]))
-    key = store.key("synthesize", STAGE_VERSION, synthesize_params(scene, shape, mm_per_px, **full))
-    rec, cached = store.get_or_compute(key, lambda: synthesize_record(scene, shape, mm_per_px, **full))
-    return model_from_record(rec), key, cached
-
-
-def synthesize_params(scene, shape, mm_per_px, *, drive=None, brightness=None, gains=None, exposure=1.0, rays=None,
-                      sampler=None, seed=None, method="hits", device="cpu", dtype=torch.float32, compile=False) -> dict:
-    """The parameters that key a synthesize result in the stage store (stage ``synthesize``).
-
-    Everything that changes the result: the scene (minus its description), the grid, the
-    tracing parameters, exposure, patterns and gains. Device and ``compile`` do not enter.
-    """
-    tr = scene.trace
-    d = scene_to_dict(scene)
-    d.pop("description", None)
-    p: dict[str, Any] = {"scene": d, "shape": list(shape), "mm_per_px": float(mm_per_px),
-                         "rays": int(rays if rays is not None else tr.rays), "sampler": sampler or tr.sampler,
-                         "seed": int(tr.seed if seed is None else seed), "method": method,
-                         "dtype": str(dtype).replace("torch.", ""), "exposure": float(exposure)}
-    for name, arr in (("drive", drive), ("brightness", brightness), ("gains", gains)):
-        if arr is not None:
-            p[name] = np.asarray(arr, dtype=np.float64)
-    return p
+              seed=seed, method=method, device=device, dtype=dtype, engine=engine)
+    return model_from_record(synthesize_record(scene, shape, mm_per_px, **kw))
 
 
 def synthesize_record(scene, shape, mm_per_px: float, *, drive=None, brightness=None, gains=None,
                       exposure: float = 1.0, rays=None, sampler=None, seed=None, method="hits", device="cpu",
-                      dtype=torch.float32, compile=False):
-    """Compute the ``illumination`` :class:`pipeline.store.Record` (no caching)."""
-    from pipeline.store import Record
+                      dtype=None, engine=None):
+    """Compute the ``illumination`` :class:`pipeline.base.store.Record` (no caching)."""
+    from pipeline.base.store import Record
 
     scene = _as_scene(scene)
     grid = PixelGrid.camera(shape, mm_per_px, scene.plane.z)
@@ -163,7 +118,7 @@ def synthesize_record(scene, shape, mm_per_px: float, *, drive=None, brightness=
     fields, traces = [], []
     for n_ch in indices:
         res = trace_all(scene, grid, method=method, heights=heights, rays=rays, sampler=sampler, seed=seed,
-                        device=device, dtype=dtype, compile=compile, refractive_index=n_ch)
+                        device=device, dtype=dtype, engine=engine, refractive_index=n_ch)
         fields.append(optical_to_recon(res.V.astype(np.float64)))  # (D, L, H, W, 3)
         traces.extend(res.traces)
     Vc = np.stack(fields)  # (C, D, L, H, W, 3), C = 3 with dispersion else 1
@@ -212,14 +167,14 @@ def model_from_record(rec) -> IlluminationModel:
 
 def load_illumination(path) -> IlluminationModel:
     """Read ``illumination.h5`` (validated against the schema) into an :class:`IlluminationModel`."""
-    from pipeline.store import read_record
+    from pipeline.base.store import read_record
 
     return model_from_record(read_record(Path(path), schema="illumination"))
 
 
 def save_illumination(model: IlluminationModel, path) -> Path:
     """Write an :class:`IlluminationModel` as a standalone ``illumination.h5`` (atomic, validated)."""
-    from pipeline.store import Record, write_record
+    from pipeline.base.store import Record, write_record
 
     data = {"V": np.asarray(model.V, dtype=np.float32),
             "led_positions": np.asarray(model.led_positions, dtype=np.float32)}
@@ -248,11 +203,4 @@ def default_illumination(shape=(60, 80), mm_per_px: float = 0.5, rays: int = 250
     >>> m.V.shape, m.num_leds
     ((24, 12, 16, 3), 24)
     """
-    # One intra-op thread: on a shared 2-core machine a second thread mostly waits on barriers
-    # (measured 0.65 s single-threaded vs 3-30 s with two under load); restored afterwards.
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)
-    finally:
-        torch.set_num_threads(threads)
+    return synthesize(scene, shape, mm_per_px, rays=rays, sampler="grid", method="hits", device=device)

@@ -1,6 +1,6 @@
 """A virtual IrisTac camera: renders the gel under whatever the LED ring shows, like a webcam.
 
-It implements :class:`pipeline.capture.camera_api.Camera`. A producer thread runs the
+It implements :class:`pipeline.base.camera.Camera`. A producer thread runs the
 camera's own clock: at the start of each frame period it asks ``led_state()`` what the ring
 shows and which scripted contact is pressed, and at the end of the period it puts the frame
 into a small FIFO buffer (``buffer_size`` frames, dropping the *oldest* when full).
@@ -38,7 +38,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 
-from pipeline.capture.camera_api import CameraFrame
+from pipeline.base.camera import CameraFrame
 from sim.geometry.surface import HeightField
 from sim.illumination_model import IlluminationModel
 from sim.render import RenderSettings, Renderer

@@ -6,7 +6,7 @@ can unpickle it.
 
 import numpy as np
 
-from pipeline.store import Record, StageStore, read_record
+from pipeline.base.store import Record, StageStore, read_record
 
 
 def summarise_capture(path: str, store_root: str) -> dict:
@@ -22,7 +22,7 @@ def summarise_capture(path: str, store_root: str) -> dict:
 
 
 def write_capture(path, seed: int) -> None:
-    from pipeline.store import write_record
+    from pipeline.base.store import write_record
 
     rng = np.random.default_rng(seed)
     ref = rng.integers(0, 200, (2, 12, 16, 3), dtype=np.uint8)

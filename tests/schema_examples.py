@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 import data_schemas
-from pipeline.store import Record
+from pipeline.base.store import Record
 
 SYMBOL_SIZES = {"K": 2, "P": 3, "H": 4, "W": 5, "C": 3, "L": 6, "D": 2}
 

@@ -1,6 +1,6 @@
 """Test support for the reconstruction tests (normals, depth, reconstruct, DiLiGenT, eval).
 
-One place for: the devices to parametrize over, a single-thread torch fixture (the 2-core CI
+One place for: a single-thread torch fixture (the 2-core CI
 box is shared; torch's spinning worker threads collapse under contention), angular error,
 and a LookupTable-compatible table built from exact data (until calibration's lands).
 """
@@ -13,14 +13,12 @@ import torch
 from scipy.spatial import cKDTree
 
 from pipeline.bench.recon_scene import render_sphere_scene, sphere_cap  # noqa: F401  (re-exported)
-from pipeline.normals._torch import torch_threads
-
-DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+from pipeline.base.threads import limit_threads
 
 
 @pytest.fixture(autouse=True)
 def _one_torch_thread():
-    with torch_threads(1):
+    with limit_threads(torch=1):
         yield
 
 

@@ -15,9 +15,10 @@ from typing import Any
 import numpy as np
 
 from calibration.samples import Samples
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
-__all__ = ["CalibrationModel", "LightFieldModel", "solve_normals", "check_light_rank", "angular_error_deg"]
+__all__ = ["CalibrationModel", "LightFieldModel", "solve_normals", "check_light_rank", "angular_error_deg",
+           "fit_tilt_gain", "scale_tilt"]
 
 
 def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -118,19 +119,102 @@ def check_light_rank(samples: Samples, min_ratio: float = 0.05, what: str = "cap
     return ratio
 
 
+def fit_tilt_gain(predicted_xy: np.ndarray, true_xy: np.ndarray) -> float:
+    """The factor that undoes a model's shrinkage toward flat: ``sum |t|^2 / sum p . t``.
+
+    Predictions ``p`` of the tilt ``t = (n_x, n_y)`` from noisy colours are pulled toward the
+    flat gel (regression dilution: ``p ~ a t + noise`` with ``a < 1``). Regressing ``p`` on the
+    (nearly noise-free) truth estimates ``a``; ``1 / a`` restores the magnitude. Fitted on
+    *out-of-fold* predictions of the calibration's own presses (never on a test capture).
+
+    Examples
+    --------
+    >>> t = np.random.default_rng(0).uniform(-0.6, 0.6, (1000, 2))
+    >>> round(fit_tilt_gain(0.9 * t, t), 6)
+    1.111111
+    """
+    p = np.asarray(predicted_xy, np.float64)
+    t = np.asarray(true_xy, np.float64)
+    den = float(np.sum(p * t))
+    return float(np.sum(t * t) / den) if den > 0 else 1.0
+
+
+def scale_tilt(normals: np.ndarray, gain: float = 1.0, max_tilt: float | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Normals ``(..., 3)`` with ``(n_x, n_y)`` scaled by ``gain`` and clipped to ``|n_xy| <= max_tilt``.
+
+    Returns the new unit normals and a bool array of the clipped ones.
+
+    Examples
+    --------
+    >>> n, clipped = scale_tilt(np.array([[0.6, 0.0, 0.8], [0.0, 0.0, 1.0]]), 1.5, 0.8)
+    >>> n.round(3).tolist(), clipped.tolist()
+    ([[0.8, 0.0, 0.6], [0.0, 0.0, 1.0]], [True, False])
+    """
+    n = np.asarray(normals, np.float64)
+    xy = n[..., :2] * gain
+    mag = np.hypot(xy[..., 0], xy[..., 1])
+    limit = 0.999 if max_tilt is None else min(float(max_tilt), 0.999)
+    clipped = mag > limit
+    xy = xy * np.where(clipped, limit / np.maximum(mag, 1e-12), 1.0)[..., None]
+    return np.concatenate([xy, np.sqrt(np.clip(1.0 - np.sum(xy * xy, -1, keepdims=True), 0.0, 1.0))], -1), clipped
+
+
 class CalibrationModel:
-    """Base class: ``fit(samples) -> report``, ``predict(samples) -> (normals, valid)``."""
+    """Base class: ``fit(samples) -> report``, ``predict(samples) -> (normals, valid)``.
+
+    Subclasses implement ``_predict(samples) -> (normals, valid, confidence)``; :meth:`predict`
+    and :meth:`predict_with_confidence` apply the output correction that calibration sets
+    after fitting (:attr:`tilt_gain`, :attr:`max_tilt`), so every caller gets the same normals.
+    """
 
     name = "model"
+    #: Scale of the predicted tilt ``(n_x, n_y)`` (:func:`fit_tilt_gain`; 1 until calibrate sets it).
+    tilt_gain: float = 1.0
+    #: Largest ``|(n_x, n_y)|`` the model may answer (the calibration's truth range); None: no limit.
+    max_tilt: float | None = None
 
     def fit(self, samples: Samples) -> dict[str, Any]:  # pragma: no cover - interface
         raise NotImplementedError
 
-    def predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - interface
+    def _predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
         raise NotImplementedError
 
     def to_arrays(self) -> dict[str, np.ndarray]:  # pragma: no cover - interface
         raise NotImplementedError
+
+    #: What :meth:`predict_with_confidence`'s confidence measures (reported in NormalMaps.meta).
+    confidence_meaning = "1 where the model gives a normal"
+
+    def predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray]:
+        """Unit normals ``(N, 3)`` and validity ``(N,)`` of the samples' pixels."""
+        n, ok, _ = self.predict_with_confidence(samples)
+        return n, ok
+
+    def predict_with_confidence(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(normals (N, 3), valid (N,), confidence (N,) in [0, 1])``."""
+        n, ok, conf = self._predict(samples)
+        if self.tilt_gain != 1.0 or self.max_tilt is not None:
+            n, _ = scale_tilt(n, self.tilt_gain, self.max_tilt)
+        return n, ok, conf
+
+    def output_arrays(self) -> dict[str, np.ndarray]:
+        """The output correction for calibration.h5 (``tilt_gain``, ``max_tilt``; read back by
+        :func:`calibration.stored.load_calibration`)."""
+        out = {"tilt_gain": np.asarray(self.tilt_gain, np.float64)}
+        if self.max_tilt is not None:
+            out["max_tilt"] = np.asarray(self.max_tilt, np.float64)
+        return out
+
+    def stored_reference(self) -> np.ndarray | None:
+        """The no-contact frames ``(P, H, W, C)`` the model was calibrated with, if it keeps them."""
+        ref = getattr(self, "reference", None)
+        return None if ref is None else np.asarray(ref, np.float32)
+
+    def normal_maps(self, frames: np.ndarray, reference: np.ndarray | None = None, *, markers=None):
+        """Normals, mask and confidence of whole frames: :func:`calibration.normal_maps.predict_normal_maps`."""
+        from calibration.normal_maps import predict_normal_maps
+
+        return predict_normal_maps(self, frames, reference, markers=markers)
 
     def _fit_report(self, samples: Samples) -> dict[str, Any]:
         n, ok = self.predict(samples.subset(samples.contact))
@@ -167,6 +251,10 @@ class LightFieldModel(CalibrationModel):
             obs = obs / np.maximum(f, 1e-6)
         return obs
 
-    def predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray]:
-        n, _, ok = solve_normals(self._observations(samples), self.lights_at(samples.rows, samples.cols, samples.shape))
-        return n, ok
+    confidence_meaning = "inverse condition number (smallest / largest singular value) of the pixel's light matrix"
+
+    def _predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        L = self.lights_at(samples.rows, samples.cols, samples.shape)
+        n, _, ok = solve_normals(self._observations(samples), L)
+        sv = np.linalg.svd(np.asarray(L, np.float64), compute_uv=False)  # (N, 3)
+        return n, ok, np.where(ok, sv[:, -1] / np.maximum(sv[:, 0], 1e-30), 0.0)

@@ -15,8 +15,9 @@ import numpy as np
 from scipy import ndimage
 
 from calibration.models.base import CalibrationModel
+from calibration.models.nearfield import poly_terms
 from calibration.samples import Samples
-from sim.frames import gradients_to_normals, normals_to_gradients
+from pipeline.base.frames import gradients_to_normals, normals_to_gradients
 
 __all__ = ["LookupTable", "LUTModel"]
 
@@ -36,7 +37,10 @@ class LookupTable:
         Bins with a value (measured or hole-filled).
     """
 
-    def __init__(self, reference: np.ndarray, lo: np.ndarray, hi: np.ndarray, table: np.ndarray, filled: np.ndarray):
+    def __init__(self, reference: np.ndarray, lo: np.ndarray, hi: np.ndarray, table: np.ndarray, filled: np.ndarray,
+                 support: np.ndarray | None = None):
+        # support (B, B, B): smoothed count of training samples per bin (None: 1 where filled).
+        self.support = np.asarray(filled, np.float32) if support is None else np.asarray(support, np.float32)
         self.reference = np.asarray(reference, dtype=np.float32)
         self.lo = np.asarray(lo, dtype=np.float64)
         self.hi = np.asarray(hi, dtype=np.float64)
@@ -88,14 +92,22 @@ class LookupTable:
         g = np.where(valid[..., None], self.table[i, j, k], 0.0).astype(np.float32)
         return g, valid
 
+    def confidence_diff(self, diff: np.ndarray) -> np.ndarray:
+        """``support / (support + 1)`` of the bins of colour changes ``diff (..., 3)``: near 1 in
+        well-sampled bins, small in sparsely sampled or hole-filled ones, 0 outside the table."""
+        idx, inside = self._index(np.asarray(diff, dtype=np.float64))
+        sup = self.support[idx[..., 0], idx[..., 1], idx[..., 2]]
+        return np.where(inside & self.filled[idx[..., 0], idx[..., 1], idx[..., 2]], sup / (sup + 1.0), 0.0)
+
     def to_arrays(self) -> dict[str, np.ndarray]:
         """Arrays for calibration.h5 (inverse: :meth:`from_arrays`)."""
         return {"reference": self.reference, "lo": self.lo, "hi": self.hi, "table": self.table,
-                "filled": self.filled}
+                "filled": self.filled, "support": self.support}
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "LookupTable":
-        return cls(arrays["reference"], arrays["lo"], arrays["hi"], arrays["table"], arrays["filled"])
+        return cls(arrays["reference"], arrays["lo"], arrays["hi"], arrays["table"], arrays["filled"],
+                   arrays.get("support"))
 
     @classmethod
     def build(cls, diff: np.ndarray, gradients: np.ndarray, reference: np.ndarray, bins: int = 32,
@@ -145,21 +157,33 @@ class LookupTable:
         report = {"bins": bins, "bins_measured": int(has.sum()), "bins_filled": int(filled.sum()),
                   "bins_total": bins ** 3, "samples_in_range": float(inside.mean()),
                   "fill_radius_bins": fill_radius_bins, "smooth_bins": smooth_bins}
-        return cls(reference, lut.lo, lut.hi, table, filled), report
+        support = np.where(filled, count_s, 0.0)
+        return cls(reference, lut.lo, lut.hi, table, filled, support), report
 
 
 class LUTModel(CalibrationModel):
-    """Calibration wrapper of :class:`LookupTable` (needs one pattern with three channels)."""
+    """Calibration wrapper of :class:`LookupTable` (needs one pattern with three channels).
+
+    With ``position_degree > 0`` each bin also holds a polynomial in the pixel position
+    (:mod:`calibration.models.lut_position`, as Taxim keeps per bin); ``position_ridge`` damps
+    its position terms toward the bin's average. Default quadratic with ridge 0.005: on the
+    shared real frames (CV on presses 0-19) it takes the LUT from 14.4 to 10.6 deg (linear
+    11.0; ridge 0.05: 11.3, 0.001: 11.0, 0: 14.8 — undamped bins seen at one place overfit).
+    The plain table (``to_arrays()["table"]``) is what ``iristac reconstruct --solver lut`` reads.
+    """
 
     name = "lut"
 
-    def __init__(self, bins: int = 32, smooth_bins: float = 1.0, fill_radius_bins: float = 3.0):
+    def __init__(self, bins: int = 32, smooth_bins: float = 1.0, fill_radius_bins: float = 3.0,
+                 position_degree: int = 2, position_ridge: float = 0.005):
         self.bins, self.smooth_bins, self.fill_radius_bins = bins, smooth_bins, fill_radius_bins
+        self.position_degree, self.position_ridge = int(position_degree), float(position_ridge)
         self.table: LookupTable | None = None
+        self.position_coef: np.ndarray | None = None  # (B, B, B, T, 2)
         self.coverage: dict[str, Any] = {}
 
     def fit(self, samples: Samples, reference: np.ndarray | None = None) -> dict[str, Any]:
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         if samples.intensities.shape[1:] != (1, 3):
             raise UserError(f"lut model: needs a single RGB pattern (P = 1, C = 3), the capture has (P, C) = "
@@ -169,13 +193,47 @@ class LUTModel(CalibrationModel):
         ref = np.zeros((*samples.shape, 3), np.float32) if reference is None else np.asarray(reference)[0]
         self.table, self.coverage = LookupTable.build(diff, np.stack([p, q], -1), ref, self.bins, self.smooth_bins,
                                                       self.fill_radius_bins)
+        if self.position_degree > 0:
+            from calibration.models.lut_position import fit_position_coefficients
+
+            idx, inside = self.table._index(diff.astype(np.float64))
+            flat = np.ravel_multi_index(idx[inside].T, (self.table.bins,) * 3)
+            phi = poly_terms(samples.rows[inside], samples.cols[inside], samples.shape, self.position_degree)
+            self.position_coef = fit_position_coefficients(flat, self.table.bins, phi, np.stack([p, q], -1)[inside],
+                                                           self.smooth_bins, self.position_ridge)
         rep = self._fit_report(samples)
         rep["coverage"] = self.coverage
         return rep
 
-    def predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray]:
-        g, ok = self.table.lookup_diff((samples.intensities - samples.reference)[:, 0])
-        return gradients_to_normals(g[:, 0], g[:, 1]), ok
+    confidence_meaning = "support / (support + 1), support the smoothed count of training samples in the pixel's bin"
+
+    def _predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        diff = (samples.intensities - samples.reference)[:, 0]
+        g, ok = self.table.lookup_diff(diff)
+        if self.position_coef is not None:
+            from calibration.models.lut_position import evaluate_position_coefficients
+
+            idx, _ = self.table._index(diff.astype(np.float64))
+            phi = poly_terms(samples.rows, samples.cols, samples.shape, self.position_degree)
+            g = np.where(ok[:, None], evaluate_position_coefficients(self.position_coef, idx, phi), 0.0)
+        return gradients_to_normals(g[:, 0], g[:, 1]), ok, self.table.confidence_diff(diff)
+
+    def stored_reference(self) -> np.ndarray | None:
+        return None if self.table is None else self.table.reference[None]
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        return self.table.to_arrays()
+        out = self.table.to_arrays()
+        if self.position_coef is not None:
+            out["position_coef"] = self.position_coef.astype(np.float32)
+            out["position_degree"] = np.asarray(self.position_degree)
+        return out
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray]) -> "LUTModel":
+        """A fitted model from :meth:`to_arrays`' output."""
+        model = cls(bins=int(np.asarray(arrays["table"]).shape[0]),
+                    position_degree=int(arrays.get("position_degree", 0)))
+        model.table = LookupTable.from_arrays(arrays)
+        if "position_coef" in arrays:
+            model.position_coef = np.asarray(arrays["position_coef"], np.float64)
+        return model

@@ -4,8 +4,9 @@ GelSight SDK does, trained deterministically: the learned baseline.
 Inputs per pixel: the colour change ``I - I_ref`` and the reference ``I_ref`` of every
 pattern-channel (divided by ``input_scale``) and the normalised position ``(u, v)``; output:
 the normal's ``(n_x, n_y)`` (bounded, unlike gradients near the rim), with
-``n_z = sqrt(1 - n_x^2 - n_y^2)``. Full-batch Adam with a cosine learning-rate decay and an
+``n_z = sqrt(1 - n_x^2 - n_y^2)``. Full-batch Adam(W) with a cosine learning-rate decay and an
 L1 loss; the seed and ``torch.use_deterministic_algorithms`` make two fits bit-identical.
+Optionally an ensemble of ``members`` nets (mean prediction, spread as confidence).
 """
 
 from __future__ import annotations
@@ -18,29 +19,32 @@ import numpy as np
 from calibration.models.base import CalibrationModel
 from calibration.models.nearfield import poly_terms
 from calibration.samples import Samples
-from sim.frames import normals_to_gradients
+from pipeline.base.frames import normals_to_gradients
 
-__all__ = ["MLPModel"]
+__all__ = ["MLPModel", "FEATURES"]
+
+#: Input features per pixel (besides the position): the colour change and the reference
+#: colour; the change alone; the raw colour (what the GelSight SDK feeds, B, G, R).
+FEATURES = ("change+reference", "change", "colour")
 
 
 @contextlib.contextmanager
 def _deterministic(seed: int, threads: int | None = 1):
     import torch
 
+    from pipeline.base.threads import limit_threads
+
     was = torch.are_deterministic_algorithms_enabled()
-    was_threads = torch.get_num_threads()
     torch.use_deterministic_algorithms(True, warn_only=True)
     # A net this small gains nothing from intra-op threads, and on a loaded 2-core machine
     # the spinning workers cost 30x (measured: 150 steps of 2000 samples, 17 s with 2 threads,
     # 0.5 s with 1).
-    if threads:
-        torch.set_num_threads(int(threads))
     try:
-        torch.manual_seed(seed)
-        yield
+        with limit_threads(torch=int(threads) if threads else None):
+            torch.manual_seed(seed)
+            yield
     finally:
         torch.use_deterministic_algorithms(was)
-        torch.set_num_threads(was_threads)
 
 
 class MLPModel(CalibrationModel):
@@ -53,8 +57,12 @@ class MLPModel(CalibrationModel):
     layers : int
         Number of hidden layers.
     epochs : int
-        Full-batch Adam steps.
+        Full-batch Adam steps. 400 at ``lr`` 2e-2 by default: on the shared real frames (CV on
+        presses 0-19) 200 steps at 1e-2 left the net under-fitted (CV 6.1 deg) and its surfaces
+        too flat; 400 at 2e-2 gives 4.9 deg; 800 steps, a width of 64, three members or 8000
+        samples each buy at most 0.16 deg for twice the time or more (``iristac bench calibration``).
     lr : float
+        Peak learning rate (cosine decay to 0).
     seed : int
     max_samples : int
         Training pixels drawn (seeded) from the samples, contact pixels first: full-batch
@@ -65,34 +73,57 @@ class MLPModel(CalibrationModel):
         Torch device ("cpu", "cuda").
     threads : int or None
         Torch intra-op threads while fitting and predicting (None: leave torch's setting).
+    members : int
+        Ensemble size: members differ in seed (initial weights and drawn pixels); the
+        prediction is their mean and the confidence their agreement.
+    weight_decay : float
+        AdamW's decoupled weight decay (0: plain Adam).
+    features : {"change+reference", "change", "colour"}
+        Per-pixel inputs besides the position (:data:`FEATURES`).
     """
 
     name = "mlp"
 
-    def __init__(self, hidden: int = 32, layers: int = 3, epochs: int = 200, lr: float = 1e-2, seed: int = 0,
+    def __init__(self, hidden: int = 32, layers: int = 3, epochs: int = 400, lr: float = 2e-2, seed: int = 0,
                  input_scale: float = 255.0, position: bool = True, max_samples: int = 4000, device: str = "cpu",
-                 threads: int | None = 1):
+                 threads: int | None = 1, members: int = 1, weight_decay: float = 0.0,
+                 features: str = "change+reference"):
+        if features not in FEATURES:
+            raise ValueError(f"MLPModel: features must be one of {', '.join(FEATURES)}, got {features!r}")
+        if int(members) < 1:
+            raise ValueError(f"MLPModel: members must be >= 1, got {members}")
         self.hidden, self.layers, self.epochs, self.lr, self.seed = hidden, layers, epochs, lr, seed
         self.input_scale, self.position, self.device = input_scale, position, device
         self.max_samples = max_samples
         self.threads = threads
-        self.net = None
+        self.members, self.weight_decay, self.features = int(members), float(weight_decay), features
+        self.nets: list = []
         self.shape: tuple[int, int] | None = None
         self.reference: np.ndarray | None = None
+
+    @property
+    def net(self):
+        """The first member (the only one unless ``members > 1``)."""
+        return self.nets[0] if self.nets else None
 
     def _features(self, intensities, reference, rows, cols, shape) -> np.ndarray:
         n = len(rows)
         d = (intensities - reference).reshape(n, -1) / self.input_scale
         r = reference.reshape(n, -1) / self.input_scale
-        parts = [d * 4.0, r]
+        if self.features == "change+reference":
+            parts = [d * 4.0, r]
+        elif self.features == "change":
+            parts = [d * 4.0]
+        else:  # "colour": the raw frame, as the GelSight SDK feeds B, G, R, x, y
+            parts = [d + r]
         if self.position:
             parts.append(poly_terms(rows, cols, shape, 1)[:, 1:])
         return np.concatenate(parts, axis=1).astype(np.float32)
 
-    def _draw(self, samples: Samples) -> np.ndarray:
+    def _draw(self, samples: Samples, seed: int | None = None) -> np.ndarray:
         # Contact pixels carry the information; flat ones only pin the zero. Draw up to half
         # of the budget from each, the rest of the budget going to whichever has more.
-        rng = np.random.default_rng(self.seed)
+        rng = np.random.default_rng(self.seed if seed is None else seed)
         con, flat = np.nonzero(samples.contact)[0], np.nonzero(~samples.contact)[0]
         n_flat = min(len(flat), max(self.max_samples // 4, self.max_samples - len(con)))
         n_con = min(len(con), self.max_samples - n_flat)
@@ -110,20 +141,30 @@ class MLPModel(CalibrationModel):
         return torch.nn.Sequential(*mods).to(self.device)
 
     def fit(self, samples: Samples, reference: np.ndarray | None = None) -> dict[str, Any]:
-        import torch
-
-        train = self._draw(samples)
-        x = self._features(samples.intensities, samples.reference, samples.rows, samples.cols, samples.shape)
-        y = samples.normals[:, :2].astype(np.float32)
-        x, y = x[train], y[train]
+        x_all = self._features(samples.intensities, samples.reference, samples.rows, samples.cols, samples.shape)
+        y_all = samples.normals[:, :2].astype(np.float32)
         self.shape = samples.shape
         if reference is not None:
             self.reference = np.asarray(reference, dtype=np.float32)
-        with _deterministic(self.seed, self.threads):
+        # Members differ in their seed: initial weights and the drawn training pixels.
+        self.nets, losses = [], []
+        for i in range(self.members):
+            train = self._draw(samples, self.seed + i)
+            net, loss = self._train(x_all[train], y_all[train], self.seed + i)
+            self.nets.append(net)
+            losses.append(loss)
+        rep = self._fit_report(samples)
+        rep["final_l1_loss"] = float(np.mean(losses))
+        return rep
+
+    def _train(self, x: np.ndarray, y: np.ndarray, seed: int):
+        import torch
+
+        with _deterministic(seed, self.threads):
             net = self._build(x.shape[1])
             xt = torch.from_numpy(x).to(self.device)
             yt = torch.from_numpy(y).to(self.device)
-            opt = torch.optim.Adam(net.parameters(), lr=self.lr)
+            opt = torch.optim.AdamW(net.parameters(), lr=self.lr, weight_decay=self.weight_decay)
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(self.epochs, 1))
             loss = torch.zeros(())
             for _ in range(self.epochs):
@@ -132,26 +173,31 @@ class MLPModel(CalibrationModel):
                 loss.backward()
                 opt.step()
                 sched.step()
-        self.net = net.eval()
-        rep = self._fit_report(samples)
-        rep["final_l1_loss"] = float(loss.detach())
-        return rep
+        return net.eval(), float(loss.detach())
 
-    def _predict_features(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    confidence_meaning = ("agreement of the ensemble members: exp(-s / 0.05), s the RMS spread of their (n_x, n_y); "
+                          "1 for a single member")
+
+    def _predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        n, ok, spread = self._predict_features(self._features(samples.intensities, samples.reference, samples.rows,
+                                                              samples.cols, samples.shape), spread=True)
+        return n, ok, np.where(ok, np.exp(-spread / 0.05), 0.0)
+
+    def _predict_features(self, x: np.ndarray, spread: bool = False):
         import torch
 
         with torch.no_grad(), _deterministic(self.seed, self.threads):
-            out = self.net(torch.from_numpy(x).to(self.device)).cpu().numpy().astype(np.float64)
+            xt = torch.from_numpy(x).to(self.device)
+            outs = np.stack([net(xt).cpu().numpy().astype(np.float64) for net in self.nets])
+        out = outs.mean(axis=0)
+        sd = np.sqrt(np.sum(outs.var(axis=0), axis=1))
         r2 = np.sum(out ** 2, axis=1)
         # Outputs outside the unit disc have no normal: shrink them onto a 85-degree tilt.
         s = np.where(r2 > 0.996, np.sqrt(0.996 / np.maximum(r2, 1e-12)), 1.0)
         out = out * s[:, None]
         n = np.concatenate([out, np.sqrt(1.0 - np.sum(out ** 2, axis=1, keepdims=True))], axis=1)
-        return n, np.isfinite(n).all(axis=1)
-
-    def predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray]:
-        return self._predict_features(self._features(samples.intensities, samples.reference, samples.rows,
-                                                     samples.cols, samples.shape))
+        ok = np.isfinite(n).all(axis=1)
+        return (n, ok, sd) if spread else (n, ok)
 
     def lookup(self, images: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gradients of frames, like :meth:`calibration.models.lut.LookupTable.lookup`.
@@ -169,21 +215,53 @@ class MLPModel(CalibrationModel):
             images = images[:, None]
         if self.reference is None or images.shape[1:] != self.reference.shape:
             raise ValueError(f"MLPModel.lookup: images must be (N, {self.reference.shape}) frames, got {images.shape}")
-        n_img, p, h, w, c = images.shape
-        rows, cols = (a.ravel() for a in np.mgrid[:h, :w])
-        ref = self.reference.transpose(1, 2, 0, 3).reshape(h * w, p, c)
-        grads, valid = [], []
-        for img in images:
-            obs = img.transpose(1, 2, 0, 3).reshape(h * w, p, c)
-            n, ok = self._predict_features(self._features(obs, ref, rows, cols, (h, w)))
-            gx, gy = normals_to_gradients(n)
-            grads.append(np.stack([gx, gy], -1).reshape(h, w, 2))
-            valid.append(ok.reshape(h, w))
-        return np.stack(grads).astype(np.float32), np.stack(valid)
+        maps = self.normal_maps(images)
+        gx, gy = normals_to_gradients(maps.normals.astype(np.float64))
+        return np.stack([gx, gy], -1).astype(np.float32), maps.mask
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        arrays = {f"weights/{k.replace('.', '_')}": v.detach().cpu().numpy() for k, v in self.net.state_dict().items()}
-        arrays["config"] = np.array([self.hidden, self.layers, int(self.position)], dtype=np.int64)
+        """Arrays for calibration.h5 (inverse: :meth:`from_arrays`).
+
+        ``weights/<param>`` (the first member), ``members/<i>/<param>`` (the others),
+        ``config = [hidden, layers, position, members, feature index]``, ``input_scale``,
+        ``reference``.
+        """
+        arrays = {}
+        for i, net in enumerate(self.nets):
+            prefix = "weights" if i == 0 else f"members/{i}"
+            arrays.update({f"{prefix}/{k.replace('.', '_')}": v.detach().cpu().numpy()
+                           for k, v in net.state_dict().items()})
+        arrays["config"] = np.array([self.hidden, self.layers, int(self.position), len(self.nets),
+                                     FEATURES.index(self.features)], dtype=np.int64)
+        arrays["input_scale"] = np.asarray(self.input_scale, dtype=np.float64)
         if self.reference is not None:
             arrays["reference"] = self.reference
         return arrays
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], device: str = "cpu") -> "MLPModel":
+        """A fitted model from :meth:`to_arrays`' output (files written before ensembles load too)."""
+        import torch
+
+        cfg = [int(v) for v in np.asarray(arrays["config"]).ravel()]
+        hidden, layers, position = cfg[:3]
+        members = cfg[3] if len(cfg) > 3 else 1
+        features = FEATURES[cfg[4]] if len(cfg) > 4 else "change+reference"
+        scale = float(arrays["input_scale"]) if "input_scale" in arrays else 255.0
+        model = cls(hidden=hidden, layers=layers, position=bool(position), input_scale=scale, members=members,
+                    features=features, device=device)
+        ref = arrays.get("reference")
+        model.reference = None if ref is None else np.asarray(ref, np.float32)
+        if model.reference is not None:
+            model.shape = tuple(model.reference.shape[1:3])
+        for i in range(members):
+            prefix = "weights/" if i == 0 else f"members/{i}/"
+            state = {k[len(prefix):]: torch.from_numpy(np.asarray(v)) for k, v in arrays.items() if k.startswith(prefix)}
+            if not state:
+                raise KeyError(f"{prefix}*")
+            first = state[min(k for k in state if k.endswith("weight"))]
+            net = model._build(int(first.shape[1]))
+            # state_dict keys were stored with '.' -> '_' ("0.weight" -> "0_weight").
+            net.load_state_dict({k.replace("_", ".", 1): v for k, v in state.items()})
+            model.nets.append(net.eval())
+        return model

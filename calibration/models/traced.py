@@ -22,7 +22,7 @@ from scipy.optimize import nnls
 
 from calibration.models.base import LightFieldModel
 from calibration.samples import Samples
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.illumination_model import light_matrices
 
 __all__ = ["TracedModel"]

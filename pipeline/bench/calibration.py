@@ -1,13 +1,17 @@
 """``iristac bench calibration``: time and cross-validated error of every calibration model.
 
-Two cases: the shared real GelSight frames (30 presses, one RGB pattern; skipped when
-``../shared/data`` is absent) with the hand-label comparison, and a synthetic point-lit ring
-capture (bare-LED near field, 8-bit, noise 1 DN) with the gain and direction errors against
-the exact truth.
+Three cases: the shared real GelSight frames (30 presses, one RGB pattern; skipped when
+``../shared/data`` is absent) with the hand-label comparison; the same frames split, presses
+0-19 calibrating and 20-29 testing (:mod:`pipeline.bench._calibration_split`: CV beside test
+error, detected and label truth, the ball fit, and the levers of issue 13); and a synthetic
+point-lit ring capture (bare-LED near field, 8-bit, noise 1 DN) with the gain and direction
+errors against the exact truth.
 
 ``rows`` (the common format of ``iristac bench all``): one per model and case (knob
 ``calibration model (real|synthetic)``, error = cross-validated mean angular error), the full
-calibration time, centre refinement on/off, and the MLP's training steps (error vs time).
+calibration time, centre refinement on/off, the MLP's training steps (error vs time), and per
+model and lever of the split (error = test-press mean angular error, with ``cv_deg``,
+``labels_deg`` and ``ball_radius_error`` beside it).
 """
 
 from __future__ import annotations
@@ -99,7 +103,12 @@ def run(args) -> dict:
                                          "center_offset_px_median": raw.get("center_offset_px_median"),
                                          "seconds": time.perf_counter() - t}
         if not quick:
-            out["rows"] += _mlp_sweep(cap, [50, 100, 200, 400])
+            out["rows"] += _mlp_sweep(cap, [100, 200, 400, 800])
+        from pipeline.bench._calibration_split import run_split
+
+        split_case, split_rows = run_split(cap, quick)
+        out["split"] = split_case
+        out["rows"] += split_rows
     k = 8 if quick else 30
     cap, tr = synthetic_sphere_capture((120, 160), k, mm_per_px=0.1, ball_radius_mm=2.0, num_leds=12,
                                        peak_dn=140, seed=11)
@@ -153,6 +162,10 @@ def format_table(result: dict) -> str:
                 lines.append(f"  {r['model']:8s} skipped: {r['skipped']}")
             else:
                 lines.append(f"  {r['model']:8s} {r['cv_mean_deg']:12.2f} {r['cv_median_deg']:14.2f} {r['seconds']:8.2f}")
+    if result.get("split"):
+        from pipeline.bench._calibration_split import format_split
+
+        lines += format_split(result["split"])
     if result.get("rows"):
         lines.append("rows (knob / setting / error / seconds)")
         for r in result["rows"]:

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from sim.frames import pixel_to_recon
+from pipeline.base.frames import pixel_to_recon
 from sim.illumination_model import light_matrices
 from sim.lambertian import shade
 from sim.point_source import point_source_field, ring_geometry
@@ -158,7 +158,7 @@ def scene_records(scene: SphereScene, *, bits: int = 8, num_presses: int = 1):
     the exact light field and the centre-pixel far-field vectors (what a perfect calibration
     of this scene would give).
     """
-    from pipeline.store import Record
+    from pipeline.base.store import Record
 
     P, H, W, C = scene.frames.shape
     dt = np.uint8 if bits <= 8 else np.uint16

@@ -16,6 +16,10 @@ fps at 640 x 480 on the 2-core CPU, and the table prints them beside the measure
 Robust vs least squares: per pixel, a random fifth of the observations is corrupted, either
 clipped (half set to 0 = shadow, half to 255 = saturated) or partially shadowed (scaled by
 0.25, above the dark threshold, so only the reweighting can reject it).
+
+The photometric-stereo section (objects with highlights and cast shadows under 96 far-field
+lights, masked vs bounding box, ``reconstruct`` end to end) is
+:mod:`pipeline.bench.reconstruct_ps`; ``--sections`` picks what runs.
 """
 
 from __future__ import annotations
@@ -41,6 +45,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--no-compile", action="store_true",
                         help="skip the torch.compile-d far-field solver (no C++ compiler, or to save its warm-up)")
+    parser.add_argument("--sections", nargs="+", choices=["tactile", "ps"], default=["tactile", "ps"],
+                        help="tactile: the sensor scene at --sizes; ps: objects under 96 far-field lights")
+    parser.add_argument("--ps-radius", type=float, default=None,
+                        help="PS object radius in pixels (default 71: 15.8k pixels; --quick: 20)")
 
 
 _CPU: dict[int, float] = {}
@@ -82,7 +90,7 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
     """All measurements at one image size."""
     from pipeline.depth import integrate
     from pipeline.evaluate import normal_error_stats
-    from pipeline.normals import FarFieldSolver, NearFieldSolver, ratio_to_reference, solve_robust
+    from pipeline.normals import FarFieldSolver, NearFieldSolver, ratio_to_reference, solve_robust, solve_robust_irls
 
     mm = FOV_MM / width
     s = render_sphere_scene((height, width), mm, radius=RADIUS, depth=DEPTH, num_patterns=PATTERNS, noise=1.0,
@@ -106,7 +114,9 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
         "lstsq (far field)": lambda: far.solve_frames(frames),
         "lstsq (far field, compiled)": lambda: fast.solve_frames(frames),
         "nearfield": lambda: near.solve(_obs(frames)),
-        "robust (near field)": lambda: solve_robust(_obs(frames), s.lights_flat(), groups=groups, dark_threshold=2.55,
+        "robust (near field)": lambda: solve_robust_irls(_obs(frames), s.lights_flat(), groups=groups,
+                                                         dark_threshold=2.55, saturation=255.0, device=device),
+        "cauchy (near field)": lambda: solve_robust(_obs(frames), s.lights_flat(), groups=groups, dark_threshold=2.55,
                                                     saturation=255.0, device=device),
     }
     ref_obs = _obs(s.reference.astype(np.uint8)).astype(np.float32)
@@ -125,7 +135,9 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
         results[name] = res
         out["solvers"][name] = {"seconds": sec, "fps": 1.0 / sec, "cpu_seconds": _CPU.pop(id(res)),
                                 "mean_deg": err(res), "valid_fraction": res.valid_fraction}
-    for method in ("fc", "dct", "dst", "sparse"):
+    from pipeline.base.registry import INTEGRATORS
+
+    for method in INTEGRATORS.names():  # every registered integrator
         for src in ("nearfield", "lstsq (far field)"):
             res = results[src]
             reps = repeats if method != "sparse" else max(1, repeats // 10)
@@ -156,21 +168,32 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
         rb = solve_robust(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0, device=device)
         rt = solve_robust(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0, method="trim",
                           device=device)
-        out["robust"][kind] = {"lstsq_deg": err(ls), "robust_irls_deg": err(rb), "robust_trim_deg": err(rt)}
+        rn = solve_robust_irls(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0,
+                               device=device)
+        out["robust"][kind] = {"lstsq_deg": err(ls), "robust_deg": err(rn), "robust_irls_deg": err(rb),
+                               "robust_trim_deg": err(rt)}
     return out
 
 
 def run(args) -> dict:
-    from pipeline.normals._torch import torch_threads
+    from pipeline.base.threads import limit_threads
 
     sizes = getattr(args, "sizes", None) or (["160x120"] if getattr(args, "quick", False) else ["320x240", "640x480"])
     repeats = getattr(args, "repeats", None) or (3 if getattr(args, "quick", False) else 20)
     device = getattr(args, "device", "cpu")
-    per_size = []
-    with torch_threads(getattr(args, "threads", 1)):
-        for spec in sizes:
+    sections = getattr(args, "sections", None) or ["tactile", "ps"]
+    quick = getattr(args, "quick", False)
+    per_size, ps = [], None
+    with limit_threads(torch=getattr(args, "threads", 1)):
+        for spec in (sizes if "tactile" in sections else []):
             w, h = (int(v) for v in spec.lower().split("x"))
             per_size.append(measure_size(w, h, repeats, device, getattr(args, "no_compile", False)))
+        if "ps" in sections:
+            from pipeline.bench.reconstruct_ps import measure_ps
+
+            radius = getattr(args, "ps_radius", None) or (20.0 if quick else 71.0)
+            ps = measure_ps(radius, (4, 6) if quick else (8, 12), (128, 160) if quick else (512, 612),
+                            repeats=min(repeats, 5), device=device)
     rows = []
     for r in per_size:
         for name, v in r["solvers"].items():
@@ -184,10 +207,14 @@ def run(args) -> dict:
             rows.append({"knob": f"real-time lstsq + depth @ {r['size']}", "setting": key,
                          "error": r["integrators"][v["integrator"]]["lstsq (far field)"]["rmse_mm"], "error_unit": "mm",
                          "seconds": v["seconds"]})
+    if ps is not None:
+        from pipeline.bench.reconstruct_ps import ps_rows
+
+        rows += ps_rows(ps)
     return {"scene": {"fov_mm": FOV_MM, "ball_radius_mm": RADIUS, "indentation_mm": DEPTH, "patterns": PATTERNS,
                       "noise_dn": 1.0, "bits": 8},
             "repeats": repeats, "threads": getattr(args, "threads", 1), "device": device, "sizes": per_size,
-            "rows": rows}
+            "ps": ps, "rows": rows}
 
 
 def format_table(result: dict) -> str:
@@ -218,6 +245,11 @@ def format_table(result: dict) -> str:
             lines.append(f"(compiled solver: first frame at this size took {r['compile_seconds']:.1f} s, "
                          f"compilation included; excluded from the timings above)")
         for kind, v in r["robust"].items():
-            lines.append(f"a fifth of observations {kind}: lstsq {v['lstsq_deg']:.3f} deg, robust irls "
-                         f"{v['robust_irls_deg']:.3f} deg, robust trim {v['robust_trim_deg']:.3f} deg")
+            lines.append(f"a fifth of observations {kind}: lstsq {v['lstsq_deg']:.3f} deg, robust "
+                         f"{v['robust_deg']:.3f} deg, cauchy {v['robust_irls_deg']:.3f} deg, trimmed "
+                         f"{v['robust_trim_deg']:.3f} deg")
+    if result.get("ps"):
+        from pipeline.bench.reconstruct_ps import format_ps
+
+        lines.append(format_ps(result["ps"]))
     return "\n".join(lines)

@@ -56,26 +56,18 @@ def _rate(fn, budget: float, min_reps: int = 3) -> float:
 
 
 def run(args) -> dict:
-    import torch
-
-    from sim.geometry import sphere
-    from sim.modes import mode_brightness, mode_drive
-    from sim.render import RenderSettings, Renderer, auto_exposure, bare_ring_illumination
+    from pipeline.base.threads import limit_threads
 
     threads = int(getattr(args, "threads", 1) or 1)
-    previous_threads = torch.get_num_threads()
-    torch.set_num_threads(threads)
-    try:
+    with limit_threads(torch=threads):
         return _run(args, threads)
-    finally:
-        torch.set_num_threads(previous_threads)
 
 
 def _run(args, threads: int) -> dict:
     import torch
 
     from sim.geometry import sphere
-    from sim.modes import mode_brightness, mode_drive
+    from pipeline.base.modes import mode_brightness, mode_drive
     from sim.render import RenderSettings, Renderer, auto_exposure, bare_ring_illumination
 
     quick = bool(getattr(args, "quick", False))

@@ -38,8 +38,8 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.capture.camera_api import CameraFrame
-from pipeline.errors import UserError
+from pipeline.base.camera import CameraFrame
+from pipeline.base.errors import UserError
 
 __all__ = ["CameraSettingWarning", "CameraError", "OpenCVCamera", "video_devices"]
 

@@ -31,7 +31,7 @@ import serial
 import serial.tools.list_ports
 
 from pipeline.capture import protocol as P
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 __all__ = [
     "RingError",

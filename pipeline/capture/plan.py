@@ -17,7 +17,7 @@ starts, so an interrupted capture (unplugged ring, Ctrl-C) restarts after the la
 step; a record torn by a crash is detected by its CRC and that step is captured again. The
 journal carries a fingerprint of the plan; a rerun with different patterns or settings
 refuses to mix the two. When every step is done the final ``capture.h5`` is written
-atomically through :func:`pipeline.store.write_record`, and only then is the journal removed.
+atomically by :func:`pipeline.base.capture.write_capture`, and only then is the journal removed.
 
 Examples
 --------
@@ -25,8 +25,9 @@ Examples
 >>> from pipeline.capture.emulator import RingEmulator
 >>> from pipeline.capture.client import RingClient
 >>> from pipeline.capture.virtual import VirtualSensorSpec, open_virtual_camera
->>> patterns = PatternSet("demo", ["a", "b"], np.stack([np.eye(24, 3), np.eye(24, 3)[::-1]]),
-...                       np.array([1.0, 0.5]))
+>>> from pipeline.base.modes import LightingMode
+>>> patterns = LightingMode.from_arrays("demo", ["a", "b"], np.stack([np.eye(24, 3), np.eye(24, 3)[::-1]]),
+...                                     np.array([1.0, 0.5]))
 >>> out = os.path.join(tempfile.mkdtemp(), "capture.h5")
 >>> spec = VirtualSensorSpec(shape=(4, 6), mm_per_px=1.0, contacts=[np.zeros((4, 6))], fps=400.0)
 >>> with RingEmulator() as emu, RingClient(emu.path) as ring:
@@ -36,7 +37,7 @@ Examples
 ...     cam.close()
 >>> result.frames, result.patterns, result.mislabeled
 (5, 2, 0)
->>> from pipeline.store import read_record
+>>> from pipeline.base.store import read_record
 >>> read_record(out, schema="capture").data["frames"].shape
 (1, 2, 4, 6, 3)
 """
@@ -57,14 +58,14 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pipeline.capture import protocol as P
-from pipeline.capture.camera_api import Camera, CameraFrame
+from pipeline.base.camera import Camera, CameraFrame
 from pipeline.capture.client import RingClient, RingError
 from pipeline.capture.emulator import ShownState
-from pipeline.errors import UserError
-from pipeline.store import _fsync_dir
+from pipeline.base.errors import UserError
+from pipeline.base.modes import LightingMode
+from pipeline.base.store import _fsync_dir
 
 __all__ = [
-    "PatternSet",
     "CaptureSettings",
     "CaptureResult",
     "Step",
@@ -75,57 +76,6 @@ __all__ = [
 ]
 
 JOURNAL_VERSION = 1
-
-
-@dataclass
-class PatternSet:
-    """The lighting patterns to capture (a lighting mode, as plain arrays).
-
-    Attributes
-    ----------
-    mode : str
-        Mode name, recorded in the capture.
-    names : list of str, length P
-    drive : ndarray, shape (P, L, 3)
-        RGB drive per LED in [0, 1].
-    brightness : ndarray, shape (P,)
-        Global brightness per pattern in [0, 1].
-    """
-
-    mode: str
-    names: Sequence[str]
-    drive: np.ndarray
-    brightness: np.ndarray
-
-    def __post_init__(self) -> None:
-        self.names = [str(n) for n in self.names]
-        self.drive = np.asarray(self.drive, dtype=np.float64)
-        self.brightness = np.asarray(self.brightness, dtype=np.float64).reshape(-1)
-        p = len(self.names)
-        if self.drive.ndim != 3 or self.drive.shape[0] != p or self.drive.shape[2] != 3:
-            raise UserError(
-                f"mode {self.mode!r}: drive must have shape (P={p}, L, 3), got {self.drive.shape}"
-            )
-        if self.brightness.shape != (p,):
-            raise UserError(
-                f"mode {self.mode!r}: brightness must have shape (P={p},), got {self.brightness.shape}"
-            )
-        if len(set(self.names)) != p:
-            raise UserError(f"mode {self.mode!r}: pattern names must be unique, got {self.names}")
-        for i in range(p):
-            try:
-                P.quantize_state(self.drive[i], float(self.brightness[i]))
-            except ValueError as exc:
-                raise UserError(f"mode {self.mode!r}, pattern {self.names[i]!r}: {exc}") from None
-
-    @property
-    def led_count(self) -> int:
-        """L, LEDs per pattern."""
-        return int(self.drive.shape[1])
-
-    def levels(self, p: int) -> tuple[np.ndarray, int]:
-        """The 8-bit state pattern ``p`` puts on the wire."""
-        return P.quantize_state(self.drive[p], float(self.brightness[p]))
 
 
 @dataclass
@@ -235,15 +185,20 @@ def journal_path(out: str | os.PathLike) -> Path:
 
 
 # ---------------------------------------------------------------------------- the journal
-def _fingerprint(patterns: PatternSet, settings: CaptureSettings, shape: tuple[int, int],
+def _levels(patterns: LightingMode, p: int) -> tuple[np.ndarray, int]:
+    """The 8-bit state pattern ``p`` puts on the wire."""
+    return P.quantize_state(patterns.drive[p], float(patterns.brightness[p]))
+
+
+def _fingerprint(patterns: LightingMode, settings: CaptureSettings, shape: tuple[int, int],
                  scene: str = "") -> str:
     """Hash of the plan; ``scene`` fingerprints anything else the frames depend on (a virtual
     camera's contacts and light), so a rerun cannot mix frames of two different scenes."""
     h = hashlib.sha256()
-    for p in range(len(patterns.names)):
-        levels, b = patterns.levels(p)
-        h.update(patterns.names[p].encode() + b"\0" + levels.tobytes() + bytes((b,)))
-    h.update(json.dumps([patterns.mode, settings.frames_per_pattern, settings.contacts,
+    for p in range(len(patterns.frames)):
+        levels, b = _levels(patterns, p)
+        h.update(patterns.pattern_names[p].encode() + b"\0" + levels.tobytes() + bytes((b,)))
+    h.update(json.dumps([patterns.name, settings.frames_per_pattern, settings.contacts,
                          settings.dark, list(shape)] + ([scene] if scene else [])).encode())
     return h.hexdigest()
 
@@ -426,7 +381,7 @@ def _grab(camera: Camera, n: int, t_ack: float, settle: float, settings: Capture
 
 # ---------------------------------------------------------------------------- the plan
 def run_capture(
-    patterns: PatternSet,
+    patterns: LightingMode,
     ring: RingClient,
     camera: Camera,
     out: str | os.PathLike,
@@ -445,7 +400,7 @@ def run_capture(
 
     Parameters
     ----------
-    patterns : PatternSet
+    patterns : LightingMode
         The lighting patterns, P of them with L LEDs each (L must match the ring).
     ring : RingClient
         An open ring client.
@@ -484,17 +439,17 @@ def run_capture(
     UserError
         The journal belongs to another capture, or the patterns do not fit the ring.
     """
-    from pipeline.store import write_record
+    from pipeline.base.capture import write_capture
 
     settings = settings or CaptureSettings()
     out = Path(out)
-    if ring.info is not None and ring.info.led_count != patterns.led_count:
-        raise UserError(f"mode {patterns.mode!r} drives {patterns.led_count} LEDs but the ring "
+    if ring.info is not None and ring.info.led_count != patterns.num_leds:
+        raise UserError(f"mode {patterns.name!r} drives {patterns.num_leds} LEDs but the ring "
                         f"on {ring.port!r} has {ring.info.led_count}")
     shape = tuple(camera.shape)
     jpath = journal_path(out)
     journal = _Journal(jpath, _fingerprint(patterns, settings, shape, scene), out)
-    steps = plan_steps(len(patterns.names), settings)
+    steps = plan_steps(len(patterns.frames), settings)
     resumed = sum(journal.done(s) is not None for s in steps)
     settle = _settle_time(camera, settings)
     counters = {"stale": 0}
@@ -520,9 +475,9 @@ def run_capture(
                 pressed = step.k
             if step.kind == "dark":
                 ring.off()
-                levels, b = np.zeros((patterns.led_count, 3), np.uint8), 0
+                levels, b = np.zeros((patterns.num_leds, 3), np.uint8), 0
             else:
-                levels, b = patterns.levels(step.p)
+                levels, b = _levels(patterns, step.p)
                 ring.show_pattern(patterns.drive[step.p], float(patterns.brightness[step.p]))
             t_ack = time.monotonic()
             image, windows, contacts = _grab(camera, settings.frames_per_pattern, t_ack, settle,
@@ -563,12 +518,12 @@ def run_capture(
                        device_info)
     record.data.update(extra_data or {})
     record.meta.update(extra_meta or {})
-    write_record(out, record)
+    write_capture(out, record)
     flags = [journal.done(s).get("mislabeled") for s in steps]
     result = CaptureResult(
         path=out,
         frames=len(steps),
-        patterns=len(patterns.names),
+        patterns=len(patterns.frames),
         retries=int(journal.state["retries"]),
         seconds=float(journal.state["seconds"]),
         mislabeled=None if any(f is None for f in flags) else int(sum(flags)),
@@ -582,11 +537,11 @@ def run_capture(
 
 def _assemble(patterns, settings, journal, steps, shape, source, camera, ring,
               device_info):
-    from pipeline.store import Record
+    from pipeline.base.store import Record
 
     loaded = {s.id: journal.load(s) for s in steps}
     first = loaded[steps[0].id]["image"]
-    p_count, k_count = len(patterns.names), settings.contacts
+    p_count, k_count = len(patterns.frames), settings.contacts
     frames = np.zeros((k_count, p_count, *first.shape), first.dtype)
     reference = np.zeros((p_count, *first.shape), first.dtype)
     n = settings.frames_per_pattern
@@ -603,8 +558,8 @@ def _assemble(patterns, settings, journal, steps, shape, source, camera, ring,
         else:
             frames[s.k, s.p] = d["image"]
         ack[i], wall[i], windows[i] = d["t_ack"], d["t_wall"], d["windows"]
-    drive = np.stack([patterns.levels(p)[0] for p in range(p_count)]).astype(np.float32) / 255
-    bright = np.array([patterns.levels(p)[1] for p in range(p_count)], np.float32) / 255
+    drive = np.stack([_levels(patterns, p)[0] for p in range(p_count)]).astype(np.float32) / 255
+    bright = np.array([_levels(patterns, p)[1] for p in range(p_count)], np.float32) / 255
     data.update({
         "frames": frames, "reference": reference, "drive": drive, "brightness": bright,
         "timing/ack": ack, "timing/wall": wall, "timing/exposure": windows,
@@ -627,8 +582,8 @@ def _assemble(patterns, settings, journal, steps, shape, source, camera, ring,
     }
     meta = {
         "mm_per_px": float(settings.mm_per_px),
-        "pattern_names": list(patterns.names),
-        "mode": patterns.mode,
+        "pattern_names": patterns.pattern_names,
+        "mode": patterns.name,
         "exposure": exposure,
         "bit_depth": bit_depth,
         "source": source,
@@ -638,6 +593,7 @@ def _assemble(patterns, settings, journal, steps, shape, source, camera, ring,
         "steps": [s.id for s in steps],
         "runs": int(journal.state["runs"]),
         "retries": int(journal.state["retries"]),
+        "seconds": float(journal.state["seconds"]),
     }
     return Record(schema="capture", data=data, meta=meta)
 

@@ -213,29 +213,37 @@ class FrameParser:
         >>> p.resync()
         [Frame(seq=3, cmd=<Command.OFF: 5>, payload=b'')]
         """
-        frames: list[Frame] = []
+        return list(self.iter_resync())
+
+    def iter_resync(self):
+        """:meth:`resync` as a generator: frames one at a time, the error counters updated
+        as the scan reaches each dropped candidate (a device answers each frame before the
+        scan goes on, as the byte-wise C parser does)."""
         while self._buf:
             self.skipped_bytes += 1
             del self._buf[:1]
-            frames.extend(self.feed(b""))
-        return frames
+            yield from self.iter_feed(b"")
 
     def feed(self, data: bytes) -> list[Frame]:
         """Add received bytes; return the complete valid frames, oldest first."""
+        return list(self.iter_feed(data))
+
+    def iter_feed(self, data: bytes):
+        """:meth:`feed` as a generator: each frame is yielded as soon as the scan finds it, so
+        the counters read between frames count only the candidates dropped before it."""
         buf = self._buf
         buf.extend(data)
-        frames: list[Frame] = []
         while True:
             start = buf.find(START)
             if start < 0:
                 self.skipped_bytes += len(buf)
                 buf.clear()
-                break
+                return
             if start:
                 self.skipped_bytes += start
                 del buf[:start]
             if len(buf) < HEADER_SIZE:
-                break
+                return
             length = buf[1]
             if length > MAX_PAYLOAD:
                 self.length_errors += 1
@@ -244,7 +252,7 @@ class FrameParser:
                 continue
             total = HEADER_SIZE + length + 2
             if len(buf) < total:
-                break
+                return
             body = bytes(buf[1 : HEADER_SIZE + length])
             (crc,) = struct.unpack_from("<H", buf, HEADER_SIZE + length)
             if crc16(body) != crc:
@@ -252,9 +260,8 @@ class FrameParser:
                 self.skipped_bytes += 1
                 del buf[:1]
                 continue
-            frames.append(Frame(seq=body[1], cmd=body[2], payload=body[3:]))
             del buf[:total]
-        return frames
+            yield Frame(seq=body[1], cmd=body[2], payload=body[3:])
 
 
 def quantize_state(drive: np.ndarray, brightness: float) -> tuple[np.ndarray, int]:

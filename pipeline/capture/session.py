@@ -2,17 +2,18 @@
 
 :func:`capture` is what ``iristac capture`` (and a pipeline config's ``capture:`` section)
 calls: it opens the ring (a serial port, or an emulator it starts behind a pty), the camera
-(OpenCV, any :class:`~pipeline.capture.camera_api.Camera`, or the virtual sensor of
+(OpenCV, any :class:`~pipeline.base.camera.Camera`, or the virtual sensor of
 :mod:`pipeline.capture.virtual` that renders the gel under the emulator's LEDs), loads the
-lighting mode through :func:`sim.modes.load_mode` and runs
+lighting mode through :func:`pipeline.base.modes.load_mode` and runs
 :func:`pipeline.capture.plan.run_capture`.
 
 Examples
 --------
 >>> import tempfile, os
 >>> out = os.path.join(tempfile.mkdtemp(), "capture.h5")
->>> from pipeline.capture.virtual import VirtualSensorSpec, contact_objects
->>> spec = VirtualSensorSpec(contacts=contact_objects("sphere", 2, (30, 40), 0.1), shape=(30, 40),
+>>> from pipeline.capture.virtual import VirtualSensorSpec
+>>> from sim.contacts import contact_surfaces
+>>> spec = VirtualSensorSpec(contacts=contact_surfaces("sphere", (30, 40), 0.1, 2), shape=(30, 40),
 ...                          mm_per_px=0.1, fps=400.0)
 >>> r = capture(out, mode="monochromatic", emulate=True, virtual_camera=spec, progress=False)
 >>> r.frames, r.patterns, r.mislabeled
@@ -30,43 +31,17 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from pipeline.capture.client import RingClient
-from pipeline.capture.emulator import RingEmulator, parse_faults
-from pipeline.capture.plan import CaptureResult, CaptureSettings, PatternSet, run_capture
-from pipeline.errors import UserError
+from pipeline.capture.emulator import parse_faults
+from pipeline.capture.firmware_host import ring_emulator
+from pipeline.capture.plan import CaptureResult, CaptureSettings, run_capture
+from pipeline.base.errors import UserError
 
 if TYPE_CHECKING:
-    from pipeline.capture.camera_api import Camera
+    from pipeline.base.camera import Camera
     from pipeline.capture.virtual import VirtualSensorSpec
 
-__all__ = ["load_patterns", "patterns_from_mode", "capture", "virtual_sensor", "json_summary",
+__all__ = ["capture", "virtual_sensor", "json_summary",
            "prompt_contact"]
-
-
-def load_patterns(mode) -> PatternSet:
-    """The patterns of a lighting mode (name, mode file, or ``sim.modes.LightingMode``).
-
-    Raises
-    ------
-    UserError
-        Unknown mode name or invalid mode file (from :func:`sim.modes.load_mode`).
-
-    Examples
-    --------
-    >>> [load_patterns(m).drive.shape[0] for m in ("point", "monochromatic", "trichromatic", "multicolour")]
-    [24, 3, 1, 1]
-    """
-    from sim.modes import load_mode
-
-    return patterns_from_mode(load_mode(mode))
-
-
-def patterns_from_mode(mode) -> PatternSet:
-    """Adapt a ``sim.modes.LightingMode`` (``.name``, ``.frames`` of (name, drive (L, 3),
-    brightness)) to a :class:`PatternSet`."""
-    names = [f[0] for f in mode.frames]
-    drive = np.stack([np.asarray(f[1], np.float64) for f in mode.frames])
-    bright = [f[2] for f in mode.frames]
-    return PatternSet(str(mode.name), names, drive, bright)
 
 
 def capture(
@@ -76,6 +51,7 @@ def capture(
     port: str | None = None,
     emulate: bool = False,
     faults: str | None = None,
+    ring_firmware: str | os.PathLike | None = None,
     camera: int | str | Camera | None = None,
     virtual_camera: bool | VirtualSensorSpec = False,
     frames_per_pattern: int = 1,
@@ -98,15 +74,19 @@ def capture(
     out : path-like
         The ``capture.h5`` to write.
     mode : str
-        Lighting mode name (:func:`sim.modes.list_modes`) or mode file.
+        Lighting mode name (:func:`pipeline.base.modes.list_modes`) or mode file.
     port : str, optional
         Serial port of the ring. Exactly one of ``port`` and ``emulate``.
     emulate : bool
         Start a ring emulator behind a pty instead (``faults``: its fault spec;
         ``emulate_baud``: model the wire time at ``baudrate``).
+    ring_firmware : path-like, optional
+        With ``emulate``: serve the ring with this host build of the C firmware
+        (``make -C firmware host``, :class:`~pipeline.capture.firmware_host.FirmwareEmulator`)
+        instead of the Python emulator.
     camera : int, str or Camera, optional
         OpenCV camera index, device path or video file, or any object implementing
-        :class:`~pipeline.capture.camera_api.Camera` (opened here and closed at the end).
+        :class:`~pipeline.base.camera.Camera` (opened here and closed at the end).
         Exactly one of ``camera`` and ``virtual_camera``.
     virtual_camera : bool or VirtualSensorSpec
         Render the gel under the emulated ring's LEDs (needs ``emulate``) with
@@ -146,6 +126,8 @@ def capture(
                         "it needs --emulate")
     if faults and not emulate:
         raise UserError("capture: --faults applies to the emulator; it needs --emulate")
+    if ring_firmware and not emulate:
+        raise UserError("capture: --ring-firmware serves the emulated ring; it needs --emulate")
     spec = None
     if virtual_camera is not False:
         from pipeline.capture.virtual import VirtualSensorSpec  # loads torch: only when needed
@@ -169,11 +151,13 @@ def capture(
     settings = CaptureSettings(frames_per_pattern=frames_per_pattern,
                                contacts=1 if contacts is None else contacts, settle_s=settle_s,
                                mm_per_px=0.1 if mm_per_px is None else mm_per_px)
-    patterns = load_patterns(mode)
+    from pipeline.base.modes import load_mode
+
+    patterns = load_mode(mode)
     emulator = None
     if emulate:
-        emulator = RingEmulator(led_count=patterns.led_count, faults=parse_faults(faults),
-                                baudrate=baudrate if emulate_baud else None, seed=seed)
+        emulator = ring_emulator(ring_firmware or None, led_count=patterns.num_leds, faults=parse_faults(faults),
+                                 baudrate=baudrate if emulate_baud else None, seed=seed)
         port = emulator.start()
     extra: dict = {}
     try:
@@ -226,8 +210,7 @@ def virtual_sensor(
     Parameters
     ----------
     obj : str
-        ``sphere``, ``indenters``, ``none`` or a ``.npy`` height map / stack
-        (:func:`pipeline.capture.virtual.contact_objects`).
+        A contact object name or a height-map file (:func:`sim.contacts.contact_surfaces`).
     contacts : int, optional
         K (default 1, or the number of maps in a ``.npy`` stack).
     illumination : path, optional
@@ -245,7 +228,8 @@ def virtual_sensor(
     >>> len(spec.contacts), spec.model().shape, spec.model().mm_per_px
     (3, (20, 30), 0.1)
     """
-    from pipeline.capture.virtual import VirtualSensorSpec, contact_objects, illumination_option
+    from pipeline.capture.virtual import VirtualSensorSpec, illumination_option
+    from sim.contacts import contact_surfaces
 
     model = illumination_option(illumination) if illumination is not None else None
     if model is not None and mm_per_px is not None and not np.isclose(mm_per_px, model.mm_per_px):
@@ -255,7 +239,7 @@ def virtual_sensor(
                              mm_per_px=0.1 if mm_per_px is None else float(mm_per_px), fps=fps,
                              noise_dn=noise_dn, bit_depth=bit_depth, seed=seed)
     m = spec.model()
-    spec.contacts = contact_objects(obj, contacts, m.shape, m.mm_per_px, seed=seed)
+    spec.contacts = contact_surfaces(obj, m.shape, m.mm_per_px, contacts, seed=seed)
     return spec
 
 
@@ -276,7 +260,7 @@ def _then(first: Callable[[int], None], second: Callable[[int], None] | None):
 
 
 def _open_camera(camera, exposure):
-    from pipeline.capture.camera_api import Camera
+    from pipeline.base.camera import Camera
 
     if isinstance(camera, Camera):
         cam = camera

@@ -17,7 +17,8 @@ camera renders.
 
 Examples
 --------
->>> spec = VirtualSensorSpec(contacts=contact_objects("sphere", 2, (30, 40), 0.1), shape=(30, 40),
+>>> from sim.contacts import contact_surfaces
+>>> spec = VirtualSensorSpec(contacts=contact_surfaces("sphere", (30, 40), 0.1, 2), shape=(30, 40),
 ...                          mm_per_px=0.1)
 >>> [c.shape for c in spec.surfaces()], spec.model().shape
 ([(30, 40), (30, 40)], (30, 40))
@@ -29,15 +30,16 @@ from __future__ import annotations
 
 import hashlib
 import threading
+import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
-from pipeline.errors import UserError
-from sim.frames import normals_from_height, normals_to_gradients
-from sim.geometry import HeightField, cone, cylinder, flat_punch, sphere, wedge
+from pipeline.base.errors import UserError
+from sim.geometry import HeightField
+from sim.contacts import height_field
 from sim.illumination_model import IlluminationModel
 from sim.render import RenderSettings, auto_exposure, bare_ring_illumination
 from sim.virtual_camera import VirtualCamera, ring_led_state
@@ -46,15 +48,9 @@ __all__ = [
     "VirtualSensorSpec",
     "ContactCamera",
     "open_virtual_camera",
-    "contact_objects",
     "illumination_option",
     "truth_data",
-    "OBJECTS",
 ]
-
-#: Built-in virtual objects for ``--object`` (anything else is read as a ``.npy`` file).
-OBJECTS = ("sphere", "indenters", "none")
-
 
 @dataclass
 class VirtualSensorSpec:
@@ -130,7 +126,7 @@ class VirtualSensorSpec:
                 if h.ndim != 2 or not np.all(np.isfinite(h)):
                     raise UserError(f"virtual camera: contacts[{k}] must be a finite height map (H, W) in mm, "
                                     f"got shape {h.shape}")
-                c = _height_field(h, m.mm_per_px)
+                c = height_field(h, m.mm_per_px)
             if c.shape != m.shape:
                 raise UserError(f"virtual camera: contacts[{k}] has shape {c.shape}, the illumination model "
                                 f"has {m.shape}")
@@ -161,11 +157,6 @@ class VirtualSensorSpec:
         return h.hexdigest()
 
 
-def _height_field(h: np.ndarray, mm_per_px: float) -> HeightField:
-    p, q = normals_to_gradients(normals_from_height(h, mm_per_px))
-    return HeightField(h, p, q, h > 1e-9, mm_per_px)
-
-
 class ContactCamera(VirtualCamera):
     """A :class:`~sim.virtual_camera.VirtualCamera` whose contact is set by the capture plan.
 
@@ -183,7 +174,10 @@ class ContactCamera(VirtualCamera):
     def __init__(self, model, led_state, contacts: Sequence[HeightField] = (), **kw):
         super().__init__(model, led_state, script=[(0.0, c) for c in contacts], **kw)
         self._contact_lock = threading.Lock()
-        self._contact = -1
+        # (time.monotonic() of the change, contact): the camera clock looks up the contact in
+        # force when an exposure *started*, not when its thread got round to it (under load
+        # the clock thread can wake after a later set_contact).
+        self._contacts: list[tuple[float, int]] = [(-np.inf, -1)]
 
     def set_contact(self, k: int | None) -> None:
         """Show contact instance ``k`` (None: no contact) in frames whose exposure starts from now."""
@@ -191,12 +185,16 @@ class ContactCamera(VirtualCamera):
         if not -1 <= k < len(self.script):
             raise ValueError(f"ContactCamera.set_contact: k must be in [-1, {len(self.script)}), got {k}")
         with self._contact_lock:
-            self._contact = k
+            self._contacts.append((time.monotonic(), k))
 
     def contact_at(self, t: float) -> int:
-        """The contact shown now (called by the camera clock at the start of each exposure)."""
+        """The contact shown ``t`` seconds after the camera opened (the start of an exposure)."""
+        when = (self._t0 or 0.0) + t
         with self._contact_lock:
-            return self._contact
+            for since, k in reversed(self._contacts):
+                if since <= when:
+                    return k
+        return -1
 
     @property
     def exposure(self) -> float:
@@ -255,81 +253,6 @@ def truth_data(spec: VirtualSensorSpec) -> dict[str, np.ndarray]:
     }
 
 
-def contact_objects(kind: str, count: int | None, shape: tuple[int, int], mm_per_px: float,
-                    seed: int = 0) -> list[HeightField]:
-    """``count`` contact surfaces for ``--object``: spheres, a set of indenters, or a ``.npy`` file.
-
-    Parameters
-    ----------
-    kind : str
-        ``sphere``: balls of different depths at different places; ``indenters``: sphere,
-        cylinder, flat punch, cone and wedge in turn; ``none``: the flat gel every time; any
-        other value: a ``.npy`` file of one height map (H, W) or a stack (K, H, W) in mm (a
-        single map is used for every contact, a stack must have ``count`` maps).
-    count : int or None
-        K, the number of contact instances; None: 1, or the number of maps in a stack.
-    shape : (H, W)
-    mm_per_px : float
-    seed : int
-        Seed of the placement of the built-in objects.
-
-    Examples
-    --------
-    >>> fs = contact_objects("indenters", 5, (40, 50), 0.1)
-    >>> [round(float(f.height.max()), 2) > 0 for f in fs]
-    [True, True, True, True, True]
-    """
-    if count is not None and count < 0:
-        raise UserError(f"--contacts must be >= 0, got {count}")
-    h, w = int(shape[0]), int(shape[1])
-    # The gel seen by the camera spans (w, h) * mm_per_px; objects are scaled to it so a small
-    # test image still shows a whole contact well inside the frame.
-    span = min(h, w) * mm_per_px
-    rng = np.random.default_rng(seed)
-    if kind in ("sphere", "indenters", "none") and count is None:
-        count = 1
-    if kind == "none":
-        return [_height_field(np.zeros((h, w)), mm_per_px) for _ in range(count)]
-    if kind in ("sphere", "indenters"):
-        out = []
-        for k in range(count):
-            radius = span * rng.uniform(0.25, 0.35)
-            depth = radius * rng.uniform(0.2, 0.35)
-            center = tuple(rng.uniform(-0.15, 0.15, 2) * span)
-            which = "sphere" if kind == "sphere" else ("sphere", "cylinder", "flat_punch", "cone", "wedge")[k % 5]
-            if which == "sphere":
-                f = sphere((h, w), mm_per_px, radius, depth, center=center)
-            elif which == "cylinder":
-                f = cylinder((h, w), mm_per_px, radius, depth, center=center, angle_deg=float(rng.uniform(0, 180)))
-            elif which == "flat_punch":
-                f = flat_punch((h, w), mm_per_px, 0.6 * radius, depth, center=center, edge_radius=0.2 * radius)
-            elif which == "cone":
-                f = cone((h, w), mm_per_px, 60.0, depth, center=center)
-            else:
-                f = wedge((h, w), mm_per_px, 60.0, depth, center=center, angle_deg=float(rng.uniform(0, 180)))
-            out.append(f)
-        return out
-    path = Path(kind)
-    if path.suffix.lower() != ".npy":
-        raise UserError(f"--object {kind!r}: expected one of {', '.join(OBJECTS)} or a .npy height map file")
-    if not path.is_file():
-        raise UserError(f"--object {path}: height map file not found")
-    try:
-        raw = np.load(path, allow_pickle=False)
-    except Exception as exc:  # numpy raises several types for bad files
-        raise UserError(f"--object {path}: not a readable .npy array ({exc})") from None
-    if raw.ndim == 2:
-        raw = np.repeat(raw[None], 1 if count is None else count, axis=0)
-    if count is None and raw.ndim == 3:
-        count = raw.shape[0]
-    if raw.ndim != 3 or raw.shape[1:] != (h, w) or raw.shape[0] != count or raw.dtype.kind not in "uif":
-        raise UserError(f"--object {path}: expected a real height map (H, W) = {(h, w)} or a stack "
-                        f"(K={count}, {h}, {w}) in mm, got {raw.dtype} {raw.shape}")
-    if not np.all(np.isfinite(raw)):
-        raise UserError(f"--object {path}: height map contains NaN or Inf")
-    return [_height_field(np.asarray(m, np.float64), mm_per_px) for m in raw]
-
-
 def illumination_option(path) -> IlluminationModel:
     """The model of ``--illumination FILE``: :func:`sim.synthesize.load_illumination` (schema
     ``illumination``, e.g. written by ``iristac sim synthesize``), errors naming the option.
@@ -339,7 +262,7 @@ def illumination_option(path) -> IlluminationModel:
     UserError
         Missing or invalid file (the store names the file and the problem).
     """
-    from pipeline.store import StoreError
+    from pipeline.base.store import StoreError
     from sim.synthesize import load_illumination
 
     path = Path(path)

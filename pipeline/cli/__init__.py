@@ -51,6 +51,7 @@ def main(argv: list[str] | None = None) -> int:
     from pipeline.cli import _common
 
     _common.ARGV = list(sys.argv[1:] if argv is None else argv)
+    _common.warnings_to_stderr()
     parser = build_parser()
     args = parser.parse_args(argv)
     func = getattr(args, "func", None)
@@ -65,7 +66,7 @@ def main(argv: list[str] | None = None) -> int:
         print("iristac: interrupted", file=sys.stderr)
         return 130
     except Exception as exc:  # noqa: BLE001 - the CLI turns known errors into one clear line
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         if isinstance(exc, UserError):
             print(f"iristac {args.command}: error: {exc}", file=sys.stderr)

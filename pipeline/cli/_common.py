@@ -13,6 +13,59 @@ EXIT_NOT_IMPLEMENTED = 3
 ARGV: list[str] = []
 
 
+def add_solver_flags(parser, *, solver: bool = True, integrator: bool = True) -> None:
+    """``--solver`` and ``--integrator``, with the choices of their registries
+    (:mod:`pipeline.base.registry`)."""
+    from pipeline.base.registry import INTEGRATORS, SOLVERS
+
+    if solver:
+        parser.add_argument("--solver", choices=SOLVERS.names(), default="lstsq", metavar="SOLVER",
+                            help=f"photometric-stereo solver (default lstsq): {SOLVERS.help()}")
+    if integrator:
+        parser.add_argument("--integrator", choices=INTEGRATORS.names(), default="dst", metavar="INTEGRATOR",
+                            help=f"depth integrator (default dst): {INTEGRATORS.help()}")
+
+
+def add_mask_flag(parser) -> None:
+    """``--mask FILE``: the pixels to reconstruct (``reconstruct``, ``batch``)."""
+    parser.add_argument("--mask", metavar="FILE.png",
+                        help="reconstruct only these pixels (PNG/NPY, non-zero inside; replaces the capture's mask)")
+
+
+def mode_help(what: str = "lighting mode") -> str:
+    """Help text naming the built-in lighting modes (:func:`pipeline.base.registry.list_modes`)."""
+    from pipeline.base.registry import list_modes
+
+    return f"{what}: a built-in name ({', '.join(list_modes())}) or a mode file"
+
+
+def object_help(default: str) -> str:
+    """Help text naming the contact objects (:data:`sim.contacts.OBJECTS`)."""
+    from sim.contacts import OBJECTS
+
+    return (f"what presses the gel: {', '.join(OBJECTS)} (sim.contacts), or a .npy height map (H, W) or stack "
+            f"(K, H, W) in mm, or a .png height map (default {default})")
+
+
+def add_heal_flag(parser) -> None:
+    """``--no-heal``: stop on a corrupt cache entry instead of quarantining and recomputing it."""
+    parser.add_argument("--no-heal", action="store_true",
+                        help="stop on a corrupt or schema-violating cache entry instead of quarantining it "
+                             "(moved aside, never deleted) and recomputing it")
+
+
+def warnings_to_stderr() -> None:
+    """Warnings of the ``iristac`` logger (e.g. a healed cache entry) as one line each on stderr."""
+    import logging
+
+    log = logging.getLogger("iristac")
+    if not log.handlers:
+        handler = logging.StreamHandler(sys.stderr)
+        handler.setFormatter(logging.Formatter("iristac: warning: %(message)s"))
+        log.addHandler(handler)
+        log.propagate = False
+
+
 def add_json_flag(parser) -> None:
     parser.add_argument("--json", action="store_true", help="print results as JSON (stable keys)")
 

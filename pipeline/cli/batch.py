@@ -6,7 +6,7 @@ Calls :func:`pipeline.batch_reconstruct.batch_reconstruct` and prints
 
 from __future__ import annotations
 
-from pipeline.cli._common import add_json_flag, print_json
+from pipeline.cli._common import add_heal_flag, add_json_flag, add_mask_flag, add_solver_flags, print_json
 
 
 def register(sub, name, help_text):
@@ -15,8 +15,8 @@ def register(sub, name, help_text):
     src = p.add_mutually_exclusive_group()
     src.add_argument("--calibration", metavar="CAL", help="shared calibration.h5")
     src.add_argument("--illumination", metavar="ILL", help="shared illumination.h5")
-    p.add_argument("--solver", choices=["lstsq", "nearfield", "robust", "lut"], default="lstsq")
-    p.add_argument("--integrator", choices=["fc", "dct", "dst", "sparse"], default="dst")
+    add_solver_flags(p)
+    add_mask_flag(p)
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     where.add_argument("--scheduler", metavar="ADDRESS",
@@ -26,6 +26,7 @@ def register(sub, name, help_text):
     p.add_argument("--images", action="store_true", help="also write PNG/PLY pictures to --out")
     p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    add_heal_flag(p)
     add_json_flag(p)
     p.set_defaults(func=_run)
 
@@ -38,7 +39,7 @@ def _run(args) -> int:
                               solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                               images=args.images, device=args.device, workers=args.workers,
                               scheduler=args.scheduler, progress=not args.json,
-                              connect_timeout=args.connect_timeout)
+                              connect_timeout=args.connect_timeout, heal=not args.no_heal, mask=args.mask)
     failed = sum(not i.ok for i in items)
     if args.json:
         print_json({"items": [i.to_json() for i in items], "processed": len(items) - failed, "failed": failed})

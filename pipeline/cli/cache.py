@@ -1,6 +1,6 @@
 """``iristac cache ls|verify|gc|clear``: inspect and maintain the stage store.
 
-Each subcommand calls one :class:`pipeline.store.StageStore` method.
+Each subcommand calls one :class:`pipeline.base.store.StageStore` method.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ def register(sub, name, help_text):
 
 
 def _store(args):
-    from pipeline.store import StageStore
+    from pipeline.base.store import StageStore
 
     return StageStore(args.cache)
 

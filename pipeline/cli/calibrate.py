@@ -11,7 +11,8 @@ MODEL_CHOICES = ["far", "near", "traced", "lut", "mlp", "all"]
 def register(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text)
     p.add_argument("capture", help="sphere-indentation capture.h5")
-    p.add_argument("--ball-radius", type=float, required=True, help="ball radius in mm")
+    p.add_argument("--ball-radius", type=float, default=None,
+                   help="ball radius in mm (default: the capture's ball_radius_mm, from import images --ball-radius)")
     p.add_argument("--mm-per-px", type=float, default=None, help="pixel pitch (default: the capture's)")
     p.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
     p.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
@@ -25,6 +26,9 @@ def register(sub, name, help_text):
     p.add_argument("--refine-model", choices=["auto", "far", "near", "traced", "mlp"], default="auto",
                    help="light model whose normals vote for the centres (auto: traced with --illumination, "
                         "else near)")
+    p.add_argument("--markers", default=None, metavar="auto|none|MASK.png",
+                   help="printed gel markers: detect dark dots in the reference (auto), none, or a mask image "
+                        "(default: the capture's own marker mask, if it has one)")
     p.add_argument("--overlay", default=None, help="also write an overlay PNG of the circles")
     add_json_flag(p)
     p.set_defaults(func=_run)
@@ -35,16 +39,16 @@ def _run(args) -> int:
 
     ill = read_illumination(args.illumination) if args.illumination else None
     if args.correct_led_geometry and ill is None:
-        from pipeline.errors import UserError
+        from pipeline.base.errors import UserError
 
         raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
     opts = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else None
     res = calibrate(args.capture, args.ball_radius, args.mm_per_px, args.model, folds=args.folds, illumination=ill,
                     model_options=opts, refine_iterations=0 if args.no_refine else 2,
-                    refine_model=args.refine_model)
+                    refine_model=args.refine_model, markers=args.markers)
     res.save(args.out)
     if args.overlay:
-        from calibration.capture import read_capture
+        from pipeline.base.capture import read_capture
         from calibration.overlay import write_overlay
 
         cap = read_capture(args.capture)
@@ -65,4 +69,5 @@ def _run(args) -> int:
     if "center_error_px_median" in s:
         print(f"  vs labels: centre {s['center_error_px_median']:.2f} px, radius {s['radius_error_px_median']:.2f} px "
               "(medians)")
+    print("  " + s["cv_note"].replace("CAL.h5", str(args.out)))
     return 0

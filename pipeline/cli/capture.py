@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import sys
 
-from pipeline.cli._common import add_json_flag, print_json
+from pipeline.cli._common import add_json_flag, mode_help, object_help, print_json
 
 
 def register(sub, name, help_text):
@@ -16,12 +16,16 @@ def register(sub, name, help_text):
     ring.add_argument("--emulate", action="store_true", help="use a ring emulator behind a pty")
     p.add_argument("--faults", help="emulator faults, e.g. drop=0.05,corrupt=0.05,delay=0.02,"
                    "delay-s=0.05,disconnect-after=N")
+    p.add_argument("--ring-firmware", metavar="BIN",
+                   help="with --emulate: serve the ring with this host build of the C firmware "
+                   "(make -C firmware host: firmware/build/host/iristac-ring-host) instead of "
+                   "the Python emulator")
     cam = p.add_mutually_exclusive_group(required=True)
     cam.add_argument("--camera", help="OpenCV camera index, device path or video file")
     cam.add_argument("--virtual-camera", action="store_true",
                      help="render the gel under the emulated ring's LEDs (needs --emulate); the "
                      "capture then carries truth/height, truth/normals, truth/albedo")
-    p.add_argument("--mode", required=True, help="lighting mode name or file")
+    p.add_argument("--mode", required=True, help=mode_help())
     p.add_argument("--frames-per-pattern", type=int, default=1, metavar="N",
                    help="frames averaged per stored frame (default 1)")
     p.add_argument("--contacts", type=int, default=None, metavar="K",
@@ -42,10 +46,7 @@ def register(sub, name, help_text):
                    help="the emulator models the wire time at --baud")
     p.add_argument("--seed", type=int, default=0, help="seed of the emulator's faults")
     v = p.add_argument_group("virtual camera (--virtual-camera)")
-    v.add_argument("--object", default="sphere", metavar="OBJ",
-                   help="what presses the gel: sphere (balls at different places and depths), "
-                   "indenters (sphere, cylinder, flat punch, cone, wedge in turn), none, or a "
-                   ".npy height map (H, W) or stack (K, H, W) in mm (default sphere)")
+    v.add_argument("--object", default="sphere", metavar="OBJ", help=object_help("sphere"))
     v.add_argument("--illumination", metavar="FILE",
                    help="illumination.h5 (schema illumination) to render with; default: the "
                    "bare LED ring in closed form")
@@ -65,7 +66,7 @@ def register(sub, name, help_text):
 
 
 def run(args) -> int:
-    from pipeline.capture.session import capture, json_summary, prompt_contact, virtual_sensor
+    from pipeline.capture.session import json_summary, prompt_contact
 
     prompt = None
     if args.camera is not None and not args.no_prompt and sys.stdin.isatty():
@@ -74,23 +75,39 @@ def run(args) -> int:
         from pipeline.capture.emulator import parse_faults
 
         parse_faults(args.faults)  # a bad spec fails before the renderer is loaded
+    from pipeline.base.threads import limit_threads
+
+    # The virtual camera renders one frame at a time, a few small matrix products: with more
+    # threads torch's pool spins on busy cores (measured several times slower on 2 shared cores).
+    with limit_threads(torch=1 if args.virtual_camera else None):
+        result = _capture(args, prompt)
+    summary = json_summary(result, emulated=args.emulate)
+    if args.json:
+        print_json(summary)
+    else:
+        extra = f", {summary['mislabeled']} mislabeled" if "mislabeled" in summary else ""
+        resumed = f" (resumed {result.resumed_steps} saved frames)" if result.resumed_steps else ""
+        print(f"wrote {result.path}: {summary['frames']} frames, {summary['patterns']} patterns, "
+              f"{summary['retries']} retries, {summary['seconds']:.2f} s{extra}{resumed}")
+    return 0
+
+
+def _capture(args, prompt):
+    from pipeline.capture.session import capture, virtual_sensor
+
     virtual = False
     if args.virtual_camera:
-        import torch
-
-        # One frame at a time is a few small matrix products: with more threads torch's pool
-        # spins on busy cores (measured several times slower on the shared 2-core machine).
-        torch.set_num_threads(1)
         virtual = virtual_sensor(
             obj=args.object, contacts=args.contacts, illumination=args.illumination,
             shape=tuple(args.camera_size), mm_per_px=args.mm_per_px, fps=args.camera_fps,
             noise_dn=args.noise, bit_depth=args.bit_depth or None, seed=args.seed)
-    result = capture(
+    return capture(
         args.out,
         mode=args.mode,
         port=args.port,
         emulate=args.emulate,
         faults=args.faults,
+        ring_firmware=args.ring_firmware,
         camera=args.camera,
         virtual_camera=virtual,
         frames_per_pattern=args.frames_per_pattern,
@@ -106,12 +123,3 @@ def run(args) -> int:
         on_contact=prompt,
         progress=not args.json,
     )
-    summary = json_summary(result, emulated=args.emulate)
-    if args.json:
-        print_json(summary)
-    else:
-        extra = f", {summary['mislabeled']} mislabeled" if "mislabeled" in summary else ""
-        resumed = f" (resumed {result.resumed_steps} saved frames)" if result.resumed_steps else ""
-        print(f"wrote {result.path}: {summary['frames']} frames, {summary['patterns']} patterns, "
-              f"{summary['retries']} retries, {summary['seconds']:.2f} s{extra}{resumed}")
-    return 0

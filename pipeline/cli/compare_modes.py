@@ -2,25 +2,25 @@
 
 from __future__ import annotations
 
-from pipeline.cli._common import add_json_flag, print_json
-from pipeline.errors import UserError
+from pipeline.cli._common import add_json_flag, add_solver_flags, mode_help, object_help, print_json
+from pipeline.base.errors import UserError
 
 
 def register(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text + ". Renders a test object under each mode "
                        "with the virtual sensor, or compares your own captures (each with truth/* datasets).")
     p.add_argument("--out", required=True, help="folder for report.html, report.json and the captures")
-    p.add_argument("--modes", nargs="+", metavar="MODE", help="lighting modes (names or files; default: all shipped)")
+    p.add_argument("--modes", nargs="+", metavar="MODE", help=mode_help("lighting modes (default: every built-in)"))
     src = p.add_mutually_exclusive_group()
     src.add_argument("--scene", default="default", help="scene to trace (default: default)")
     src.add_argument("--illumination", metavar="ILL", help="use this illumination.h5 instead of tracing")
-    p.add_argument("--object", default="indenters", help="indenters | sphere | height map (.npy mm, 16-bit .png)")
+    p.add_argument("--object", default="test-object", help=object_help("test-object: the demo's ball, rod and punch"))
     p.add_argument("--captures", nargs="+", metavar="MODE=CAPTURE", help="compare these captures instead of rendering")
     p.add_argument("--calibration", nargs="+", metavar="MODE=CAL", help="calibrations with a lookup table per mode")
     p.add_argument("--size", nargs=2, type=int, metavar=("H", "W"), default=(120, 160))
     p.add_argument("--mm-per-px", type=float, default=0.15)
     p.add_argument("--rays", type=int, default=2_000_000, help="rays per LED when tracing")
-    p.add_argument("--integrator", default="dst", choices=["fc", "dct", "dst", "sparse"])
+    add_solver_flags(p, solver=False)
     p.add_argument("--no-lut", action="store_true", help="do not calibrate lookup tables for single-frame modes")
     p.add_argument("--render-only", action="store_true",
                    help="render frames directly instead of capturing through the ring emulator and virtual camera")

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from pipeline.cli._common import add_json_flag, print_json
+from pipeline.cli._common import add_heal_flag, add_json_flag, add_mask_flag, add_solver_flags, print_json
 
 #: The stable key set of ``--json`` (truth errors only when the capture carries truth).
 JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "outputs")
@@ -14,8 +14,8 @@ def register(sub, name, help_text):
     src = p.add_mutually_exclusive_group()
     src.add_argument("--calibration", metavar="CAL", help="calibration.h5 (light_field / light_vectors / LUT)")
     src.add_argument("--illumination", metavar="ILL", help="illumination.h5 (V or light_matrices)")
-    p.add_argument("--solver", choices=["lstsq", "nearfield", "robust", "lut"], default="lstsq")
-    p.add_argument("--integrator", choices=["fc", "dct", "dst", "sparse"], default="dst")
+    add_solver_flags(p)
+    add_mask_flag(p)
     p.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
     p.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
@@ -24,6 +24,7 @@ def register(sub, name, help_text):
     p.add_argument("--no-images", action="store_true", help="write only normals.h5 and depth.h5")
     p.add_argument("--force", action="store_true", help="recompute even if the store has the result")
     p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
+    add_heal_flag(p)
     p.add_argument("--out", metavar="DIR", required=True, help="output folder")
     add_json_flag(p)
     p.set_defaults(func=_run)
@@ -35,7 +36,7 @@ def _run(args) -> int:
     res = reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
                       solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
-                      images=not args.no_images, force=args.force, compile=args.compile)
+                      images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask)
     s = res.summary
     if args.json:
         print_json(s)

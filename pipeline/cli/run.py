@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import sys
 
-from pipeline.cli._common import add_json_flag, print_json
+from pipeline.cli._common import add_heal_flag, add_json_flag, print_json
 
 
 def register(sub, name, help_text):
@@ -20,15 +20,14 @@ def register(sub, name, help_text):
     p.add_argument("--cache", default=None, help="stage store folder (overrides the config's 'cache')")
     p.add_argument("--out", default=None, help="output folder (overrides the config's 'out')")
     p.add_argument("--device", default=None, help="torch device (overrides the config's 'device')")
-    p.add_argument("--recompute-bad", action="store_true",
-                   help="move corrupt store entries aside and recompute them instead of failing")
+    add_heal_flag(p)
     p.add_argument("--quiet", action="store_true", help="no per-stage lines or progress bars on stderr")
     add_json_flag(p)
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
-    from pipeline.orchestrate import StageFailed
+    from pipeline.stages.graph import StageFailed
     from pipeline.run import plan_pipeline, run_pipeline
 
     if args.dry_run:
@@ -42,7 +41,7 @@ def _run(args) -> int:
     try:
         report = run_pipeline(args.config, cache=args.cache, out=args.out, force=args.force,
                               device=args.device,
-                              progress=not (args.quiet or args.json), recompute_bad=args.recompute_bad)
+                              progress=not (args.quiet or args.json), heal=not args.no_heal)
     except StageFailed as exc:
         if args.json:  # what ran before the failure, then the one-line error on stderr
             print_json({"stages": [r.to_json() for r in exc.results], "error": str(exc)})

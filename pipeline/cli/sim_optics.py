@@ -3,7 +3,7 @@
 Each command parses its options and calls one documented function:
 ``trace`` -> :func:`sim.lens_design.trace_report`, ``section`` -> :func:`sim.section.draw_section`,
 ``optimize-lens`` -> :func:`sim.lens_design.optimize_lens`, ``synthesize`` ->
-:func:`sim.synthesize.synthesize_to_store`.
+:func:`pipeline.stages.synthesize.synthesize_to_store`.
 """
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from pipeline.cli._common import add_json_flag, print_json
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 SAMPLERS = ("grid", "random", "stratified", "sobol")
 METHODS = ("hits", "image", "trace")
@@ -27,6 +27,7 @@ def register(group):
     p.add_argument("--intersection", choices=("robust", "paper"), default=None,
                    help="lens intersections: robust (default) or the paper's cases 1-3 with counted fallbacks")
     p.add_argument("--image", metavar="PNG", help="also save the 24-LED flat-gel image")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads of the kernel (default: every core)")
     add_json_flag(p)
     p.set_defaults(func=_trace)
 
@@ -103,7 +104,10 @@ def register(group):
                    help="folder for the winner's scene file, trajectory.json/png and section drawings")
     p.add_argument("--plot", default=None, metavar="PNG", help="write the trajectory figure here")
     p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--threads", type=int, default=None, help="CPU threads of every trace (default: the engine's)")
+    p.add_argument("--engine", choices=("kernel", "torch"), default=None,
+                   help="tracer of every candidate: the compiled kernel (default) or the eager torch reference "
+                        "(a conic top needs it)")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_json_flag(p)
     p.set_defaults(func=_optimize)
@@ -131,30 +135,47 @@ def _trace_options(p):
     p.add_argument("--seed", type=int, default=None, help="sampler seed (default: the scene's)")
     p.add_argument("--method", choices=METHODS, default="hits",
                    help="every LED by hit rotation (exact, default), image rotation (the paper's) or tracing each")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda, ...)")
+    p.add_argument("--device", default="cpu", help="cpu, or a CUDA device (cuda, cuda:1): the kernel on the GPU")
     p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    p.add_argument("--compile", action="store_true",
-                   help="trace each chunk with one torch.compiled function (robust intersection; the first "
-                        "call compiles for tens of seconds)")
+    p.add_argument("--engine", choices=("kernel", "torch"), default=None,
+                   help="the compiled kernel (default; compiles once, then cached on disk) or the eager torch "
+                        "reference (the only one for --intersection paper)")
 
 
-def _dtype(name):
-    import torch
+def _device(name: str, engine: str | None = None, intersection: str | None = None) -> str:
+    """Check ``--device`` up front: a clear error instead of a traceback from deep in numba or torch."""
+    import re
 
-    return {"float32": torch.float32, "float64": torch.float64}[name]
+    from sim.optics.engine import resolve_engine
+
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", name):
+        raise UserError(f"--device {name!r}: not a device; expected cpu, cuda or cuda:N")
+    if not name.startswith("cuda"):
+        return name
+    try:
+        kind = resolve_engine(engine, intersection or "robust")
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+    if kind == "kernel":
+        from sim.optics.kernel_cuda import cuda_available
+
+        ok, why = cuda_available()
+    else:
+        import torch
+
+        ok, why = torch.cuda.is_available(), "torch sees no CUDA device"
+    if not ok:
+        raise UserError(f"--device {name!r}: CUDA is not available on this machine ({why}); use --device cpu")
+    return name
 
 
-def _device(name: str) -> str:
-    """Check ``--device`` up front: a clear error instead of a traceback from deep in torch."""
-    import torch
+def _engine(args):
+    from sim.optics.engine import resolve_engine
 
     try:
-        dev = torch.device(name)
-    except RuntimeError as exc:
-        raise UserError(f"--device {name!r}: not a torch device ({exc})") from None
-    if dev.type == "cuda" and not torch.cuda.is_available():
-        raise UserError(f"--device {name!r}: CUDA is not available on this machine; use --device cpu")
-    return name
+        return resolve_engine(args.engine, getattr(args, "intersection", None) or "robust")
+    except ValueError as exc:
+        raise UserError(f"--engine {args.engine}: {exc}") from None
 
 
 def _check_rays(args):
@@ -166,9 +187,16 @@ def _trace(args) -> int:
     from sim.lens_design import TRACE_KEYS, trace_report
 
     _check_rays(args)
+    if args.engine == "kernel" and args.intersection == "paper":
+        raise UserError("--engine kernel implements the robust intersection only; use --engine torch with "
+                        "--intersection paper")
+    if args.threads is not None and args.threads < 1:
+        raise UserError(f"--threads must be a positive integer, got {args.threads}")
+    engine = args.engine
     r = trace_report(args.scene, rays=args.rays, sampler=args.sampler, seed=args.seed, no_lens=args.no_lens,
-                     method=args.method, device=_device(args.device), dtype=_dtype(args.dtype), compile=args.compile,
-                     images=bool(args.image), intersection=args.intersection)
+                     method=args.method, device=_device(args.device, args.engine, args.intersection),
+                     dtype=args.dtype, images=bool(args.image), intersection=args.intersection, engine=engine,
+                     threads=args.threads)
     if args.image:
         _save_image(r.pop("image"), args.image, f"{r['scene']} ({'lens' if r['lens'] else 'no lens'})")
     out = {k: r[k] for k in TRACE_KEYS}
@@ -176,13 +204,16 @@ def _trace(args) -> int:
         print_json(out)
     else:
         print(f"scene {out['scene']} ({'with' if out['lens'] else 'without'} lens), {out['rays']} rays per traced "
-              f"LED ({out['sampler']}, {out['method']}, {out['intersection']} intersections) on {out['device']}")
+              f"LED ({out['sampler']}, {out['method']}, {out['intersection']} intersections) on {out['device']}, "
+              f"{out['engine']} engine, {out['dtype']}")
         print(f"  fraction on screen  {100 * out['fraction_on_screen']:.2f} %")
         print(f"  mean intensity      {out['mean_intensity']:.4g} W/m^2 per W per LED")
         print(f"  uniformity          CV {out['uniformity_cv']:.4f}, min/max {out['min_max']:.4f}")
         for ch, v in out["channels"].items():
             print(f"    {ch}: CV {v['uniformity_cv']:.4f}, min/max {v['min_max']:.4f}")
-        print(f"  time                {out['seconds']:.3f} s ({out['rays_per_second'] / 1e6:.2f} M rays/s)")
+        print(f"  time                {out['seconds']:.3f} s ({out['rays_per_second'] / 1e6:.2f} M rays/s)"
+              + (f", plus {out['compile_seconds']:.2f} s to compile or load the kernel" if out["compile_seconds"] else
+                 ""))
         print(f"  energy residual     {out['energy_residual']:.3g}")
         shown = {k: v for k, v in out["counters"].items() if v}
         if shown:
@@ -268,8 +299,9 @@ def _optimize(args) -> int:
                       sampler=args.sampler, grid=args.grid, evaluations=args.evaluations, seconds=args.seconds,
                       seed=args.seed, sigma0=args.sigma0, popsize=args.popsize, max_condition=args.max_condition,
                       region=args.region, confirm_rays=args.confirm_rays, tolerance_rays=args.tolerance_rays,
-                      tolerance=not args.no_tolerance, out=args.out, plot=args.plot, device=_device(args.device),
-                      threads=args.threads, progress=not args.no_progress,
+                      tolerance=not args.no_tolerance, out=args.out, plot=args.plot,
+                      device=_device(args.device, args.engine), threads=args.threads, engine=args.engine,
+                      progress=not args.no_progress,
                       log=lambda m: print(f"[optimize-lens] {m}", file=sys.stderr))
     out = {k: r[k] for k in OPTIMIZE_KEYS}
     if args.json:
@@ -332,8 +364,9 @@ def _load_npy(path, name):
 def _synthesize(args) -> int:
     import time
 
-    from pipeline.store import StageStore
-    from sim.synthesize import save_illumination, synthesize_to_store
+    from pipeline.base.store import StageStore
+    from pipeline.stages.synthesize import synthesize_to_store
+    from sim.synthesize import save_illumination
 
     _check_rays(args)
     t0 = time.perf_counter()
@@ -342,7 +375,7 @@ def _synthesize(args) -> int:
         args.scene, tuple(args.shape), args.mm_per_px, store, drive=_load_npy(args.drive, "drive"),
         brightness=_load_npy(args.brightness, "brightness"), gains=_load_npy(args.gains, "gains"),
         exposure=args.exposure, rays=args.rays, sampler=args.sampler, seed=args.seed, method=args.method,
-        device=_device(args.device), dtype=_dtype(args.dtype), compile=args.compile)
+        device=_device(args.device, args.engine), dtype=args.dtype, engine=_engine(args))
     path = save_illumination(model, args.out)
     res = {"out": str(path), "key": key.digest, "cached": cached, "shape": list(model.shape),
            "leds": model.num_leds, "mm_per_px": model.mm_per_px, "seconds": time.perf_counter() - t0,

@@ -1,13 +1,13 @@
 """``iristac sim modes|render|uniformity``: the renderer's commands.
 
-Each calls one documented function: :func:`sim.modes.describe_modes`,
+Each calls one documented function: :func:`pipeline.base.modes.describe_modes`,
 :func:`sim.rendered_capture.render_scene_files`, :func:`sim.uniformity.uniformity_report`
 (+ :func:`sim.uniformity.uniformity_figure`).
 """
 
 from __future__ import annotations
 
-from pipeline.cli._common import add_json_flag, print_json
+from pipeline.cli._common import add_json_flag, mode_help, print_json
 
 
 def register(group):
@@ -18,7 +18,7 @@ def register(group):
 
     text = "render a height map (file or sphere) under a lighting mode to PNGs and a capture file"
     p = group.add_parser("render", help=text, description=text)
-    p.add_argument("--mode", default="monochromatic", help="mode name or file (default: monochromatic)")
+    p.add_argument("--mode", default="monochromatic", help=mode_help("lighting mode (default monochromatic)"))
     src = p.add_mutually_exclusive_group()
     src.add_argument("--height", metavar="FILE", help="height map: .npy or 16-bit .png")
     src.add_argument("--sphere", nargs=2, type=float, metavar=("RADIUS", "DEPTH"), help="a ball press (mm)")
@@ -51,7 +51,7 @@ def register(group):
 
 
 def _modes(args) -> int:
-    from sim.modes import describe_modes
+    from pipeline.base.modes import describe_modes
 
     rows = describe_modes(args.files or None)
     if args.json:

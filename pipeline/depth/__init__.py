@@ -1,29 +1,41 @@
-"""Depth integration: normals -> height map in mm (positive toward the camera, sim.frames).
+"""Depth integration: normals -> height map in mm (positive toward the camera, pipeline.base.frames).
 
 - :func:`frankot_chellappa` (``fc``): FFT projection (periodic; mean slope kept as a ramp);
 - :func:`poisson_dct` (``dct``): Poisson, Neumann border;
 - :func:`poisson_dst` (``dst``): Poisson, zero height on the border pixels;
 - :func:`sparse_lstsq` (``sparse``): least squares on the valid pixels only, PCG.
 
-:func:`integrate` dispatches by name.
+:func:`integrate` dispatches by name through the integrator registry
+(:data:`pipeline.base.registry.INTEGRATORS`), where a new integrator is registered.
 """
 
 from __future__ import annotations
 
+from pipeline.base.registry import INTEGRATORS
 from pipeline.depth._common import DepthResult
 from pipeline.depth.fourier import frankot_chellappa
 from pipeline.depth.poisson import poisson_dct, poisson_dst
 from pipeline.depth.sparse import sparse_lstsq
 
-__all__ = ["DepthResult", "frankot_chellappa", "poisson_dct", "poisson_dst", "sparse_lstsq", "integrate",
-           "INTEGRATORS"]
-
-#: Integrator names accepted by the CLI, mapped to their functions.
-INTEGRATORS = {"fc": frankot_chellappa, "dct": poisson_dct, "dst": poisson_dst, "sparse": sparse_lstsq}
+__all__ = ["DepthResult", "frankot_chellappa", "poisson_dct", "poisson_dst", "sparse_lstsq", "integrate"]
 
 
-def integrate(normals, mm_per_px: float, mask=None, method: str = "dst", **kwargs) -> DepthResult:
+def integrate(normals, mm_per_px: float, mask=None, method: str = "dst", *, region=None, margin: int = 2,
+              **kwargs) -> DepthResult:
     """Integrate normals ``(H, W, 3)`` to heights with the integrator named ``method``.
+
+    Parameters
+    ----------
+    normals : ndarray, shape (H, W, 3)
+    mm_per_px : float
+    mask : ndarray, shape (H, W), bool, optional
+        Valid normals (invalid pixels are flat for the rectangle solvers, left out by ``sparse``).
+    method : {"fc", "dct", "dst", "sparse"}
+    region : ndarray, shape (H, W), bool, optional
+        The object (the capture's or the user's mask): ``sparse`` solves on ``mask & region``;
+        the rectangular integrators (``fc``, ``dct``, ``dst``) solve the region's bounding box
+        grown by ``margin`` pixels (its border then lies on flat, invalid pixels) instead of the
+        whole frame. Outside the region heights are 0 and the mask False.
 
     Examples
     --------
@@ -31,9 +43,32 @@ def integrate(normals, mm_per_px: float, mask=None, method: str = "dst", **kwarg
     >>> flat = np.zeros((3, 4, 3)); flat[..., 2] = 1.0
     >>> float(np.abs(integrate(flat, 0.1, method="fc").height).max())
     0.0
+    >>> r = np.zeros((3, 4), bool); r[1, 1:3] = True
+    >>> integrate(flat, 0.1, method="dst", region=r).mask.astype(int).tolist()
+    [[0, 0, 0, 0], [0, 1, 1, 0], [0, 0, 0, 0]]
     """
-    try:
-        func = INTEGRATORS[method]
-    except KeyError:
-        raise ValueError(f"integrate: method must be one of {sorted(INTEGRATORS)}, got {method!r}") from None
-    return func(normals, mm_per_px, mask, **kwargs)
+    if method not in INTEGRATORS:
+        raise ValueError(f"integrate: method must be one of {list(INTEGRATORS.names())}, got {method!r}")
+    func = INTEGRATORS.load(method)
+    if region is None:
+        return func(normals, mm_per_px, mask, **kwargs)
+    import numpy as np
+
+    from pipeline.depth._common import check_mask
+    from pipeline.normals.masking import PixelMask
+
+    n = np.asarray(normals)
+    shape = n.shape[:2]
+    pm = PixelMask(region, shape, "integrate: region")
+    valid = check_mask(mask, shape, "integrate") & pm.mask
+    if method == "sparse":
+        out = func(n, mm_per_px, valid, **kwargs)
+        return DepthResult(np.where(pm.mask, out.height, 0).astype(np.float32), out.mask & pm.mask, out.meta)
+    rows, cols = pm.bbox(margin)
+    out = func(n[rows, cols], mm_per_px, valid[rows, cols], **kwargs)
+    height = np.zeros(shape, np.float32)
+    height[rows, cols] = out.height
+    m = np.zeros(shape, bool)
+    m[rows, cols] = out.mask
+    meta = dict(out.meta, bbox=[rows.start, rows.stop, cols.start, cols.stop])
+    return DepthResult(np.where(pm.mask, height, 0).astype(np.float32), m & pm.mask, meta)

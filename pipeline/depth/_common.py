@@ -13,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.base.frames import gradients_to_pixel_steps, normals_to_gradients
 
 __all__ = ["DepthResult", "pixel_gradients", "half_pixel_gradients", "anchor_to_border", "check_mask"]
 
@@ -24,7 +25,7 @@ class DepthResult:
     Attributes
     ----------
     height : ndarray, shape (H, W), float32
-        Heights in mm, positive toward the camera (reconstruction ``z``, see :mod:`sim.frames`).
+        Heights in mm, positive toward the camera (reconstruction ``z``, see :mod:`pipeline.base.frames`).
         Finite everywhere; 0 outside ``mask`` for the masked integrator.
     mask : ndarray, shape (H, W), bool
         Pixels whose height comes from valid normals.
@@ -63,7 +64,7 @@ def pixel_gradients(normals, mask, mm_per_px: float, max_slope: float, name: str
     Returns
     -------
     gc, gr : ndarray, shape (H, W), float32 for float32 normals, else float64
-        ``dh/dcol`` and ``dh/drow`` in mm per pixel (``dh/drow = -dh/dy * s`` per sim.frames).
+        ``dh/dcol`` and ``dh/drow`` in mm per pixel (:func:`pipeline.base.frames.gradients_to_pixel_steps`).
     mask : ndarray, shape (H, W), bool
         The input mask and-ed with finiteness.
 
@@ -82,12 +83,11 @@ def pixel_gradients(normals, mask, mm_per_px: float, max_slope: float, name: str
     # float32 normals (the solvers' default) are integrated in float32: half the memory
     # traffic, and float32 FFTs are ~2x faster; float64 normals keep the float64 reference.
     dt = np.float32 if n.dtype == np.float32 else np.float64
-    nx, ny, nz = (n[..., i].astype(dt) for i in range(3))
+    nz = n[..., 2].astype(dt)
     with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
         m = check_mask(mask, n.shape[:2], name) & (nz > 0) & (nz < np.inf)  # False for NaN too
-        nz = np.where(m, nz, dt(1.0))
-        p = -nx / nz
-        q = -ny / nz
+        # Invalid pixels become the flat gel's normal before the frames' n -> (p, q).
+        p, q = normals_to_gradients(np.where(m[..., None], n, np.array([0.0, 0.0, 1.0], dt)), min_nz=0.0, dtype=dt)
         m &= np.isfinite(p) & np.isfinite(q)
     p = np.where(m, p, dt(0.0))
     q = np.where(m, q, dt(0.0))
@@ -97,7 +97,7 @@ def pixel_gradients(normals, mask, mm_per_px: float, max_slope: float, name: str
         with np.errstate(over="ignore", divide="ignore"):
             scale = np.where(mag > max_slope, max_slope / np.maximum(mag, np.finfo(dt).tiny), 1.0).astype(dt)
         p, q = p * scale, q * scale
-    return p * dt(mm_per_px), -q * dt(mm_per_px), m
+    return (*gradients_to_pixel_steps(p, q, mm_per_px), m)
 
 
 def half_pixel_gradients(gc, gr):
@@ -120,12 +120,17 @@ def divergence_neumann(gc, gr):
 def anchor_to_border(h, mask):
     """Shift ``h`` so the median height of valid pixels on the image border is zero.
 
-    The gel is flat away from contact, so the border is the natural zero; when no border
-    pixel is valid the median over all valid pixels is used instead.
+    The gel is flat away from contact, so the border is the natural zero. When no border
+    pixel is valid (an object inside the frame, solved on its mask) the valid region's own
+    rim is used: the valid pixels with an invalid 4-neighbour (an object resting on a table
+    meets it at height 0 along its silhouette).
     """
     border = np.zeros(h.shape, dtype=bool)
     border[0, :] = border[-1, :] = border[:, 0] = border[:, -1] = True
     ref = mask & border
+    if not ref.any():
+        p = np.pad(mask, 1)
+        ref = mask & ~(p[:-2, 1:-1] & p[2:, 1:-1] & p[1:-1, :-2] & p[1:-1, 2:])
     if not ref.any():
         ref = mask
     if not ref.any():

@@ -38,7 +38,7 @@ def frankot_chellappa(normals, mm_per_px: float, mask=None, *, max_slope: float 
 
     Examples
     --------
-    >>> from sim.frames import normals_from_height
+    >>> from pipeline.base.frames import normals_from_height
     >>> yy, xx = np.mgrid[0:32, 0:32]
     >>> h = 0.2 * np.exp(-((xx - 15.5) ** 2 + (yy - 15.5) ** 2) / 20.0)
     >>> out = frankot_chellappa(normals_from_height(h, 0.1), 0.1)

@@ -55,7 +55,7 @@ def poisson_dct(normals, mm_per_px: float, mask=None, *, max_slope: float = 20.0
     --------
     A plane is recovered exactly:
 
-    >>> from sim.frames import gradients_to_normals
+    >>> from pipeline.base.frames import gradients_to_normals
     >>> n = gradients_to_normals(np.full((4, 5), 0.5), np.zeros((4, 5)))
     >>> np.round(poisson_dct(n, 1.0).height[0], 6).tolist()
     [-1.0, -0.5, 0.0, 0.5, 1.0]
@@ -96,7 +96,7 @@ def poisson_dst(normals, mm_per_px: float, mask=None, *, boundary=None, max_slop
     --------
     A bump that is flat at the border is recovered:
 
-    >>> from sim.frames import normals_from_height
+    >>> from pipeline.base.frames import normals_from_height
     >>> yy, xx = np.mgrid[0:32, 0:32]
     >>> h = 0.3 * np.exp(-((xx - 15.5) ** 2 + (yy - 15.5) ** 2) / 40.0)
     >>> out = poisson_dst(normals_from_height(h, 0.1), 0.1)

@@ -95,7 +95,7 @@ def sparse_lstsq(normals, mm_per_px: float, mask=None, *, max_slope: float = 20.
     --------
     An L-shaped mask over a plane: exact on the mask, zero off it.
 
-    >>> from sim.frames import gradients_to_normals
+    >>> from pipeline.base.frames import gradients_to_normals
     >>> n = gradients_to_normals(np.full((4, 4), 1.0), np.zeros((4, 4)))
     >>> m = np.ones((4, 4), bool); m[:2, 2:] = False
     >>> out = sparse_lstsq(n, 1.0, m)

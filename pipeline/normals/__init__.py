@@ -6,9 +6,18 @@ One module per solver, all batched over pixels in torch (``device=`` picks CPU o
   per observation, precomputed pseudo-inverse;
 - :class:`NearFieldSolver` / :func:`solve_nearfield` (``nearfield``): per-pixel light
   vectors, normal equations or QR;
-- :func:`solve_robust` (``robust``): excludes dark/saturated observations, then IRLS or trim;
+- :func:`solve_robust_irls` (``robust``): explicit attached-shadow, cast-shadow and highlight
+  models, IRLS with Tukey weights from a trimmed start;
+- :func:`solve_robust` (``cauchy``): the earlier robust solver: excludes dark/saturated
+  observations, then Cauchy IRLS (or trim);
 - :class:`LUTSolver` / :func:`solve_lut` (``lut``): the calibration's lookup table;
-- :func:`ratio_to_reference`: optional preprocessing that cancels albedo and vignetting.
+- :func:`ratio_to_reference`: optional preprocessing that cancels albedo and vignetting;
+- :class:`PixelMask`, :func:`masked_solve`: every solver's ``mask=`` (gather the masked pixels,
+  solve them, scatter back with the rest invalid).
+
+:func:`pipeline.normals.solve.solve_capture` solves a capture's frame stack with the solver
+a name picks from the registry (:data:`pipeline.base.registry.SOLVERS`), where a new solver
+is registered.
 
 Observations are ``(N_obs, H, W)`` (patterns x channels flattened), lights ``(N_obs, 3)`` or
 ``(N_obs, H, W, 3)``. Every result is a :class:`NormalResult` with finite arrays.
@@ -16,13 +25,13 @@ Observations are ``(N_obs, H, W)`` (patterns x channels flattened), lights ``(N_
 
 from pipeline.normals.farfield import FarFieldSolver, solve_farfield
 from pipeline.normals.lut import LUTSolver, solve_lut
+from pipeline.normals.masking import PixelMask, masked_solve
 from pipeline.normals.nearfield import NearFieldSolver, solve_nearfield
 from pipeline.normals.ratio import ratio_to_reference
 from pipeline.normals.result import NormalResult
 from pipeline.normals.robust import solve_robust
+from pipeline.normals.robust_irls import solve_robust_irls
 
 __all__ = ["NormalResult", "FarFieldSolver", "solve_farfield", "NearFieldSolver", "solve_nearfield",
-           "solve_robust", "LUTSolver", "solve_lut", "ratio_to_reference", "SOLVERS"]
-
-#: Solver names accepted by the CLI and :func:`pipeline.reconstruct.reconstruct`.
-SOLVERS = ("lstsq", "nearfield", "robust", "lut")
+           "solve_robust", "solve_robust_irls", "LUTSolver", "solve_lut", "ratio_to_reference", "PixelMask",
+           "masked_solve"]

@@ -27,6 +27,16 @@ def check_lights(lights, n: int, hw: tuple[int, int] | None, name: str) -> bool:
     raise ValueError(f"{name}: lights must have shape {want}, got {shape}")
 
 
+def check_stack(observations, lights, groups, device, dtype, name: str):
+    """The checks every per-pixel solver starts with: ``(N, H, W)`` observations, lights of
+    matching shape, albedo groups. Returns ``(N, H, W, device, dtype, groups, num_groups)``."""
+    N, H, W = check_observations(observations, name)
+    check_lights(lights, N, (H, W), name)
+    dev = torch.device(device)
+    g, num_groups = check_groups(groups, N, name, dev)
+    return N, H, W, dev, T.torch_dtype(dtype), g, num_groups
+
+
 def check_groups(groups, n: int, name: str, device) -> tuple[torch.Tensor | None, int]:
     """Albedo group id per observation ``(N,)`` -> (long tensor, number of groups)."""
     if groups is None:
@@ -56,7 +66,9 @@ def integer_tensor(x, device) -> torch.Tensor:
     if isinstance(x, torch.Tensor):
         return x.to(device)
     a = np.asarray(x)
-    if a.dtype in (np.uint16, np.uint32, np.uint64):
+    if a.dtype == np.uint16:
+        a = a.astype(np.int32)  # torch lacks arithmetic on uint16; int32 holds it at half int64's traffic
+    elif a.dtype in (np.uint32, np.uint64):
         a = a.astype(np.int64)  # torch lacks arithmetic on these unsigned types
     if not a.flags.writeable:
         a = np.array(a)

@@ -111,10 +111,12 @@ def condition(L: torch.Tensor, w: torch.Tensor | None) -> torch.Tensor:
 
 
 def moments(I: torch.Tensor, L: torch.Tensor, w: torch.Tensor | None, selectors: list,
-            Q: torch.Tensor | None = None) -> Moments:
+            Q: torch.Tensor | None = None, count: torch.Tensor | None = None) -> Moments:
     """Moments of observations ``I`` ``(N, M)`` with weights ``w`` ``(N, M)`` (None: all 1).
 
-    ``Q`` ``(G, 3, 3, M|1)`` may be passed when it is known (it does not depend on ``I``).
+    ``Q`` ``(G, 3, 3, M|1)`` may be passed when it is known (it does not depend on ``I``), and
+    ``count`` ``(M,)`` (observations with non-zero weight) when the caller has it: a boolean
+    reduction over ``(N, M)`` is slow on the CPU.
     """
     Qs, rs, Ss = [], [], []
     for sel in selectors:
@@ -139,7 +141,7 @@ def moments(I: torch.Tensor, L: torch.Tensor, w: torch.Tensor | None, selectors:
         count = torch.full((M,), I.shape[0], dtype=torch.int32, device=I.device)
     else:
         wsum = w.sum(0)
-        count = (w > 0).sum(0, dtype=torch.int32)
+        count = (w > 0).sum(0, dtype=torch.int32) if count is None else count.to(torch.int32)
     return Moments(Q=Q, r=torch.stack(rs), S=torch.stack(Ss), wsum=wsum, count=count)
 
 

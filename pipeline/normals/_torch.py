@@ -133,37 +133,3 @@ def project(L: torch.Tensor, n: torch.Tensor) -> torch.Tensor:
     if L.dim() == 2:
         return L @ n
     return L[:, 0] * n[0] + L[:, 1] * n[1] + L[:, 2] * n[2]
-
-
-class torch_threads:
-    """Context manager: run torch on ``n`` intra-op threads, restoring the old count after.
-
-    On a small shared CPU, torch's default of one thread per core collapses when other
-    processes compete for the cores (spinning workers): 1 thread is then many times faster.
-    ``None`` leaves the setting alone.
-
-    Examples
-    --------
-    >>> before = torch.get_num_threads()
-    >>> with torch_threads(1):
-    ...     torch.get_num_threads()
-    1
-    >>> torch.get_num_threads() == before
-    True
-    """
-
-    def __init__(self, n: int | None):
-        self.n = n
-        self.old = None
-
-    def __enter__(self):
-        if self.n is not None:
-            self.old = torch.get_num_threads()
-            if self.old != self.n:
-                torch.set_num_threads(int(self.n))
-        return self
-
-    def __exit__(self, *exc):
-        if self.old is not None and torch.get_num_threads() != self.old:
-            torch.set_num_threads(self.old)
-        return False

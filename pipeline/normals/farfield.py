@@ -11,6 +11,7 @@ import torch
 
 from pipeline.normals import _inputs, _lstsq, fused
 from pipeline.normals import _torch as T
+from pipeline.normals.masking import PixelMask, masked_solve
 from pipeline.normals.result import NormalResult, concat, finalize, finalize_tensors, to_result
 
 __all__ = ["FarFieldSolver", "solve_farfield"]
@@ -84,11 +85,15 @@ class FarFieldSolver:
         self.compile = bool(compile) and self.w_rows is None and self.iterations == 0
         self.group_tuple = tuple(self.groups.tolist()) if self.groups is not None else (0,) * self.n_obs
 
-    def solve(self, observations) -> NormalResult:
+    def solve(self, observations, mask=None) -> NormalResult:
         """Normals of one observation stack ``(N_obs, H, W)`` (numpy or torch, any real dtype).
 
         NaN/Inf observations are ignored per pixel (a slower per-pixel solve is used then).
+        ``mask (H, W)``: solve only those pixels (:mod:`pipeline.normals.masking`); the others
+        come back invalid.
         """
+        if mask is not None:
+            return masked_solve(lambda obs, _: self.solve(obs), observations, mask, name="FarFieldSolver.solve")
         N, H, W = _inputs.check_observations(observations, "FarFieldSolver.solve")
         if N != self.n_obs:
             raise ValueError(f"FarFieldSolver.solve: expected {self.n_obs} observations, got shape "
@@ -123,14 +128,18 @@ class FarFieldSolver:
                         finite_inputs=fast and _inputs.is_integer(observations),
                         meta=_meta(self))
 
-    def solve_frames(self, frames) -> NormalResult:
+    def solve_frames(self, frames, mask=None) -> NormalResult:
         """Normals of one capture's frames ``(P, H, W, C)`` (observations pattern-major,
-        channel-minor, as ``P * C == N_obs``); integer frames skip the transposing copy."""
+        channel-minor, as ``P * C == N_obs``); integer frames skip the transposing copy.
+        ``mask (H, W)``: gather those pixels from the frames once, solve only them."""
         shape = tuple(frames.shape)
         if len(shape) != 4 or shape[0] * shape[3] != self.n_obs:
             raise ValueError(f"FarFieldSolver.solve_frames: expected frames (P, H, W, C) with P*C = {self.n_obs}, "
                              f"got {shape}")
         P, H, W, C = shape
+        if mask is not None:
+            pm = PixelMask(mask, (H, W), "FarFieldSolver.solve_frames")
+            return pm.scatter(self.solve(pm.gather_frames(frames)))
         if self.compile and (_inputs.is_integer(frames) or _all_moderate(frames)):
             planes = fused.frame_planes(frames if not isinstance(frames, torch.Tensor) else frames.to(self.device))
             out = self._solve_fused([p.to(self.device) for p in planes], H, W)
@@ -193,8 +202,9 @@ def _albedo_iterations(requested, L, selectors, groups, num_groups) -> int:
     return int(requested)
 
 
-def solve_farfield(observations, lights, **kwargs) -> NormalResult:
-    """One-shot :class:`FarFieldSolver` (``observations (N_obs, H, W)``, ``lights (N_obs, 3)``).
+def solve_farfield(observations, lights, mask=None, **kwargs) -> NormalResult:
+    """One-shot :class:`FarFieldSolver` (``observations (N_obs, H, W)``, ``lights (N_obs, 3)``,
+    optional ``mask (H, W)`` of the pixels to solve).
 
     Examples
     --------
@@ -203,4 +213,4 @@ def solve_farfield(observations, lights, **kwargs) -> NormalResult:
     >>> res.mask.tolist(), res.normals[0, 0].tolist()
     ([[False]], [0.0, 0.0, 1.0])
     """
-    return FarFieldSolver(lights, **kwargs).solve(observations)
+    return FarFieldSolver(lights, **kwargs).solve(observations, mask=mask)

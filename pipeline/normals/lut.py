@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from sim.frames import gradients_to_normals
+from pipeline.base.frames import gradients_to_normals
 from pipeline.normals.result import NormalResult
 
 __all__ = ["LUTSolver", "solve_lut"]
@@ -49,11 +49,16 @@ class LUTSolver:
         self.table = table
         self.max_slope = float(max_slope)
 
-    def solve(self, image) -> NormalResult:
-        """Normals of one RGB frame ``(H, W, 3)``."""
+    def solve(self, image, mask=None) -> NormalResult:
+        """Normals of one RGB frame ``(H, W, 3)``; with ``mask (H, W)`` the pixels outside it come
+        back invalid (the table sees the whole frame: its reference is per pixel)."""
         img = np.asarray(image)
         if img.ndim != 3 or img.shape[-1] != 3:
             raise ValueError(f"LUTSolver.solve: image must have shape (H, W, 3), got {img.shape}")
+        if mask is not None:
+            from pipeline.normals.masking import PixelMask
+
+            return PixelMask(mask, img.shape[:2], "LUTSolver.solve").restrict(self.solve(img))
         H, W = img.shape[:2]
         finite = np.isfinite(img).all(-1) if img.dtype.kind == "f" else np.ones((H, W), bool)
         clean = np.where(finite[..., None], img, 0) if img.dtype.kind == "f" else img
@@ -80,6 +85,6 @@ class LUTSolver:
         )
 
 
-def solve_lut(image, table, **kwargs) -> NormalResult:
-    """One-shot :class:`LUTSolver` on an RGB frame ``(H, W, 3)``."""
-    return LUTSolver(table, **kwargs).solve(image)
+def solve_lut(image, table, mask=None, **kwargs) -> NormalResult:
+    """One-shot :class:`LUTSolver` on an RGB frame ``(H, W, 3)`` (optional ``mask (H, W)``)."""
+    return LUTSolver(table, **kwargs).solve(image, mask=mask)

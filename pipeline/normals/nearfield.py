@@ -14,6 +14,7 @@ import torch
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
 from pipeline.normals.farfield import _albedo_iterations
+from pipeline.normals.masking import PixelMask
 from pipeline.normals.result import NormalResult, finalize
 
 __all__ = ["NearFieldSolver", "solve_nearfield"]
@@ -37,6 +38,10 @@ class NearFieldSolver:
         conditioned arithmetic; the reference the fast path is tested against).
     max_condition, albedo_iterations, device, dtype
         As in :class:`FarFieldSolver`.
+    mask : ndarray, shape (H, W), optional
+        Solve only these pixels: the light field is gathered on them once, here, and each
+        :meth:`solve` gathers the observations' (:mod:`pipeline.normals.masking`); the other
+        pixels come back invalid.
 
     Examples
     --------
@@ -52,12 +57,16 @@ class NearFieldSolver:
     """
 
     def __init__(self, lights, *, groups=None, method: str = "normal", max_condition: float = 1e3,
-                 albedo_iterations: int | None = None, device="cpu", dtype="float32"):
+                 albedo_iterations: int | None = None, device="cpu", dtype="float32", mask=None):
         if lights is None or len(getattr(lights, "shape", ())) != 4 or lights.shape[-1] != 3:
             raise ValueError(f"NearFieldSolver: lights must have shape (N_obs, H, W, 3), got "
                              f"{getattr(lights, 'shape', None)}")
         if method not in _METHODS:
             raise ValueError(f"NearFieldSolver: method must be one of {_METHODS}, got {method!r}")
+        self.full_shape = (int(lights.shape[1]), int(lights.shape[2]))
+        self.pixels = None if mask is None else PixelMask(mask, self.full_shape, "NearFieldSolver")
+        if self.pixels is not None:
+            lights = self.pixels.gather(lights, axis=1)
         self.device = torch.device(device)
         self.dtype = T.torch_dtype(dtype)
         self.n_obs, self.H, self.W = (int(s) for s in lights.shape[:3])
@@ -78,9 +87,16 @@ class NearFieldSolver:
     def solve(self, observations) -> NormalResult:
         """Normals of one observation stack ``(N_obs, H, W)``; NaN/Inf observations are ignored."""
         N, H, W = _inputs.check_observations(observations, "NearFieldSolver.solve")
-        if (N, H, W) != (self.n_obs, self.H, self.W):
+        if (N, H, W) != (self.n_obs,) + self.full_shape:
             raise ValueError(f"NearFieldSolver.solve: expected observations of shape "
-                             f"({self.n_obs}, {self.H}, {self.W}), got {tuple(observations.shape)}")
+                             f"({self.n_obs}, {self.full_shape[0]}, {self.full_shape[1]}), got "
+                             f"{tuple(observations.shape)}")
+        if self.pixels is not None:
+            return self.pixels.scatter(self._solve(self.pixels.gather(observations, axis=1)))
+        return self._solve(observations)
+
+    def _solve(self, observations) -> NormalResult:
+        N, H, W = tuple(observations.shape)
         I, finite = _inputs.flatten_observations(observations, self.dtype, self.device)
         if finite is None:
             w = self.w0
@@ -120,6 +136,7 @@ def _qr_solve(I: torch.Tensor, L: torch.Tensor, w: torch.Tensor) -> torch.Tensor
     return b.T.contiguous()
 
 
-def solve_nearfield(observations, lights, **kwargs) -> NormalResult:
-    """One-shot :class:`NearFieldSolver` (``observations (N_obs, H, W)``, ``lights (N_obs, H, W, 3)``)."""
-    return NearFieldSolver(lights, **kwargs).solve(observations)
+def solve_nearfield(observations, lights, mask=None, **kwargs) -> NormalResult:
+    """One-shot :class:`NearFieldSolver` (``observations (N_obs, H, W)``, ``lights (N_obs, H, W, 3)``,
+    optional ``mask (H, W)`` of the pixels to solve)."""
+    return NearFieldSolver(lights, mask=mask, **kwargs).solve(observations)

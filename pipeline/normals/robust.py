@@ -16,6 +16,7 @@ import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
+from pipeline.normals.masking import solves_in_mask
 from pipeline.normals.result import NormalResult, finalize
 
 __all__ = ["solve_robust", "usable_observations"]
@@ -47,6 +48,7 @@ def _trim(I: torch.Tensor, usable: torch.Tensor, low: float, high: float) -> tor
     return usable & (rank >= lo) & (rank < n_u - hi)
 
 
+@solves_in_mask
 def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturation: float = math.inf,
                  method: str = "irls", iterations: int = 5, trim_low: float = 0.25, trim_high: float = 0.1,
                  noise_floor: float | None = None, groups=None, max_condition: float = 1e3, device="cpu",
@@ -72,6 +74,8 @@ def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturatio
         stops exact data from giving infinite weights.
     groups, max_condition, device, dtype
         As in :class:`pipeline.normals.FarFieldSolver`.
+    mask : ndarray, shape (H, W), optional
+        Solve only these pixels (:mod:`pipeline.normals.masking`); the others come back invalid.
 
     Returns
     -------
@@ -91,11 +95,7 @@ def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturatio
     """
     if method not in _METHODS:
         raise ValueError(f"solve_robust: method must be one of {_METHODS}, got {method!r}")
-    N, H, W = _inputs.check_observations(observations, "solve_robust")
-    _inputs.check_lights(lights, N, (H, W), "solve_robust")
-    dev = torch.device(device)
-    dt = T.torch_dtype(dtype)
-    g, num_groups = _inputs.check_groups(groups, N, "solve_robust", dev)
+    N, H, W, dev, dt, g, num_groups = _inputs.check_stack(observations, lights, groups, device, dtype, "solve_robust")
     selectors = _lstsq.group_selectors(g, num_groups, N)
     # Per-pixel weights differ between channels here, so a joint albedo would be biased even
     # under white patterns: refine for per-group albedo (see _lstsq.solve).

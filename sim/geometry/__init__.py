@@ -1,7 +1,7 @@
 """Contact geometry: height maps of the pressed gel with exact analytic normals.
 
 Every shape returns a :class:`HeightField` on the camera's pixel grid: heights in mm
-(positive toward the camera, :mod:`sim.frames`), the exact surface gradients ``(p, q)`` in the
+(positive toward the camera, :mod:`pipeline.base.frames`), the exact surface gradients ``(p, q)`` in the
 reconstruction frame (so normals are analytic, not finite differences) and the contact mask.
 
 >>> from sim.geometry import sphere

@@ -6,8 +6,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.errors import UserError
-from sim.frames import normals_to_gradients, normals_from_height
+from pipeline.base.errors import UserError
+from pipeline.base.frames import normals_to_gradients, normals_from_height
 from sim.geometry.surface import HeightField
 
 __all__ = ["height_from_file"]

@@ -3,7 +3,7 @@
 A :class:`HeightField` stores heights *and* their exact gradients. Keeping the gradients (not
 the normals) is what makes composition exact: texture adds gradients, smoothing filters them
 with the derivative of the same Gaussian, and normals come from
-:func:`sim.frames.gradients_to_normals` only at the end.
+:func:`pipeline.base.frames.gradients_to_normals` only at the end.
 """
 
 from __future__ import annotations
@@ -13,7 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import ndimage
 
-from sim.frames import gradients_to_normals, pixel_to_recon
+from pipeline.base.frames import gradients_to_normals, pixel_to_recon
 
 __all__ = ["HeightField", "flat", "combine", "smooth", "recon_grid"]
 

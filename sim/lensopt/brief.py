@@ -16,7 +16,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field, fields, replace
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.lensopt.constraints import Manufacturing
 from sim.lensopt.objectives import CONSTRAINTS, OBJECTIVES
 from sim.lensopt.space import DEFAULT_BOUNDS, PARAMETERS

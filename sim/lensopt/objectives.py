@@ -28,9 +28,8 @@ import time
 from dataclasses import asdict, dataclass
 
 import numpy as np
-import torch
 
-from sim.optics.binning import PixelGrid
+from sim.optics.grid import PixelGrid
 from sim.optics.multisource import trace_all
 from sim.scene import Scene
 
@@ -156,6 +155,8 @@ class Evaluator:
         Condition number up to which a pixel's light matrix counts as well conditioned.
     region : float
         Active area: the centred disc of this fraction of the grid's smaller side.
+    device, dtype, engine, threads
+        How to trace (:func:`sim.optics.multisource.trace_all`; default: the compiled kernel).
 
     Examples
     --------
@@ -167,15 +168,16 @@ class Evaluator:
     """
 
     def __init__(self, *, rays: int = 100_000, sampler: str = "sobol", seed: int = 0, grid: int = 40,
-                 modes=(), max_condition: float = 1e3, region: float = 0.9, device="cpu", dtype=torch.float32):
-        from sim.modes import load_mode, mode_drive
+                 modes=(), max_condition: float = 1e3, region: float = 0.9, device="cpu", dtype=None,
+                 engine: str | None = None, threads: int | None = None):
+        from pipeline.base.modes import load_mode, mode_drive
 
         self.rays, self.sampler, self.seed, self.grid = int(rays), sampler, int(seed), int(grid)
         self.modes = [load_mode(m) for m in modes]
         self.drives = [mode_drive(m) for m in self.modes]
         self.max_condition = float(max_condition)
         self.region = float(region)
-        self.device, self.dtype = device, dtype
+        self.device, self.dtype, self.engine, self.threads = device, dtype, engine, threads
 
     @property
     def vector(self) -> bool:
@@ -187,7 +189,7 @@ class Evaluator:
         t0 = time.perf_counter()
         g = coarse_grid(scene, self.grid)
         r = trace_all(scene, g, rays=self.rays, sampler=self.sampler, seed=self.seed, vector=self.vector,
-                      device=self.device, dtype=self.dtype)
+                      device=self.device, dtype=self.dtype, engine=self.engine, threads=self.threads)
         E = r.E[0].astype(np.float64)  # (L, h, w)
         rgb = np.asarray(scene.leds.rgb, dtype=np.float64)
         white = np.einsum("lhw,lj->hw", E, rgb) / 3.0

@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.lensopt.constraints import Manufacturing, violations
 from sim.lensopt.objectives import OBJECTIVES, Evaluator, Metrics, loss
 from sim.lensopt.space import DesignSpace

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.scene import Scene, scene_from_dict, scene_to_dict
 
 __all__ = ["PARAMETERS", "LENGTHS", "DEFAULT_BOUNDS", "DesignSpace", "design_of", "apply_design"]

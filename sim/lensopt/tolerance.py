@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import math
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.lensopt.objectives import Evaluator
 from sim.lensopt.space import LENGTHS, apply_design, design_of
 from sim.scene import Scene

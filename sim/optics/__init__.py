@@ -6,6 +6,11 @@ surface geometry), :mod:`~sim.optics.lens` (the lens as one convex body),
 :mod:`~sim.optics.paper_cases` (the paper's intersection cases 1-3),
 :mod:`~sim.optics.quartic` (float64 quartic reference for the torus),
 :mod:`~sim.optics.interface` (Snell, TIR, Fresnel), :mod:`~sim.optics.sampling`,
-:mod:`~sim.optics.tracer` (chunked tracer), :mod:`~sim.optics.binning` (E and V),
-:mod:`~sim.optics.multisource` (three ways to get every LED), :mod:`~sim.optics.instrument`.
+:mod:`~sim.optics.tracer` (the eager torch tracer, the reference), :mod:`~sim.optics.binning` (its
+E and V accumulator), :mod:`~sim.optics.kernel` (the compiled per-ray kernel),
+:mod:`~sim.optics.kernel_cuda` (the same on CUDA), :mod:`~sim.optics.engine` (which engine runs;
+the kernel's driver), :mod:`~sim.optics.grid` (pixel grids, binning layouts, images; no torch),
+:mod:`~sim.optics.emitter` (samplers and the LED frame; no torch), :mod:`~sim.optics.energy`
+(energy books), :mod:`~sim.optics.multisource` (three ways to get every LED),
+:mod:`~sim.optics.instrument`.
 """

@@ -17,7 +17,7 @@ import math
 
 import torch
 
-__all__ = ["ConvexSet", "Vec", "INF"]
+__all__ = ["ConvexSet", "Vec", "INF", "solve_quadratic", "box_interval"]
 
 Vec = tuple  # (x, y, z) of 1-D tensors, each (N,)
 INF = math.inf
@@ -71,3 +71,29 @@ def solve_quadratic(a, b_half, c):
     t2 = torch.maximum(r1, r2)
     zero = torch.zeros_like(t1)
     return torch.where(real, t1, zero), torch.where(real, t2, zero), real
+
+
+def box_interval(o: Vec, d: Vec, rho_max: float, z_lo: float, z_hi: float):
+    """``(t_lo, t_hi, ok)``: where rays are inside the cylinder ``rho <= rho_max``, ``z_lo <= z <= z_hi``.
+
+    ``t_lo`` is clamped to 0 (rays start at ``t = 0``); ``ok`` is False for rays that miss.
+    """
+    a = d[0] * d[0] + d[1] * d[1]
+    b = o[0] * d[0] + o[1] * d[1]
+    c = o[0] * o[0] + o[1] * o[1] - rho_max * rho_max
+    t1, t2, real = solve_quadratic(a, b, c)
+    axial = a == 0  # parallel to the axis: inside the cylinder for all t, or never
+    c_lo = torch.where(real, t1, torch.where(axial & (c <= 0), torch.full_like(t1, -INF), torch.full_like(t1, INF)))
+    c_hi = torch.where(real, t2, torch.where(axial & (c <= 0), torch.full_like(t2, INF), torch.full_like(t2, -INF)))
+    dz = d[2]
+    flat = dz == 0
+    safe = torch.where(flat, torch.ones_like(dz), dz)
+    s1 = (z_lo - o[2]) / safe
+    s2 = (z_hi - o[2]) / safe
+    in_slab = (o[2] >= z_lo) & (o[2] <= z_hi)
+    ninf, pinf = torch.full_like(s1, -INF), torch.full_like(s1, INF)
+    s_lo = torch.where(flat, torch.where(in_slab, ninf, pinf), torch.minimum(s1, s2))
+    s_hi = torch.where(flat, torch.where(in_slab, pinf, ninf), torch.maximum(s1, s2))
+    t_lo = torch.maximum(torch.maximum(c_lo, s_lo), torch.zeros_like(c_lo))
+    t_hi = torch.minimum(c_hi, s_hi)
+    return t_lo, t_hi, t_lo <= t_hi

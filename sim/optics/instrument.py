@@ -12,9 +12,8 @@ Examples
 
 from __future__ import annotations
 
+import sys
 from collections import Counter
-
-import torch
 
 __all__ = ["count", "reset", "snapshot"]
 
@@ -24,10 +23,11 @@ _COUNTS: Counter = Counter()
 def count(name: str, n: int = 1) -> None:
     """Record that the code path ``name`` ran ``n`` times.
 
-    A no-op inside ``torch.compile`` (a traced side effect would run once, at tracing): the
-    compiled tracer counts its effects where it calls the compiled code.
+    A no-op inside ``torch.compile`` (a traced side effect would run once, at tracing). The
+    compiled kernel counts its effects where it is called (:mod:`sim.optics.engine`).
     """
-    if torch.compiler.is_compiling():
+    torch = sys.modules.get("torch")  # never imported for this: the kernel's path runs without torch
+    if torch is not None and torch.compiler.is_compiling():
         return
     _COUNTS[name] += n
 

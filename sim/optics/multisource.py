@@ -15,10 +15,9 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import torch
 
-from sim.optics.binning import FieldAccumulator, PixelGrid
-from sim.optics.tracer import DEFAULT_CHUNK, SourceTrace, trace_source
+from sim.optics import engine as _engine
+from sim.optics.grid import ImageBins, PixelGrid
 
 __all__ = ["METHODS", "FieldResult", "led_azimuths", "trace_all", "rotate_images"]
 
@@ -35,7 +34,7 @@ class FieldResult:
         Flat-gel irradiance per LED (W/mm^2 per W emitted) at each of the D gel heights
         (float32, or float64 for a float64 trace).
     V : ndarray, shape (D, L, H, W, 3) or None
-        Vector irradiance, **optical** frame (convert with :func:`sim.frames.optical_to_recon`).
+        Vector irradiance, **optical** frame (convert with :func:`pipeline.base.frames.optical_to_recon`).
     grid : PixelGrid
     heights : tuple of float
     traces : list of SourceTrace
@@ -70,9 +69,15 @@ def led_azimuths(scene) -> np.ndarray:
 
 def trace_all(scene, grid: PixelGrid | None = None, *, method: str = "hits", heights=(0.0,), vector: bool = True,
               rays: int | None = None, sampler: str | None = None, seed: int | None = None, device="cpu",
-              dtype=torch.float32, chunk: int = DEFAULT_CHUNK, compile: bool = False,
-              refractive_index: float | None = None, leds=None, intersection: str | None = None) -> FieldResult:
+              dtype=None, chunk: int | None = None, refractive_index: float | None = None, leds=None,
+              intersection: str | None = None, engine: str | None = None, threads: int | None = None) -> FieldResult:
     """Images of every LED (or of ``leds``) of ``scene`` on ``grid`` (default: the scene's imaging plane).
+
+    ``engine`` picks the compiled kernel (the default for the robust intersection; torch is
+    not imported) or the eager torch reference (:func:`sim.optics.engine.resolve_engine`);
+    ``dtype`` is float32 (default) or float64; ``chunk`` (torch engine) bounds the rays per
+    chunk; ``threads`` the kernel's CPU threads. The other parameters are
+    :func:`sim.optics.tracer.trace_source`'s.
 
     Examples
     --------
@@ -89,32 +94,65 @@ def trace_all(scene, grid: PixelGrid | None = None, *, method: str = "hits", hei
     grid = grid or PixelGrid.from_plane(scene.plane)
     az = led_azimuths(scene)
     leds = list(range(scene.leds.count)) if leds is None else [int(i) for i in leds]
-    kw = dict(rays=rays, sampler=sampler, seed=seed, device=device, dtype=dtype, chunk=chunk, compile=compile,
-              refractive_index=refractive_index, intersection=intersection)
-    traces: list[SourceTrace] = []
+    kind = _engine.resolve_engine(engine, intersection or scene.trace.intersection, scene)
+    ft = _engine.float_dtype(dtype)
+    kw = dict(rays=rays, sampler=sampler, seed=seed, device=device, refractive_index=refractive_index)
+    if kind == "kernel":
+        kw.update(threads=threads)
+
+        def make(angles):
+            return ImageBins(grid, angles, heights, vector=vector, dtype=ft)
+
+        def trace(led, accs):
+            images, res = _engine.trace_led(scene, [a.layout for a in accs], led=led, dtype=ft, **kw)
+            for a, img in zip(accs, images):
+                a.add_binned(img)
+            return res
+    else:
+        import torch
+
+        from sim.optics.binning import FieldAccumulator
+        from sim.optics.tracer import DEFAULT_CHUNK, trace_source
+
+        tdt = getattr(torch, ft.name)
+        kw.update(dtype=tdt, chunk=chunk or DEFAULT_CHUNK, intersection=intersection, engine="torch")
+
+        def make(angles):
+            return FieldAccumulator(grid, angles, heights, vector=vector, device=device, dtype=tdt)
+
+        def trace(led, accs):
+            return trace_source(scene, accs, led=led, **kw)
+    traces = []
     if method == "trace":
         Es, Vs, frac = [], [], []
         for i in leds:
-            acc = FieldAccumulator(grid, (0.0,), heights, vector=vector, device=device, dtype=dtype)
-            traces.append(trace_source(scene, [acc], led=i, **kw))
-            E, V = acc.images()
+            acc = make((0.0,))
+            traces.append(trace(i, [acc]))
+            E, V = (_numpy(x) for x in acc.images())
             Es.append(E[:, 0])
             Vs.append(V[:, 0] if vector else None)
             frac.append(float(acc.on_grid[0, 0]))
-        E = torch.stack(Es, 1)
-        V = torch.stack(Vs, 1) if vector else None
+        E = np.stack(Es, 1)
+        V = np.stack(Vs, 1) if vector else None
         fr = np.array(frac)
     else:
         angles = [float(az[i] - az[0]) for i in leds] if method == "hits" else [0.0]
-        acc = FieldAccumulator(grid, angles, heights, vector=vector, device=device, dtype=dtype)
-        traces.append(trace_source(scene, [acc], led=0, **kw))
-        E, V = acc.images()
-        fr = acc.on_grid[0].numpy().copy()
+        acc = make(angles)
+        traces.append(trace(0, [acc]))
+        E, V = (_numpy(x) for x in acc.images())
+        fr = np.array(_numpy(acc.on_grid)[0], dtype=np.float64)
         if method == "image":
             E, V = rotate_images(E[:, 0], None if V is None else V[:, 0], [float(az[i] - az[0]) for i in leds])
             fr = np.repeat(fr, len(leds))
-    return FieldResult(E=E.cpu().numpy(), V=None if V is None else V.cpu().numpy(), grid=grid,
-                       heights=tuple(heights), traces=traces, seconds=time.perf_counter() - t0, fraction_on_grid=fr)
+    return FieldResult(E=E, V=V, grid=grid, heights=tuple(heights), traces=traces, seconds=time.perf_counter() - t0,
+                       fraction_on_grid=fr)
+
+
+def _numpy(x):
+    """A numpy array of a numpy array or a torch tensor on any device (None stays None)."""
+    if x is None or isinstance(x, np.ndarray):
+        return x
+    return x.detach().cpu().numpy()
 
 
 def rotate_images(E, V, angles):
@@ -122,15 +160,19 @@ def rotate_images(E, V, angles):
 
     Parameters
     ----------
-    E : torch.Tensor, shape (D, H, W)
-    V : torch.Tensor, shape (D, H, W, 3) or None (optical frame)
+    E : ndarray or torch.Tensor, shape (D, H, W)
+    V : ndarray or torch.Tensor, shape (D, H, W, 3) or None (optical frame)
     angles : sequence of float (rad)
 
     Returns
     -------
-    E_rot : (D, K, H, W) and V_rot : (D, K, H, W, 3) or None
+    E_rot : (D, K, H, W) and V_rot : (D, K, H, W, 3) or None, numpy
     """
     import kornia
+    import torch
+
+    E = torch.as_tensor(E)
+    V = None if V is None else torch.as_tensor(V)
 
     D, H, W = E.shape
     K = len(angles)
@@ -138,17 +180,17 @@ def rotate_images(E, V, angles):
     C = chans.shape[1]
     batch = chans[None].expand(K, D, C, H, W).reshape(K, D * C, H, W)
     # kornia rotates counter-clockwise as displayed with rows downward, i.e. by -angle in a
-    # frame whose y grows with the row index (ours, sim.frames): hence the minus sign.
+    # frame whose y grows with the row index (ours, pipeline.base.frames): hence the minus sign.
     deg = torch.tensor([-math.degrees(a) for a in angles], dtype=batch.dtype, device=batch.device)
     out = kornia.geometry.transform.rotate(batch, deg, mode="bilinear", padding_mode="zeros")
     out = out.reshape(K, D, C, H, W).permute(1, 0, 2, 3, 4)  # (D, K, C, H, W)
     E_rot = out[:, :, 0]
     if V is None:
-        return E_rot, None
+        return _numpy(E_rot), None
     Vr = out[:, :, 1:].permute(0, 1, 3, 4, 2).clone()  # (D, K, H, W, 3)
     for k, a in enumerate(angles):
         c, s = math.cos(a), math.sin(a)
         vx, vy = Vr[:, k, ..., 0].clone(), Vr[:, k, ..., 1].clone()
         Vr[:, k, ..., 0] = c * vx - s * vy
         Vr[:, k, ..., 1] = s * vx + c * vy
-    return E_rot, Vr
+    return _numpy(E_rot), _numpy(Vr)

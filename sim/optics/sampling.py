@@ -18,27 +18,9 @@ import math
 import torch
 
 from sim.optics import instrument
+from sim.optics.emitter import SAMPLERS, actual_rays, emitter_frame, profile_constants
 
 __all__ = ["SAMPLERS", "actual_rays", "SquareSampler", "grid_points", "emission_directions"]
-
-SAMPLERS = ("grid", "random", "stratified", "sobol")
-
-
-def actual_rays(n: int, sampler: str) -> int:
-    """Number of rays a sampler really draws for a request of ``n`` (grids round to ``k^2``).
-
-    Examples
-    --------
-    >>> actual_rays(1_000_000, "grid"), actual_rays(1000, "grid"), actual_rays(1000, "sobol")
-    (1000000, 1024, 1000)
-    """
-    if sampler not in SAMPLERS:
-        raise ValueError(f"unknown sampler {sampler!r}; expected one of {SAMPLERS}")
-    if sampler in ("grid", "stratified"):
-        k = max(1, round(math.sqrt(n)))
-        return k * k
-    return int(n)
-
 
 class SquareSampler:
     """Points of ``[0, 1)^2`` drawn chunk by chunk.
@@ -117,40 +99,16 @@ def emission_directions(u, v, m: float, cone_half_angle_deg: float, axis=(0.0, 0
     """
     if profile:
         instrument.count("emission_profile")
-    mp = float(m) if profile else 0.0
-    c = math.cos(math.radians(cone_half_angle_deg))
-    a = 1.0 - c ** (mp + 1.0)
-    cos_t = torch.pow(1.0 - u * a, 1.0 / (mp + 1.0))
+    a, e = profile_constants(m, cone_half_angle_deg, profile)
+    cos_t = torch.pow(1.0 - u * a, e)
     sin_t = torch.sqrt(torch.clamp(1.0 - cos_t * cos_t, min=0.0))
     phi = (2.0 * math.pi) * v
     lx, ly, lz = sin_t * torch.cos(phi), sin_t * torch.sin(phi), cos_t
+    e1, e2, e3 = emitter_frame(axis, azimuth)
     ca, sa = math.cos(azimuth), math.sin(azimuth)
-    ax = [float(x) for x in axis]
-    nrm = math.sqrt(sum(x * x for x in ax))
-    ax = [x / nrm for x in ax]
-    # The axis in LED 0's frame (rotated back by the azimuth).
-    a0 = (ca * ax[0] + sa * ax[1], -sa * ax[0] + ca * ax[1], ax[2])
-    if abs(a0[2] - 1.0) < 1e-15:
-        e1, e2, e3 = (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.0, 1.0)
-    elif abs(a0[1]) < 1e-12:
-        # Tilted in the radial plane (a ring tilted toward its axis): e2 = y, e1 = y x a0.
-        e1, e2, e3 = (a0[2], 0.0, -a0[0]), (0.0, 1.0, 0.0), a0
-    else:
-        h = (0.0, 0.0, 1.0) if abs(a0[2]) < 0.9 else (1.0, 0.0, 0.0)
-        e1 = _unit(_cross(h, a0))
-        e2, e3 = _cross(a0, e1), a0
     x0 = lx * e1[0] + ly * e2[0] + lz * e3[0]
     y0 = lx * e1[1] + ly * e2[1] + lz * e3[1]
     z0 = lx * e1[2] + ly * e2[2] + lz * e3[2]
     if azimuth == 0.0:
         return x0, y0, z0
     return ca * x0 - sa * y0, sa * x0 + ca * y0, z0
-
-
-def _cross(a, b):
-    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
-
-
-def _unit(a):
-    n = math.sqrt(sum(x * x for x in a))
-    return tuple(x / n for x in a)

@@ -22,7 +22,7 @@ import math
 
 import torch
 
-from sim.optics.base import INF, ConvexSet, Vec
+from sim.optics.base import INF, ConvexSet, Vec, box_interval
 
 __all__ = ["SweptArc"]
 
@@ -214,8 +214,6 @@ class SweptArc(ConvexSet):
     def _bracket(self, o, d, t_lo, t_hi):
         if t_lo is None or t_hi is None:
             # No box given: use the cylinder rho <= rho_max over the arc's own z range.
-            from sim.optics.lens import box_interval
-
             t_lo, t_hi, _ = box_interval(o, d, self.rho_max, self.z_c - self.r1, self.z_c + self.r1)
         return t_lo, t_hi
 

@@ -10,7 +10,7 @@ from calibration.models.base import angular_error_deg, check_light_rank, solve_n
 from calibration.samples import collect_samples
 from calibration.synthetic import synthetic_sphere_capture
 from calibration.validate import cross_validate
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 
 
 def _samples(cap, tr):

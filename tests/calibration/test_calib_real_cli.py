@@ -18,7 +18,7 @@ needs_data = pytest.mark.skipif(not DATA.is_file(), reason=f"shared real frames 
 
 @needs_data
 def test_import_keeps_rgb_and_labels(tmp_path):
-    from calibration.capture import read_capture
+    from pipeline.base.capture import read_capture
 
     out = tmp_path / "cap.h5"
     r = run_cli("import", "gelsight-npz", DATA, "--out", out, "--json")
@@ -51,7 +51,7 @@ def test_real_frames_calibrate_end_to_end(tmp_path):
     # The radius used for the truth never exceeds the ball.
     assert max(c.contact_radius_px for c in res.circles) < 2.0 / 0.1245
     out = res.save(tmp_path / "cal.h5")
-    from pipeline.store import read_record
+    from pipeline.base.store import read_record
 
     rec = read_record(out, "calibration")
     assert rec.data["circles"].shape == (20, len(CIRCLE_COLUMNS)) and rec.data["light_field"].shape == (1, 3, 120, 160, 3)
@@ -82,7 +82,7 @@ def test_cli_bad_inputs_are_one_line_errors(tmp_path):
 
 
 def test_cli_rank_deficient_capture_is_refused(tmp_path):
-    from calibration.capture import write_capture
+    from pipeline.base.capture import write_capture
     from calibration.synthetic import synthetic_sphere_capture
 
     cap, _ = synthetic_sphere_capture((60, 80), 4, num_leds=6, leds=[0, 3], peak_dn=140, seed=6)

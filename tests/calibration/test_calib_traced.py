@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from calibration.calibrate import calibrate
-from calibration.capture import write_capture
+from pipeline.base.capture import write_capture
 from calibration.detect import detect_contacts
 from calibration.models import TracedModel
 from calibration.models.led_geometry import geometry_basis, tilt_axes
@@ -80,7 +80,7 @@ def test_cli_traced_with_illumination_file(displaced, tmp_path):
     assert r.returncode == 0, r.stderr
     got = json.loads(r.stdout)["models"]["traced"]
     assert got["cv_mean_angular_error_deg"] < 1.5 and len(got["fit"]["led_tilt_correction_deg"]) == L
-    from pipeline.store import read_record
+    from pipeline.base.store import read_record
 
     rec = read_record(tmp_path / "cal.h5", "calibration")
     assert rec.data["models/traced/geometry_correction"].shape == (L, 5)
@@ -94,7 +94,7 @@ def test_cli_traced_with_illumination_file(displaced, tmp_path):
 
 def test_geometry_correction_needs_led_positions(displaced):
     cap, tr, truth, nominal = displaced
-    from pipeline.errors import UserError
+    from pipeline.base.errors import UserError
 
     with pytest.raises(UserError, match="IlluminationModel"):
         calibrate(cap, 1.5, models=["traced"], illumination=nominal.V, folds=2,
@@ -102,7 +102,7 @@ def test_geometry_correction_needs_led_positions(displaced):
 
 
 def test_refinement_votes_with_the_traced_model_when_fields_are_given(displaced):
-    from pipeline.errors import UserError
+    from pipeline.base.errors import UserError
 
     cap, tr, truth, nominal = displaced
     with_fields = calibrate(cap, 1.5, models=["traced"], illumination=truth, folds=3)

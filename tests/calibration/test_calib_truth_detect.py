@@ -6,11 +6,11 @@ import pytest
 from calibration.detect import DetectOptions, detect_press
 from calibration.synthetic import synthetic_sphere_capture
 from calibration.truth import sphere_cap
-from sim.frames import normals_from_height
+from pipeline.base.frames import normals_from_height
 
 
 def test_sphere_cap_matches_its_own_height_map():
-    # The analytic normals must be the normals of the analytic height map (sim.frames
+    # The analytic normals must be the normals of the analytic height map (pipeline.base.frames
     # conventions), which pins every sign without restating them here.
     cap = sphere_cap((41, 41), (20.0, 20.0), 12.0, 2.0, 0.1)
     num = normals_from_height(cap.height, 0.1)

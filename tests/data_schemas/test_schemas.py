@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 import data_schemas
-from pipeline.store import StoreError, read_record, write_record
+from pipeline.base.store import StoreError, read_record, write_record
 from schema_examples import example_record
 
 STAGES = data_schemas.stage_schema_names()
@@ -79,7 +79,17 @@ def test_config_unknown_key_names_key_and_allowed_keys():
 
 def test_config_wrong_type_names_field():
     with pytest.raises(data_schemas.SchemaError, match=r"run.yaml: depth/integrator"):
-        data_schemas.validate_config("pipeline", {"depth": {"integrator": "magic"}}, "run.yaml")
+        data_schemas.validate_config("pipeline", {"depth": {"integrator": 3}}, "run.yaml")
+
+
+def test_config_choices_come_from_the_registries():
+    """``x-choices`` nodes take their ``enum`` from the registries the caller passes."""
+    from pipeline.stages.config import config_choices
+
+    cfg = {"depth": {"integrator": "magic"}}
+    data_schemas.validate_config("pipeline", cfg, "run.yaml")  # no registries: only the type is checked
+    with pytest.raises(data_schemas.SchemaError, match=r"run.yaml: depth/integrator.*'fc', 'dct', 'dst', 'sparse'"):
+        data_schemas.validate_config("pipeline", cfg, "run.yaml", choices=config_choices())
 
 
 def test_load_config_file_reports_bad_yaml(tmp_path):

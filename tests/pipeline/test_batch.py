@@ -6,8 +6,8 @@ import pytest
 
 from batch_support import summarise_capture, write_capture
 from pipeline.batch import format_summary, run_batch
-from pipeline.errors import UserError
-from pipeline.store import StageStore
+from pipeline.base.errors import UserError
+from pipeline.base.store import StageStore
 
 
 @pytest.fixture(scope="module")

@@ -8,10 +8,11 @@ import pytest
 
 from pipeline.batch import format_summary
 from pipeline.batch_reconstruct import SUMMARY_COLUMNS, batch_reconstruct
-from pipeline.errors import UserError
-from pipeline.stages import contact_surfaces, illumination_record
-from pipeline.store import StageStore, write_record
-from tests.helpers import run_cli
+from pipeline.base.errors import UserError
+from pipeline.stages.synthesize import illumination_record
+from sim.contacts import contact_surfaces
+from pipeline.base.store import StageStore, write_record
+from helpers import run_cli
 
 SHAPE, PX = (12, 16), 0.5
 BAD = 7  # index of the corrupt recording
@@ -20,7 +21,8 @@ BAD = 7  # index of the corrupt recording
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory):
     from sim.render import bare_ring_illumination
-    from sim.rendered_capture import render_capture, write_capture
+    from sim.rendered_capture import render_capture
+    from pipeline.base.capture import write_capture
 
     d = tmp_path_factory.mktemp("batch")
     model = bare_ring_illumination(SHAPE, PX)
@@ -29,7 +31,7 @@ def recordings(tmp_path_factory):
     paths = []
     for i in range(20):
         p = recs / f"rec{i:02d}.h5"
-        surfaces = contact_surfaces(SHAPE, PX, size_mm=1.5, depth_mm=0.2 + 0.02 * i, contacts=1, seed=i)
+        surfaces = contact_surfaces("sphere", SHAPE, PX, 1, size_mm=1.5, depth_mm=0.2 + 0.02 * i, seed=i)
         write_capture(p, render_capture(model, "monochromatic", surfaces, seed=i))
         paths.append(str(p))
     # A truncated copy of a good file: a valid HDF5 signature, then nothing readable.

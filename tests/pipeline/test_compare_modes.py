@@ -6,9 +6,10 @@ import numpy as np
 import pytest
 
 from helpers import run_cli
-from pipeline.compare import compare_captures, default_test_object, render_mode_captures
-from pipeline.errors import UserError
-from pipeline.store import read_record, write_record
+from pipeline.base.store import StageStore
+from pipeline.compare import compare_captures, render_mode_captures
+from pipeline.base.errors import UserError
+from pipeline.base.store import read_record, write_record
 
 
 @pytest.fixture(scope="module")
@@ -42,8 +43,8 @@ def test_compare_modes_cli_reports_every_mode_and_the_near_field_wins(small_sens
 
 def test_user_captures_without_truth_are_refused_clearly(small_sensor, tmp_path):
     model, ill, _ = small_sensor
-    caps, _ = render_mode_captures(model, ["trichromatic"], default_test_object(model.shape, model.mm_per_px),
-                                   tmp_path)
+    caps, _ = render_mode_captures(StageStore(tmp_path / "cache"), model, "test-illumination", ["trichromatic"],
+                                   "test-object", tmp_path)
     rec = read_record(caps["trichromatic"])
     for k in [k for k in rec.data if k.startswith("truth/")]:
         del rec.data[k]

@@ -11,9 +11,9 @@ from plyfile import PlyData
 
 from helpers import run_cli
 from pipeline.bench.recon_scene import scene_records
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from pipeline.reconstruct import reconstruct
-from pipeline.store import StageStore, read_record, write_record
+from pipeline.base.store import StageStore, read_record, write_record
 from support_recon import _one_torch_thread, render_sphere_scene  # noqa: F401
 
 
@@ -101,7 +101,8 @@ def test_cli_compile_matches_the_eager_solver(files, tmp_path):
 
 
 def test_bench_reconstruct_reports_eager_and_compiled_pipelines():
-    r = run_cli("bench", "reconstruct", "--sizes", "64x48", "--repeats", "1", "--json", timeout=300)
+    r = run_cli("bench", "reconstruct", "--sizes", "64x48", "--repeats", "1", "--sections", "tactile", "--json",
+                timeout=300)
     assert r.returncode == 0, r.stderr
     size = json.loads(r.stdout)["sizes"][0]
     assert set(size["pipelines"]) == {"lstsq+dst (eager)", "lstsq+fc (eager)", "lstsq+dst (compiled)",

@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from pipeline.run import plan_pipeline, run_pipeline
-from pipeline.store import StageStore
-from tests.helpers import REPO, run_cli
+from pipeline.base.store import StageStore
+from helpers import REPO, run_cli
 
 STAGES = ["synthesize", "calibrate", "capture", "normals", "depth"]
 
@@ -164,12 +164,13 @@ def test_corrupt_capture_file_fails_in_one_line_and_keeps_earlier_stages(tmp_pat
 
 def test_capture_file_is_keyed_by_content(tmp_path):
     from sim.render import bare_ring_illumination
-    from sim.rendered_capture import render_capture, write_capture
-    from pipeline.stages import contact_surfaces
+    from sim.rendered_capture import render_capture
+    from pipeline.base.capture import write_capture
+    from sim.contacts import contact_surfaces
 
     model = bare_ring_illumination((24, 30), 0.35)
     cap_path = tmp_path / "capture.h5"
-    surfaces = contact_surfaces(model.shape, model.mm_per_px, size_mm=2.0, contacts=1)
+    surfaces = contact_surfaces("sphere", model.shape, model.mm_per_px, 1, size_mm=2.0)
     write_capture(cap_path, render_capture(model, "monochromatic", surfaces, seed=1))
     cfg = {"cache": "cache", "synthesize": {"model": "bare_ring", "height": 24, "width": 30, "mm_per_px": 0.35},
            "capture": {"file": "capture.h5"}, "normals": {"solver": "nearfield"}, "depth": {}}
@@ -199,7 +200,7 @@ def test_missing_section_a_stage_needs_is_named(tmp_path):
 
 
 def test_failing_calibration_names_the_config_fields_and_keeps_synthesize(tmp_path):
-    from pipeline.orchestrate import StageFailed
+    from pipeline.stages.graph import StageFailed
 
     cfg = {**SMALL, "calibrate": {"render": {"presses": 3, "depth_mm": 0.01}, "ball_radius_mm": 3.0}}
     config = write_config(tmp_path / "run.yaml", cfg)
@@ -214,11 +215,13 @@ def test_failing_calibration_names_the_config_fields_and_keeps_synthesize(tmp_pa
 
 def test_rendered_calibration_follows_the_capture_files_lighting_mode(tmp_path):
     from sim.render import bare_ring_illumination
-    from sim.rendered_capture import render_capture, write_capture
-    from pipeline.stages import contact_surfaces, resolve_config
+    from sim.rendered_capture import render_capture
+    from pipeline.base.capture import write_capture
+    from pipeline.stages.config import resolve_config
+    from sim.contacts import contact_surfaces
 
     model = bare_ring_illumination((12, 16), 0.5)
-    write_capture(tmp_path / "c.h5", render_capture(model, "trichromatic", contact_surfaces((12, 16), 0.5)))
+    write_capture(tmp_path / "c.h5", render_capture(model, "trichromatic", contact_surfaces("sphere", (12, 16), 0.5, 2, size_mm=3.0)))
     cfg = resolve_config({"calibrate": {"render": {}}, "capture": {"file": "c.h5"}}, tmp_path)
     assert cfg["calibrate"]["render"]["mode"] == "trichromatic"
     cfg = resolve_config({"calibrate": {"render": {}}, "capture": {"render": True, "mode": "point"}}, tmp_path)
@@ -232,7 +235,7 @@ def test_traced_synthesize_is_keyed_by_the_scene_content(tmp_path):
                                             "height": 6, "width": 8, "mm_per_px": 2.0}}
     config = write_config(tmp_path / "run.yaml", cfg)
     report = run_pipeline(config, progress=False)
-    from pipeline.store import read_record
+    from pipeline.base.store import read_record
 
     assert report.stages[0]["cached"] is False
     ill = read_record(report.stages[0]["path"], schema="illumination")

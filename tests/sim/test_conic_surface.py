@@ -119,7 +119,7 @@ def test_scene_with_a_conic_top_loads_draws_and_balances_energy():
 
 
 def test_cylinder_rim_on_a_conic_top_and_a_clear_error_past_an_ellipsoid():
-    from pipeline.errors import UserError
+    from pipeline.base.errors import UserError
 
     d = scene_to_dict(load_scene("plano-sphere"))
     d["lens"]["top"].update(radius=600.0, conic=-1.0)

@@ -1,4 +1,4 @@
-"""Contact geometry: signs pinned to sim.frames, analytic gradients against derivatives of the heights."""
+"""Contact geometry: signs pinned to pipeline.base.frames, analytic gradients against derivatives of the heights."""
 
 import math
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 from hypothesis import example, given, settings, strategies as st
 
-from pipeline.errors import UserError
-from sim.frames import normals_from_height, pixel_to_recon
+from pipeline.base.errors import UserError
+from pipeline.base.frames import normals_from_height, pixel_to_recon
 from sim.geometry import (HeightField, add_texture, combine, cone, cylinder, flat, flat_punch, height_from_file,
                           smooth, sphere, wedge)
 
@@ -51,7 +51,7 @@ def test_sphere_sign_convention_bump_toward_camera_and_normals_outward():
     assert n[r, c, 0] > 0.1 and n[r, c, 2] > 0
     r, c = int(cy) - 5, int(cx)  # above the peak: smaller row = +y
     assert n[r, c, 1] > 0.1
-    # agrees with the shared finite-difference normals of sim.frames in the interior
+    # agrees with the shared finite-difference normals of pipeline.base.frames in the interior
     fd = normals_from_height(f.height, PX)
     inner = sphere(SHAPE, PX, radius=2.0, depth=0.4).contact  # well inside the rim
     assert np.max(np.abs(fd[inner] - n[inner])) < 0.02

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.lensopt.constraints import Manufacturing, closes, led_distance, lens_profile, violations
 from sim.lensopt.objectives import Evaluator, Metrics, bare_limit, condition_numbers, loss
 from sim.lensopt.search import Problem, run_search

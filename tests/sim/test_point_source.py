@@ -5,7 +5,7 @@ import math
 import numpy as np
 import pytest
 
-from sim.frames import pixel_to_optical
+from pipeline.base.frames import pixel_to_optical
 from sim.point_source import led_intensity_scale, point_source_field, ring_geometry
 
 

@@ -5,7 +5,7 @@ import json
 import numpy as np
 
 from helpers import run_cli
-from pipeline.store import read_record
+from pipeline.base.store import read_record
 
 
 def test_sim_modes_json_and_bad_file(tmp_path):
@@ -63,7 +63,7 @@ def test_sim_uniformity_json_and_figure(tmp_path):
 def test_sim_render_and_uniformity_take_a_traced_illumination_file(tmp_path):
     import json
 
-    from pipeline.store import read_record
+    from pipeline.base.store import read_record
     from sim.synthesize import save_illumination, synthesize
 
     ill = save_illumination(synthesize("default", (24, 32), 0.7, rays=60_000, sampler="sobol"), tmp_path / "ill.h5")

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from sim.frames import optical_to_recon, pixel_to_recon
+from pipeline.base.frames import optical_to_recon, pixel_to_recon
 from sim.geometry import sphere
-from sim.modes import mode_drive
+from pipeline.base.modes import mode_drive
 from sim.point_source import point_source_field, ring_geometry
 from sim.render import (EFFECTS, IMAGE_EFFECTS, RenderSettings, Renderer, bare_ring_illumination,
                         render_images)
@@ -20,6 +20,7 @@ MU = 2e5
 ON = {
     "depth_field": dict(depth_field=True),
     "attached_shadows": dict(attached_shadows=True),
+    "specular": dict(specular=0.04, roughness=0.3),
     "cast_shadows": dict(cast_shadows=True),
     "crosstalk": dict(crosstalk=[[0.9, 0.1, 0.0], [0.05, 0.9, 0.05], [0.0, 0.2, 0.8]]),
     "vignetting": dict(vignetting=0.5),
@@ -31,7 +32,8 @@ ON = {
     "quantization": dict(bit_depth=8),
 }
 # The function that does each effect's work; patched to raise when the effect is off.
-WORKER = {"depth_field": "_depth_field", "cast_shadows": "_cast_visibility", "vignetting": "_make_vignette",
+WORKER = {"depth_field": "_depth_field", "specular": "_specular_lobe", "cast_shadows": "_cast_visibility",
+          "vignetting": "_make_vignette",
           "distortion": "_make_distortion_grid"}
 
 

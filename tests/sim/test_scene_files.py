@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from pipeline.errors import UserError
+from pipeline.base.errors import UserError
 from sim.scene import load_scene, scene_from_dict, scene_names, scene_to_dict
 
 

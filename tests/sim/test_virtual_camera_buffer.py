@@ -5,9 +5,9 @@ import time
 import numpy as np
 import pytest
 
-from pipeline.capture.camera_api import Camera
+from pipeline.base.camera import Camera
 from sim.geometry import sphere
-from sim.modes import mode_drive
+from pipeline.base.modes import mode_drive
 from sim.render import RenderSettings, Renderer, auto_exposure, bare_ring_illumination
 from sim.virtual_camera import VirtualCamera, ring_led_state
 

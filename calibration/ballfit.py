@@ -1,0 +1,138 @@
+"""A check that needs no circle truth: fit a sphere to the reconstructed height map of a press.
+
+A ball of radius ``R`` pressed into the gel leaves a spherical cap. Integrate a model's
+normals to heights (the project's DST Poisson integrator: zero height at the image edge,
+where the gel is flat) and fit a sphere to the top of the bump: if the normals are right, the
+fitted radius is the ball's. Too flat normals (a model that under-tilts) give a larger
+radius, too steep ones a smaller one; nothing about the contact circle is assumed.
+
+Which pixels are fitted: the connected region around the highest point of the (lightly
+smoothed) height map where the height is at least ``level`` of that peak. The rim is left
+out on purpose: there the gel leaves the ball, the normals are steepest and a Poisson
+solve spreads its error; the top of the cap carries the curvature.
+
+The fit: algebraic (linear in the centre, ``z0`` and ``R^2 - |c|^2``) then geometric
+(:func:`scipy.optimize.least_squares` on the distances to the sphere). The press depth is the
+fitted sphere's apex height above the flat gel, ``z0 + R``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from scipy import ndimage, optimize
+
+__all__ = ["fit_sphere", "cap_region", "ball_fit", "sphere_depth_mm"]
+
+
+def sphere_depth_mm(ball_radius_mm: float, contact_radius_mm: float) -> float:
+    """Depth of a ball of radius ``R`` whose contact disc has radius ``a``: ``R - sqrt(R^2 - a^2)``.
+
+    ``a`` is capped at ``R`` (a disc wider than the ball means the edge seen is not the
+    contact's own).
+
+    Examples
+    --------
+    >>> round(sphere_depth_mm(2.0, 1.2), 6)
+    0.4
+    """
+    a = min(float(contact_radius_mm), float(ball_radius_mm))
+    return float(ball_radius_mm - np.sqrt(ball_radius_mm ** 2 - a * a))
+
+
+def fit_sphere(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> dict[str, float]:
+    """Least-squares sphere ``(x - x0)^2 + (y - y0)^2 + (z - z0)^2 = R^2`` through points.
+
+    Parameters
+    ----------
+    x, y, z : ndarray, shape (N,)
+        Points in mm (N >= 4, not coplanar).
+
+    Returns
+    -------
+    dict
+        ``x0``, ``y0``, ``z0``, ``radius`` (mm) and ``rms`` (RMS distance of the points to
+        the sphere, mm).
+
+    Examples
+    --------
+    >>> t = np.linspace(0.1, 1.2, 30); p = np.linspace(0, 6, 30)
+    >>> T, P = np.meshgrid(t, p)
+    >>> x = 2 * np.sin(T) * np.cos(P) + 0.3; y = 2 * np.sin(T) * np.sin(P); z = 2 * np.cos(T) - 1.5
+    >>> s = fit_sphere(x.ravel(), y.ravel(), z.ravel())
+    >>> round(s["radius"], 6), round(s["x0"], 6), round(s["z0"], 6)
+    (2.0, 0.3, -1.5)
+    """
+    x, y, z = (np.asarray(a, np.float64).ravel() for a in (x, y, z))
+    if len(x) < 4:
+        raise ValueError(f"fit_sphere: needs at least 4 points, got {len(x)}")
+    # Algebraic: |p|^2 = 2 c . p + k with k = R^2 - |c|^2 (linear in c and k).
+    A = np.stack([2 * x, 2 * y, 2 * z, np.ones_like(x)], axis=1)
+    sol = np.linalg.lstsq(A, x * x + y * y + z * z, rcond=None)[0]
+    c = sol[:3]
+    r = float(np.sqrt(max(sol[3] + c @ c, 1e-12)))
+    pts = np.stack([x, y, z], axis=1)
+
+    def resid(v):
+        return np.linalg.norm(pts - v[:3], axis=1) - v[3]
+
+    fit = optimize.least_squares(resid, np.r_[c, r], method="lm")
+    x0, y0, z0, rad = (float(v) for v in fit.x)
+    return {"x0": x0, "y0": y0, "z0": z0, "radius": abs(rad), "rms": float(np.sqrt(np.mean(fit.fun ** 2)))}
+
+
+def cap_region(height: np.ndarray, level: float = 0.5, smooth_px: float = 1.0) -> np.ndarray:
+    """Pixels ``(H, W)`` of the connected region around the peak where ``height >= level * peak``."""
+    h = np.asarray(height, np.float64)
+    hs = ndimage.gaussian_filter(h, smooth_px) if smooth_px > 0 else h
+    peak = np.unravel_index(int(np.argmax(hs)), hs.shape)
+    if not hs[peak] > 0:
+        return np.zeros(h.shape, bool)
+    lab, _ = ndimage.label(hs >= level * hs[peak])
+    return lab == lab[peak]
+
+
+def ball_fit(normals: np.ndarray, mm_per_px: float, ball_radius_mm: float, *, mask: np.ndarray | None = None,
+             level: float = 0.5, true_depth_mm: float | None = None, min_pixels: int = 12) -> dict[str, Any]:
+    """Integrate one press's normals (DST Poisson) and fit a sphere to the top of the bump.
+
+    Parameters
+    ----------
+    normals : ndarray, shape (H, W, 3)
+        Reconstruction-frame unit normals of one press (a model's prediction).
+    mm_per_px, ball_radius_mm : float
+    mask : ndarray, shape (H, W), bool, optional
+        Valid normals; the integrator treats the others as flat gel.
+    level : float
+        Fraction of the peak height above which pixels are fitted (:func:`cap_region`).
+    true_depth_mm : float, optional
+        The press's depth, when known, for ``depth_error``.
+    min_pixels : int
+        Fewer fitted pixels than this: no fit (``radius_mm`` None, with a ``reason``).
+
+    Returns
+    -------
+    dict
+        ``radius_mm``, ``depth_mm`` (apex height of the fitted sphere above the flat gel),
+        ``radius_error`` (relative, signed), ``depth_error`` (relative, signed; None without
+        ``true_depth_mm``), ``rms_mm``, ``pixels``, ``peak_height_mm``, ``reason``.
+    """
+    from pipeline.depth import poisson_dst
+
+    height = poisson_dst(np.asarray(normals, np.float64), mm_per_px, mask).height.astype(np.float64)
+    region = cap_region(height, level)
+    out: dict[str, Any] = {"radius_mm": None, "depth_mm": None, "radius_error": None, "depth_error": None,
+                           "rms_mm": None, "pixels": int(region.sum()), "peak_height_mm": float(height.max()),
+                           "reason": "ok"}
+    if region.sum() < min_pixels:
+        out["reason"] = f"no bump: {int(region.sum())} pixels above {level:.0%} of the peak (< {min_pixels})"
+        return out
+    rows, cols = np.nonzero(region)
+    s = fit_sphere(cols * mm_per_px, rows * mm_per_px, height[rows, cols])
+    depth = s["z0"] + s["radius"]
+    out.update(radius_mm=s["radius"], depth_mm=float(depth), rms_mm=s["rms"],
+               radius_error=float(s["radius"] / ball_radius_mm - 1.0))
+    if true_depth_mm is not None and true_depth_mm > 0:
+        out["depth_error"] = float(depth / true_depth_mm - 1.0)
+    return out

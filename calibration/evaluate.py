@@ -1,0 +1,273 @@
+"""How good is a calibration on presses it never saw: ``iristac eval calibration CAL.h5 TEST.h5``.
+
+Leave-presses-out cross-validation (:mod:`calibration.validate`) is optimistic: the held-out
+presses come from the same capture whose circles, refinement and sample selection shaped the
+model, and a user picks the model by that very number. This module applies every model of a
+calibration to a separate *test* capture (other presses of the same sensor) and reports three
+things:
+
+- **detected truth**: the test capture's own circles, found exactly as calibration finds them
+  (:func:`calibration.calibrate.find_circles`: edge detector, then photometric centre
+  refinement cross-fitted on the test presses themselves: never the calibration being judged);
+  angular error on the contact pixels, invalid predictions counted as 90 degrees;
+- **label truth** (when the test capture has ``labels/*``): the same against hand-labelled
+  circles (contact radius clamped to ``clamp_fraction`` of the ball), reported separately:
+  hand labels carry their own errors (see docs/calibration.md, "hand labels ... are biased");
+- **ball fit** (:mod:`calibration.ballfit`): each press's predicted normals integrated to a
+  height map (DST Poisson) and a sphere fitted to the top of the bump; its radius against the
+  ball's needs no circle at all.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from calibration.ballfit import ball_fit, sphere_depth_mm
+from pipeline.base.capture import Capture, read_capture
+from calibration.detect import Circle
+from calibration.models.base import angular_error_deg
+from calibration.samples import Samples, collect_samples
+from calibration.validate import INVALID_ERROR_DEG
+from pipeline.base.errors import UserError
+
+__all__ = ["evaluate_calibration", "evaluate_models", "angular_stats", "label_circles", "format_report", "CV_GAP_WARN_DEG"]
+
+#: A model whose test error and CV error differ by more than this is flagged in the report.
+CV_GAP_WARN_DEG = 2.0
+
+
+def angular_stats(errors: np.ndarray, press: np.ndarray) -> dict[str, Any]:
+    """``mean_deg``, ``median_deg``, ``p90_deg``, ``invalid_fraction`` and ``per_press`` of errors.
+
+    ``errors (N,)`` in degrees (invalid predictions already set to 90), ``press (N,)`` the
+    press of each pixel.
+
+    Examples
+    --------
+    >>> s = angular_stats(np.array([1.0, 3.0, 90.0]), np.array([0, 0, 1]))
+    >>> s["mean_deg"], s["median_deg"], round(s["invalid_fraction"], 3), s["per_press"]["1"]["mean_deg"]
+    (31.333333333333332, 3.0, 0.333, 90.0)
+    """
+    e = np.asarray(errors, np.float64)
+    if e.size == 0:
+        return {"mean_deg": None, "median_deg": None, "p90_deg": None, "invalid_fraction": None, "per_press": {}}
+    per = {str(int(p)): {"mean_deg": float(e[press == p].mean()), "median_deg": float(np.median(e[press == p])),
+                         "pixels": int((press == p).sum())} for p in np.unique(press)}
+    return {"mean_deg": float(e.mean()), "median_deg": float(np.median(e)), "p90_deg": float(np.percentile(e, 90)),
+            "invalid_fraction": float(np.mean(e >= INVALID_ERROR_DEG)), "per_press": per}
+
+
+def label_circles(center_xy: np.ndarray, radius_px: np.ndarray, ball_radius_px: float,
+                  clamp_fraction: float = 0.95) -> list[Circle]:
+    """Hand-labelled circles as accepted :class:`Circle` records (contact radius clamped below the ball)."""
+    return [Circle((float(x), float(y)), float(r), float(min(r, clamp_fraction * ball_radius_px)), 1.0, True,
+                   "hand label") for (x, y), r in zip(np.asarray(center_xy, float), np.asarray(radius_px, float))]
+
+
+def evaluate_models(models: dict[str, Any], samples: Samples) -> dict[str, dict[str, Any]]:
+    """Angular-error statistics (:func:`angular_stats`) of each model on the contact samples."""
+    contact = samples.subset(samples.contact & (samples.press >= 0))
+    out = {}
+    for name, model in models.items():
+        n, ok = model.predict(contact)
+        e = angular_error_deg(n, contact.normals)
+        out[name] = angular_stats(np.where(ok & np.isfinite(e), e, INVALID_ERROR_DEG), contact.press)
+    return out
+
+
+def _ball_fits(models, found, ball_radius_mm: float, depths: list[float | None], level: float) -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for name, model in models.items():
+        per = []
+        t = time.perf_counter()
+        maps = model.normal_maps(found.frames, found.reference, markers=found.markers)
+        for k in range(len(found.frames)):
+            # Filled-in marker pixels are guesses (False in the mask) but good enough to integrate
+            # through: treating them as flat gel would dent every cap they cross.
+            usable = maps.mask[k] if maps.filled is None else maps.mask[k] | maps.filled
+            r = ball_fit(maps.normals[k], found.mm_per_px, ball_radius_mm, mask=usable, level=level,
+                         true_depth_mm=depths[k])
+            per.append({"press": k, **r})
+        rad = [abs(p["radius_error"]) for p in per if p["radius_error"] is not None]
+        dep = [abs(p["depth_error"]) for p in per if p["depth_error"] is not None]
+        out[name] = {"radius_error_median": float(np.median(rad)) if rad else None,
+                     "depth_error_median": float(np.median(dep)) if dep else None,
+                     "radius_mm_median": float(np.median([p["radius_mm"] for p in per if p["radius_mm"] is not None]))
+                     if rad else None,
+                     "seconds": time.perf_counter() - t, "per_press": per}
+    return out
+
+
+def _press_depths(cap: Capture, circles: list[Circle], ball_radius_mm: float, mm_per_px: float):
+    """Each press's depth: from rendered truth when the capture has it, else from the detected radius."""
+    if cap.truth and "height" in cap.truth:
+        return [float(np.max(h)) for h in np.asarray(cap.truth["height"])], "truth/height maximum"
+    # The detected radius, not the truth's clamped one: a visible edge at or beyond the ball's
+    # radius means a press about as deep as the ball's equator (depth ~ R), whatever the truth
+    # disc keeps for safety.
+    return ([sphere_depth_mm(ball_radius_mm, c.radius_px * mm_per_px) if c.accepted else None for c in circles],
+            "R - sqrt(R^2 - a^2), a the detected contact radius capped at R")
+
+
+def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None = None, *,
+                         mm_per_px: float | None = None, models: list[str] | None = None, ball_level: float = 0.5,
+                         refine_iterations: int | None = None, refine_model: str | None = None,
+                         shrink_px: float | None = None, folds: int | None = None, circles=None,
+                         markers=None) -> dict[str, Any]:
+    """Every model of a calibration applied to presses it never saw.
+
+    Parameters
+    ----------
+    calibration : path, CalibrationResult or dict name -> model
+        A calibration.h5 (:func:`calibration.stored.load_calibration`), the result of
+        :func:`calibration.calibrate.calibrate`, or fitted models.
+    test_capture : path or Capture
+        A sphere-indentation capture of the same sensor with other presses.
+    ball_radius_mm : float, optional
+        Default: the calibration's ``ball_radius_mm`` attribute, then the capture's.
+    mm_per_px : float, optional
+        Default: the test capture's, then the calibration's.
+    models : list of str, optional
+        Names to evaluate (default: all in the calibration).
+    ball_level : float
+        Fraction of the peak height fitted by the ball check (:func:`calibration.ballfit.cap_region`).
+    refine_iterations, refine_model, shrink_px, folds
+        How the test capture's circles are found (:func:`calibration.calibrate.find_circles`);
+        default: as the calibration found its own (its ``circle_settings``), else 2 passes of
+        the ``auto`` model, 2 px, 5 folds.
+    circles : CircleFit, optional
+        The test capture's circles from an earlier ``find_circles`` call with the same
+        settings (reused instead of found again: benchmarks evaluate many calibrations).
+    markers : None, "none", "auto", a mask image path or an (H, W) bool array
+        Printed gel markers; None: the test capture's own, else the calibration's.
+
+    Returns
+    -------
+    dict
+        Exactly ``presses``, ``accepted``, ``models`` (name -> ``mean_deg``, ``median_deg``,
+        ``p90_deg``, ``invalid_fraction``, ``per_press``, against the detected truth; plus
+        ``cv_mean_deg`` from the calibration, ``cv_gap_deg`` = test minus CV and ``note``, set when
+        the gap exceeds :data:`CV_GAP_WARN_DEG`), ``truth`` (``detected``: how the circles were
+        found and the circles; ``labels`` when the capture has hand labels: the same statistics
+        per model against them) and ``ball_fit`` (name -> ``radius_error_median`` and
+        ``depth_error_median`` (median relative errors), ``radius_mm_median``, ``per_press``).
+    """
+    from calibration.calibrate import find_circles
+    from calibration.stored import load_calibration
+
+    meta: dict[str, Any] = {}
+    if isinstance(calibration, (str, Path)):
+        loaded, meta = load_calibration(calibration)
+        order = list(meta.get("models") or [])  # the order calibrate fitted them in
+        loaded = dict(sorted(loaded.items(), key=lambda kv: order.index(kv[0]) if kv[0] in order else len(order)))
+    elif hasattr(calibration, "models") and hasattr(calibration, "reports"):  # a CalibrationResult
+        loaded = dict(calibration.models)
+        meta = {"validation": calibration.reports, "ball_radius_mm": calibration.ball_radius_mm,
+                "mm_per_px": calibration.mm_per_px, "markers": calibration.markers,
+                "circle_settings": calibration.meta.get("circle_settings", {})}
+    else:
+        loaded = dict(calibration)
+    if models:
+        missing = [m for m in models if m not in loaded]
+        if missing:
+            raise UserError(f"{calibration}: no model {', '.join(missing)} in the calibration (has "
+                            f"{', '.join(loaded) or 'none'})")
+        loaded = {m: loaded[m] for m in models}
+    if not loaded:
+        raise UserError(f"{calibration}: the calibration holds no fitted model")
+    cap = read_capture(test_capture) if not isinstance(test_capture, Capture) else test_capture
+    src = str(test_capture) if not isinstance(test_capture, Capture) else "test capture"
+    radius = ball_radius_mm or meta.get("ball_radius_mm") or cap.meta.get("ball_radius_mm")
+    if not radius or not radius > 0:
+        raise UserError(f"{src}: no ball radius (give --ball-radius MM; neither the calibration nor the capture "
+                        "records one)")
+    mm = mm_per_px or cap.mm_per_px or meta.get("mm_per_px")
+    cal_mm = meta.get("mm_per_px")
+    if cal_mm and mm and abs(float(cal_mm) / float(mm) - 1) > 1e-6:
+        raise UserError(f"{src}: mm_per_px {mm} differs from the calibration's {cal_mm}; a calibration holds for "
+                        "the sensor (and image size) it was made with")
+    _check_compatible(loaded, cap, src)
+    if markers is None and cap.markers is None:
+        markers = meta.get("markers")
+    cs = meta.get("circle_settings") or {}
+    refine_iterations = int(cs.get("refine_iterations", 2)) if refine_iterations is None else refine_iterations
+    refine_model = cs.get("refine_model", "auto") if refine_model is None else refine_model
+    shrink_px = float(cs.get("shrink_px", 2.0)) if shrink_px is None else shrink_px
+    folds = int(cs.get("folds", 5)) if folds is None else folds
+    found = circles if circles is not None else find_circles(
+        cap, float(radius), mm, refine_iterations=refine_iterations, refine_model=refine_model, shrink_px=shrink_px,
+        folds=folds, markers=markers)
+    det = evaluate_models(loaded, found.samples)
+    cv = {k: (v.get("cv") or {}).get("cv_mean_angular_error_deg")
+          for k, v in (meta.get("validation") or {}).items() if isinstance(v, dict)}
+    for name, stats in det.items():
+        c = cv.get(name)
+        gap = None if c is None or stats["mean_deg"] is None else stats["mean_deg"] - c
+        stats["cv_mean_deg"] = c
+        stats["cv_gap_deg"] = gap
+        stats["note"] = (f"test error {stats['mean_deg']:.2f} deg differs from the CV error {c:.2f} deg by more "
+                         f"than {CV_GAP_WARN_DEG:g} deg: the CV figure does not describe new presses"
+                         if gap is not None and abs(gap) > CV_GAP_WARN_DEG else None)
+    truth: dict[str, Any] = {"detected": {
+        "method": "edge detector + photometric centre refinement cross-fitted on the test presses "
+                  f"({found.refine.get('model')} model, {found.refine.get('iterations')} passes), as the calibration "
+                  "found its own; never the calibration's models",
+        "circles": [c.to_dict() for c in found.circles]}}
+    if cap.labels and "center_xy" in cap.labels and "radius_px" in cap.labels:
+        circles = label_circles(cap.labels["center_xy"], cap.labels["radius_px"], float(radius) / found.mm_per_px)
+        lab_samples = collect_samples(found.frames, found.reference, circles, float(radius), found.mm_per_px,
+                                      shrink_px=shrink_px, saturation=found.saturation)
+        offsets = np.array([c.center_xy for c in found.circles]) - np.asarray(cap.labels["center_xy"], float)
+        acc = np.array([c.accepted for c in found.circles])
+        truth["labels"] = {"method": "hand labels labels/center_xy, labels/radius_px (contact radius clamped to "
+                                     "0.95 x ball)",
+                           "center_offset_px_median": np.median(offsets[acc], axis=0).tolist() if acc.any() else None,
+                           "models": evaluate_models(loaded, lab_samples)}
+    depths, depth_method = _press_depths(cap, found.circles, float(radius), found.mm_per_px)
+    fits = _ball_fits(loaded, found, float(radius), depths, ball_level)
+    for v in fits.values():
+        v["depth_truth"] = depth_method
+    return {"presses": int(len(found.circles)), "accepted": int(sum(c.accepted for c in found.circles)),
+            "models": det, "truth": truth, "ball_fit": fits}
+
+
+def _check_compatible(models: dict[str, Any], cap: Capture, src: str) -> None:
+    """A calibration applies to frames of its own size, patterns and channels: say so plainly otherwise."""
+    p, h, w, c = np.asarray(cap.reference).shape
+    for name, m in models.items():
+        ref = m.stored_reference() if hasattr(m, "stored_reference") else None
+        field = getattr(m, "field", None)
+        want = ref.shape if ref is not None else (None if field is None else
+                                                   (field.shape[0], field.shape[2], field.shape[3], field.shape[1]))
+        if want is not None and tuple(want) != (p, h, w, c):
+            raise UserError(f"{src}: frames are {p} pattern(s) x {h}x{w} px x {c} channel(s), but the calibration's "
+                            f"'{name}' model was made for {want[0]} x {want[1]}x{want[2]} px x {want[3]}; a "
+                            "calibration holds for the sensor and image size it was made with")
+
+
+def format_report(result: dict[str, Any]) -> str:
+    """The human-readable table of :func:`evaluate_calibration`'s result."""
+    def f(v, spec=".2f", unit=""):
+        return "-" if v is None else f"{v:{spec}}{unit}"
+
+    lab = (result["truth"].get("labels") or {}).get("models", {})
+    lines = [f"{result['accepted']} of {result['presses']} test presses accepted",
+             f"  {'model':6s} {'test mean':>9s} {'median':>7s} {'p90':>6s} {'invalid':>7s} {'CV mean':>8s} "
+             f"{'labels':>7s} {'ball radius':>11s} {'depth':>7s}"]
+    for name, m in result["models"].items():
+        b = result["ball_fit"].get(name, {})
+        rad = None if b.get("radius_error_median") is None else 100 * b["radius_error_median"]
+        dep = None if b.get("depth_error_median") is None else 100 * b["depth_error_median"]
+        lines.append(f"  {name:6s} {f(m['mean_deg']):>9s} {f(m['median_deg']):>7s} {f(m['p90_deg']):>6s} "
+                     f"{f(m['invalid_fraction'], '.1%'):>7s} {f(m.get('cv_mean_deg')):>8s} "
+                     f"{f(lab.get(name, {}).get('mean_deg')):>7s} {f(rad, '.1f', ' %'):>11s} {f(dep, '.1f', ' %'):>7s}")
+    lines.append("  (degrees; test = against the test capture's own detected circles; labels = against its hand "
+                 "labels; ball radius/depth = median relative error of a sphere fitted to each reconstructed press)")
+    for name, m in result["models"].items():
+        if m.get("note"):
+            lines.append(f"  note: {name}: {m['note']}")
+    return "\n".join(lines)

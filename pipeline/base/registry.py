@@ -1,0 +1,176 @@
+"""The registries of interchangeable parts: photometric-stereo solvers and depth integrators.
+
+Each registry is the one list of its names. The command line takes its choices from it
+(``--solver``, ``--integrator``), the run config's schema gets its ``enum`` from it
+(``x-choices`` in ``data_schemas/configs/pipeline.json``), and ``reconstruct``, ``batch``,
+``compare-modes`` and the normals and depth stages look names up in it. Registering a new
+solver or integrator is one :class:`Entry` here.
+
+An entry names its implementation lazily, as ``"package.module:attribute"``, imported only
+when it is used: listing the choices (``iristac --help``) stays fast, and this base layer
+never imports the layers above it.
+
+Lighting modes are data, not code: a built-in mode registers by its YAML file in
+:data:`MODES_DIR` (``pipeline/base/modes/``), listed by :func:`list_modes` and read by
+:func:`pipeline.base.modes.load_mode`.
+
+Examples
+--------
+>>> SOLVERS.names()
+('lstsq', 'nearfield', 'robust', 'cauchy', 'lut')
+>>> INTEGRATORS.check("dst")
+'dst'
+>>> INTEGRATORS.check("poisson")
+Traceback (most recent call last):
+...
+pipeline.base.errors.UserError: --integrator must be one of fc, dct, dst, sparse, got 'poisson'
+"""
+
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Iterator, Mapping, Sequence
+
+from pipeline.base.errors import UserError
+
+__all__ = ["Entry", "Registry", "SOLVERS", "INTEGRATORS", "MODES_DIR", "list_modes"]
+
+
+@dataclass(frozen=True)
+class Entry:
+    """One registered implementation.
+
+    Attributes
+    ----------
+    name : str
+        What users type (``--solver NAME``) and what enters stage keys.
+    target : str
+        ``"package.module:attribute"`` of the implementation, imported by :meth:`load`.
+    summary : str
+        One line for ``--help`` and the docs.
+    info : mapping
+        Facts the callers need without importing the implementation (for a solver: the
+        lights it ``needs`` and the ``patterns`` it takes).
+    """
+
+    name: str
+    target: str
+    summary: str = ""
+    info: Mapping[str, Any] = field(default_factory=dict)
+
+    def load(self) -> Any:
+        """Import and return the implementation."""
+        module, _, attr = self.target.partition(":")
+        return getattr(importlib.import_module(module), attr)
+
+
+class Registry:
+    """An ordered set of :class:`Entry`, looked up by name.
+
+    Parameters
+    ----------
+    kind : str
+        What the entries are (``solver``), for messages.
+    flag : str
+        The command-line option that picks one (``--solver``), named in errors.
+    entries : sequence of Entry
+        In the order ``--help`` lists them; the first is not implied to be the default.
+    """
+
+    def __init__(self, kind: str, flag: str, entries: Sequence[Entry] = ()):
+        self.kind = kind
+        self.flag = flag
+        self._entries: dict[str, Entry] = {}
+        for e in entries:
+            self.register(e)
+
+    def register(self, entry: Entry) -> Entry:
+        """Add ``entry`` (a name may be registered once)."""
+        if entry.name in self._entries:
+            raise ValueError(f"{self.kind} {entry.name!r} is registered twice")
+        if ":" not in entry.target:
+            raise ValueError(f"{self.kind} {entry.name!r}: target must be 'module:attribute', got {entry.target!r}")
+        self._entries[entry.name] = entry
+        return entry
+
+    def names(self) -> tuple[str, ...]:
+        """The registered names, in registration order."""
+        return tuple(self._entries)
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._entries
+
+    def __iter__(self) -> Iterator[Entry]:
+        return iter(self._entries.values())
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def check(self, name: str) -> str:
+        """``name`` if registered, else a :class:`UserError` naming the flag and the choices."""
+        if name not in self._entries:
+            raise UserError(f"{self.flag} must be one of {', '.join(self._entries)}, got {name!r}")
+        return name
+
+    def get(self, name: str) -> Entry:
+        """The entry of ``name`` (:class:`UserError` as in :meth:`check` when unknown)."""
+        return self._entries[self.check(name)]
+
+    def load(self, name: str) -> Any:
+        """The implementation of ``name``, imported now."""
+        return self.get(name).load()
+
+    def help(self) -> str:
+        """``name: summary`` for every entry, for ``--help``."""
+        return "; ".join(f"{e.name}: {e.summary}" if e.summary else e.name for e in self)
+
+
+#: Photometric-stereo solvers: ``target(frames, lights, **options) -> list[NormalResult]`` (see
+#: :func:`pipeline.normals.solve.solve_capture`). ``info["needs"]``: the lights the solver
+#: uses (``vectors``: far-field vectors or a light field, ``field``: per-pixel light
+#: vectors, ``table``: a lookup table); ``info["patterns"]``: ``any``, or ``one-rgb`` for a
+#: solver that reads one RGB frame per contact; ``info["variant"]``: an alternative that
+#: comparisons leave out unless asked for by name.
+SOLVERS = Registry("solver", "--solver", [
+    Entry("lstsq", "pipeline.normals.solve:solve_lstsq",
+          "far field (Woodham): one light vector per observation, else the light field at the image centre",
+          {"needs": "vectors", "patterns": "any"}),
+    Entry("nearfield", "pipeline.normals.solve:solve_nearfield",
+          "per-pixel light vectors (an illumination model or a calibrated light field)",
+          {"needs": "field", "patterns": "any"}),
+    Entry("robust", "pipeline.normals.solve:solve_robust",
+          "shadows and highlights modelled: attached shadows from the light matrix, highlights above and cast "
+          "shadows below the Lambertian prediction rejected (Tukey IRLS); light field if present, else far field",
+          {"needs": "vectors", "patterns": "any"}),
+    Entry("cauchy", "pipeline.normals.solve:solve_cauchy",
+          "the earlier robust solver: dark and saturated observations excluded, trimmed start, Cauchy IRLS",
+          {"needs": "vectors", "patterns": "any", "variant": True}),
+    Entry("lut", "pipeline.normals.solve:solve_lut",
+          "the calibration's colour lookup table (one RGB pattern)",
+          {"needs": "table", "patterns": "one-rgb"}),
+])
+
+#: Depth integrators: ``target(normals (H, W, 3), mm_per_px, mask, **kwargs) -> DepthResult``
+#: (see :func:`pipeline.depth.integrate`).
+INTEGRATORS = Registry("integrator", "--integrator", [
+    Entry("fc", "pipeline.depth.fourier:frankot_chellappa", "Frankot-Chellappa FFT projection (periodic)"),
+    Entry("dct", "pipeline.depth.poisson:poisson_dct", "Poisson, Neumann border (DCT)"),
+    Entry("dst", "pipeline.depth.poisson:poisson_dst", "Poisson, zero height on the border (DST)"),
+    Entry("sparse", "pipeline.depth.sparse:sparse_lstsq", "least squares on the valid pixels only (PCG)"),
+])
+
+#: Folder of the built-in lighting-mode files (schema ``data_schemas/configs/mode.json``).
+MODES_DIR = Path(__file__).resolve().parent / "modes"
+
+
+def list_modes() -> list[str]:
+    """Names of the built-in lighting modes (the files in :data:`MODES_DIR`).
+
+    Examples
+    --------
+    >>> {"point", "monochromatic", "trichromatic", "multicolour"} <= set(list_modes())
+    True
+    """
+    return sorted(p.stem for p in MODES_DIR.glob("*.yaml"))

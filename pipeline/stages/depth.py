@@ -1,0 +1,92 @@
+"""Stage 5, depth: integrate every contact instance's normals into a height map.
+
+Parameters that change the result, and so enter the key: the integrator, and the pixel pitch
+``mm_per_px`` the gradients are scaled by (heights scale with it). Both entry points pass
+the same value: ``reconstruct`` the capture's, ``run`` the one its capture section will
+record (:func:`pipeline.stages.capture.scale`). Input: the normals stage's key.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Mapping
+
+import numpy as np
+
+from pipeline.base.errors import UserError
+from pipeline.base.registry import INTEGRATORS
+from pipeline.stages.base import StageSpec
+
+__all__ = ["SPEC", "params", "compute", "run", "node"]
+
+SPEC = StageSpec("depth", version=2, schema="depth",  # 2: on the capture's mask (its bounding box)
+                 defaults={"integrator": "dst"})
+
+
+def params(integrator: str, mm_per_px: float | None) -> dict:
+    """The key parameters (``mm_per_px`` None only when a run config's capture file cannot be
+    read yet: that run then fails at the capture stage).
+
+    Examples
+    --------
+    >>> params("dst", 0.1)
+    {'integrator': 'dst', 'mm_per_px': 0.1}
+    """
+    return {"integrator": INTEGRATORS.check(integrator), "mm_per_px": None if mm_per_px is None else float(mm_per_px)}
+
+
+def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, region=None):
+    """Integrate every instance of a ``normals`` record into a ``depth`` record (no caching).
+
+    Parameters
+    ----------
+    n_rec : Record
+        Schema ``normals``: ``normals (K, H, W, 3)``, ``mask (K, H, W)``, attribute ``mm_per_px``.
+    integrator : str
+        A name in :data:`pipeline.base.registry.INTEGRATORS`.
+    mm_per_px : float, optional
+        The pitch the stage was keyed with; it must be the normals record's.
+    region : ndarray, shape (H, W), bool, optional
+        The solved region (:func:`pipeline.stages.normals.capture_region`): ``sparse``
+        integrates on it, the others on its bounding box (:func:`pipeline.depth.integrate`).
+        It is decided by the normals stage's inputs, so it needs no key of its own.
+
+    Returns
+    -------
+    Record
+        Schema ``depth``: ``height (K, H, W)`` in mm and ``mask (K, H, W)``.
+    """
+    from pipeline.base.store import Record
+    from pipeline.depth import integrate
+
+    INTEGRATORS.check(integrator)
+    pitch = float(n_rec.meta["mm_per_px"])
+    if mm_per_px is not None and not np.isclose(pitch, mm_per_px, rtol=1e-9, atol=0.0):
+        raise UserError(f"depth: the normals are at {pitch} mm/px but the stage was keyed with {mm_per_px} "
+                        f"(the capture's pitch differs from its config section's)")
+    outs = [integrate(n_rec.data["normals"][k], pitch, n_rec.data["mask"][k], method=integrator, region=region)
+            for k in range(n_rec.data["normals"].shape[0])]
+    data = {"height": np.stack([o.height for o in outs]), "mask": np.stack([o.mask for o in outs])}
+    meta: dict[str, Any] = {"integrator": integrator, "mm_per_px": pitch}
+    if integrator == "sparse":
+        meta["converged"] = bool(all(o.meta["converged"] for o in outs))
+    return Record("depth", data, meta)
+
+
+def run(store, n_rec, n_key, *, integrator: str = "dst", force: bool = False, heal: bool = True, region=None):
+    """``(record, key, cached)`` of the depth of ``n_rec`` (identified by ``n_key``) through
+    ``store``, integrated on ``region`` (see :func:`compute`)."""
+    mm = float(n_rec.meta["mm_per_px"])
+    return SPEC.get_or_compute(store, params(integrator, mm), [n_key],
+                               lambda: compute(n_rec, integrator, mm, region), force=force, heal=heal)
+
+
+def node(config: Mapping[str, Any], ctx):
+    """The graph node of a resolved run config's ``depth`` section."""
+    from pipeline.stages import capture
+    from pipeline.stages.graph import Stage
+
+    p = config["depth"]
+    ctx.need("depth", "normals")
+    mm = capture.scale(config)
+    return Stage(SPEC.name, SPEC.version, params(p["integrator"], mm), ["normals"],
+                 lambda inputs: compute(inputs["normals"], p["integrator"], mm), schema=SPEC.schema)
