@@ -19,7 +19,7 @@ from typing import Any
 from pipeline.base.capture import Capture
 
 __all__ = ["TRAIN_PRESSES", "TEST_PRESSES", "SETTINGS", "TARGETS", "split_evaluation", "split_rows", "best_row",
-           "test_truth", "four_way", "split_targets"]
+           "test_truth", "four_way", "split_targets", "fixed_truth_cv"]
 
 #: The fixed split of the shared real frames (``../shared/data/gelsight_ball_presses.npz``).
 TRAIN_PRESSES = slice(0, 20)
@@ -174,3 +174,30 @@ def split_targets(four: dict[str, Any], default: str = "detected") -> list[dict[
     out.append({"target": "cv_gap", "what": "CV and test within 2 deg, or the report says so", "bound": 2.0,
                 "gaps": gaps, "met": all(g["reported"] for g in gaps), "met_in": list(four["settings"])})
     return out
+
+
+def fixed_truth_cv(capture: Capture, ball_radius_mm: float, model: str, *, judge: str = "detected",
+                   train=TRAIN_PRESSES, **calibrate_kwargs) -> float:
+    """CV error on the training presses of a model fitted as ``calibrate_kwargs`` say, judged on one fixed truth.
+
+    A calibration's own CV is judged against the circles it was fitted to, so choices that
+    change those circles (centre refinement, the rim margin, labels) are not comparable by it.
+    Here every fold's model is fitted on the setting's own circles and judged on the held-out
+    presses' ``judge`` circles: ``detected`` (:data:`calibration.evaluate.TEST_TRUTH`: the edge
+    detector alone, 2 px margin) or ``labels``. Predictions are not tilt-corrected.
+    """
+    from calibration.calibrate import _factories, find_circles
+    from calibration.evaluate import TEST_TRUTH
+    from calibration.validate import cross_validate
+
+    sub = capture.select(train)
+    keys = ("illumination", "folds", "shrink_px", "detect_options", "model_options", "refine_iterations",
+            "refine_model", "seed", "markers", "circles")
+    found = find_circles(sub, ball_radius_mm, **{k: v for k, v in calibrate_kwargs.items() if k in keys})
+    truth = (dict(TEST_TRUTH) if judge == "detected" else {**TEST_TRUTH, "circles": "labels"})
+    ref = find_circles(sub, ball_radius_mm, markers=calibrate_kwargs.get("markers"), **truth)
+    make = _factories([model], found.capture, calibrate_kwargs.get("illumination"), found.saturation,
+                      calibrate_kwargs.get("model_options"))[model]
+    cv = cross_validate(make, found.samples, found.reference, folds=calibrate_kwargs.get("folds", 5),
+                        seed=calibrate_kwargs.get("seed", 0), judge=ref.samples)
+    return cv["cv_mean_angular_error_deg"]
