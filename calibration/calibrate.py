@@ -441,8 +441,9 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
     src = str(capture) if not isinstance(capture, Capture) else "capture"
     cap = read_capture(capture) if not isinstance(capture, Capture) else capture
     mm = mm_per_px if mm_per_px is not None else cap.mm_per_px
-    if mm is None or not mm > 0:
-        raise UserError(f"{src}: no mm_per_px attribute and no --mm-per-px given (expected a positive pixel pitch)")
+    if mm is None or isinstance(mm, (str, bytes, list, tuple)) or not mm > 0:
+        raise UserError(f"{src}: no mm_per_px attribute and no --mm-per-px given (expected a positive pixel pitch, "
+                        f"got {mm!r})")
     if ball_radius_mm is None:
         ball_radius_mm = cap.meta.get("ball_radius_mm")
         if ball_radius_mm is None:

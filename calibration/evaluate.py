@@ -141,7 +141,8 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         How the test capture's circles are found (:func:`calibration.calibrate.find_circles`);
         default :data:`TEST_TRUTH`, whatever the calibration's own settings: the edge detector
         alone (no light model votes for the truth), a 2 px margin. ``refine_model`` matters only
-        with ``refine_iterations > 0``.
+        with ``refine_iterations > 0``, and ``auto`` refines only with a traced model: name one
+        (``near``, ``far``, ``mlp``) to see a refined truth (docs/calibration.md, "Which truth").
     circles : CircleFit, optional
         The test capture's circles from an earlier ``find_circles`` call with the same
         settings (reused instead of found again: benchmarks evaluate many calibrations).
@@ -268,7 +269,11 @@ def format_report(result: dict[str, Any]) -> str:
         return "-" if v is None else f"{v:{spec}}{unit}"
 
     lab = (result["truth"].get("labels") or {}).get("models", {})
-    lines = [f"{result['accepted']} of {result['presses']} test presses accepted",
+    cv_truth = next((m.get("cv_truth") for m in result["models"].values() if m.get("cv_truth")), None)
+    lines = [f"{result['accepted']} of {result['presses']} test presses accepted"]
+    if cv_truth == "labels":
+        lines.append("  calibrated on hand labels: its CV was judged against labels, compare it with the labels column")
+    lines += [
              f"  {'model':6s} {'test mean':>9s} {'median':>7s} {'p90':>6s} {'invalid':>7s} {'CV mean':>8s} "
              f"{'labels':>7s} {'ball radius':>11s} {'depth':>7s}"]
     for name, m in result["models"].items():
@@ -278,8 +283,10 @@ def format_report(result: dict[str, Any]) -> str:
         lines.append(f"  {name:6s} {f(m['mean_deg']):>9s} {f(m['median_deg']):>7s} {f(m['p90_deg']):>6s} "
                      f"{f(m['invalid_fraction'], '.1%'):>7s} {f(m.get('cv_mean_deg')):>8s} "
                      f"{f(lab.get(name, {}).get('mean_deg')):>7s} {f(rad, '.1f', ' %'):>11s} {f(dep, '.1f', ' %'):>7s}")
-    lines.append("  (degrees; test = against the test capture's own detected circles; labels = against its hand "
-                 "labels; ball radius/depth = median relative error of a sphere fitted to each reconstructed press)")
+    lines.append("  (degrees; test = against the test capture's own circles from the edge detector; labels = against "
+                 "its hand labels; CV = the calibration's own, against the "
+                 f"{'hand labels' if cv_truth == 'labels' else 'circles it was fitted to'}; ball radius/depth = median "
+                 "relative error of a sphere fitted to each reconstructed press)")
     for name, m in result["models"].items():
         if m.get("note"):
             lines.append(f"  note: {name}: {m['note']}")

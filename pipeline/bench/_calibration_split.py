@@ -76,9 +76,9 @@ def _row(setting: str, knob: str | None, value: str, r: dict[str, Any], fixed_cv
 
 
 def _audit(cap, test_circles, calibrations: dict[str, Any]) -> dict[str, Any]:
-    """Each calibration's models against test circles refined by each family (and the labels)."""
+    """Each calibration's models against test circles refined by each family, the labels, and the ball fit."""
     from calibration.calibrate import find_circles
-    from calibration.evaluate import evaluate_models
+    from calibration.evaluate import evaluate_calibration, evaluate_models
     from calibration.split import TEST_PRESSES
 
     test = cap.select(TEST_PRESSES)
@@ -90,6 +90,14 @@ def _audit(cap, test_circles, calibrations: dict[str, Any]) -> dict[str, Any]:
         rows.append({"truth": name, "offset_px": off,
                      "models": {cal: {m: s["mean_deg"] for m, s in evaluate_models(res.models, found.samples).items()}
                                 for cal, res in calibrations.items()}})
+    evs = {cal: evaluate_calibration(res, test, 2.0, circles=test_circles) for cal, res in calibrations.items()}
+    lab = np.asarray(test.labels["center_xy"], float)
+    rows.append({"truth": "hand labels", "offset_px": np.median(lab - base, axis=0).tolist(),
+                 "models": {cal: {m: s["mean_deg"] for m, s in ev["truth"]["labels"]["models"].items()}
+                            for cal, ev in evs.items()}})
+    rows.append({"truth": "ball radius error, %", "offset_px": None,
+                 "models": {cal: {m: 100 * b["radius_error_median"] for m, b in ev["ball_fit"].items()}
+                            for cal, ev in evs.items()}})
     return {"rows": rows}
 
 
@@ -111,7 +119,7 @@ def run_split(cap, quick: bool = False) -> tuple[dict[str, Any], list[dict[str, 
             "label_offset_px": (ev["truth"].get("labels") or {}).get("center_offset_px_median")}
     rows = [_row(s, None, "(defaults)", r[s], None) for r in four["rows"] for s in r if s != "model"]
     if not quick:
-        old = calibrate(cap.select(TRAIN_PRESSES), 2.0, "all", refine_model="near")
+        old = calibrate(cap.select(TRAIN_PRESSES), 2.0, models="all", refine_model="near")
         case["audit"] = _audit(cap, test_circles, {"detected": runs["detected"]["calibration"],
                                                    "near-refined (old default)": old,
                                                    "labels": runs["labels"]["calibration"]})
@@ -184,7 +192,8 @@ def format_split(case: dict[str, Any]) -> list[str]:
         lines.append(f"  {'':32s} {'':>13s} | " + " | ".join(" ".join(f"{m:>6s}" for m in models) for _ in cals))
         for a in case["audit"]["rows"]:
             o = a["offset_px"]
-            lines.append(f"  {a['truth']:32s} {o[0]:+6.2f},{o[1]:+6.2f} | " + " | ".join(
+            otxt = "" if o is None else f"{o[0]:+6.2f},{o[1]:+6.2f}"
+            lines.append(f"  {a['truth']:32s} {otxt:>13s} | " + " | ".join(
                 " ".join(f"{f(a['models'][c][m]):>6s}" for m in models) for c in cals))
     if case.get("levers"):
         fixed = case.get("fixed_cv_default")
