@@ -12,12 +12,15 @@ two agree ray by ray to float rounding.
 Speed comes from SIMD. Rays go in blocks of :data:`BLOCK`: a scalar loop emits them, then
 branch-free loops over the block's arrays (selects, no early exits; LLVM vectorizes them,
 AVX-512: 16 float32 lanes) take every ray through the lens at once: the swept-arc entry solve
-as masked Newton steps of the whole block (stopping when no lane moves), then both surfaces,
-Snell, Fresnel, TIR and the exit, then the books and a vector loop of pixel indices per
-binning pass before the scalar adds. The rare rays that loop cannot finish (an exit through
-the side, total internal reflection to follow) go to :func:`trace_redo`, the scalar
+as masked Newton steps of the whole block (stopping when no lane moves), then refraction in,
+the swept-arc exit solve the same way (for the rays that leave through a rounded edge), the
+exit surface, Snell, Fresnel and TIR, then the books and a vector loop of pixel indices per
+binning pass before the scalar adds. The rays that loop cannot finish (total internal
+reflection to follow, with the internal_bounces effect) go to :func:`trace_redo`, the scalar
 :func:`trace_ray` built from the same functions with the full loops, compiled only when a
-scene first needs it.
+scene first needs it. The block loops are compiled with ``noalias`` arguments
+(:data:`BLOCK_JIT`): LLVM vectorizes a loop over many arrays only when it need not check at
+run time that none overlaps another.
 
 The scene enters as two small arrays built by :func:`sim.optics.engine.kernel_params`:
 ``P`` (floats of the kernel's type: geometry, tolerances and constants, slots ``P_*``) and
@@ -921,8 +924,8 @@ def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi, redo):
 def trace_redo(P, F, seeds, tab, PT, PI, out, books, counts, redo, r):
     """Rays ``redo[:r]`` through the scalar :func:`trace_ray`, booked and binned like :func:`trace_range`'s.
 
-    A separate entry point, compiled the first time a scene needs it (a ray leaving through the
-    side, TIR to follow): the default scene's trace never does.
+    A separate entry point, compiled the first time a scene needs it (TIR to follow, with the
+    internal_bounces effect): the default scene's trace never does.
     """
     ft = tab.dtype
     m = r
