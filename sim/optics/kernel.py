@@ -12,12 +12,15 @@ two agree ray by ray to float rounding.
 Speed comes from SIMD. Rays go in blocks of :data:`BLOCK`: a scalar loop emits them, then
 branch-free loops over the block's arrays (selects, no early exits; LLVM vectorizes them,
 AVX-512: 16 float32 lanes) take every ray through the lens at once: the swept-arc entry solve
-as masked Newton steps of the whole block (stopping when no lane moves), then both surfaces,
-Snell, Fresnel, TIR and the exit, then the books and a vector loop of pixel indices per
-binning pass before the scalar adds. The rare rays that loop cannot finish (an exit through
-the side, total internal reflection to follow) go to :func:`trace_redo`, the scalar
+as masked Newton steps of the whole block (stopping when no lane moves), then refraction in,
+the swept-arc exit solve the same way (for the rays that leave through a rounded edge), the
+exit surface, Snell, Fresnel and TIR, then the books and a vector loop of pixel indices per
+binning pass before the scalar adds. The rays that loop cannot finish (total internal
+reflection to follow, with the internal_bounces effect) go to :func:`trace_redo`, the scalar
 :func:`trace_ray` built from the same functions with the full loops, compiled only when a
-scene first needs it.
+scene first needs it. The block loops are compiled with ``noalias`` arguments
+(:data:`BLOCK_JIT`): LLVM vectorizes a loop over many arrays only when it need not check at
+run time that none overlaps another.
 
 The scene enters as two small arrays built by :func:`sim.optics.engine.kernel_params`:
 ``P`` (floats of the kernel's type: geometry, tolerances and constants, slots ``P_*``) and
@@ -41,6 +44,9 @@ import math
 
 import numpy as np
 from numba import njit, prange, types
+from numba.core.compiler import CompilerBase, DefaultPassBuilder
+from numba.core.compiler_machinery import FunctionPass, register_pass
+from numba.core.typed_passes import NopythonTypeInference
 from numba.extending import overload
 
 __all__ = ["P_SLOTS", "F_SLOTS", "BOOKS", "COUNTS", "SAMPLER_CODES", "BLOCK", "as_tuple", "trace_range", "trace_redo", "trace_ray", "trace_rays", "FASTMATH"]
@@ -84,6 +90,38 @@ JIT = dict(fastmath=FASTMATH, error_model="numpy")
 
 
 INLINE = dict(JIT, forceinline=True)
+
+
+
+@register_pass(mutates_CFG=False, analysis_only=True)
+class _NoAlias(FunctionPass):
+    """Marks the compiled function's pointer arguments ``noalias`` (numba's flag, not an option of ``@njit``)."""
+
+    _name = "iristac_noalias"
+
+    def __init__(self):
+        FunctionPass.__init__(self)
+
+    def run_pass(self, state):
+        state.flags.noalias = True
+        return False
+
+
+class _NoAliasCompiler(CompilerBase):
+    """numba's nopython pipeline with :class:`_NoAlias` before lowering."""
+
+    def define_pipelines(self):
+        pm = DefaultPassBuilder.define_nopython_pipeline(self.state)
+        pm.add_pass_after(_NoAlias, NopythonTypeInference)
+        pm.finalize()
+        return [pm]
+
+
+# The block loops (``_block_*``): their array arguments never overlap (each is its own
+# np.empty of trace_range; never one array passed twice), and saying so lets LLVM vectorize a
+# loop over many arrays: without it each pair needs a run-time overlap check, and past a few
+# dozen LLVM gives up ("too many memory checks") and the loop runs scalar (3x slower lens).
+BLOCK_JIT = dict(JIT, pipeline_class=_NoAliasCompiler)
 
 _M32 = np.uint64(0xFFFFFFFF)
 
@@ -312,7 +350,8 @@ def top_roots(P, ox, oy, oz, dx, dy, dz):
     R = P[P_TOP_R]
     b = ox * dx + oy * dy + oz * dz + R * dz
     c = ox * ox + oy * oy + oz * oz + (R + R) * oz
-    return _quadratic(P[P_ONE], b, c, P[P_ONE])
+    one = _fl(1, P[P_ONE])  # a constant: the root q / a with a = 1 costs no division
+    return _quadratic(one, b, c, one)
 
 
 @njit(**INLINE)
@@ -537,14 +576,27 @@ def trace_ray(P, F, ox, oy, oz, dx, dy, dz, w):
 
 
 # -- a block of rays, vectorized ----------------------------------------------------------------
-@njit(**JIT)
+@njit(**BLOCK_JIT)
 def _block_emit(P, F, seeds, tab, start, m, EX, EY, EZ):
-    """Directions of rays ``start .. start+m-1`` (scalar: table reads or hashing and trigonometry)."""
-    for i in range(m):
-        EX[i], EY[i], EZ[i] = emit(P, F, seeds, tab, start + i)
+    """Directions of rays ``start .. start+m-1`` (scalar: table reads or hashing and trigonometry).
+
+    The grid's row and column step along (as :func:`emit`'s, without its integer division per ray)."""
+    if F[F_SAMPLER] == 0:
+        k = F[F_K]
+        a = start // k
+        b = start - a * k
+        for i in range(m):
+            EX[i], EY[i], EZ[i] = direction(P, tab[0, a], tab[1, a], tab[2, b], tab[3, b])
+            b += 1
+            if b == k:
+                a += 1
+                b = 0
+    else:
+        for i in range(m):
+            EX[i], EY[i], EZ[i] = emit(P, F, seeds, tab, start + i)
 
 
-@njit(**JIT)
+@njit(**BLOCK_JIT)
 def _block_start(P, F, m, EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD, THI, INS, BOX):
     """The box and the swept-arc entry solve's start of each ray of a block (a vector loop);
     returns how many rays need the solve."""
@@ -560,70 +612,122 @@ def _block_start(P, F, m, EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD, THI, INS, B
     return need
 
 
-@njit(**JIT)
-def _block_newton(P, m, EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD):
-    """One masked Newton step of every ray of a block (a vector loop); returns how many still move."""
-    ox, oy, oz = P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z]
+def _at(a, i):  # pragma: no cover - replaced by the overload in compiled code
+    return a[i] if isinstance(a, np.ndarray) else a
+
+
+@overload(_at, inline="always")
+def _at_overload(a, i):
+    """``a[i]`` for an array, ``a`` for a scalar (a solve's origins: each ray's, or the LED for all)."""
+    if isinstance(a, types.Array):
+        return lambda a, i: a[i]
+    return lambda a, i: a
+
+
+@njit(**BLOCK_JIT)
+def _block_newton(P, left, m, OX, OY, OZ, DX, DY, DZ, T, SN, DSN, RHO, S, ACT, DEAD):
+    """One masked Newton step of every ray of a block toward its first (``left``) or last root of the
+    swept arc (a vector loop); returns how many still move. ``OX, OY, OZ``: origin arrays, or one
+    origin for all (the LED's)."""
     moving = 0
     for i in range(m):
-        t, sn, dsn, rho, s, active, dead = newton_step(P, ox, oy, oz, EX[i], EY[i], EZ[i], T[i], SN[i], DSN[i],
-                                                       RHO[i], S[i], ACT[i], DEAD[i], True)
+        t, sn, dsn, rho, s, active, dead = newton_step(P, _at(OX, i), _at(OY, i), _at(OZ, i), DX[i], DY[i], DZ[i],
+                                                       T[i], SN[i], DSN[i], RHO[i], S[i], ACT[i], DEAD[i], left)
         T[i], SN[i], DSN[i], RHO[i], S[i], ACT[i], DEAD[i] = t, sn, dsn, rho, s, active, dead
         moving += active
     return moving
 
 
 @njit(**JIT)
+def _solve(P, F, left, m, OX, OY, OZ, DX, DY, DZ, T, SN, DSN, RHO, S, ACT, DEAD):
+    """The swept-arc solves of a block: every ray stepped together, masked, until none moves.
+
+    Masking the whole block beat packing the rays that need a solve to the front first (a
+    scalar gather; measured slower on both shipped scenes, where from 1 % to 38 % of the rays
+    need one)."""
+    for _ in range(F[F_ITERATIONS]):
+        if not _block_newton(P, left, m, OX, OY, OZ, DX, DY, DZ, T, SN, DSN, RHO, S, ACT, DEAD):
+            break
+
+
+@njit(**BLOCK_JIT)
 def _block_entry(P, m, T, SN, DSN, S, DEAD, THI, INS, E0, UNC):
     """The side set's entry ``E0`` (and ``UNC``: unconverged) of each ray after the solve (a vector loop)."""
     for i in range(m):
         E0[i], UNC[i] = side_entry_end(P, THI[i], T[i], SN[i], DSN[i], S[i], DEAD[i], INS[i])
 
 
-@njit(**JIT)
-def _block_rest(P, F, m, EX, EY, EZ, E0, UNC, BOX, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE):
-    """The rest of the lens for every ray of a block, branch-free (a vector loop), after the entry solve
-    (few arrays in: LLVM gives up vectorizing past a number of possibly overlapping ones).
+@njit(**BLOCK_JIT)
+def _block_inside(P, F, m, EX, EY, EZ, E0, BOX, HIT, STOP, PX, PY, PZ, IX, IY, IZ, WI, RF, X1, X2, X12, X0,
+                  T, SN, DSN, RHO, S, SEL, ACT, DEAD):
+    """Into the lens and the start of the way out, every ray of a block (a vector loop), after the entry solve.
 
-    Writes the ray leaving the optics (``OX .. DZ``, ``W``; only rays with power left need a
-    path), the power reflected ``RF`` and absorbed ``AB`` and the fate ``CODE``; :data:`REDO`
-    marks the rays only :func:`trace_ray` can finish (an exit through the side, TIR to follow).
+    Writes whether the ray enters (``HIT``) or is stopped there (``STOP``), the point ``P*`` and
+    direction ``I*`` inside, the power ``WI`` inside and ``RF`` reflected, the exits through the
+    top and bottom (``X1, X2, X12``; ``X0`` the cylinder side's), and the start of the swept-arc
+    exit solve (``T .. S``; ``SEL`` and ``ACT`` for the rays that need it: a ray whose solve would start
+    outside the side set leaves through the side). Returns how many need the solve.
     """
     one = P[P_ONE]
     zero = one - one
     ox, oy, oz = P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z]
     w0 = P[P_W0]
     arc = F[F_ARC] != 0
-    follow = F[F_BOUNCES] > 0
+    need = 0
     for i in range(m):
         dx, dy, dz = EX[i], EY[i], EZ[i]
-        unconv = UNC[i]
         t, sid, hit = enter_rest(P, F, ox, oy, oz, dx, dy, dz, BOX[i], E0[i])
         px, py, pz, ex, ey, ez, w_in, refl, stop_in = cross_in(P, F, ox, oy, oz, dx, dy, dz, t, sid, w0)
-        # exit through the top or bottom; a ray whose side solve would start outside the side
-        # set leaves through the side: only trace_ray finishes it
         x1, x2, x12, l_lo, l_hi, x0 = leave_start(P, F, px, py, pz, ex, ey, ez)
-        sn2, _, _, _ = arc_parts(P, px, py, pz, ex, ey, ez, min(l_hi, x12))
+        t0 = min(l_hi, x12)
+        sn, dsn, rho, s = arc_parts(P, px, py, pz, ex, ey, ez, t0)
+        sel = hit & (not stop_in) & arc & (sn > zero) & (l_lo <= l_hi)
+        HIT[i], STOP[i] = hit, stop_in
+        PX[i], PY[i], PZ[i], IX[i], IY[i], IZ[i], WI[i], RF[i] = px, py, pz, ex, ey, ez, w_in, refl
+        X1[i], X2[i], X12[i], X0[i] = x1, x2, x12, x0
+        T[i], SN[i], DSN[i], RHO[i], S[i], SEL[i], ACT[i], DEAD[i] = t0, sn, dsn, rho, s, sel, sel, False
+        need += sel
+    return need
+
+
+@njit(**BLOCK_JIT)
+def _block_exit(P, F, m, EX, EY, EZ, UNC, HIT, STOP, PX, PY, PZ, IX, IY, IZ, WI, RF, X1, X2, X12, X0,
+                T, SN, S, SEL, DEAD, OX, OY, OZ, DX, DY, DZ, W, AB, CODE):
+    """Out of the lens, every ray of a block, branch-free (a vector loop), after the exit solve.
+
+    Writes the ray leaving the optics (``OX .. DZ``, ``W``; only rays with power left need a
+    path), the power reflected ``RF`` (added to) and absorbed ``AB`` and the fate ``CODE``;
+    :data:`REDO` marks the rays only :func:`trace_ray` can finish (total internal reflection to
+    follow, with the internal_bounces effect).
+    """
+    one = P[P_ONE]
+    zero = one - one
+    ox, oy, oz = P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z]
+    w0 = P[P_W0]
+    tol = P[P_NEWTON_TOL]
+    follow = F[F_BOUNCES] > 0
+    for i in range(m):
+        hit, stop_in, w_in, refl = HIT[i], STOP[i], WI[i], RF[i]
+        solved = SEL[i] & (not DEAD[i]) & (SN[i] / S[i] <= tol)
+        t2, sid2, good = leave_end(P, T[i] if solved else X0[i], X1[i], X2[i], X12[i])
+        qx, qy, qz, tx, ty, tz, T2, tir, stop_out, _, _, _ = cross_out(P, F, PX[i], PY[i], PZ[i], IX[i], IY[i],
+                                                                      IZ[i], t2, sid2)
         inside_lens = hit & (not stop_in)
-        redo = inside_lens & arc & (sn2 > zero) & (l_lo <= l_hi)
-        t2, sid2, good = leave_end(P, x0, x1, x2, x12)
-        qx, qy, qz, tx, ty, tz, T2, tir, stop_out, _, _, _ = cross_out(P, F, px, py, pz, ex, ey, ez, t2, sid2)
         out = inside_lens & good & (not stop_out)
-        redo = redo | (out & tir & follow)
         leaves = out & (not tir)
         OX[i] = qx if leaves else ox
         OY[i] = qy if leaves else oy
         OZ[i] = qz if leaves else oz
-        DX[i] = tx if leaves else dx
-        DY[i] = ty if leaves else dy
-        DZ[i] = tz if leaves else dz
+        DX[i] = tx if leaves else EX[i]
+        DY[i] = ty if leaves else EY[i]
+        DZ[i] = tz if leaves else EZ[i]
         W[i] = (w_in * T2) if leaves else (w0 if not hit else zero)
         RF[i] = (refl + w_in * (one - T2)) if leaves else (refl if inside_lens else zero)
         AB[i] = zero if (leaves | (not hit)) else (w0 if stop_in else w_in)
         code = OUT if (leaves | (not hit)) else (STOPPED if stop_in else (LOST if not good else (
             STOPPED if stop_out else TIR_LOST)))
-        code = (UNCONVERGED if unconv else OUT) if not hit else code
-        CODE[i] = REDO if redo else code
+        code = (UNCONVERGED if UNC[i] else OUT) if not hit else code
+        CODE[i] = REDO if (out & tir & follow) else code
 
 
 @njit(**INLINE)
@@ -636,9 +740,12 @@ def on_screen(P, ox, oy, oz, dx, dy, dz):
     return (dz != zero) & (t > zero) & (abs(x) <= P[P_HALF_X]) & (abs(y) <= P[P_HALF_Y])
 
 
-@njit(**JIT)
-def _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, books, cnt):
-    """Energy books (float64) and fate counts of a block."""
+@njit(**BLOCK_JIT)
+def _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, ON, books, cnt):
+    """Energy books (float64) and fate counts of a block: which rays land on the screen in a vector
+    loop (``ON``), then the sums with selects, not branches (a ray lands or not at random)."""
+    for i in range(m):
+        ON[i] = on_screen(P, OX[i], OY[i], OZ[i], DX[i], DY[i], DZ[i])
     on = 0.0
     off = 0.0
     rf = 0.0
@@ -647,17 +754,17 @@ def _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, books, cnt):
         cnt[CODE[i]] += 1
         rf += RF[i]
         ab += AB[i]
-        if on_screen(P, OX[i], OY[i], OZ[i], DX[i], DY[i], DZ[i]):
-            on += W[i]
-        else:
-            off += W[i]
+        w = W[i]
+        z = w - w
+        on += w if ON[i] else z
+        off += z if ON[i] else w
     books[0] += on
     books[1] += off
     books[2] += rf
     books[3] += ab
 
 
-@njit(**JIT)
+@njit(**BLOCK_JIT)
 def _block_plane(m, z0, inv_a, reach2, OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY):
     """:func:`plane_values` of a block's rays (a vector loop)."""
     for i in range(m):
@@ -693,9 +800,12 @@ def plane_values(z0, inv_a, reach2, ox, oy, oz, dx, dy, dz, w):
     return (x if ok else zero), (y if ok else zero), e, sv * dx, sv * dy
 
 
-@njit(**JIT)
+@njit(**BLOCK_JIT)
 def _block_scatter(m, ca, sa, ipx, ipy, cx, cy, H, W, C, off, X, Y, E, VX, VY, IDX, out):
-    """Bin a block on one pass (rotated by ``(ca, sa)``): pixel indices in a vector loop, then the adds."""
+    """Bin a block on one pass (rotated by ``(ca, sa)``): pixel indices in a vector loop, then the adds.
+
+    (A branch-free variant adding the rays off the grid to one trash pixel ran 1.7x slower: those
+    adds form one chain through memory.)"""
     wf = _fl(W, cx)
     hf = _fl(H, cx)
     for i in range(m):
@@ -727,6 +837,13 @@ def _block_bin(P, PT, PI, m, OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY, IDX, ou
                        PI[p, 2], PI[p, 3], X, Y, E, VX, VY, IDX, out)
 
 
+@njit(**JIT)
+def _floats10(B, ft):
+    """Ten block arrays of the kernel's float type."""
+    return (np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft),
+            np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft))
+
+
 @njit(cache=True, nogil=True, **JIT)
 def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi, redo):
     """Trace rays ``lo .. hi-1`` of one LED into one slot's images, books and counters.
@@ -752,17 +869,16 @@ def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi, redo):
     zero = one - one
     ft = tab.dtype
     B = BLOCK
-    EX, EY, EZ = np.empty(B, ft), np.empty(B, ft), np.empty(B, ft)
-    T, SN, DSN, RHO, S, THI = (np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft),
-                               np.empty(B, ft))
-    ACT, DEAD, INS = np.empty(B, np.bool_), np.empty(B, np.bool_), np.empty(B, np.bool_)
-    BOX, UNC, E0 = np.empty(B, np.bool_), np.empty(B, np.bool_), np.empty(B, ft)
-    OX, OY, OZ = np.empty(B, ft), np.empty(B, ft), np.empty(B, ft)
-    DX, DY, DZ = np.empty(B, ft), np.empty(B, ft), np.empty(B, ft)
-    W, RF, AB = np.empty(B, ft), np.empty(B, ft), np.empty(B, ft)
-    X, Y, E, VX, VY = np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft), np.empty(B, ft)
-    CODE = np.empty(B, np.int32)
+    # The block's arrays: each its own allocation (BLOCK_JIT tells LLVM none overlaps another).
+    EX, EY, EZ, T, SN, DSN, RHO, S, THI, E0 = _floats10(B, ft)
+    PX, PY, PZ, IX, IY, IZ, WI, X1, X2, X12 = _floats10(B, ft)
+    X0, OX, OY, OZ, DX, DY, DZ, W, RF, AB = _floats10(B, ft)
+    X, Y, E, VX, VY, _, _, _, _, _ = _floats10(B, ft)
+    ACT, DEAD, INS, BOX, UNC, HIT, STOP, SEL = (np.empty(B, np.bool_), np.empty(B, np.bool_), np.empty(B, np.bool_),
+                                                np.empty(B, np.bool_), np.empty(B, np.bool_), np.empty(B, np.bool_),
+                                                np.empty(B, np.bool_), np.empty(B, np.bool_))
     IDX = np.empty(B, np.int64)
+    CODE = np.empty(B, np.int32)
     cnt = np.zeros(6, np.int64)
     lens = F[F_LENS] != 0
     r = 0
@@ -773,12 +889,16 @@ def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi, redo):
             break
         _block_emit(P, F, seeds, tab, start, m, EX, EY, EZ)
         if lens:
+            # in: the swept-arc side's entry solve, then refraction in and the start of the way out
             if _block_start(P, F, m, EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD, THI, INS, BOX):
-                for _ in range(F[F_ITERATIONS]):  # every ray of the block stepped together, masked
-                    if not _block_newton(P, m, EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD):
-                        break
+                _solve(P, F, True, m, P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z], EX, EY, EZ, T, SN, DSN, RHO, S, ACT, DEAD)
             _block_entry(P, m, T, SN, DSN, S, DEAD, THI, INS, E0, UNC)
-            _block_rest(P, F, m, EX, EY, EZ, E0, UNC, BOX, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE)
+            if _block_inside(P, F, m, EX, EY, EZ, E0, BOX, HIT, STOP, PX, PY, PZ, IX, IY, IZ, WI, RF, X1, X2, X12,
+                             X0, T, SN, DSN, RHO, S, SEL, ACT, DEAD):
+                # out through the side: its exit solve (toward the last root)
+                _solve(P, F, False, m, PX, PY, PZ, IX, IY, IZ, T, SN, DSN, RHO, S, ACT, DEAD)
+            _block_exit(P, F, m, EX, EY, EZ, UNC, HIT, STOP, PX, PY, PZ, IX, IY, IZ, WI, RF, X1, X2, X12, X0,
+                        T, SN, S, SEL, DEAD, OX, OY, OZ, DX, DY, DZ, W, AB, CODE)
             for i in range(m):
                 if CODE[i] == REDO:
                     redo[r] = start + i
@@ -789,7 +909,7 @@ def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi, redo):
             for i in range(m):
                 OX[i], OY[i], OZ[i], DX[i], DY[i], DZ[i] = P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z], EX[i], EY[i], EZ[i]
                 W[i], RF[i], AB[i], CODE[i] = P[P_W0], zero, zero, OUT
-        _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, books, cnt)
+        _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, ACT, books, cnt)
         _block_bin(P, PT, PI, m, OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY, IDX, out)
         start += m
     cnt[OUT] -= r  # the redo rays were counted as OUT above
@@ -804,8 +924,8 @@ def trace_range(P, F, seeds, tab, PT, PI, out, books, counts, lo, hi, redo):
 def trace_redo(P, F, seeds, tab, PT, PI, out, books, counts, redo, r):
     """Rays ``redo[:r]`` through the scalar :func:`trace_ray`, booked and binned like :func:`trace_range`'s.
 
-    A separate entry point, compiled the first time a scene needs it (a ray leaving through the
-    side, TIR to follow): the default scene's trace never does.
+    A separate entry point, compiled the first time a scene needs it (TIR to follow, with the
+    internal_bounces effect): the default scene's trace never does.
     """
     ft = tab.dtype
     m = r
@@ -822,7 +942,7 @@ def trace_redo(P, F, seeds, tab, PT, PI, out, books, counts, redo, r):
         OX[i], OY[i], OZ[i], DX[i], DY[i], DZ[i], W[i], RF[i], AB[i], CODE[i], nb = trace_ray(
             P, F, P[P_SRC_X], P[P_SRC_Y], P[P_SRC_Z], dx, dy, dz, P[P_W0])
         bounces += nb
-    _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, books, cnt)
+    _block_books(P, m, OX, OY, OZ, DX, DY, DZ, W, RF, AB, CODE, np.empty(m, np.bool_), books, cnt)
     _block_bin(P, PT, PI, m, OX, OY, OZ, DX, DY, DZ, W, X, Y, E, VX, VY, IDX, out)
     counts[0] += cnt[TIR_LOST]
     counts[1] += bounces

@@ -111,6 +111,37 @@ def test_thread_count_changes_only_rounding_and_runs_are_reproducible():
     assert ra.counters == rb.counters
 
 
+@pytest.mark.parametrize("dtype", ["float32", "float64"])
+def test_block_exit_solve_matches_the_scalar_path_through_the_rounded_edge(dtype):
+    """The default scene's rays leaving through the lens's rounded (swept-arc) edge take the block
+    loops' masked exit solve; the scalar trace_ray (the reference's loops) must book them alike
+    (most are totally reflected there: where the solve puts the exit decides that)."""
+    s = load_scene("default")
+    n = 40_000
+    P, F, seeds = engine.kernel_params(s, rays=n, sampler="grid", dtype=dtype)
+    Pt, Ft, tab = K.as_tuple(P), K.as_tuple(F), engine.grid_tables(P, F)
+    D = np.array([K.emit(Pt, Ft, seeds, tab, i) for i in range(n)])
+    O = np.broadcast_to(P[[K.P_SRC_X, K.P_SRC_Y, K.P_SRC_Z]], D.shape)
+    r = engine.lens_rays(s, O, D, powers=np.full(n, 1.0 / n), dtype=dtype)
+    q, d, w = r["origin"], r["direction"], r["power"]
+    ln = s.lens
+    # where a ray leaves, or is totally reflected and absorbed (no bounces followed): on the edge
+    side = np.isin(r["code"], [K.OUT, K.TIR_LOST]) & (q[:, 2] > ln.bottom_z + 1e-3) & (q[:, 2] < ln.rim_z - 1e-3)
+    t = (s.plane.z - q[:, 2]) / d[:, 2]
+    x, y = q[:, 0] + t * d[:, 0], q[:, 1] + t * d[:, 1]
+    on = (t > 0) & (np.abs(x) <= s.plane.size[0] / 2) & (np.abs(y) <= s.plane.size[1] / 2)
+    # one ray in nine meets the edge from inside, nearly all beyond the critical angle
+    assert side.mean() > 0.05 and r["absorbed"][side].sum() > 0.05 and (side & (w > 0)).any()
+    _, tr = engine.trace_led(s, [], rays=n, sampler="grid", dtype=dtype, threads=1)
+    e = tr.energy
+    tol = 1e-5 if dtype == "float32" else 1e-9
+    assert abs(e.reflected - r["reflected"].sum()) < tol and abs(e.absorbed - r["absorbed"].sum()) < tol
+    assert abs(e.on_screen + e.elsewhere - w.sum()) < tol
+    assert abs(e.on_screen - w[on].sum()) < 3.0 / n  # a ray within rounding of the gel's edge may flip
+    assert tr.counters["tir_absorbed"] == int((r["code"] == K.TIR_LOST).sum())
+    assert tr.counters["numerical_lost"] == int((r["code"] == K.LOST).sum())
+
+
 def test_hard_rays_stay_finite():
     """Rays in planes through the axis, along the axis, tangent to the top, grazing the side, from
     inside the lens and backwards: every output finite and the power accounted for."""
