@@ -32,6 +32,14 @@ def add_mask_flag(parser) -> None:
                         help="reconstruct only these pixels (PNG/NPY, non-zero inside; replaces the capture's mask)")
 
 
+def add_markers_flag(parser) -> None:
+    """``--markers auto|none|MASK.png``: printed gel markers to fill in (``reconstruct``, ``batch``, ``live``)."""
+    parser.add_argument("--markers", default=None, metavar="auto|none|MASK.png",
+                        help="printed gel markers: filled in before normals are solved, invalid in the mask, "
+                             "integrated through (auto: found in the reference; default: the capture's own, else "
+                             "the calibration's)")
+
+
 def mode_help(what: str = "lighting mode") -> str:
     """Help text naming the built-in lighting modes (:func:`pipeline.base.registry.list_modes`)."""
     from pipeline.base.registry import list_modes

@@ -37,6 +37,9 @@ class NormalResult:
         Number of observations used at each pixel.
     meta : dict
         Solver name and parameters.
+    confidence : ndarray, shape (H, W), float32, optional
+        In [0, 1], 0 outside the mask, from solvers that rate their own answers (the
+        calibration models: what it measures is in ``meta["confidence"]``); None otherwise.
     """
 
     normals: np.ndarray
@@ -46,6 +49,7 @@ class NormalResult:
     mask: np.ndarray
     count: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    confidence: np.ndarray | None = None
 
     @property
     def valid_fraction(self) -> float:

@@ -40,7 +40,8 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
     Parameters
     ----------
     n_rec : Record
-        Schema ``normals``: ``normals (K, H, W, 3)``, ``mask (K, H, W)``, attribute ``mm_per_px``.
+        Schema ``normals``: ``normals (K, H, W, 3)``, ``mask (K, H, W)``, optional ``filled
+        (H, W)`` (filled-in marker pixels, integrated through), attribute ``mm_per_px``.
     integrator : str
         A name in :data:`pipeline.base.registry.INTEGRATORS`.
     mm_per_px : float, optional
@@ -63,7 +64,12 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
     if mm_per_px is not None and not np.isclose(pitch, mm_per_px, rtol=1e-9, atol=0.0):
         raise UserError(f"depth: the normals are at {pitch} mm/px but the stage was keyed with {mm_per_px} "
                         f"(the capture's pitch differs from its config section's)")
-    outs = [integrate(n_rec.data["normals"][k], pitch, n_rec.data["mask"][k], method=integrator, region=region)
+    # Filled-in marker pixels (``filled``) are no measurements but fit to integrate through:
+    # taken as flat gel they would dent every contact they cross.
+    filled = n_rec.data.get("filled")
+    usable = [n_rec.data["mask"][k] if filled is None else (n_rec.data["mask"][k] | filled)
+              for k in range(n_rec.data["normals"].shape[0])]
+    outs = [integrate(n_rec.data["normals"][k], pitch, usable[k], method=integrator, region=region)
             for k in range(n_rec.data["normals"].shape[0])]
     data = {"height": np.stack([o.height for o in outs]), "mask": np.stack([o.mask for o in outs])}
     meta: dict[str, Any] = {"integrator": integrator, "mm_per_px": pitch}
