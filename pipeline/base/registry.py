@@ -134,14 +134,16 @@ class Registry:
 #: ``normal_maps`` exactly as ``iristac eval calibration`` does); ``info["patterns"]``: ``any``,
 #: or ``one-rgb`` for a solver that reads one RGB frame per contact; ``info["variant"]``: an
 #: alternative that comparisons leave out unless asked for by name; ``info["whole_frame"]``: the
-#: solver reads whole frames (pixel positions are inputs) and is masked after, not gathered.
+#: solver reads whole frames (pixel positions are inputs) and is masked after, not gathered;
+#: ``info["fast"]``: the builder of its live per-frame path (precomputed once per calibration,
+#: :func:`pipeline.stages.fast_solvers.frame_solver`), absent when live use runs it eagerly.
 SOLVERS = Registry("solver", "--solver", [
     Entry("lstsq", "pipeline.normals.solve:solve_lstsq",
           "far field (Woodham): one light vector per observation, else the light field at the image centre",
-          {"needs": "vectors", "patterns": "any"}),
+          {"needs": "vectors", "patterns": "any", "fast": "pipeline.stages.fast_solvers:lstsq_fast"}),
     Entry("nearfield", "pipeline.normals.solve:solve_nearfield",
           "per-pixel light vectors (an illumination model or a calibrated light field)",
-          {"needs": "field", "patterns": "any"}),
+          {"needs": "field", "patterns": "any", "fast": "pipeline.stages.fast_solvers:nearfield_fast"}),
     Entry("robust", "pipeline.normals.solve:solve_robust",
           "shadows and highlights modelled: attached shadows from the light matrix, highlights above and cast "
           "shadows below the Lambertian prediction rejected (Tukey IRLS); light field if present, else far field",
@@ -161,10 +163,12 @@ SOLVERS = Registry("solver", "--solver", [
           {"needs": "model:traced", "patterns": "any", "whole_frame": True}),
     Entry("lut", "pipeline.stages.model_solvers:solve_lut",
           "the calibration's colour lookup table with its per-bin position correction (one RGB pattern)",
-          {"needs": "model:lut", "patterns": "one-rgb", "whole_frame": True}),
+          {"needs": "model:lut", "patterns": "one-rgb", "whole_frame": True,
+           "fast": "pipeline.stages.fast_solvers:lut_fast"}),
     Entry("mlp", "pipeline.stages.model_solvers:solve_mlp",
           "the calibration's MLP (colour change, reference and position -> normal)",
-          {"needs": "model:mlp", "patterns": "any", "whole_frame": True}),
+          {"needs": "model:mlp", "patterns": "any", "whole_frame": True,
+           "fast": "pipeline.stages.fast_solvers:mlp_fast"}),
 ])
 
 #: Depth integrators: ``target(normals (H, W, 3), mm_per_px, mask, **kwargs) -> DepthResult``
