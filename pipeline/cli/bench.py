@@ -20,6 +20,7 @@ BENCHMARKS = [
     ("capture", "capture: pattern changes per second over the emulator"),
     ("reconstruct", "normals and depth: time and error per solver, integrator and size"),
     ("calibration", "calibration: time and cross-validated error per model"),
+    ("live", "live paths: uint8 frames to heights per solver, size and thread count, fast vs eager"),
     ("all", "every benchmark; writes docs/benchmarks.md and an error-vs-time plot"),
 ]
 

@@ -88,6 +88,8 @@ def _run(args) -> int:
         print(f"{s['results']} results ({s['mode']}, {s['solver']} {s['method']}) at {s['fps']:.1f} /s, latency "
               f"p50 {s['latency_ms_p50']:.1f} ms, p99 {s['latency_ms_p99']:.1f} ms; dropped {s['dropped']}, "
               f"stale {s['stale']}, torn cycles {s['torn']}")
-    if res.error and (args.frames is None or s["results"] < args.frames):
-        return 1
+    if args.frames is not None and s["results"] < args.frames:
+        return 1  # asked for more results than the source gave
+    if res.error and not res.end_of_file:
+        return 1  # the camera failed mid-stream
     return 0

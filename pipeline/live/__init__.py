@@ -106,6 +106,8 @@ class LiveResult:
 
     summary: dict[str, Any]
     error: str | None = None
+    #: The source was a video file and it ended (a normal end of input, not a failure).
+    end_of_file: bool = False
     last: Any = None
     latencies_ms: list[float] = field(default_factory=list)
 
@@ -217,6 +219,9 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
         raise UserError(f"live: --frames must be >= 1, got {frames}")
     patterns = load_mode(mode)
     multi = len(patterns.frames) > 1
+    if SOLVERS.get(solver).info.get("patterns") == "one-rgb" and multi:
+        raise UserError(f"live: --solver {solver} needs one RGB pattern per frame; mode {patterns.name!r} has "
+                        f"{len(patterns.frames)} patterns (use a single-frame mode such as trichromatic)")
     if virtual:
         emulate = True
     if multi and not (port or emulate):
@@ -225,8 +230,9 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
     if port and emulate:
         raise UserError("live: give --port or --emulate, not both")
     t_start = time.monotonic()
-    store = StageStore(cache)
+    store = StageStore(cache) if virtual else None
     cleanup: list = []
+    rec = None
     result = LiveResult(summary={})
     try:
         # ---- the ring and the camera -------------------------------------------------------
@@ -324,7 +330,6 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
         prepare_s = time.monotonic() - t0
         say(f"solver {solver} ({fs.method}) ready in {prepare_s:.2f} s")
         # ---- outputs ------------------------------------------------------------------------
-        rec = None
         if record is not None:
             from pipeline.live.recorder import LiveRecorder
 
@@ -395,6 +400,7 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
                                            "seconds" if seconds is not None else "end"))
         if rec is not None:
             rec.close(stopped=stopped)
+            rec = None
         s = _stats(n, q.dropped, t_first, time.monotonic() if t_first else None, lat)
         counters = getattr(source, "counters", {})
         result.summary = {**s, "mode": patterns.name, "solver": solver, "method": fs.method,
@@ -405,12 +411,18 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
                           "record": None if record is None else str(Path(record)),
                           "view": None if lv is None else lv.url}
         result.error = error[0] if error else None
+        result.end_of_file = bool(error) and bool(getattr(cam, "is_file", False))
         result.last = last
         result.latencies_ms = lat
         if lv is not None:
             lv.set_stats(running=False, message=stopped)
         return result
     finally:
+        if rec is not None:  # interrupted (Ctrl-C) or failed: what was recorded is still closed properly
+            try:
+                rec.close(stopped="interrupted")
+            except Exception:  # noqa: BLE001 - the index file on disk stays valid regardless
+                pass
         for fn in reversed(cleanup):
             try:
                 fn()
