@@ -92,7 +92,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         Pixels with a worse-conditioned light matrix are masked.
     device, dtype, threads
         Torch device and dtype of the solvers; torch intra-op threads while solving
-        (default 1: fastest on a small shared CPU; None leaves torch's setting).
+        (default 1: fastest on a small shared CPU; None leaves torch's setting). On a GPU
+        (``cuda``) ``nearfield`` solves every contact instance as one batch and ``dst``
+        integrates them all by FFT on the device (:mod:`pipeline.normals.batched`).
     force : bool
         Recompute even if the store has the results.
     compile : bool
@@ -140,7 +142,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         max_condition=max_condition, device=device, dtype=dtype, threads=threads, compile=compile, force=force,
         heal=heal, mask=user_region, markers=marks)
     d_rec, _, d_cached = depth_stage.run(store, n_rec, n_key, integrator=integrator, force=force, heal=heal,
-                                         region=region)
+                                         region=region, device=device)
     seconds = time.perf_counter() - t0
     summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": round(seconds, 4),
                                "valid_fraction": float(np.asarray(n_rec.data["mask"]).mean()),

@@ -364,6 +364,13 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
         if on_ready is not None:
             on_ready({"view": None if lv is None else lv.url, "method": fs.method, "size": [H, W]})
         producer.start()
+        # One BLAS thread per caller (the MLP's small GEMMs run on the solver's own threads;
+        # OpenBLAS workers on top would fight them for the cores).
+        from pipeline.base.threads import limit_threads
+
+        blas_one = limit_threads(blas=1)
+        blas_one.__enter__()
+        cleanup.append(lambda: blas_one.__exit__(None, None, None))
         lat: list[float] = []
         n = 0
         t_first = None

@@ -244,7 +244,8 @@ def _stack(results, name: str) -> np.ndarray:
 
 
 def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3,
-            device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False, mask=None, markers=None):
+            device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False, mask=None, markers=None,
+            batched: bool | None = None):
     """The ``normals`` :class:`~pipeline.base.store.Record` of a capture (no caching).
 
     Parameters
@@ -263,6 +264,11 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         Printed gel markers (:func:`marker_mask`): filled in before the solve (the calibration
         models fill them in themselves, as ``eval calibration`` does), False in ``mask``, True
         in ``filled``.
+    batched : bool, optional
+        ``nearfield`` on the whole frame: solve all K instances as one batch on ``device``
+        (:class:`pipeline.normals.batched.NearFieldBatched`, no host round trip inside the
+        batch). None: when ``device`` is not the CPU. Equal to the per-instance solver to float
+        rounding, so it stays out of the key like the device.
 
     Returns
     -------
@@ -280,6 +286,11 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
     raw = cap.data["frames"]
     H, W = raw.shape[2:4]
     region = capture_region(cap, mask)
+    if batched is None:
+        batched = str(device) != "cpu"
+    if (batched and solver == "nearfield" and not ratio and region is None and markers is None
+            and lights.field is not None and str(dtype) == "float32"):
+        return _compute_batched(cap, lights, max_condition=max_condition, device=device, mm_per_px=mm_per_px)
     ref = reference_frames(cap)
     dark = cap.data.get("dark")
     whole_frame = bool(SOLVERS.get(solver).info.get("whole_frame"))
@@ -347,6 +358,25 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
     if markers is not None:
         meta["markers"] = int(markers.sum())
     meta.update({k: v for k, v in res[0].meta.items() if k not in meta and isinstance(v, (str, int, float))})
+    return Record("normals", data, meta)
+
+
+def _compute_batched(cap, lights: LightSource, *, max_condition: float, device, mm_per_px: float):
+    """The ``nearfield`` record of every instance at once on ``device`` (see :func:`compute`)."""
+    from pipeline.base.store import Record
+    from pipeline.normals.batched import NearFieldBatched
+
+    raw = cap.data["frames"]
+    K, P, H, W, C = raw.shape
+    nb = NearFieldBatched(lights.field, flat_field=lights.flat_field, max_condition=max_condition, device=device)
+    out = {k: v.cpu().numpy() for k, v in nb.solve(raw, dark=cap.data.get("dark")).items()}
+    cond = nb.condition.cpu().numpy().reshape(H, W)
+    data = {"normals": out["normals"], "albedo": out["albedo"], "residual": out["residual"],
+            "condition": np.broadcast_to(cond, (K, H, W)).copy(), "mask": out["mask"],
+            "count": np.full((K, H, W), P * C, np.int32)}
+    meta = {"solver": "nearfield", "mm_per_px": mm_per_px, "ratio": False, "max_condition": float(max_condition),
+            "lights": lights.source, "valid_fraction": float(data["mask"].mean()), "method": "batched",
+            "device": str(device)}
     return Record("normals", data, meta)
 
 
