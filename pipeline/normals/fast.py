@@ -110,7 +110,7 @@ def _nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, 
     """Pixels ``start:stop`` of observation planes ``obs (N, M)``: moments, solve, outputs.
 
     Blocked layout (:func:`_blocked`, block ``b`` = pixels ``512 b ...``): ``L (nb, N, 3, 512)``,
-    ``inv (nb, 9, 512)``, ``Q (nb, G, 6, 512)``, ``dark``/``invflat`` ``(nb, N, 512)`` or
+    ``inv (nb, 6, 512)`` (symmetric: xx, xy, xz, yy, yz, zz), ``Q (nb, G, 6, 512)``, ``dark``/``invflat`` ``(nb, N, 512)`` or
     ``(0, 0, 0)`` when absent, float32; ``valid0 (M,)`` bool; ``start`` a multiple of 512.
     Channels sharing their lights (``scale (nb, G, 512)``, else ``(0, 0, 0)``): observation
     ``k`` (pattern ``k // G``, channel ``g = k % G``) has the light ``scale_g L[k // G]``, so
@@ -211,8 +211,8 @@ def _nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, 
                 t2[j] += r2[g, j]
         for j in range(B):
             bb0[j] = ib[0, j] * t0[j] + ib[1, j] * t1[j] + ib[2, j] * t2[j]
-            bb1[j] = ib[3, j] * t0[j] + ib[4, j] * t1[j] + ib[5, j] * t2[j]
-            bb2[j] = ib[6, j] * t0[j] + ib[7, j] * t1[j] + ib[8, j] * t2[j]
+            bb1[j] = ib[1, j] * t0[j] + ib[3, j] * t1[j] + ib[4, j] * t2[j]
+            bb2[j] = ib[2, j] * t0[j] + ib[4, j] * t1[j] + ib[5, j] * t2[j]
         if G > 1:
             for _ in range(iterations):
                 # Per-group albedo alternation (pipeline.normals._lstsq.solve): rescale the
@@ -364,8 +364,8 @@ class NearFieldFast:
             cond = np.sqrt(np.clip(ev[:, 2] / np.where(ev[:, 0] > 0, ev[:, 0], 1.0), 1.0, None))
         bad = (ev[:, 0] <= 0) | (ev[:, 2] <= 0) | ~np.isfinite(cond)
         self.condition_m = np.where(bad, _COND_CAP, np.minimum(cond, _COND_CAP)).astype(np.float32)
-        self.inv = _blocked(inv.reshape(-1, 9).T)  # (nb, 9, 512)
-        sym = [0, 1, 2, 4, 5, 8]  # xx, xy, xz, yy, yz, zz of the symmetric 3x3
+        sym = [0, 1, 2, 4, 5, 8]  # xx, xy, xz, yy, yz, zz of a symmetric 3x3
+        self.inv = _blocked(inv.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512): the inverse is symmetric too
         scale = self._shared_scale(Lm)
         if scale is None:
             self.Lt = _blocked(Lm.transpose(0, 2, 1))  # (nb, N, 3, 512)
