@@ -21,7 +21,7 @@ from pipeline.depth._common import DepthResult
 __all__ = ["FastDST", "dst_divergence"]
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _slopes(normals, mask, scale, max_slope, gc, gr, valid):  # pragma: no cover - compiled
     """``pipeline.depth._common.pixel_gradients`` of float32 normals ``(H, W, 3)``: slopes in mm
     per pixel step (``dh/dcol = -n_x / n_z s``, ``dh/drow = n_y / n_z s``), 0 where the mask
@@ -52,7 +52,7 @@ def _slopes(normals, mask, scale, max_slope, gc, gr, valid):  # pragma: no cover
             valid[r, c] = ok
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _divergence(gc, gr, f):  # pragma: no cover - compiled
     """``div`` of the edge gradients with the image border's edges taken from the border
     pixels' own slopes (``poisson_dst``'s ``ecp``/``erp`` construction)."""

@@ -84,9 +84,13 @@ def frame_planes_np(frames: np.ndarray, index: np.ndarray | None = None) -> np.n
 
 
 _TINY = np.float32(1.1754944e-38)
+# Every kernel is compiled with error_model="numpy": Numba's default (Python semantics) checks
+# each division for a zero divisor to raise ZeroDivisionError, and that branch keeps the loops
+# from vectorising (measured: SiLU on a block, 439 -> 14 ns per pixel). The kernels guard their
+# divisors themselves.
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _quad(Q, g, x, n0, n1, n2):  # pragma: no cover - compiled
     """``n^T Q_g n`` with ``Q (G, 6, M)`` holding (xx, xy, xz, yy, yz, zz)."""
     return (Q[g, 0, x] * n0 * n0 + Q[g, 3, x] * n1 * n1 + Q[g, 5, x] * n2 * n2
@@ -104,7 +108,7 @@ def _blocked(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(pad.reshape(a.shape[:-1] + (nb, BLOCK)), -2, 0))
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, error_model="numpy")
 def _nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, valid0, iterations, start, stop,
                       normals, albedo, residual, mask):  # pragma: no cover - compiled
     """Pixels ``start:stop`` of observation planes ``obs (N, M)``: moments, solve, outputs.
