@@ -406,7 +406,7 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
         stopped = (error[0] if error else ("frames" if frames is not None and n >= frames else
                                            "seconds" if seconds is not None else "end"))
         if rec is not None:
-            rec.close(stopped=stopped)
+            rec.close(stopped=stopped, dropped=q.dropped)
             rec = None
         s = _stats(n, q.dropped, t_first, time.monotonic() if t_first else None, lat)
         counters = getattr(source, "counters", {})

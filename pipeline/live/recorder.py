@@ -155,8 +155,9 @@ class LiveRecorder:
         os.replace(tmp, self.path)
         _fsync_dir(self.path.parent)
 
-    def close(self, stopped: str = "") -> Path:
-        """Write what is buffered, consolidate into one self-contained file, remove the parts."""
+    def close(self, stopped: str = "", dropped: int | None = None) -> Path:
+        """Write what is buffered, consolidate into one self-contained file, remove the parts;
+        ``stopped`` says why the stream ended, ``dropped`` the final count of dropped samples."""
         from pipeline.base.store import Record, read_record, write_record
 
         with self._lock:
@@ -164,6 +165,8 @@ class LiveRecorder:
                 return self.path
             self._flush_segment()
             self.closed = True
+            if dropped is not None:
+                self.dropped_total = int(dropped)
             rec = read_record(self.path, schema="recording")  # through the virtual datasets
             meta = self._attrs(True)
             if stopped:

@@ -57,20 +57,23 @@ def test_live_virtual_point_nearfield_cycles(store):
     assert s["mislabeled"] == 0 and s["stale"] > 0
 
 
-def test_cycle_source_never_mixes_cycles():
-    """Presses that change every 30 ms tear most 24-pattern cycles: those are discarded and
-    counted; a sample holds the frames of one contact only."""
+def test_cycle_source_never_mixes_cycles(ring_backend):
+    """Presses that change every 30 ms tear many cycles: those are discarded and counted; a
+    sample holds the frames of one contact only; every frame's LED state is the one its
+    pattern asked for (checked against the emulator's history; the Python emulator and the C
+    firmware's host build)."""
     from pipeline.base.modes import load_mode
     from pipeline.capture.client import RingClient
-    from pipeline.capture.emulator import RingEmulator
     from pipeline.capture.session import virtual_sensor
     from pipeline.capture.virtual import open_virtual_camera
     from pipeline.live.sources import CycleSource, PressScript
 
     patterns = load_mode("monochromatic")
     spec = virtual_sensor(obj="sphere", contacts=2, shape=(24, 32), mm_per_px=0.3, fps=400.0)
-    with RingEmulator(patterns.num_leds) as emu:
-        with RingClient(emu.path) as ring:
+    emu = ring_backend.emulator(patterns.num_leds)
+    port = emu.start()
+    try:
+        with RingClient(port) as ring:
             cam = open_virtual_camera(spec, emu, patterns.drive, patterns.brightness)
             script = PressScript(cam, 2, press_s=0.03, gap_s=0.03).start()
             try:
@@ -79,9 +82,25 @@ def test_cycle_source_never_mixes_cycles():
             finally:
                 script.stop()
                 cam.close()
+    finally:
+        emu.stop()
     assert src.counters["torn"] > 0 and src.counters["mislabeled"] == 0
     for s in samples:
         assert s.frames.shape == (len(patterns.frames), 24, 32, 3) and s.info["contact"] in (-1, 0, 1)
+
+
+def test_live_drops_the_oldest_when_processing_falls_behind(store, tmp_path):
+    """An eager solver behind a 500 fps camera with a queue of one: samples are dropped and
+    counted, the recording carries the running count, and every result still comes."""
+    from pipeline.live.recorder import read_recording
+
+    rec = tmp_path / "rec.h5"
+    s = _live("--mode", "trichromatic", "--solver", "lut", "--eager", "--fps", "500", "--queue", "1", "--frames", "25",
+              "--record", rec, store=store)
+    assert s["results"] == 25 and s["method"] == "eager" and s["dropped"] > 0
+    got = read_recording(rec)
+    assert got.meta["dropped_total"] == s["dropped"] and (np.diff(got.data["dropped"]) >= 0).all()
+    assert got.data["dropped"][-1] <= s["dropped"]
 
 
 @pytest.fixture(scope="module")
