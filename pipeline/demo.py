@@ -1,7 +1,7 @@
 """``iristac demo``: the whole pipeline on a virtual IrisTac, ending in an HTML report.
 
-1. **synthesize**: trace the shipped ``default`` scene (LED ring + lens) onto the camera grid
-   (cached in the stage store).
+1. **synthesize**: trace a scene (the shipped ``default``: LED ring + lens) onto the camera
+   grid (cached in the stage store).
 2. **calibrate**: render a sphere-indentation capture (a 4 mm ball pressed at several places,
    every LED in turn, 8-bit, 1 DN noise), detect the contacts and fit light models with
    cross-validation; for the single-frame modes also a colour lookup table.
@@ -68,7 +68,8 @@ def _or(value, fallback):
 
 
 def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: str | Path | None = None,
-             progress: bool = True, log: Callable[[str], None] | None = None) -> dict[str, Any]:
+             progress: bool = True, log: Callable[[str], None] | None = None,
+             scene: str | Path = "default") -> dict[str, Any]:
     """Run the demo and write ``report.html`` and ``report.json`` into ``out``.
 
     Parameters
@@ -84,6 +85,9 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
         Print one line per step on stderr.
     log : callable, optional
         Receives the progress lines instead of stderr.
+    scene : str or path
+        The virtual sensor's optics (a shipped scene's name or a scene file), e.g.
+        ``"default-v1"`` for the lens before issue 16.
 
     Returns
     -------
@@ -111,8 +115,8 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
 
     # 1. synthesize -------------------------------------------------------------------------
     t0 = time.perf_counter()
-    say(f"synthesize: tracing the default scene, {settings.rays:,} rays per LED onto {settings.shape}")
-    model, ill_key, ill_cached = synthesize_to_store("default", settings.shape, settings.mm_per_px, store,
+    say(f"synthesize: tracing the {scene} scene, {settings.rays:,} rays per LED onto {settings.shape}")
+    model, ill_key, ill_cached = synthesize_to_store(scene, settings.shape, settings.mm_per_px, store,
                                                      rays=settings.rays, sampler="sobol")
     ill_path = store.path_for(ill_key)
     stages["synthesize"] = {"seconds": time.perf_counter() - t0, "cached": ill_cached, "key": ill_key.digest,
@@ -129,8 +133,9 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
                              seed=11)
     write_capture(out / "calibration_capture.h5", Record(cal_cap.schema, cal_cap.data, cal_cap.meta))
     # Centre refinement votes with the traced model (refine_model="auto" with an illumination
-    # model): on the quick demo traced CV 0.69 deg refined vs 1.01 deg unrefined; the polynomial
-    # near field (15 deg here: it cannot follow the lens's sharp LED footprints) made it 2.9 deg.
+    # model): on the quick demo with the pre-issue-16 lens (scene default-v1) traced CV 0.69 deg
+    # refined vs 1.01 deg unrefined; the polynomial near field (15 deg there: it cannot follow that
+    # lens's sharp LED footprints) made it 2.9 deg. With the current default: traced 0.18 deg.
     cal, _, cal_cached = calibrate_stage.run(store, cal_cap, ball_radius_mm=settings.ball_radius_mm,
                                              models=["far", "near", "traced"], illumination=model,
                                              illumination_key=ill_key)
@@ -166,13 +171,13 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     # report -------------------------------------------------------------------------------
     say("report: writing report.html and report.json")
     total = time.perf_counter() - t_start
-    data = {"settings": {"shape": list(settings.shape), "mm_per_px": settings.mm_per_px, "rays": settings.rays,
+    data = {"settings": {"scene": str(scene), "shape": list(settings.shape), "mm_per_px": settings.mm_per_px, "rays": settings.rays,
                          "ball_radius_mm": settings.ball_radius_mm, "presses": settings.presses,
                          "noise_dn": settings.noise_dn, "bit_depth": settings.bit_depth, "quick": quick},
             "stages": stages, "uniformity": {m: r["channels"] for m, r in uniformity.items()}, "comparison": comp.to_json(), "seconds": total,
             "calibration": {k: v for k, v in cal_summary.items() if k != "circles"}}
     report = Report("IrisTac demo: a virtual sensor end to end",
-                    f"Default scene traced onto {settings.shape[1]}x{settings.shape[0]} pixels at "
+                    f"Scene {scene} traced onto {settings.shape[1]}x{settings.shape[0]} pixels at "
                     f"{settings.mm_per_px} mm/px; calibrated from {len(presses)} rendered ball presses; a test "
                     f"object captured under {len(settings.modes)} lighting modes (8-bit, 1 DN read noise) and "
                     f"reconstructed with every applicable solver. Total {total:.1f} s.")

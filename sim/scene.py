@@ -77,7 +77,9 @@ class Lens:
         at ``(centre_rho, centre_z)`` in the meridian plane (swept about ``z``: a torus), or
         ``rho <= cylinder_radius``.
     top
-        the ball of radius ``top_radius`` whose highest point (apex) is at ``z = apex_z``.
+        the ball of radius ``top_radius`` whose highest point (apex) is at ``z = apex_z``, or with
+        ``top_conic = k != 0`` the solid under the conic of apex radius ``top_radius`` and conic
+        constant ``k`` (:mod:`sim.optics.conic`).
     bottom
         the half-space ``z >= bottom_z``.
 
@@ -95,6 +97,7 @@ class Lens:
     abbe_number: float | None = None
     top_aperture: float | None = None
     bottom_aperture: float | None = None
+    top_conic: float = 0.0
     rim_z: float = float("nan")
     rim_rho: float = float("nan")
     bottom_rho: float = float("nan")
@@ -111,9 +114,20 @@ class Lens:
         return self.centre_rho + np.sqrt(np.clip(self.arc_radius ** 2 - (z - self.centre_z) ** 2, 0.0, None))
 
     def top_z(self, rho):
-        """Height of the top sphere at radius ``rho`` (numpy)."""
+        """Height of the top surface (sphere or conic) at radius ``rho`` (numpy)."""
         rho = np.asarray(rho, dtype=float)
-        return self.apex_z - self.top_radius + np.sqrt(np.clip(self.top_radius ** 2 - rho ** 2, 0.0, None))
+        if self.top_conic == 0.0:
+            return self.apex_z - self.top_radius + np.sqrt(np.clip(self.top_radius ** 2 - rho ** 2, 0.0, None))
+        e, R = 1.0 + self.top_conic, self.top_radius
+        # The conic's sag (sim.optics.conic.conic_sag); past an ellipsoid's equator it has no
+        # value, so rho is clamped to the equator.
+        r = np.minimum(rho, R / np.sqrt(e)) if e > 0 else rho
+        return self.apex_z - r * r / (R * (1.0 + np.sqrt(np.clip(1.0 - e * r * r / (R * R), 0.0, None))))
+
+    def top_rho(self, z):
+        """Radius of the top surface at height ``z`` (numpy; 0 above the apex)."""
+        w = np.clip(self.apex_z - np.asarray(z, dtype=float), 0.0, None)
+        return np.sqrt(np.clip(2.0 * self.top_radius * w - (1.0 + self.top_conic) * w * w, 0.0, None))
 
     def channel_indices(self) -> tuple[float, float, float]:
         """Refractive index at the R, G, B channel wavelengths (Cauchy fit to n_d and V_d)."""
@@ -163,6 +177,8 @@ class Scene:
     trace: TraceDefaults = TraceDefaults()
     description: str = ""
     source: str = "<dict>"
+    #: The lens design brief (``design`` section, see :mod:`sim.lensopt.brief`), or None.
+    design: dict | None = None
 
     def has(self, effect: str) -> bool:
         """Whether the scene asks for ``effect`` (the lens effect also needs a lens)."""
@@ -187,7 +203,8 @@ class Scene:
         d = scene_to_dict(self)
         where = {"arc_radius": ("side", "arc_radius"), "centre_rho": ("side", "centre_rho"),
                  "centre_z": ("side", "centre_z"), "cylinder_radius": ("side", "cylinder_radius"),
-                 "top_radius": ("top", "radius"), "apex_z": ("top", "apex_z"), "bottom_z": ("bottom", "z")}
+                 "top_radius": ("top", "radius"), "top_conic": ("top", "conic"), "apex_z": ("top", "apex_z"),
+                 "bottom_z": ("bottom", "z")}
         for k, v in changes.items():
             if k not in where:
                 raise ValueError(f"with_lens: unknown lens field {k!r}; expected one of {sorted(where)}")
@@ -277,7 +294,7 @@ def scene_from_dict(data: Any, source: str = "<dict>") -> Scene:
     tr = TraceDefaults(**data.get("trace", {}))
     scene = Scene(name=str(data["name"]), description=str(data.get("description", "")), leds=leds, plane=plane,
                   effects=effects, lens=lens, internal_bounces=int(data.get("internal_bounces", 0)),
-                  depth_heights=heights, trace=tr, source=source)
+                  depth_heights=heights, trace=tr, source=source, design=data.get("design"))
     _check_layout(scene, source)
     return scene
 
@@ -285,21 +302,27 @@ def scene_from_dict(data: Any, source: str = "<dict>") -> Scene:
 def _build_lens(d: dict, source: str) -> Lens:
     side, top, bottom = d["side"], d["top"], d["bottom"]
     R, apex, zb = float(top["radius"]), float(top["apex_z"]), float(bottom["z"])
-    zs = apex - R  # sphere centre height
+    k = float(top.get("conic", 0.0))
+    e = 1.0 + k
     common = dict(refractive_index=float(d["refractive_index"]), top_radius=R, apex_z=apex, bottom_z=zb,
                   abbe_number=d.get("abbe_number"), top_aperture=top.get("clear_aperture"),
-                  bottom_aperture=bottom.get("clear_aperture"))
+                  bottom_aperture=bottom.get("clear_aperture"), top_conic=k)
     if zb >= apex:
         raise UserError(f"scene file {source}: field lens/bottom/z: expected below lens/top/apex_z = {apex}, got {zb}")
 
-    def sphere_rho(z):
-        return np.sqrt(np.clip(R ** 2 - (z - zs) ** 2, 0.0, None))
+    def top_rho_at(z):
+        # The top's radius at height z (sphere or conic): rho^2 = 2 R w - (1 + k) w^2, w = apex - z.
+        w = np.clip(apex - z, 0.0, None)
+        return np.sqrt(np.clip(2.0 * R * w - e * w * w, 0.0, None))
 
     if "cylinder_radius" in side:
         rc = float(side["cylinder_radius"])
-        if rc >= R:
-            raise UserError(f"scene file {source}: field lens/side/cylinder_radius: expected < top radius {R}, got {rc}")
-        rim_z = zs + math.sqrt(R ** 2 - rc ** 2)
+        if e * rc ** 2 >= R ** 2:
+            widest = R / math.sqrt(e)
+            raise UserError(f"scene file {source}: field lens/side/cylinder_radius: expected < the top's widest "
+                            f"radius {widest:.6g}, got {rc}")
+        # Depth of the rim below the apex: the smaller root of e w^2 - 2 R w + rc^2 = 0.
+        rim_z = apex - (rc ** 2 / (R + math.sqrt(R ** 2 - e * rc ** 2)))
         if rim_z <= zb:
             raise UserError(f"scene file {source}: field lens/bottom/z: the top sphere meets the cylinder at "
                             f"z = {rim_z:.4g}, expected the bottom below that, got {zb}")
@@ -310,13 +333,13 @@ def _build_lens(d: dict, source: str) -> Lens:
         raise UserError(f"scene file {source}: field lens/bottom/z: expected within the side arc's z range "
                         f"({zc - r1:.4g}, {zc + r1:.4g}), got {zb}")
     lens = Lens(arc_radius=r1, centre_rho=rho_c, centre_z=zc, **common)
-    # The rim: where the side arc meets the top sphere, by bisection on h = g - sphere_rho.
+    # The rim: where the side arc meets the top, by bisection on h = g - top_rho_at.
     z_hi = min(apex, zc + r1)
-    h = lambda z: float(lens.side_rho(z) - sphere_rho(z))  # noqa: E731
+    h = lambda z: float(lens.side_rho(z) - top_rho_at(z))  # noqa: E731
     if not (h(zb) < 0.0 < h(z_hi)):
-        raise UserError(f"scene file {source}: field lens/top: the side arc and the top sphere do not meet above "
-                        f"the bottom (side radius at the bottom {float(lens.side_rho(zb)):.4g} mm, sphere radius there "
-                        f"{float(sphere_rho(zb)):.4g} mm); expected a closed convex lens")
+        raise UserError(f"scene file {source}: field lens/top: the side arc and the top do not meet above "
+                        f"the bottom (side radius at the bottom {float(lens.side_rho(zb)):.4g} mm, top radius there "
+                        f"{float(top_rho_at(zb)):.4g} mm); expected a closed convex lens")
     lo, hi = zb, z_hi
     for _ in range(200):
         mid = 0.5 * (lo + hi)
@@ -359,11 +382,15 @@ def scene_to_dict(scene: Scene) -> dict:
         "trace": {"rays": scene.trace.rays, "sampler": scene.trace.sampler, "seed": scene.trace.seed,
                   "intersection": scene.trace.intersection, "newton_iterations": scene.trace.newton_iterations},
     }
+    if scene.design is not None:
+        d["design"] = scene.design
     if scene.lens is not None:
         ln = scene.lens
         side = ({"arc_radius": ln.arc_radius, "centre_rho": ln.centre_rho, "centre_z": ln.centre_z}
                 if ln.is_arc else {"cylinder_radius": ln.cylinder_radius})
         top = {"radius": ln.top_radius, "apex_z": ln.apex_z}
+        if ln.top_conic != 0.0:
+            top["conic"] = ln.top_conic
         if ln.top_aperture is not None:
             top["clear_aperture"] = ln.top_aperture
         bottom = {"z": ln.bottom_z}

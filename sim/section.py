@@ -75,6 +75,9 @@ def ray_paths(scene: Scene, count: int = 25, max_bounces: int = 3) -> list[np.nd
         alive &= ~inside  # still trapped after max_bounces: drawn up to the last bounce
     x, y, t, ok = plane_hit(o, d, scene.plane.z)
     far = 1.5 * max(scene.plane.z, 1.0)
+    # A ray that reaches the gel's plane only far off to the side (nearly horizontal, e.g. the
+    # edge of a tilted LED's cone) is drawn as far as the others, not to its distant crossing.
+    ok = ok & (t <= 4.0 * far)
     for k in range(n):
         if not alive[k]:
             continue
@@ -126,12 +129,17 @@ def draw_section(scene, out, *, rays: int = 25, image: bool = True, image_rays: 
     ax.set_ylim(min(-2.0, s.leds.height - 2), s.plane.z + 8)
     ax.legend(loc="lower left", fontsize=8)
     if image:
-        from sim.lens_design import trace_report
+        from sim.optics.grid import PixelGrid
+        from sim.optics.metrics import image_metrics, pattern_image
+        from sim.optics.multisource import trace_all
 
         # Sobol rays for the picture: the paper's deterministic grid puts rays on rings and
-        # spokes that alias with the pixel grid into moire.
-        r = trace_report(s, rays=image_rays, sampler="sobol", images=True)
-        img = r["image"].mean(axis=2) * 1e6
+        # spokes that alias with the pixel grid into moire. (The tracer directly, not
+        # sim.lens_design, which draws sections itself.)
+        tr = trace_all(s, PixelGrid.from_plane(s.plane), rays=image_rays, sampler="sobol", vector=False)
+        E = tr.E[0].astype(np.float64)
+        r = image_metrics(E, s.leds.rgb, tr.fraction_on_grid)
+        img = pattern_image(E, s.leds.rgb).mean(axis=2) * 1e6
         ax2 = axs[0, 1]
         hw, hh = s.plane.size[0] / 2, s.plane.size[1] / 2
         # origin="lower": y grows upward as in the optical frame's x-y plane seen from the camera side.

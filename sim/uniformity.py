@@ -29,6 +29,7 @@ import numpy as np
 import torch
 
 from pipeline.base.frames import CHANNELS
+from sim.figures import save_figure
 from sim.illumination_model import IlluminationModel
 from pipeline.base.modes import list_modes, load_mode, mode_brightness, mode_drive
 from sim.render import RenderSettings, render_images
@@ -156,9 +157,4 @@ def uniformity_figure(model: IlluminationModel, path, modes: Sequence | None = N
         for ax in row:
             ax.set_xticks([])
             ax.set_yticks([])
-    fig.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=80)
-    plt.close(fig)
-    return path
+    return save_figure(fig, path, dpi=80)

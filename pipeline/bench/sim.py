@@ -34,6 +34,10 @@ import numpy as np
 
 __all__ = ["add_arguments", "run", "format_table", "TARGETS"]
 
+# The scene these figures are measured on: the pre-issue-16 default, whose LEDs' rays enter the
+# lens through its swept-arc side (the tracer's hardest path; docs/simulator.md's figures).
+SCENE = "default-v1"
+
 SECTIONS = ("rays", "newton", "multi", "effects", "targets")
 
 #: The issue's targets: (key, limit, "<=" or ">=", what).
@@ -98,7 +102,7 @@ def run(args) -> dict:
     reps = int(getattr(args, "repeats", 3))
     device = getattr(args, "device", "cpu")
     threads = getattr(args, "threads", None)
-    scene = load_scene("default")
+    scene = load_scene(SCENE)
     grid = PixelGrid((60, 60), (1.0, 1.0), scene.plane.z)
     only = set((getattr(args, "only", None) or ",".join(SECTIONS)).split(","))
     bad = only - set(SECTIONS)
@@ -252,7 +256,7 @@ def _cli_trace(rays: int, cache_dir: str, device: str = "cpu", threads=None) -> 
     env = dict(os.environ, NUMBA_CACHE_DIR=cache_dir)
     root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
-    cmd = [sys.executable, "-m", "pipeline", "sim", "trace", "default", "--rays", str(int(rays)), "--device", device,
+    cmd = [sys.executable, "-m", "pipeline", "sim", "trace", SCENE, "--rays", str(int(rays)), "--device", device,
            "--json"] + (["--threads", str(threads)] if threads else [])
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
@@ -273,7 +277,7 @@ def _peak_memory(rays: int, cache_dir: str, device: str, threads=None) -> dict:
     code = f"""
 import json, resource, sys, time
 from sim.lens_design import trace_report
-r = trace_report("default", rays={int(rays)}, device={device!r}, threads={threads!r})
+r = trace_report({SCENE!r}, rays={int(rays)}, device={device!r}, threads={threads!r})
 print(json.dumps({{"rays": r["rays"], "seconds": r["seconds"], "compile_seconds": r["compile_seconds"],
                   "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
                   "energy_residual": r["energy_residual"]}}))

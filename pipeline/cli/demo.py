@@ -10,6 +10,8 @@ def register(sub, name, help_text):
     p.add_argument("--out", default="iristac-demo", help="output folder (default: iristac-demo)")
     p.add_argument("--cache", help="stage store folder (default: OUT/cache)")
     p.add_argument("--quick", action="store_true", help="smaller images and fewer rays (about 4x faster)")
+    p.add_argument("--scene", default="default",
+                   help="the virtual sensor's optics: a shipped scene or a scene file (default: default)")
     add_json_flag(p)
     p.set_defaults(func=_run)
 
@@ -17,7 +19,7 @@ def register(sub, name, help_text):
 def _run(args) -> int:
     from pipeline.demo import run_demo
 
-    data = run_demo(args.out, quick=args.quick, cache=args.cache, progress=True)
+    data = run_demo(args.out, quick=args.quick, cache=args.cache, progress=True, scene=args.scene)
     if args.json:
         print_json(data)
     else:

@@ -70,11 +70,12 @@ def params(model: str = "traced", *, shape, mm_per_px: float, scene=None, gel_z:
     tr = sc.trace
     d = scene_to_dict(sc)
     d.pop("description", None)  # words do not change the light
+    d.pop("design", None)  # nor does the lens optimizer's brief
     p: dict[str, Any] = {"model": "traced", "scene": d, "shape": shape, "mm_per_px": float(mm_per_px),
                          "rays": int(rays if rays is not None else tr.rays), "sampler": sampler or tr.sampler,
                          "seed": int(tr.seed if seed is None else seed), "method": method,
                          "dtype": float_dtype(dtype).name, "exposure": float(exposure),
-                         "engine": resolve_engine(engine, tr.intersection)}
+                         "engine": resolve_engine(engine, tr.intersection, sc)}
     for name, arr in (("drive", drive), ("brightness", brightness), ("gains", gains)):
         if arr is not None:
             p[name] = np.asarray(arr, dtype=np.float64)

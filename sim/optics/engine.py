@@ -56,21 +56,27 @@ def float_dtype(dtype) -> np.dtype:
     return np.dtype(name)
 
 
-def resolve_engine(engine: str | None, intersection: str = "robust") -> str:
+def resolve_engine(engine: str | None, intersection: str = "robust", scene=None) -> str:
     """The engine that traces: ``engine`` if given (checked), else ``kernel`` for the robust
-    intersection and ``torch`` for the paper's (which only the reference implements).
+    intersection and ``torch`` for the paper's (which only the reference implements). A
+    ``scene`` whose lens has a conic top (``top.conic != 0``, :mod:`sim.optics.conic`) is traced
+    by ``torch`` too: the kernel implements the spherical top only.
 
     Examples
     --------
     >>> resolve_engine(None), resolve_engine(None, "paper"), resolve_engine("torch")
     ('kernel', 'torch', 'torch')
     """
+    conic = scene is not None and scene.has("lens") and scene.lens.top_conic != 0.0
     if engine is None:
-        return "kernel" if intersection == "robust" else "torch"
+        return "kernel" if intersection == "robust" and not conic else "torch"
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
     if engine == "kernel" and intersection != "robust":
         raise ValueError(f"the kernel engine implements the robust intersection only, not {intersection!r}; "
+                         "use engine 'torch'")
+    if engine == "kernel" and conic:
+        raise ValueError("the kernel engine implements a spherical lens top only, this scene's top is a conic; "
                          "use engine 'torch'")
     return engine
 
@@ -93,6 +99,9 @@ def kernel_params(scene, *, led: int = 0, rays: int, sampler: str, seed: int = 0
     """
     from sim.optics import kernel as K
 
+    if scene.has("lens") and scene.lens.top_conic != 0.0:
+        raise ValueError("kernel_params: the kernel implements a spherical lens top only; this scene's top is a "
+                         "conic (trace it with engine 'torch')")
     ft = float_dtype(dtype)
     P = np.zeros(K.P_COUNT, dtype=np.float64)
     F = np.zeros(K.F_COUNT, dtype=np.int64)

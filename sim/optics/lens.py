@@ -8,6 +8,7 @@ from __future__ import annotations
 import torch
 
 from sim.optics.base import Vec, box_interval
+from sim.optics.conic import ConicTop
 from sim.optics.cylinder import Cylinder
 from sim.optics.plane import HalfSpaceAbove
 from sim.optics.sphere import Ball
@@ -39,7 +40,9 @@ class LensBody:
         else:
             self.side = Cylinder(lens.cylinder_radius)
             rho_max = lens.cylinder_radius
-        self.top = Ball(lens.top_radius, lens.apex_z)
+        # A sphere keeps the ball (the paper's case 3, and the path every existing scene takes).
+        self.top = (Ball(lens.top_radius, lens.apex_z) if lens.top_conic == 0.0
+                    else ConicTop(lens.top_radius, lens.apex_z, lens.top_conic))
         self.bottom = HalfSpaceAbove(lens.bottom_z)
         self.sets = (self.side, self.top, self.bottom)
         self.tol = float(tol)

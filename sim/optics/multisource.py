@@ -94,7 +94,7 @@ def trace_all(scene, grid: PixelGrid | None = None, *, method: str = "hits", hei
     grid = grid or PixelGrid.from_plane(scene.plane)
     az = led_azimuths(scene)
     leds = list(range(scene.leds.count)) if leds is None else [int(i) for i in leds]
-    kind = _engine.resolve_engine(engine, intersection or scene.trace.intersection)
+    kind = _engine.resolve_engine(engine, intersection or scene.trace.intersection, scene)
     ft = _engine.float_dtype(dtype)
     kw = dict(rays=rays, sampler=sampler, seed=seed, device=device, refractive_index=refractive_index)
     if kind == "kernel":

@@ -224,7 +224,8 @@ class PaperIntersector:
     def exit(self, o: Vec, d: Vec, q: Vec, n: Vec, sid, mask):
         ln = self.lens
         m = mask & (sid == TOP)
-        if not bool(m.any()):
+        if ln.top_conic != 0.0 or not bool(m.any()):
+            # Case 3 is the paper's sphere; a conic top keeps the robust exit (closed form too).
             return q, n
         B = (torch.zeros_like(o[0]), torch.zeros_like(o[0]), torch.full_like(o[0], ln.apex_z - ln.top_radius))
         P, nn, ok = case3_sphere(o, d, B, ln.top_radius)

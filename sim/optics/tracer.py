@@ -256,7 +256,7 @@ def trace_source(scene, accumulators=(), *, led: int = 0, rays: int | None = Non
     """
     tr = scene.trace
     method = intersection or tr.intersection
-    if _engine.resolve_engine(engine, method) == "kernel":
+    if _engine.resolve_engine(engine, method, scene) == "kernel":
         images, res = _engine.trace_led(scene, [acc.layout for acc in accumulators], led=led, rays=rays,
                                         sampler=sampler, seed=seed, dtype=dtype, device=device,
                                         refractive_index=refractive_index, newton_iterations=newton_iterations,

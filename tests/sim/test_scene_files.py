@@ -8,8 +8,10 @@ from sim.scene import load_scene, scene_from_dict, scene_names, scene_to_dict
 
 
 def test_shipped_scenes_load_and_round_trip():
-    assert {"default", "plano-sphere"} <= set(scene_names())
-    s = load_scene("default")
+    assert {"default", "default-v1", "paper", "paper-optimized", "plano-sphere"} <= set(scene_names())
+    new = load_scene("default")
+    assert new.leds.tilt_deg == 30.0 and new.design["objective"] == "flux"
+    s = load_scene("default-v1")
     assert s.leds.count == 24 and s.leds.radius == 40.0
     assert s.lens.arc_radius == 13.5 and s.lens.top_radius == 600.0
     assert abs(s.lens.refractive_index - 1.49) < 1e-12
@@ -43,7 +45,7 @@ def test_scene_path_works(tmp_path):
     (lambda d: d["leds"].update(rgb=[[1, 1, 1], [1, 0, 0]]), "leds/rgb", "RGB triples"),
 ])
 def test_bad_scene_names_file_and_field(change, field, expected):
-    d = scene_to_dict(load_scene("default"))
+    d = scene_to_dict(load_scene("default-v1"))
     change(d)
     with pytest.raises(UserError) as e:
         scene_from_dict(d, source="bad.yaml")
@@ -61,7 +63,7 @@ def test_unknown_scene_and_bad_yaml(tmp_path):
 
 
 def test_effect_switches_and_lens_edits():
-    s = load_scene("default")
+    s = load_scene("default-v1")
     assert s.has("lens") and not s.with_effects(remove=["lens"]).has("lens")
     assert s.with_effects(add=["internal_bounces"]).has("internal_bounces")
     with pytest.raises(ValueError):

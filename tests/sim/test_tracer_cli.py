@@ -56,11 +56,20 @@ def test_section_and_optimize_lens_in_process(tmp_path, capsys):
     png = tmp_path / "sec.png"
     assert main(["sim", "section", "default", "--out", str(png), "--rays", "7", "--no-image", "--json"]) == 0
     assert png.stat().st_size > 1000 and json.loads(capsys.readouterr().out)["rays"] == 7
-    code = main(["sim", "optimize-lens", "default", "--steps", "2", "--refine", "0", "--rays", "2000",
-                 "--arc-radius", "13.5", "13.5", "--top-radius", "600", "600", "--centre-rho", "26", "28",
-                 "--centre-z", "8", "10", "--out-dir", str(tmp_path / "opt"), "--json"])
+    out = tmp_path / "opt"
+    code = main(["sim", "optimize-lens", "default-v1", "--vary", "apex_z", "bottom_z", "--evaluations", "6",
+                 "--rays", "2000", "--grid", "6", "--confirm-rays", "4000", "--tolerance-rays", "2000",
+                 "--threads", "1", "--no-progress", "--out", str(out), "--json"])
     assert code == 0
     res = json.loads(capsys.readouterr().out)
-    assert res["evaluated"] == 5 and set(res["best"]) >= {"arc_radius", "centre_rho", "centre_z", "top_radius",
-                                                          "fraction_on_screen", "uniformity_cv"}
-    assert (tmp_path / "opt" / "before.png").exists() and (tmp_path / "opt" / "after.png").exists()
+    from sim.lens_design import OPTIMIZE_KEYS
+
+    assert set(res) == set(OPTIMIZE_KEYS) and res["evaluations"] == 6 and res["varied"] == ["apex_z", "bottom_z"]
+    assert {"fraction_on_screen", "uniformity_cv", "valid_fraction", "design", "evaluations", "seconds"} <= set(res)
+    assert (out / "default-v1-optimized.yaml").exists() and (out / "trajectory.png").exists()
+    # Bad input: one clear line naming the option, nothing written.
+    assert main(["sim", "optimize-lens", "default-v1", "--max-cv", "lots", "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert "--max-cv" in err and "'bare'" in err and not (tmp_path / "x").exists()
+    assert main(["sim", "optimize-lens", "default-v1", "--bound", "wings", "1", "2"]) == 2
+    assert "--bound: unknown parameter 'wings'" in capsys.readouterr().err

@@ -24,8 +24,11 @@ ENGINES = ["torch", "kernel"]
 
 
 
+# These tests exercise the swept-arc side through which the LEDs' rays enter the lens of the
+# pre-issue-16 default scene (default-v1); the current default's LEDs sit under its bottom face.
+
 def bare_scene(count=3, radius=10.0, m=1.0, cone=60.0, z=20.0, tilt=0.0):
-    d = scene_to_dict(load_scene("default"))
+    d = scene_to_dict(load_scene("default-v1"))
     d.pop("lens")
     d["leds"].update(count=count, radius=radius, emission_m=m, cone_half_angle_deg=cone, rgb=[[1, 1, 1]],
                      tilt_deg=tilt)
@@ -71,7 +74,7 @@ def test_isotropic_emitter_without_profile_effect(engine):
 @pytest.mark.parametrize("engine", ENGINES)
 def test_energy_conservation(dtype, engine):
     tol = dtype.tol(1e-12, 2e-6)
-    s = load_scene("default").with_effects(add=["internal_bounces"])
+    s = load_scene("default-v1").with_effects(add=["internal_bounces"])
     r = trace_source(s, rays=40_000, sampler="random", dtype=dtype.torch, engine=engine)
     e = r.energy
     assert abs(e.residual) < tol, e.as_dict()
@@ -95,7 +98,7 @@ def test_lens_changes_the_light_and_fresnel_losses_are_physical(engine):
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_ring_symmetry(engine):
-    s = load_scene("default")
+    s = load_scene("default-v1")
     g = PixelGrid((24, 24), (2.5, 2.5), s.plane.z)
     hits = trace_all(s, g, method="hits", rays=40_000, engine=engine)
     E = hits.E[0].astype(np.float64)
@@ -122,7 +125,7 @@ def test_ring_symmetry(engine):
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_float32_matches_float64(engine):
-    s = load_scene("default")
+    s = load_scene("default-v1")
     g = PixelGrid((20, 20), (3.0, 3.0), s.plane.z)
     r32 = trace_all(s, g, rays=40_000, leds=[0], dtype=torch.float32, engine=engine)
     r64 = trace_all(s, g, rays=40_000, leds=[0], dtype=torch.float64, engine=engine)
@@ -137,7 +140,7 @@ def test_float32_matches_float64(engine):
 @pytest.mark.parametrize("engine", ENGINES)
 @pytest.mark.parametrize("sampler", ["random", "stratified", "sobol"])
 def test_seeded_reproducible(sampler, engine):
-    s = load_scene("default")
+    s = load_scene("default-v1")
     g = PixelGrid((10, 10), (5.0, 5.0), s.plane.z)
     a = trace_all(s, g, rays=10_000, sampler=sampler, seed=3, leds=[0], engine=engine).E
     b = trace_all(s, g, rays=10_000, sampler=sampler, seed=3, leds=[0], engine=engine).E
@@ -147,7 +150,7 @@ def test_seeded_reproducible(sampler, engine):
 
 def test_chunking_does_not_change_the_result():
     """The torch engine's chunks (the kernel's threads: test_tracer_kernel.py)."""
-    s = load_scene("default")
+    s = load_scene("default-v1")
     g = PixelGrid((10, 10), (5.0, 5.0), s.plane.z)
     a = trace_all(s, g, rays=20_000, sampler="sobol", leds=[0], chunk=1 << 20, engine="torch")
     b = trace_all(s, g, rays=20_000, sampler="sobol", leds=[0], chunk=3000, engine="torch")
@@ -159,13 +162,13 @@ def test_disabled_effects_are_not_computed(engine):
     """Instrumentation: only the effects a scene lists run."""
     from sim.synthesize import synthesize
 
-    bare = load_scene("default").with_effects(remove=["lens", "fresnel", "emission_profile"])
+    bare = load_scene("default-v1").with_effects(remove=["lens", "fresnel", "emission_profile"])
     instrument.reset()
     synthesize(bare, (4, 4), 5.0, rays=2000, engine=engine)
     ran = instrument.snapshot()
     for effect in ("lens", "fresnel", "emission_profile", "internal_bounces", "dispersion", "depth_field"):
         assert ran.get(effect, 0) == 0, (effect, ran)
-    full = load_scene("default").with_effects(add=["internal_bounces", "dispersion", "depth_field"])
+    full = load_scene("default-v1").with_effects(add=["internal_bounces", "dispersion", "depth_field"])
     instrument.reset()
     synthesize(full, (4, 4), 5.0, rays=2000, engine=engine)
     ran = instrument.snapshot()
@@ -179,7 +182,7 @@ def test_quarter_turn_shortcut_equals_direct_binning(engine):
     from sim.optics.binning import FieldAccumulator
     from sim.optics.multisource import led_azimuths
 
-    s = load_scene("default")
+    s = load_scene("default-v1")
     az = led_azimuths(s)
     a = FieldAccumulator(PixelGrid((16, 16), (3.0, 3.0), s.plane.z), az)
     b = FieldAccumulator(PixelGrid((16, 16), (3.0, 3.0 * (1 + 1e-12)), s.plane.z), az)  # not square: direct
@@ -196,7 +199,7 @@ def test_channel_separated_metrics_and_eq15(engine):
     from sim.lens_design import trace_report
     from sim.optics.metrics import image_metrics, pattern_image
 
-    d = scene_to_dict(load_scene("default"))
+    d = scene_to_dict(load_scene("default-v1"))
     rgb = np.zeros((24, 3))
     rgb[:8, 0] = rgb[8:16, 1] = rgb[16:, 2] = 1.0  # three sectors lit R, G and B
     d["leds"]["rgb"] = rgb.tolist()
@@ -236,10 +239,10 @@ def test_depth_field_matches_closed_form_at_each_height(engine):
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_clear_aperture_absorbs_and_conserves_energy(engine):
-    d = scene_to_dict(load_scene("default"))
+    d = scene_to_dict(load_scene("default-v1"))
     d["lens"]["top"]["clear_aperture"] = 20.0
     s = scene_from_dict(d)
-    a = trace_source(load_scene("default"), rays=20_000, engine=engine)
+    a = trace_source(load_scene("default-v1"), rays=20_000, engine=engine)
     b = trace_source(s, rays=20_000, engine=engine)
     assert b.counters["aperture_absorbed"] > 0 and b.energy.absorbed > a.energy.absorbed
     assert b.energy.on_screen < a.energy.on_screen and abs(b.energy.residual) < 2e-6
@@ -247,7 +250,7 @@ def test_clear_aperture_absorbs_and_conserves_energy(engine):
 
 @pytest.mark.parametrize("engine", ENGINES)
 def test_tilted_ring_hit_rotation_is_exact(engine):
-    d = scene_to_dict(load_scene("default"))
+    d = scene_to_dict(load_scene("default-v1"))
     d["leds"]["tilt_deg"] = 20.0
     s = scene_from_dict(d)
     g = PixelGrid((12, 12), (5.0, 5.0), s.plane.z)
