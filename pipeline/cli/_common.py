@@ -13,14 +13,14 @@ EXIT_NOT_IMPLEMENTED = 3
 ARGV: list[str] = []
 
 
-def add_solver_flags(parser, *, solver: bool = True, integrator: bool = True) -> None:
+def add_solver_flags(parser, *, solver: bool = True, integrator: bool = True, default_solver: str = "lstsq") -> None:
     """``--solver`` and ``--integrator``, with the choices of their registries
     (:mod:`pipeline.base.registry`)."""
     from pipeline.base.registry import INTEGRATORS, SOLVERS
 
     if solver:
-        parser.add_argument("--solver", choices=SOLVERS.names(), default="lstsq", metavar="SOLVER",
-                            help=f"photometric-stereo solver (default lstsq): {SOLVERS.help()}")
+        parser.add_argument("--solver", choices=SOLVERS.names(), default=default_solver, metavar="SOLVER",
+                            help=f"photometric-stereo solver (default {default_solver}): {SOLVERS.help()}")
     if integrator:
         parser.add_argument("--integrator", choices=INTEGRATORS.names(), default="dst", metavar="INTEGRATOR",
                             help=f"depth integrator (default dst): {INTEGRATORS.help()}")

@@ -26,8 +26,7 @@ def register(sub, name, help_text):
     src.add_argument("--virtual", action="store_true",
                      help="the virtual sensor: rendered gel under the emulated ring, scripted ball presses")
     p.add_argument("--mode", default="trichromatic", help=mode_help() + " (default trichromatic)")
-    add_solver_flags(p)
-    p.set_defaults(solver="lut")
+    add_solver_flags(p, default_solver="lut")
     lights = p.add_mutually_exclusive_group()
     lights.add_argument("--calibration", metavar="CAL.h5", help="calibration.h5 (with --virtual: default, calibrate "
                                                                 "the virtual sensor first, cached)")
