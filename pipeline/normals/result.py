@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
-from pipeline.normals import _lstsq
-from pipeline.normals import _torch as T
+if TYPE_CHECKING:  # torch is imported by the functions that use it: NormalResult alone needs none
+    import torch
+
+    from pipeline.normals import _lstsq
 
 __all__ = ["NormalResult", "finalize", "finalize_tensors", "to_result", "concat"]
 
@@ -60,6 +61,11 @@ class NormalResult:
 def finalize_tensors(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, *, max_condition: float = 1e3,
                      min_count: int = 3, finite_inputs: bool = False) -> dict[str, torch.Tensor]:
     """The per-pixel outputs as tensors with pixels last (see :func:`finalize`)."""
+    import torch
+
+    from pipeline.normals import _lstsq
+    from pipeline.normals import _torch as T
+
     if not finite_inputs:
         finite = torch.isfinite(b).all(0)
         b = torch.nan_to_num(b, nan=0.0, posinf=0.0, neginf=0.0)
@@ -85,6 +91,8 @@ def finalize_tensors(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, *, 
 
 def to_result(t: dict[str, torch.Tensor], shape: tuple[int, int], meta: dict | None = None) -> NormalResult:
     """Tensors with pixels last -> a :class:`NormalResult` of ``(H, W, ...)`` numpy arrays."""
+    import torch
+
     H, W = shape
     out_dtype = np.float64 if t["normals"].dtype == torch.float64 else np.float32
 
@@ -107,6 +115,8 @@ def to_result(t: dict[str, torch.Tensor], shape: tuple[int, int], meta: dict | N
 
 def concat(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     """Join per-chunk outputs along the pixel axis."""
+    import torch
+
     if len(parts) == 1:
         return parts[0]
     return {k: torch.cat([p[k] for p in parts], dim=-1) for k in parts[0]}
