@@ -18,6 +18,7 @@ import numpy as np
 
 from pipeline.base.capture import Capture, read_capture
 from calibration.detect import Circle, DetectOptions, detect_contacts
+from calibration.labels import capture_label_circles, has_labels, label_errors
 from calibration.models import (MODEL_NAMES, CalibrationModel, FarFieldModel, LightFieldModel, LUTModel, MLPModel,
                                 NearFieldModel, TracedModel, check_light_rank)
 from calibration.models.led_geometry import geometry_basis
@@ -28,12 +29,16 @@ from calibration.validate import INVALID_ERROR_DEG, cross_validate, cv_report
 from pipeline.base.errors import UserError
 from sim.illumination_model import IlluminationModel
 
-__all__ = ["CalibrationResult", "CircleFit", "calibrate", "find_circles", "label_errors", "read_illumination", "CIRCLE_COLUMNS"]
+__all__ = ["CalibrationResult", "CircleFit", "calibrate", "find_circles", "label_errors", "read_illumination", "CIRCLE_COLUMNS",
+           "CIRCLE_SOURCES"]
 
 #: Columns of the ``circles (K, 8)`` dataset of calibration.h5.
 CIRCLE_COLUMNS = ("center_x", "center_y", "radius_px", "contact_radius_px", "quality", "accepted", "snr",
                   "residual_px", "shift_x", "shift_y")
 
+
+#: What ``calibrate(..., circles=...)`` accepts besides a list of circles: where the contact circles come from.
+CIRCLE_SOURCES = ("auto", "detected", "labels")
 
 #: Said with every calibration report (``summary()["cv_note"]``): CV figures are not what new presses see.
 CV_NOTE = ("CV is optimistic (the held-out presses shaped the circles and the choice of model); for the error on "
@@ -82,6 +87,20 @@ class CalibrationResult:
         return min(scored, key=scored.get) if scored else None
 
     @property
+    def circles_used(self) -> str:
+        """What the models were fitted to, in words (``summary()["circles_used"]``)."""
+        cs = self.meta.get("circle_settings", {})
+        source = cs.get("circles", "detected")
+        if source == "labels":
+            return "hand labels (labels/center_xy, labels/radius_px; contact radius at most 0.95 x the ball's)"
+        if source == "given":
+            return "circles given by the caller"
+        if cs.get("refine_iterations") and cs.get("refine_model"):
+            return (f"detected (edge detector, centres refined by the {cs['refine_model']} model, "
+                    f"{cs['refine_iterations']} passes)")
+        return "detected (edge detector)"
+
+    @property
     def best_light_field_model(self) -> str | None:
         """The best-validated model that exports a light field (far, near, traced)."""
         scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in self.reports.items()
@@ -96,6 +115,7 @@ class CalibrationResult:
             "models": {},
             "best_model": self.best_model,
             "circles": [c.to_dict() for c in self.circles],
+            "circles_used": self.circles_used,
         }
         for name, rep in self.reports.items():
             if "skipped" in rep:
@@ -170,24 +190,6 @@ class CalibrationResult:
         return write_record(Path(path), Record(schema="calibration", data=data, meta=meta))
 
 
-def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np.ndarray) -> dict[str, Any]:
-    """Median centre and radius error (px) of the accepted circles against hand labels.
-
-    Also the median signed centre offset ``center_offset_px_median = [dx, dy]`` (circle minus
-    label): a bias shared by all presses shows there, not in the error's size alone.
-    """
-    acc = np.array([c.accepted for c in circles])
-    c = np.array([c.center_xy for c in circles]).reshape(-1, 2)
-    r = np.array([c.radius_px for c in circles])
-    ce = np.hypot(*(c - np.asarray(center_xy, float)).T)[acc]
-    re = np.abs(r - np.asarray(radius_px, float))[acc]
-    return {"center_error_px_median": float(np.median(ce)) if ce.size else None,
-            "radius_error_px_median": float(np.median(re)) if re.size else None,
-            "center_offset_px_median": np.median((c - np.asarray(center_xy, float))[acc], axis=0).tolist()
-            if ce.size else None,
-            "center_error_px": ce.tolist(), "radius_error_px": re.tolist()}
-
-
 def read_illumination(path: str | Path) -> IlluminationModel:
     """Read an ``illumination`` record (the ray tracer's ``illumination.h5``) for the traced model.
 
@@ -249,7 +251,7 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
               models: str | Sequence[str] = "all", *, illumination=None, folds: int = 5, shrink_px: float = 2.0,
               detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
               refine_iterations: int = 2, refine_model: str = "auto", seed: int = 0,
-              markers=None, tilt_correction: bool = True) -> CalibrationResult:
+              markers=None, tilt_correction: bool = True, circles="auto") -> CalibrationResult:
     """Calibrate light models from a sphere-indentation capture.
 
     Parameters
@@ -285,7 +287,12 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
         The light model whose normals vote for the centres. ``auto``: ``traced`` when
         ``illumination`` is given (the ray-traced LED fields follow the lens; a polynomial
         near field cannot, and on the default lens scene its 15 deg error moved the centres
-        the wrong way), else ``near``. Options come from ``model_options``.
+        the wrong way), else no refinement: the centres a fitted light model votes for are
+        that model family's own convention (on the shared real frames near-, far- and
+        MLP-refined centres differ by 1.5-2 px, and each family scores 3-4 deg better against
+        its own refined truth), and on presses never seen, against the detector's circles,
+        the truth-free ball fit and the hand labels, every model did better calibrated on
+        unrefined circles (docs/calibration.md). Options come from ``model_options``.
     seed : int
     markers : None, "none", "auto", a mask image path or an (H, W) bool array
         Printed gel markers (:mod:`calibration.markers`): filled in before anything else and
@@ -294,6 +301,15 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
         Scale each model's predicted tilt by the gain that undoes its shrinkage toward flat on
         held-out presses, and clip it to the tilts the truth covered (:func:`_correct_output`).
         Measured on the shared real frames (train presses 0-19, test 20-29; docs/calibration.md).
+    circles : {"auto", "detected", "labels"} or list of Circle
+        Where the contact circles (the truth the models are fitted to) come from. ``detected``:
+        the edge detector, then centre refinement (``refine_iterations``). ``labels``: the
+        capture's hand labels (``labels/center_xy``, ``labels/radius_px``; contact radius
+        clamped to 0.95 x the ball's, :mod:`calibration.labels`), used as given: no
+        refinement; a capture without labels is a :class:`UserError`. Models calibrated on
+        labels learn the labeller's convention (on the shared real frames the labels sit about
+        2 px off the detected contacts: docs/calibration.md). ``auto`` (default): ``detected``.
+        A list of K :class:`calibration.detect.Circle`: those circles, as given.
 
     Returns
     -------
@@ -313,7 +329,7 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
         return _calibrate(capture, ball_radius_mm, mm_per_px, models, illumination=illumination, folds=folds,
                           shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
                           refine_iterations=refine_iterations, refine_model=refine_model, seed=seed,
-                          markers=markers, tilt_correction=tilt_correction)
+                          markers=markers, tilt_correction=tilt_correction, circles=circles)
 
 
 #: Models that can vote for contact centres (they predict normals from a few patterns).
@@ -321,10 +337,12 @@ REFINE_MODELS = ("auto", "far", "near", "traced", "mlp")
 
 
 def _refine_factory(refine_model: str, cap: Capture, illumination, saturation, model_options):
-    """``(name, factory)`` of the model that refinement fits (see :func:`calibrate`)."""
+    """``(name, factory)`` of the model that refinement fits (see :func:`calibrate`); ``(None, None)``: none."""
     if refine_model not in REFINE_MODELS:
         raise UserError(f"calibrate: --refine-model must be one of {', '.join(REFINE_MODELS)}, got {refine_model!r}")
-    name = ("traced" if illumination is not None else "near") if refine_model == "auto" else refine_model
+    if refine_model == "auto" and illumination is None:
+        return None, None
+    name = "traced" if refine_model == "auto" else refine_model
     make = _factories([name], cap, illumination, saturation, model_options)[name]
     if isinstance(make, str):
         raise UserError(f"calibrate: centre refinement with the '{name}' model is impossible: {make}")
@@ -355,6 +373,10 @@ class CircleFit:
     markers : ndarray, shape (H, W), bool, or None
         Printed gel markers: filled in ``frames`` and ``reference``, absent from ``samples``.
     ball_radius_mm : float
+    source_of_circles : str
+        ``detected``, ``labels`` or ``given`` (see :func:`calibrate`'s ``circles``).
+    detected : list of Circle
+        The detector's circles (refined when ``circles`` are detected): what hand labels are compared with.
     """
 
     capture: Capture
@@ -370,19 +392,22 @@ class CircleFit:
     refine: dict[str, Any]
     markers: np.ndarray | None = None
     ball_radius_mm: float = 0.0
+    source_of_circles: str = "detected"
+    detected: list[Circle] = field(default_factory=list)
 
 
 def find_circles(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: float | None = None, *,
                  illumination=None, folds: int = 5, shrink_px: float = 2.0,
                  detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
-                 refine_iterations: int = 2, refine_model: str = "auto", seed: int = 0, markers=None) -> CircleFit:
+                 refine_iterations: int = 2, refine_model: str = "auto", seed: int = 0, markers=None,
+                 circles="auto") -> CircleFit:
     """Detect and refine the contact circles of a sphere-indentation capture (the truth of calibration).
 
     The first half of :func:`calibrate` (same parameters): edge detection, the light-rank
     check, photometric centre refinement with a model cross-fitted on this capture's own
-    presses, and the samples around the circles. :func:`calibration.evaluate.evaluate_calibration`
-    uses it for the circles of a test capture, so that the truth never comes from the
-    calibration being judged.
+    presses (or the hand labels, ``circles="labels"``), and the samples around the circles.
+    :func:`calibration.evaluate.evaluate_calibration` uses it for the circles of a test
+    capture (without refinement: no light model shapes that truth).
 
     Raises
     ------
@@ -395,16 +420,30 @@ def find_circles(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px
         return _find_circles(capture, ball_radius_mm, mm_per_px, illumination=illumination, folds=folds,
                              shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
                              refine_iterations=refine_iterations, refine_model=refine_model, seed=seed,
-                             markers=markers)
+                             markers=markers, circles=circles)
+
+
+def _circle_source(circles, k: int, src: str) -> str:
+    """``detected``, ``labels`` or ``given`` for :func:`calibrate`'s ``circles`` argument (checked)."""
+    if isinstance(circles, str):
+        if circles not in CIRCLE_SOURCES:
+            raise UserError(f"calibrate: --circles must be one of {', '.join(CIRCLE_SOURCES)}, got {circles!r}")
+        return "detected" if circles == "auto" else circles
+    given = list(circles)
+    if len(given) != k or not all(isinstance(c, Circle) for c in given):
+        raise UserError(f"{src}: circles must be 'auto', 'detected', 'labels' or {k} Circle records (one per press), "
+                        f"got {len(given)} item(s)")
+    return "given"
 
 
 def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, shrink_px, detect_options,
-                  model_options, refine_iterations, refine_model, seed, markers=None) -> CircleFit:
+                  model_options, refine_iterations, refine_model, seed, markers=None, circles="auto") -> CircleFit:
     src = str(capture) if not isinstance(capture, Capture) else "capture"
     cap = read_capture(capture) if not isinstance(capture, Capture) else capture
     mm = mm_per_px if mm_per_px is not None else cap.mm_per_px
-    if mm is None or not mm > 0:
-        raise UserError(f"{src}: no mm_per_px attribute and no --mm-per-px given (expected a positive pixel pitch)")
+    if mm is None or isinstance(mm, (str, bytes, list, tuple)) or not mm > 0:
+        raise UserError(f"{src}: no mm_per_px attribute and no --mm-per-px given (expected a positive pixel pitch, "
+                        f"got {mm!r})")
     if ball_radius_mm is None:
         ball_radius_mm = cap.meta.get("ball_radius_mm")
         if ball_radius_mm is None:
@@ -413,6 +452,9 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
     ball_radius_mm = float(ball_radius_mm)
     if not ball_radius_mm > 0:
         raise UserError(f"calibrate: --ball-radius must be a positive radius in mm, got {ball_radius_mm}")
+    source = _circle_source(circles, int(np.asarray(cap.frames).shape[0]), src)
+    if source == "labels":  # before any work: a clear error when the capture has none
+        labelled = capture_label_circles(cap, ball_radius_mm / mm, src)
     frames, ref = cap.linear()
     sat = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(np.asarray(cap.frames).dtype)
     if sat is not None and cap.dark is not None:
@@ -423,28 +465,42 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
 
         frames, ref = fill_markers(frames, mask), fill_markers(ref, mask)
     t0 = time.perf_counter()
-    circles = detect_contacts(frames, ref, ball_radius_mm / mm, detect_options)
+    # The detector runs in every mode: with labels or given circles its circles are what
+    # they are compared with (the report's centre offset), not what is fitted.
+    detected = detect_contacts(frames, ref, ball_radius_mm / mm, detect_options)
     t_detect = time.perf_counter() - t0
-    accepted = sum(c.accepted for c in circles)
+    use = {"detected": detected, "labels": labelled if source == "labels" else None,
+           "given": None if isinstance(circles, str) else list(circles)}[source]
+    accepted = sum(c.accepted for c in use)
     if accepted < 2:
-        reasons = "; ".join(f"press {k}: {c.reason}" for k, c in enumerate(circles) if not c.accepted)
+        reasons = "; ".join(f"press {k}: {c.reason}" for k, c in enumerate(use) if not c.accepted)
         raise UserError(f"{src}: only {accepted} press(es) accepted, calibration needs at least 2 ({reasons})")
-    samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
+    samples = collect_samples(frames, ref, use, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
                               exclude=mask)
     # Before any light model is fitted: refinement fits one, which needs three directions.
     rank = check_light_rank(samples.subset(samples.press >= 0), what=src)
     t0 = time.perf_counter()
-    refine_name, make_refine = _refine_factory(refine_model, cap, illumination, sat, model_options)
-    circles, refine_report = refine_centres(frames, ref, circles, ball_radius_mm, mm, iterations=refine_iterations,
+    refine_name, make_refine = (None, None) if source != "detected" else \
+        _refine_factory(refine_model, cap, illumination, sat, model_options)
+    if make_refine is None or refine_iterations <= 0:
+        # Labels (or given circles) are the user's truth, used as given: refinement would move
+        # them toward a light model's idea of the centres. Detected circles without a traced
+        # model are not refined by default either (see calibrate's refine_model).
+        why = (f"{source} circles used as given" if source != "detected" else
+               "no refinement asked for" if refine_iterations <= 0 else
+               "refine_model auto without an illumination model: the detector's circles")
+        refine_report = {"iterations": 0, "median_move_px": [], "kept_detected": [], "model": None, "note": why}
+    else:
+        use, refine_report = refine_centres(frames, ref, use, ball_radius_mm, mm, iterations=refine_iterations,
                                             folds=folds, seed=seed, shrink_px=shrink_px, saturation=sat,
                                             make_model=make_refine, exclude=mask)
-    refine_report["seconds"] = time.perf_counter() - t0
-    refine_report["model"] = refine_name
-    if refine_iterations > 0:
-        samples = collect_samples(frames, ref, circles, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
+        refine_report["model"] = refine_name
+        detected = use
+        samples = collect_samples(frames, ref, use, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
                                   exclude=mask)
-    return CircleFit(cap, src, float(mm), frames, ref, sat, circles, samples, rank, t_detect, refine_report, mask,
-                     ball_radius_mm)
+    refine_report["seconds"] = time.perf_counter() - t0
+    return CircleFit(cap, src, float(mm), frames, ref, sat, use, samples, rank, t_detect, refine_report, mask,
+                     ball_radius_mm, source, detected)
 
 
 def _marker_mask(markers, cap: Capture, reference: np.ndarray) -> np.ndarray | None:
@@ -484,7 +540,7 @@ def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: S
 
 def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, folds, shrink_px, detect_options,
                model_options, refine_iterations, refine_model, seed, markers=None,
-               tilt_correction=True) -> CalibrationResult:
+               tilt_correction=True, circles="auto") -> CalibrationResult:
     names = [models] if isinstance(models, str) else list(models)
     explicit = "all" not in names
     if not explicit:
@@ -492,7 +548,7 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
     found = _find_circles(capture, ball_radius_mm, mm_per_px, illumination=illumination, folds=folds,
                           shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
                           refine_iterations=refine_iterations, refine_model=refine_model, seed=seed,
-                          markers=markers)
+                          markers=markers, circles=circles)
     cap, mm, ref, sat, circles, samples = (found.capture, found.mm_per_px, found.reference, found.saturation,
                                            found.circles, found.samples)
     ball_radius_mm = found.ball_radius_mm
@@ -515,15 +571,18 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
         reports[name] = {"fit": fit, "cv": cv, "seconds": time.perf_counter() - t}
         fitted[name] = model
     labels = None
-    if cap.labels and "center_xy" in cap.labels and "radius_px" in cap.labels:
-        labels = label_errors(circles, cap.labels["center_xy"], cap.labels["radius_px"])
+    if has_labels(cap):
+        # The detector's circles against the labels (with labels as the truth, how far the
+        # user's labels sit from what the detector sees).
+        labels = label_errors(found.detected, cap.labels["center_xy"], cap.labels["radius_px"])
     return CalibrationResult(circles=circles, models=fitted, reports=reports, labels=labels,
                              ball_radius_mm=float(ball_radius_mm), mm_per_px=float(mm), shape=cap.shape,
                              num_patterns=int(frames.shape[1]), num_channels=int(frames.shape[4]),
                              light_rank_ratio=rank,
                              meta={"detect_seconds": t_detect, "refine": refine_report, "samples": len(samples),
                                    "contact_samples": int(samples.contact.sum()),
-                                   "circle_settings": {"refine_model": refine_report["model"],
-                                                       "refine_iterations": int(refine_iterations),
+                                   "circle_settings": {"circles": found.source_of_circles,
+                                                       "refine_model": refine_report["model"],
+                                                       "refine_iterations": int(refine_report["iterations"]),
                                                        "shrink_px": float(shrink_px), "folds": int(folds)}},
                              markers=found.markers)

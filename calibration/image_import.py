@@ -24,8 +24,8 @@ one :class:`UserError` naming the file, raised before anything is written (and t
 itself is atomic), so an existing ``capture.h5`` is never touched by a failed import.
 
 Optional: hand labels from a CSV (``name,x,y,radius_px``; x = column, y = row in pixels;
-a header row is allowed), stored as ``labels/*`` for comparison (calibration never fits to
-them); a printed-marker mask (``markers="auto"`` detects dark dots in the reference,
+a header row is allowed), stored as ``labels/*`` (compared with, and fitted to by
+``calibrate(..., circles="labels")``); a printed-marker mask (``markers="auto"`` detects dark dots in the reference,
 or a mask image; :mod:`calibration.markers`), stored as ``markers (H, W)``.
 """
 

@@ -6,7 +6,7 @@ OpenCV), hand labels ``touch_center_xy (K, 2)`` and ``touch_radius_px (K,)``, ``
 ``ball_radius_mm`` and ``mm_per_px``. The capture gets one pattern (P = 1: all LEDs on, the
 three camera channels act as three lights), the background as its reference, channels in RGB
 order, a drive of three LED groups (red, green, blue), and the labels as optional
-``labels/*`` datasets that calibration reports against but never fits to.
+``labels/*`` datasets that calibration reports against (and fits to with ``circles="labels"``).
 """
 
 from __future__ import annotations

@@ -37,6 +37,9 @@ class Samples:
     contact : ndarray, shape (N,), bool
         Inside a (shrunk) contact disc.
     shape : (H, W)
+    radial : ndarray, shape (N,), float, or None
+        Distance from the press's circle centre over its contact radius (in [0, 1) on contact
+        pixels, 0 elsewhere): where on the cap a pixel lies, for rim weighting.
     """
 
     intensities: np.ndarray
@@ -47,6 +50,7 @@ class Samples:
     press: np.ndarray
     contact: np.ndarray
     shape: tuple[int, int]
+    radial: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(len(self.rows))
@@ -55,7 +59,7 @@ class Samples:
         """The samples where ``mask (N,)`` is True."""
         m = np.asarray(mask, dtype=bool)
         return Samples(self.intensities[m], self.reference[m], self.rows[m], self.cols[m], self.normals[m],
-                       self.press[m], self.contact[m], self.shape)
+                       self.press[m], self.contact[m], self.shape, None if self.radial is None else self.radial[m])
 
     @property
     def flat_observations(self) -> np.ndarray:
@@ -106,10 +110,10 @@ def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Cir
     parts = []
     ref_hwm = reference.transpose(1, 2, 0, 3)  # (H, W, P, C)
 
-    def add(mask, normals, press, contact, img):
+    def add(mask, normals, press, contact, img, radial=None):
         rr, cc = np.nonzero(mask)
         parts.append((img[rr, cc], ref_hwm[rr, cc], rr, cc, normals[rr, cc], np.full(len(rr), press),
-                      np.full(len(rr), contact)))
+                      np.full(len(rr), contact), np.zeros(len(rr)) if radial is None else radial[rr, cc]))
 
     flat_n = np.zeros((h, w, 3))
     flat_n[..., 2] = 1.0
@@ -121,10 +125,11 @@ def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Cir
         cx, cy = circ.center_xy
         cap = sphere_cap((h, w), (cy, cx), circ.contact_radius_px, ball_radius_mm, mm_per_px)
         dist = np.hypot(cols - cx, rows - cy)
-        add(dist < circ.contact_radius_px - shrink_px, cap.normals, k, True, img)
+        add(dist < circ.contact_radius_px - shrink_px, cap.normals, k, True, img,
+            dist / max(circ.contact_radius_px, 1e-9))
         add(grid & (dist > flat_outside * ball_px), flat_n, k, False, img)
-    I, R, rr, cc, n, pr, ct = (np.concatenate(x) for x in zip(*parts))
-    s = Samples(I.astype(np.float32), R.astype(np.float32), rr, cc, n, pr, ct.astype(bool), (h, w))
+    I, R, rr, cc, n, pr, ct, rad = (np.concatenate(x) for x in zip(*parts))
+    s = Samples(I.astype(np.float32), R.astype(np.float32), rr, cc, n, pr, ct.astype(bool), (h, w), rad)
     if saturation is not None:
         s = s.subset((s.intensities < saturation).all(axis=(1, 2)))
     if exclude is not None:

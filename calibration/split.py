@@ -5,7 +5,10 @@ user picks the model by it; a separate set of presses does neither. On the share
 frames (30 presses) the split is fixed: presses 0-19 calibrate, 20-29 test
 (:data:`TRAIN_PRESSES`, :data:`TEST_PRESSES`). Choices (model options, levers) are made by
 the CV on the training presses; the test figures are reported afterwards, never tuned on.
-:func:`split_evaluation` is what ``iristac bench calibration`` and the tests run.
+:func:`split_evaluation` is what ``iristac bench calibration`` and the tests run;
+:func:`four_way` runs it twice, calibrated on the detected circles and on the hand labels,
+each judged against both truths, and :func:`split_targets` says which of issue 13's
+targets hold, in which setting.
 """
 
 from __future__ import annotations
@@ -15,11 +18,21 @@ from typing import Any
 
 from pipeline.base.capture import Capture
 
-__all__ = ["TRAIN_PRESSES", "TEST_PRESSES", "split_evaluation", "split_rows", "best_row"]
+__all__ = ["TRAIN_PRESSES", "TEST_PRESSES", "SETTINGS", "TARGETS", "split_evaluation", "split_rows", "best_row",
+           "test_truth", "four_way", "split_targets", "fixed_truth_cv"]
 
 #: The fixed split of the shared real frames (``../shared/data/gelsight_ball_presses.npz``).
 TRAIN_PRESSES = slice(0, 20)
 TEST_PRESSES = slice(20, 30)
+
+#: The two ways of calibrating that :func:`four_way` compares: the circles the models are fitted to.
+SETTINGS = ("detected", "labels")
+
+#: Issue 13's targets on the test presses: (key, what, row field, bound). The best model by CV
+#: of a setting must reach the bound; the CV-vs-test gap target is checked separately.
+TARGETS = (("test_detected", "test <= 7 deg, detected truth", "test_mean_deg", 7.0),
+           ("test_labels", "test <= 9 deg, hand labels", "labels_mean_deg", 9.0),
+           ("ball_radius", "ball radius within 3 %", "ball_radius_error", 0.03))
 
 
 def split_evaluation(capture: Capture, ball_radius_mm: float, models="all", *, train=TRAIN_PRESSES,
@@ -55,7 +68,8 @@ def split_evaluation(capture: Capture, ball_radius_mm: float, models="all", *, t
 
 
 def split_rows(result, evaluation: dict[str, Any]) -> list[dict[str, Any]]:
-    """One row per model: CV (training presses) beside test (detected and label truth) and the ball fit."""
+    """One row per model: CV (training presses, against the circles it was fitted to) beside test
+    (detected and label truth) and the ball fit."""
     rows = []
     labels = (evaluation["truth"].get("labels") or {}).get("models", {})
     for name, m in evaluation["models"].items():
@@ -64,6 +78,8 @@ def split_rows(result, evaluation: dict[str, Any]) -> list[dict[str, Any]]:
         rows.append({
             "model": name,
             "cv_mean_deg": m.get("cv_mean_deg"),
+            "cv_truth": m.get("cv_truth"),
+            "cv_gap_deg": m.get("cv_gap_deg"),
             "test_mean_deg": m["mean_deg"],
             "test_median_deg": m["median_deg"],
             "labels_mean_deg": labels.get(name, {}).get("mean_deg"),
@@ -81,3 +97,107 @@ def best_row(rows: list[dict[str, Any]]) -> dict[str, Any]:
     scored = [r for r in rows if r["cv_mean_deg"] is not None]
     return min(scored, key=lambda r: r["cv_mean_deg"]) if scored else {}
 
+
+
+def test_truth(capture: Capture, ball_radius_mm: float, test=TEST_PRESSES, markers=None):
+    """The test presses' detected circles as :func:`calibration.evaluate.evaluate_calibration` finds them
+    (:data:`calibration.evaluate.TEST_TRUTH`: the edge detector alone), to reuse across calibrations."""
+    from calibration.calibrate import find_circles
+    from calibration.evaluate import TEST_TRUTH
+
+    return find_circles(capture.select(test), ball_radius_mm, markers=markers, **TEST_TRUTH)
+
+
+def four_way(capture: Capture, ball_radius_mm: float, models="all", *, train=TRAIN_PRESSES, test=TEST_PRESSES,
+             test_circles=None, options: dict[str, dict[str, Any]] | None = None) -> dict[str, Any]:
+    """Calibrate on the detected circles and on the hand labels; judge each against both truths.
+
+    Parameters
+    ----------
+    capture : Capture
+        With hand labels (``labels/*``) for every press.
+    ball_radius_mm : float
+    models : as :func:`calibration.calibrate.calibrate`
+    train, test : slice or index array
+    test_circles : CircleFit, optional
+        :func:`test_truth`'s result, to reuse.
+    options : dict, optional
+        Setting (``detected``, ``labels``) -> further :func:`calibration.calibrate.calibrate`
+        arguments of that setting.
+
+    Returns
+    -------
+    dict
+        ``settings``: setting -> :func:`split_evaluation`'s result; ``rows``: one per model,
+        ``{"model", "detected": row, "labels": row}`` (rows of :func:`split_rows`: ``cv_mean_deg``
+        against the setting's own circles on the training presses, ``test_mean_deg`` against the
+        detected truth, ``labels_mean_deg`` against the labels, ``ball_radius_error`` ...);
+        ``best``: setting -> best model by CV.
+    """
+    if test_circles is None:
+        test_circles = test_truth(capture, ball_radius_mm, test)
+    runs = {}
+    for setting in SETTINGS:
+        kwargs = {"circles": setting, **((options or {}).get(setting) or {})}
+        runs[setting] = split_evaluation(capture, ball_radius_mm, models, train=train, test=test,
+                                         test_circles=test_circles, **kwargs)
+    by_model: dict[str, dict[str, Any]] = {}
+    for setting, run in runs.items():
+        for r in run["rows"]:
+            by_model.setdefault(r["model"], {"model": r["model"]})[setting] = r
+    return {"settings": runs, "rows": list(by_model.values()),
+            "best": {k: best_row(v["rows"]).get("model") for k, v in runs.items()}}
+
+
+def split_targets(four: dict[str, Any], default: str = "detected") -> list[dict[str, Any]]:
+    """Issue 13's targets against :func:`four_way`'s result: met or not, and in which setting.
+
+    For each target of :data:`TARGETS`: the best model by CV of every setting, its value, and
+    ``met`` when any setting reaches the bound (``met_in``: those settings); ``default``: the
+    value of the default setting. Then ``cv_gap``: every model and setting whose test error (on
+    the truth it was cross-validated against) differs from its CV by more than 2 deg, and
+    whether the report says so (``met`` when every one does).
+    """
+    out = []
+    for key, what, field, bound in TARGETS:
+        per = {}
+        for setting, run in four["settings"].items():
+            row = next((r for r in run["rows"] if r["model"] == four["best"][setting]), None)
+            if row is not None and row.get(field) is not None:
+                per[setting] = {"model": row["model"], "value": row[field]}
+        met_in = [k for k, v in per.items() if v["value"] <= bound]
+        out.append({"target": key, "what": what, "bound": bound, "per_setting": per, "met": bool(met_in),
+                    "met_in": met_in, "default": per.get(default)})
+    gaps = [{"setting": setting, "model": r["model"], "gap_deg": r["cv_gap_deg"], "reported": r["note"] is not None}
+            for setting, run in four["settings"].items() for r in run["rows"]
+            if r.get("cv_gap_deg") is not None and abs(r["cv_gap_deg"]) > 2.0]
+    out.append({"target": "cv_gap", "what": "CV and test within 2 deg, or the report says so", "bound": 2.0,
+                "gaps": gaps, "met": all(g["reported"] for g in gaps), "met_in": list(four["settings"])})
+    return out
+
+
+def fixed_truth_cv(capture: Capture, ball_radius_mm: float, model: str, *, judge: str = "detected",
+                   train=TRAIN_PRESSES, **calibrate_kwargs) -> float:
+    """CV error on the training presses of a model fitted as ``calibrate_kwargs`` say, judged on one fixed truth.
+
+    A calibration's own CV is judged against the circles it was fitted to, so choices that
+    change those circles (centre refinement, the rim margin, labels) are not comparable by it.
+    Here every fold's model is fitted on the setting's own circles and judged on the held-out
+    presses' ``judge`` circles: ``detected`` (:data:`calibration.evaluate.TEST_TRUTH`: the edge
+    detector alone, 2 px margin) or ``labels``. Predictions are not tilt-corrected.
+    """
+    from calibration.calibrate import _factories, find_circles
+    from calibration.evaluate import TEST_TRUTH
+    from calibration.validate import cross_validate
+
+    sub = capture.select(train)
+    keys = ("illumination", "folds", "shrink_px", "detect_options", "model_options", "refine_iterations",
+            "refine_model", "seed", "markers", "circles")
+    found = find_circles(sub, ball_radius_mm, **{k: v for k, v in calibrate_kwargs.items() if k in keys})
+    truth = (dict(TEST_TRUTH) if judge == "detected" else {**TEST_TRUTH, "circles": "labels"})
+    ref = find_circles(sub, ball_radius_mm, markers=calibrate_kwargs.get("markers"), **truth)
+    make = _factories([model], found.capture, calibrate_kwargs.get("illumination"), found.saturation,
+                      calibrate_kwargs.get("model_options"))[model]
+    cv = cross_validate(make, found.samples, found.reference, folds=calibrate_kwargs.get("folds", 5),
+                        seed=calibrate_kwargs.get("seed", 0), judge=ref.samples)
+    return cv["cv_mean_angular_error_deg"]

@@ -35,7 +35,7 @@ def fold_assignment(presses: np.ndarray, folds: int, seed: int = 0) -> dict[int,
 
 
 def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples, reference: np.ndarray,
-                   folds: int = 5, seed: int = 0, return_predictions: bool = False):
+                   folds: int = 5, seed: int = 0, return_predictions: bool = False, judge: Samples | None = None):
     """Cross-validated angular error of the model built by ``make_model``.
 
     Parameters
@@ -49,6 +49,11 @@ def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples,
     seed : int
     return_predictions : bool
         Also return the out-of-fold predictions.
+    judge : Samples, optional
+        Other truth for the same presses (e.g. their hand-labelled circles, or the detector's
+        unrefined ones): each fold's model, fitted on ``samples``, is judged on ``judge``'s
+        contact pixels of its held-out presses. Training choices that change the circles
+        (refinement, labels) are comparable only against one fixed truth.
 
     Returns
     -------
@@ -58,12 +63,12 @@ def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples,
         ``invalid_fraction``.
     predictions : (normals (N, 3), valid (N,), evaluated (N,)), only with ``return_predictions``
         Each held-out contact sample's prediction by the model that did not see its press
-        (``evaluated`` marks them; elsewhere ``(0, 0, 1)`` and False).
+        (``evaluated`` marks them; elsewhere ``(0, 0, 1)`` and False); of ``judge``'s samples when given.
     """
     from pipeline.base.threads import limit_threads
 
     with limit_threads(blas=1):  # why: see calibration.calibrate.calibrate
-        report, preds = _cross_validate(make_model, samples, reference, folds, seed)
+        report, preds = _cross_validate(make_model, samples, reference, folds, seed, judge)
     return (report, preds) if return_predictions else report
 
 
@@ -80,27 +85,30 @@ def cv_report(errors: np.ndarray, samples: Samples, fold_log: list) -> dict[str,
             "invalid_fraction": float(np.mean(e >= INVALID_ERROR_DEG))}
 
 
-def _cross_validate(make_model, samples: Samples, reference: np.ndarray, folds: int, seed: int):
+def _cross_validate(make_model, samples: Samples, reference: np.ndarray, folds: int, seed: int,
+                    judge: Samples | None = None):
     presses = np.unique(samples.press[(samples.press >= 0) & samples.contact])
     if len(presses) < 2:
         raise ValueError(f"cross_validate: needs at least two accepted presses, got {len(presses)}")
     assign = fold_assignment(presses, folds, seed)
     fold_of = np.array([assign.get(int(p), -1) for p in samples.press])
-    errors = np.full(len(samples), np.nan)
-    pred = np.zeros((len(samples), 3))
+    judged = samples if judge is None else judge
+    judged_fold = fold_of if judge is None else np.array([assign.get(int(p), -1) for p in judge.press])
+    errors = np.full(len(judged), np.nan)
+    pred = np.zeros((len(judged), 3))
     pred[:, 2] = 1.0
-    valid = np.zeros(len(samples), bool)
+    valid = np.zeros(len(judged), bool)
     fold_log = []
     for f in sorted(set(assign.values())):
         test_p = sorted(p for p, g in assign.items() if g == f)
         train = fold_of != f
         model = make_model()
         model.fit(samples.subset(train), reference)
-        test = (fold_of == f) & samples.contact
-        n, ok = model.predict(samples.subset(test))
+        test = (judged_fold == f) & judged.contact
+        n, ok = model.predict(judged.subset(test))
         pred[test], valid[test] = n, ok
-        e = angular_error_deg(n, samples.normals[test])
+        e = angular_error_deg(n, judged.normals[test])
         errors[test] = np.where(ok & np.isfinite(e), e, INVALID_ERROR_DEG)
         fold_log.append({"test_presses": test_p,
                          "train_presses": sorted(int(p) for p in np.unique(samples.press[train]) if p >= 0)})
-    return cv_report(errors, samples, fold_log), (pred, valid, np.isfinite(errors))
+    return cv_report(errors, judged, fold_log), (pred, valid, np.isfinite(errors))

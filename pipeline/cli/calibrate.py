@@ -21,11 +21,15 @@ def register(sub, name, help_text):
                    help="illumination.h5 (LED fields V from iristac sim trace) for the traced model")
     p.add_argument("--correct-led-geometry", action="store_true",
                    help="traced model: also fit small LED position and tilt corrections")
+    p.add_argument("--circles", choices=["auto", "detected", "labels"], default="auto",
+                   help="contact circles the models are fitted to: detected (the edge detector's), labels (the "
+                        "capture's hand labels, from import images --labels; radius clamped below the ball's), "
+                        "auto = detected (default)")
     p.add_argument("--no-refine", action="store_true",
                    help="keep the edge detector's centres (no photometric centre refinement)")
     p.add_argument("--refine-model", choices=["auto", "far", "near", "traced", "mlp"], default="auto",
-                   help="light model whose normals vote for the centres (auto: traced with --illumination, "
-                        "else near)")
+                   help="light model whose normals vote for the detected centres (auto: traced with --illumination, "
+                        "else none: the detector's centres; see docs/calibration.md)")
     p.add_argument("--markers", default=None, metavar="auto|none|MASK.png",
                    help="printed gel markers: detect dark dots in the reference (auto), none, or a mask image "
                         "(default: the capture's own marker mask, if it has one)")
@@ -45,7 +49,7 @@ def _run(args) -> int:
     opts = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else None
     res = calibrate(args.capture, args.ball_radius, args.mm_per_px, args.model, folds=args.folds, illumination=ill,
                     model_options=opts, refine_iterations=0 if args.no_refine else 2,
-                    refine_model=args.refine_model, markers=args.markers)
+                    refine_model=args.refine_model, markers=args.markers, circles=args.circles)
     res.save(args.out)
     if args.overlay:
         from pipeline.base.capture import read_capture
@@ -58,6 +62,7 @@ def _run(args) -> int:
         print_json(s)
         return 0
     print(f"{s['accepted']} of {s['presses']} presses accepted; wrote {args.out}")
+    print(f"  circles: {s['circles_used']}")
     for name, m in s["models"].items():
         if m.get("skipped"):
             print(f"  {name:7s} skipped: {m['skipped']}")
@@ -67,7 +72,8 @@ def _run(args) -> int:
             print(f"  {name:7s} CV mean {m['cv_mean_angular_error_deg']:6.2f} deg  median "
                   f"{m['cv_median_angular_error_deg']:6.2f} deg  {m['seconds']:6.2f} s")
     if "center_error_px_median" in s:
-        print(f"  vs labels: centre {s['center_error_px_median']:.2f} px, radius {s['radius_error_px_median']:.2f} px "
-              "(medians)")
+        off = s["center_offset_px_median"]
+        print(f"  detected circles vs hand labels: centre {s['center_error_px_median']:.2f} px (median offset "
+              f"{off[0]:+.2f}, {off[1]:+.2f} px), radius {s['radius_error_px_median']:.2f} px (medians)")
     print("  " + s["cv_note"].replace("CAL.h5", str(args.out)))
     return 0

@@ -96,10 +96,12 @@ def test_cli_rank_deficient_capture_is_refused(tmp_path):
 def test_hand_labels_sit_down_left_of_the_contacts():
     """The evidence behind docs/calibration.md: the labels share an offset, not just noise.
 
-    Our centres sit a median (+1.6, -1.8) px from the labels. Moving every label by the
-    detector's median offset (one shared shift, two numbers for 30 presses) lowers the
-    cross-validated error of a near-field model trained on the labels themselves: the
-    shading agrees with the shifted labels better than with the originals.
+    Centres refined by the near-field model sit a median (+1.6, -1.8) px from the labels.
+    Moving every label by that median offset (one shared shift, two numbers for 30 presses)
+    lowers the cross-validated error of a near-field model trained on the labels themselves:
+    the near-field model's shading agrees with the shifted labels better than with the
+    originals. (Evidence from one model family: each family has its own centre convention,
+    docs/calibration.md "Which truth".)
     """
     from calibration.calibrate import calibrate
     from calibration.detect import Circle
@@ -109,7 +111,7 @@ def test_hand_labels_sit_down_left_of_the_contacts():
     from calibration.validate import cross_validate
 
     cap = load_gelsight_npz(DATA)
-    res = calibrate(cap, 2.0, 0.1245, ["near"], folds=5)
+    res = calibrate(cap, 2.0, 0.1245, ["near"], folds=5, refine_model="near")
     s = res.summary()
     dx, dy = s["center_offset_px_median"]
     assert dx > 0.8 and dy < -0.8  # right and up on screen (x = column, y = row)
@@ -124,4 +126,5 @@ def test_hand_labels_sit_down_left_of_the_contacts():
 
     raw, shifted = label_cv((0.0, 0.0)), label_cv((dx, dy))
     assert shifted < raw - 0.5, (raw, shifted)
-    assert s["models"]["near"]["cv_mean_angular_error_deg"] <= 8.0  # the issue's target on these frames
+    # Against its own refined circles (not comparable with CV on the detector's circles).
+    assert s["models"]["near"]["cv_mean_angular_error_deg"] <= 8.0

@@ -1,8 +1,9 @@
 """Calibration that generalizes: the fixed split of the shared real frames (presses 0-19 calibrate, 20-29 test).
 
 Choices were made by CV on presses 0-19 (``iristac bench calibration`` prints the levers); the
-test presses only check the result. Also: ``iristac eval calibration`` end to end, and markers
-printed on the real frames.
+test presses only check the result. Calibrated on the detected circles (the default) and on
+the hand labels (``circles="labels"``), each judged against both truths. Also: ``iristac eval
+calibration`` end to end, and markers printed on the real frames.
 """
 
 import json
@@ -28,29 +29,74 @@ def capture():
 
 
 @pytest.fixture(scope="module")
-def split(capture):
-    from calibration.split import split_evaluation
+def four(capture):
+    from calibration.split import four_way
 
-    return split_evaluation(capture, 2.0, ["near", "mlp"])
-
-
-def test_best_model_meets_the_test_split_targets(split):
-    from calibration.split import best_row
-
-    rows = {r["model"]: r for r in split["rows"]}
-    best = best_row(split["rows"])
-    assert best["model"] == "mlp", rows
-    # Issue 13's targets on presses the calibration never saw (detected-circle truth, ball fit).
-    assert best["test_mean_deg"] <= 7.0, best
-    assert best["ball_radius_error"] <= 0.03, best
-    # Not met, and reported: the hand labels' own centre bias (docs/calibration.md) costs ~8 deg alone.
-    assert best["labels_mean_deg"] > 9.0
+    return four_way(capture, 2.0, ["near", "mlp"])
 
 
-def test_cv_and_test_agree_or_the_report_says_so(split):
-    for r in split["rows"]:
-        gap = r["test_mean_deg"] - r["cv_mean_deg"]
-        assert (abs(gap) > 2.0) == (r["note"] is not None), r
+@pytest.fixture(scope="module")
+def split(four):
+    return four["settings"]["detected"]
+
+
+def test_best_model_meets_the_test_split_targets(four):
+    from calibration.split import split_targets
+
+    assert four["best"] == {"detected": "mlp", "labels": "mlp"}, four["rows"]
+    targets = {t["target"]: t for t in split_targets(four)}
+    # Issue 13's targets on presses the calibration never saw. Detected truth and ball fit: met
+    # by the default (calibrated on detected circles).
+    assert targets["test_detected"]["default"]["value"] <= 7.0, targets["test_detected"]
+    assert targets["ball_radius"]["default"]["value"] <= 0.03, targets["ball_radius"]
+    # Against hand labels: met when calibrated on the labels (the labeller's convention is
+    # learnt), and the report says in which setting.
+    lab = targets["test_labels"]
+    assert lab["met"] and "labels" in lab["met_in"] and lab["per_setting"]["labels"]["value"] <= 9.0, lab
+    assert targets["cv_gap"]["met"], targets["cv_gap"]
+
+
+def test_cv_and_test_agree_or_the_report_says_so(four):
+    for setting, run in four["settings"].items():
+        for r in run["rows"]:
+            # The gap is taken on the truth the CV was judged against (labels for a calibration on labels).
+            test = r["labels_mean_deg"] if setting == "labels" else r["test_mean_deg"]
+            assert r["cv_truth"] == setting and r["cv_gap_deg"] == pytest.approx(test - r["cv_mean_deg"])
+            assert (abs(r["cv_gap_deg"]) > 2.0) == (r["note"] is not None), r
+
+
+def test_calibrating_on_labels_learns_the_labels_convention(four, capture):
+    """A calibration on hand labels scores better against labels, one on detected circles against
+    the detector's circles: each truth has its own convention (about 2 px apart here)."""
+    from calibration.split import TRAIN_PRESSES
+
+    for r in four["rows"]:
+        assert r["labels"]["labels_mean_deg"] < r["detected"]["labels_mean_deg"], r["model"]
+    # The MLP learns either convention; the near-field model's own structure pins its centres
+    # (its errors against the detector are close either way).
+    mlp = next(r for r in four["rows"] if r["model"] == "mlp")
+    assert mlp["detected"]["test_mean_deg"] < mlp["labels"]["test_mean_deg"]
+    cal = four["settings"]["labels"]["calibration"]
+    labels = np.asarray(capture.labels["center_xy"][TRAIN_PRESSES], float)
+    np.testing.assert_allclose([c.center_xy for c in cal.circles], labels, atol=1e-4)
+    assert max(c.contact_radius_px for c in cal.circles) <= 0.95 * 2.0 / 0.1245 + 1e-6
+    assert cal.summary()["circles_used"].startswith("hand labels")
+
+
+def test_detected_truth_is_the_same_whatever_the_calibration(capture, split):
+    """No light model votes for the test truth, and the calibration's own settings do not change it."""
+    from calibration.calibrate import calibrate
+    from calibration.evaluate import evaluate_calibration
+    from calibration.split import TEST_PRESSES, TRAIN_PRESSES
+
+    refined = calibrate(capture.select(TRAIN_PRESSES), 2.0, models=["near"], refine_model="near",
+                        shrink_px=3.0)
+    assert refined.meta["circle_settings"]["refine_iterations"] == 2
+    ev = evaluate_calibration(refined, capture.select(TEST_PRESSES), 2.0)
+    base = split["evaluation"]["truth"]["detected"]
+    assert ev["truth"]["detected"]["circles"] == base["circles"]
+    assert all(c["shift_xy"] == [0.0, 0.0] for c in base["circles"])
+    assert "edge detector alone" in base["method"] and "2 px margin" in base["method"]
 
 
 def test_text_report_names_every_model_and_flags_gaps(split):
@@ -67,7 +113,7 @@ def test_label_truth_is_reported_separately_with_its_bias(split):
     ev = split["evaluation"]
     lab = ev["truth"]["labels"]
     dx, dy = lab["center_offset_px_median"]
-    assert dx > 0.5 and dy < -0.5  # the labels' bias holds on the test presses too
+    assert dx > 0.5 and dy < -0.5  # the labels' offset from the detector holds on the test presses too
     assert set(lab["models"]) == {"near", "mlp"}
     for name, m in ev["models"].items():
         assert lab["models"][name]["mean_deg"] > m["mean_deg"], name

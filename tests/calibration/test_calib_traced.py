@@ -109,8 +109,13 @@ def test_refinement_votes_with_the_traced_model_when_fields_are_given(displaced)
     assert with_fields.meta["refine"]["model"] == "traced"
     # The traced model measures these presses well, so its votes keep the centres on the truth.
     assert with_fields.summary()["models"]["traced"]["cv_mean_angular_error_deg"] < 1.5
+    # Without LED fields no model votes by default: a fitted model's votes are its family's own
+    # convention (docs/calibration.md, "Which truth"); the detector's centres stay.
     without = calibrate(cap, 1.5, models=["near"], folds=3)
-    assert without.meta["refine"]["model"] == "near"
+    assert without.meta["refine"]["model"] is None and without.meta["refine"]["iterations"] == 0
+    assert all(c.shift_xy == (0.0, 0.0) for c in without.circles)
+    asked = calibrate(cap, 1.5, models=["near"], folds=3, refine_model="near")
+    assert asked.meta["refine"]["model"] == "near" and asked.meta["circle_settings"]["refine_iterations"] == 2
     with pytest.raises(UserError, match="refinement with the 'traced' model is impossible"):
         calibrate(cap, 1.5, models=["near"], folds=3, refine_model="traced")
     with pytest.raises(UserError, match="--refine-model must be one of"):
