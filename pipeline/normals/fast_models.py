@@ -357,13 +357,14 @@ class FastMLP(_Base):
     ----------
     members : list of list of (weight, bias)
         Per member, its ``Linear`` layers in order (numpy; ``weight (out, in)``): the first
-        takes ``[a * d, r, u, v]`` (``features="change+reference"``, ``a = 4``),
-        ``[a * d, u, v]`` (``"change"``) or ``[d + r, u, v]`` (``"colour"``) with ``d = (I - ref) /
+        takes ``[a * d, r, uv]`` (``features="change+reference"``, ``a = 4``),
+        ``[a * d, uv]`` (``"change"``) or ``[d + r, uv]`` (``"colour"``) with ``d = (I - ref) /
         input_scale``, ``r = ref / input_scale`` (``P * C`` values each), the last gives
         ``(n_x, n_y)``. Activations SiLU.
     reference : ndarray, shape (P, H, W, C)
-    uv : ndarray, shape (H * W, 2)
-        Normalised pixel position (``poly_terms(..., 1)[:, 1:]``), or None without position input.
+    uv : ndarray, shape (H * W, T)
+        The position terms the model feeds (``poly_terms(..., position_degree)[:, 1:]``: ``u, v``
+        at degree 1, T = 2), or None without position input.
     input_scale : float
     features : str
     tilt_gain, max_tilt, dark : as :class:`FastLUT`.
@@ -379,7 +380,7 @@ class FastMLP(_Base):
         self.ref = frame_planes_np(ref)  # (N, M) float32
         self.inv_scale = np.float32(1.0 / float(input_scale))
         r = (self.ref / np.float32(input_scale)).T.astype(np.float64)  # (M, N), the model's r
-        pos = np.zeros((M, 0)) if uv is None else np.asarray(uv, np.float64).reshape(M, 2)
+        pos = np.zeros((M, 0)) if uv is None else np.asarray(uv, np.float64).reshape(M, -1)
         self.members = []
         for layers in members:
             W1, b1 = (np.asarray(a, np.float64) for a in layers[0])

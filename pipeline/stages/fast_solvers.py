@@ -149,7 +149,7 @@ def mlp_fast(lights, *, shape, dark=None, reference=None, markers=None, **_):
     uv = None
     if model.position:
         rows, cols = (a.ravel() for a in np.mgrid[:H, :W])
-        uv = poly_terms(rows, cols, (H, W), 1)[:, 1:]
+        uv = poly_terms(rows, cols, (H, W), model.position_degree)[:, 1:]
     return FastMLP(members, _reference(model, reference), uv, input_scale=model.input_scale, features=model.features,
                    tilt_gain=model.tilt_gain, max_tilt=model.max_tilt, dark=dark, markers=markers)
 

@@ -119,15 +119,20 @@ def real_models():
     with limit_threads(torch=1):
         res = calibrate(cap.select(slice(0, 6)), 2.0, cap.mm_per_px, ["lut", "mlp"], folds=2, refine_iterations=0,
                         model_options={"mlp": {"epochs": 40, "max_samples": 1000, "members": 2}})
-    return res.models, cap
+        # The position as a degree-2 polynomial (u, v, u^2, uv, v^2): the first layer's fixed part.
+        quad = calibrate(cap.select(slice(0, 6)), 2.0, cap.mm_per_px, ["mlp"], folds=2, refine_iterations=0,
+                         model_options={"mlp": {"epochs": 20, "max_samples": 500, "position_degree": 2}})
+    return {**res.models, "mlp-degree2": quad.models["mlp"]}, cap
 
 
-@pytest.mark.parametrize("name", ["lut", "mlp"])
-def test_model_fast_paths_equal_normal_maps(real_models, name):
+@pytest.mark.parametrize("case", ["lut", "mlp", "mlp-degree2"])
+def test_model_fast_paths_equal_normal_maps(real_models, case):
     from pipeline.normals.solve import LightSource
     from pipeline.stages.fast_solvers import frame_solver
 
-    models, cap = real_models
+    all_models, cap = real_models
+    name = case.split("-")[0]
+    models = {name: all_models[case]}
     models[name].tilt_gain = 1.07  # the output correction goes through the fast path too
     models[name].max_tilt = 0.9
     frames, ref = cap.linear()
