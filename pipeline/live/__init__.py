@@ -327,6 +327,12 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
             from pipeline.depth import integrate as integ
 
             integrate = lambda n, m: integ(n, pitch, m, method=integrator)  # noqa: E731
+        if fs.method == "fast":
+            # Warm up on a dark frame before the capture thread starts: loading the compiled
+            # kernels from the disk cache takes ~0.5 s, and the camera's frames of that time
+            # would otherwise be dropped (and counted as if processing fell behind).
+            blank = np.zeros((len(patterns.frames), H, W, C), np.uint8)
+            integrate(fs.solve(blank, threads=threads).normals, np.zeros((H, W), bool))
         prepare_s = time.monotonic() - t0
         say(f"solver {solver} ({fs.method}) ready in {prepare_s:.2f} s")
         # ---- outputs ------------------------------------------------------------------------
