@@ -159,6 +159,64 @@ def test_live_video_file_ends_recording_closed_and_valid(video_and_calibration, 
     assert r.returncode == 1 and "end of the video file" in r.stderr
 
 
+def _mjpeg_server(frames, repeat: int):
+    """A network camera on 127.0.0.1: ``frames`` (RGB) ``repeat`` times as an MJPEG stream over
+    HTTP (what IP cameras serve), then the connection closes: the camera goes away mid-stream."""
+    import threading
+    from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+    import cv2
+
+    jpgs = [cv2.imencode(".jpg", cv2.cvtColor(f, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+            for f in frames]
+
+    class Stream(BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_response(200)
+            self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+            self.end_headers()
+            for i in range(repeat * len(jpgs)):
+                jpg = jpgs[i % len(jpgs)]
+                self.wfile.write(b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(jpg)
+                                 + jpg + b"\r\n")
+                self.wfile.flush()
+                time.sleep(0.03)
+            self.close_connection = True  # unplugged
+
+        def log_message(self, *args):
+            pass
+
+    server = ThreadingHTTPServer(("127.0.0.1", 0), Stream)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    return server, f"http://127.0.0.1:{server.server_address[1]}/stream.mjpg"
+
+
+def test_live_camera_unplugged_mid_stream(video_and_calibration, tmp_path):
+    """A network camera (MJPEG over real HTTP through OpenCV) stops mid-stream: one clear
+    message naming the camera, exit status 1, and the recording closed, consolidated and valid
+    with every result made before."""
+    from pipeline.live.recorder import read_recording
+
+    _, cal, frames = video_and_calibration
+    server, url = _mjpeg_server(frames, repeat=4)
+    try:
+        rec = tmp_path / "rec.h5"
+        r = run_cli("live", "--camera", url, "--calibration", cal, "--solver", "lut", "--record", rec, "--json",
+                    "--queue", "64", timeout=120)
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert r.returncode == 1, r.stderr
+    assert f"camera {url!r}: no frame (the device stopped delivering)" in r.stderr and "Traceback" not in r.stderr
+    s = json.loads(r.stdout)
+    assert s["results"] >= len(frames) and "stopped delivering" in s["stopped"]
+    assert f"the recording {rec} is closed and holds {s['results']} results" in r.stderr
+    got = read_recording(rec)
+    assert got.meta["complete"] is True and got.meta["results"] == s["results"]
+    assert got.data["frames"].shape == (s["results"], 1, 60, 80, 3) and np.isfinite(got.data["height"]).all()
+    assert not Path(str(rec) + ".parts").exists()
+
+
 def test_recording_survives_sigkill(store, tmp_path):
     """SIGKILL a recording process mid-stream: FILE.h5 opens, validates and holds the segments written."""
     from pipeline.live.recorder import read_recording
