@@ -79,11 +79,11 @@ def finalize_tensors(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, *, 
     rho, p, q = _lstsq.group_albedo(m, n)
     res = _lstsq.residual_rms(m, p, q)
     zero = torch.zeros((), dtype=n.dtype, device=n.device)
-    if not finite_inputs:
-        # Moments of huge (but finite) float inputs can overflow to Inf in the products.
-        rho = torch.nan_to_num(rho, nan=0.0, posinf=0.0, neginf=0.0)
-        res = torch.nan_to_num(res, nan=0.0, posinf=0.0, neginf=0.0)
-        cond = torch.nan_to_num(cond, nan=T.COND_CAP, posinf=T.COND_CAP, neginf=T.COND_CAP)
+    # Moments of huge but finite inputs can overflow to Inf in the products (a 1e30 observation
+    # squares to Inf in float32), also when every input is finite: outputs are always cleaned.
+    rho = torch.nan_to_num(rho, nan=0.0, posinf=0.0, neginf=0.0)
+    res = torch.nan_to_num(res, nan=0.0, posinf=torch.finfo(res.dtype).max, neginf=0.0)  # overflowed: a huge misfit
+    cond = torch.nan_to_num(cond, nan=T.COND_CAP, posinf=T.COND_CAP, neginf=T.COND_CAP)
     return {"normals": n, "albedo": torch.where(valid, rho, zero), "residual": torch.where(valid, res, zero),
             "condition": cond.expand(n.shape[1]) if cond.numel() == 1 else cond, "mask": valid,
             "count": m.count}
