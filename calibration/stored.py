@@ -17,7 +17,7 @@ import numpy as np
 from calibration.models.base import LightFieldModel
 from pipeline.base.errors import UserError
 
-__all__ = ["StoredLightField", "load_models", "load_calibration"]
+__all__ = ["StoredLightField", "load_models", "load_calibration", "calibration_from_record"]
 
 
 class StoredLightField(LightFieldModel):
@@ -67,7 +67,12 @@ def load_calibration(path: str | Path) -> tuple[dict[str, Any], dict[str, Any]]:
 
     if not Path(path).is_file():
         raise UserError(f"{path}: no such file (expected a 'calibration' HDF5 record from iristac calibrate)")
-    rec = read_record(path, schema="calibration")
+    return calibration_from_record(read_record(path, schema="calibration"))
+
+
+def calibration_from_record(rec) -> tuple[dict[str, Any], dict[str, Any]]:
+    """:func:`load_calibration` of a ``calibration`` Record already read (or made in memory)."""
+    path = rec.path if rec.path is not None else "calibration"
     data, meta = dict(rec.data), dict(rec.meta)
     if "markers" in data:  # the printed gel markers the calibration filled in (CalibrationResult.markers)
         meta["markers"] = np.asarray(data["markers"]).astype(bool)

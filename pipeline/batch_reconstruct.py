@@ -55,7 +55,7 @@ def _sha(a: np.ndarray) -> str:
 def reconstruct_recording(recording: str, *, calibration: str | None = None, illumination: str | None = None,
                           solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
                           store: str | None = None, images: bool = False, device: str = "cpu",
-                          heal: bool = True, mask: str | None = None) -> dict[str, Any]:
+                          heal: bool = True, mask: str | None = None, markers: str | None = None) -> dict[str, Any]:
     """Reconstruct one recording (the batch task; picklable as a :func:`functools.partial`).
 
     Parameters
@@ -78,6 +78,9 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
     mask : str, optional
         A mask file (PNG/NPY) of the pixels to reconstruct, for every recording (replaces a
         capture's own ``mask``).
+    markers : str, optional
+        ``auto``, ``none`` or a marker mask image, for every recording (default: each
+        capture's own markers, else the calibration's; :func:`pipeline.stages.normals.marker_mask`).
 
     Returns
     -------
@@ -92,7 +95,7 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
     dest = None if out is None else str(Path(out) / Path(recording).stem)
     res = reconstruct(recording, calibration=calibration, illumination=illumination, solver=solver,
                       integrator=integrator, out=dest, store=store, images=images, device=device, heal=heal,
-                      mask=mask)
+                      mask=mask, markers=markers)
     n, d = res.normals, res.depth
     result = {"normals_key": n.provenance.get("iristac_key") or "", "depth_key": d.provenance.get("iristac_key") or "",
               "normals_sha256": _sha(n.data["normals"]), "depth_sha256": _sha(d.data["height"]),
@@ -129,7 +132,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
                       solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
                       store: str | None = None, images: bool = False, device: str = "cpu", workers: int = 1,
                       scheduler: str | None = None, progress: bool = False, connect_timeout: float = 10.0,
-                      heal: bool = True, mask: str | None = None):
+                      heal: bool = True, mask: str | None = None, markers: str | None = None):
     """Reconstruct every recording with a shared calibration or illumination model.
 
     Parameters
@@ -143,7 +146,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     scheduler : str, optional
         A Dask scheduler address (``tcp://host:8786``): the recordings are spread over its
         workers, which must see the same paths (and the store) as this machine.
-    solver, integrator, out, store, images, device, heal, progress, connect_timeout, mask
+    solver, integrator, out, store, images, device, heal, progress, connect_timeout, mask, markers
         See :func:`reconstruct_recording` and :func:`pipeline.batch.run_batch`.
 
     Returns
@@ -155,7 +158,9 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
 
     if calibration is not None and illumination is not None:
         raise UserError("batch: give either --calibration or --illumination, not both")
-    for flag, path in (("--calibration", calibration), ("--illumination", illumination), ("--mask", mask)):
+    marker_file = markers if markers not in (None, "auto", "none") else None
+    for flag, path in (("--calibration", calibration), ("--illumination", illumination), ("--mask", mask),
+                       ("--markers", marker_file)):
         if path is not None and not Path(path).is_file():
             raise UserError(f"{flag} {path}: no such file")
     # Workers may run elsewhere or in another folder: hand them absolute paths.
@@ -167,6 +172,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
         store = str(default_store_root())
     task = partial(reconstruct_recording, calibration=absolute(calibration), illumination=absolute(illumination),
                    solver=solver, integrator=integrator, out=absolute(out), store=absolute(store), images=images,
-                   device=device, heal=heal, mask=absolute(mask))
+                   device=device, heal=heal, mask=absolute(mask),
+                   markers=absolute(marker_file) if marker_file else markers)
     return run_batch(recs, task, workers=workers, scheduler=scheduler, progress=progress,
                      connect_timeout=connect_timeout)

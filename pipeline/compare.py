@@ -213,7 +213,7 @@ def compare_captures(captures: dict[str, Any], *, illumination=None, calibration
         cal_rec = None if cal is None else (cal if isinstance(cal, Record) else read_record(cal, schema="calibration"))
         has_lut = cal_rec is not None and any(k.startswith("models/lut/") for k in cal_rec.data)
         # The illumination gives light vectors everywhere; a calibration with a table, the table.
-        kinds = {"vectors", "field"} | ({"table"} if has_lut else set())
+        kinds = {"vectors", "field"} | ({"model:lut"} if has_lut else set())
         tried = [s for s in applicable_solvers(P, rec.data["frames"].shape[-1], kinds, variants=solvers is not None)
                  if solvers is None or s in solvers]
         secs, how = capture_seconds.get(mode, (float("nan"), "not measured"))

@@ -14,6 +14,11 @@ user's ``mask=`` (a PNG/NPY file or an array), which replaces it
 (:func:`pipeline.stages.normals.capture_region`). Only those pixels are read out of the
 frames, solved and integrated (rectangular integrators on the mask's bounding box); every
 pixel outside is invalid in the outputs (:mod:`pipeline.normals.masking`).
+
+Printed gel markers (``markers=``, ``--markers auto|none|MASK.png``; default the capture's own
+``markers`` dataset, else the calibration's): filled in before the normals are solved, False
+in the normals' mask, integrated through by the depth stage
+(:func:`pipeline.stages.normals.marker_mask`).
 """
 
 from __future__ import annotations
@@ -36,7 +41,8 @@ class ReconstructResult:
 
     ``summary`` has the CLI's JSON keys: ``solver``, ``integrator``, ``seconds``,
     ``valid_fraction`` and, when the capture has ground truth, ``normal_mean_error_deg`` and
-    ``depth_rmse_mm`` (means over contact instances); plus ``cached`` and ``outputs``.
+    ``depth_rmse_mm`` (means over contact instances); plus ``cached``, ``markers`` (marker
+    pixels filled in) and ``outputs``.
     """
 
     normals: Any
@@ -61,7 +67,7 @@ def _read(path_or_record, schema: str):
 def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "lstsq", integrator: str = "dst",
                 out=None, store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu",
                 dtype="float32", threads: int | None = 1, images: bool = True, force: bool = False,
-                compile: bool = False, heal: bool = True, mask=None) -> ReconstructResult:
+                compile: bool = False, heal: bool = True, mask=None, markers=None) -> ReconstructResult:
     """Normals and depth of a capture, through the stage store.
 
     Parameters
@@ -86,7 +92,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         Pixels with a worse-conditioned light matrix are masked.
     device, dtype, threads
         Torch device and dtype of the solvers; torch intra-op threads while solving
-        (default 1: fastest on a small shared CPU; None leaves torch's setting).
+        (default 1: fastest on a small shared CPU; None leaves torch's setting). On a GPU
+        (``cuda``) ``nearfield`` solves every contact instance as one batch and ``dst``
+        integrates them all by FFT on the device (:mod:`pipeline.normals.batched`).
     force : bool
         Recompute even if the store has the results.
     compile : bool
@@ -100,6 +108,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     mask : path or ndarray, shape (H, W), optional
         Reconstruct only these pixels (a ``.png``/``.npy`` file, non-zero inside, or an array),
         instead of the capture's own ``mask`` dataset (or every pixel when it has none).
+    markers : None, "auto", "none", path or ndarray (H, W), optional
+        Printed gel markers to fill in (:func:`pipeline.stages.normals.marker_mask`); None: the
+        capture's own ``markers``, else the calibration's.
 
     Returns
     -------
@@ -122,19 +133,21 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         raise UserError(f"{cap.path}: --ratio needs no-contact reference frames (dataset 'reference'); this "
                         f"capture has none (source {cap.meta.get('source')!r})")
     region = normals_stage.capture_region(cap, mask)
+    marks = normals_stage.marker_mask(cap, markers, lights)
     user_region = None if mask is None else region  # the capture's own mask is part of its identity
     mm_per_px = float(cap.meta["mm_per_px"])
     store = store if isinstance(store, StageStore) else StageStore(store)
     n_rec, n_key, n_cached = normals_stage.run(
         store, cap, capture_stage.capture_key(store, cap), lights, solver=solver, ratio=ratio,
         max_condition=max_condition, device=device, dtype=dtype, threads=threads, compile=compile, force=force,
-        heal=heal, mask=user_region)
+        heal=heal, mask=user_region, markers=marks)
     d_rec, _, d_cached = depth_stage.run(store, n_rec, n_key, integrator=integrator, force=force, heal=heal,
-                                         region=region)
+                                         region=region, device=device)
     seconds = time.perf_counter() - t0
     summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": round(seconds, 4),
                                "valid_fraction": float(np.asarray(n_rec.data["mask"]).mean()),
-                               "cached": bool(n_cached and d_cached)}
+                               "cached": bool(n_cached and d_cached),
+                               "markers": 0 if marks is None else int(marks.sum())}
     summary.update(_truth_errors(cap, n_rec, d_rec, region))
     files: list[Path] = []
     if out is not None:

@@ -29,7 +29,7 @@ LAYERS = [
     ("calibration and capture", ["calibration", "pipeline.capture"]),
     ("stage registry", ["pipeline.stages"]),
     ("entry points", ["pipeline.run", "pipeline.reconstruct", "pipeline.batch_reconstruct", "pipeline.compare",
-                      "pipeline.demo", "pipeline.diligent"]),
+                      "pipeline.demo", "pipeline.diligent", "pipeline.live"]),
     ("command line and benchmarks", ["pipeline.cli", "pipeline.bench", "pipeline.__main__"]),
 ]
 

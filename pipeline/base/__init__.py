@@ -10,7 +10,8 @@
 - :mod:`~pipeline.base.camera`: the camera interface shared by real and virtual cameras;
 - :mod:`~pipeline.base.modes`: lighting modes (the one pattern type, and the mode files);
 - :mod:`~pipeline.base.registry`: the registries of solvers and integrators;
-- :mod:`~pipeline.base.threads`: the one thread-limit helper.
+- :mod:`~pipeline.base.threads`: the one thread-limit helper;
+- :mod:`~pipeline.base.lazy`: a package's names imported on first use (PEP 562).
 
 Modules here import only the standard library, numpy, torch, h5py, yaml, jsonschema,
 :mod:`data_schemas` and each other (``tests/test_layers.py`` checks it).

@@ -51,6 +51,7 @@ __all__ = [
     "write_record",
     "read_record",
     "describe_file",
+    "provenance_attrs",
 ]
 
 _log = logging.getLogger("iristac")
@@ -232,6 +233,22 @@ def _temp_name(final: Path) -> Path:
     return final.with_name(f".{final.stem}.{os.getpid()}.{secrets.token_hex(6)}.tmp.h5")
 
 
+def provenance_attrs(schema: str, key: StageKey | None = None) -> dict[str, str | int]:
+    """The provenance attributes a file of ``schema`` carries (what :func:`write_record`
+    writes; a writer that builds its file itself, like the live recorder's master file of
+    virtual datasets, writes these so :func:`read_record` accepts it)."""
+    return {
+        "iristac_schema": schema,
+        "iristac_schema_version": data_schemas.schema_version(schema),
+        "iristac_key": key.digest if key else "",
+        "iristac_stage": key.stage if key else "file",
+        "iristac_params": key.params_json if key else "{}",
+        "iristac_inputs": json.dumps(list(key.inputs)) if key else "[]",
+        "iristac_version": __version__,
+        "iristac_created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
 def write_record(path: str | os.PathLike, record: Record, key: StageKey | None = None) -> Path:
     """Validate ``record`` and write it atomically to ``path``.
 
@@ -256,16 +273,7 @@ def write_record(path: str | os.PathLike, record: Record, key: StageKey | None =
     final = Path(path)
     record.validate(str(final))
     final.parent.mkdir(parents=True, exist_ok=True)
-    provenance = {
-        "iristac_schema": record.schema,
-        "iristac_schema_version": data_schemas.schema_version(record.schema),
-        "iristac_key": key.digest if key else "",
-        "iristac_stage": key.stage if key else "file",
-        "iristac_params": key.params_json if key else "{}",
-        "iristac_inputs": json.dumps(list(key.inputs)) if key else "[]",
-        "iristac_version": __version__,
-        "iristac_created": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-    }
+    provenance = provenance_attrs(record.schema, key)
     tmp = _temp_name(final)
     try:
         _write_h5(tmp, record, provenance)

@@ -18,7 +18,7 @@ from typing import Any
 
 from pipeline.report import format_number
 
-BENCHES = ["sim", "render", "capture", "reconstruct", "calibration"]
+BENCHES = ["sim", "render", "capture", "reconstruct", "calibration", "live"]
 
 
 def add_arguments(parser) -> None:

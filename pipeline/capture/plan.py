@@ -71,6 +71,7 @@ __all__ = [
     "Step",
     "plan_steps",
     "run_capture",
+    "grab_pattern",
     "journal_path",
     "StaleFrameError",
 ]
@@ -377,6 +378,26 @@ def _grab(camera: Camera, n: int, t_ack: float, settle: float, settings: Capture
         return images[0], np.asarray(windows, np.float64), contacts
     return (np.mean(np.stack(images).astype(np.float32), axis=0), np.asarray(windows, np.float64),
             contacts)
+
+
+def grab_pattern(ring, camera: Camera, patterns: LightingMode, p: int, settings: CaptureSettings, counters: dict,
+                 *, truth=None, settle: float | None = None):
+    """One step of the plan for a caller that streams (``iristac live``): show pattern ``p``,
+    then read ``settings.frames_per_pattern`` frames exposed after the ring's ACK (stale ones
+    rejected by their exposure windows and counted in ``counters["stale"]``, as
+    :func:`run_capture` does).
+
+    Returns ``(image (H, W, 3), windows (N, 2), contacts (N,), mislabeled)``; ``mislabeled``
+    is None without ``truth`` (the emulator's LED history), else whether any frame's exposure
+    saw another LED state.
+    """
+    levels, b = _levels(patterns, p)
+    ring.show_pattern(patterns.drive[p], float(patterns.brightness[p]))
+    t_ack = time.monotonic()
+    image, windows, contacts = _grab(camera, settings.frames_per_pattern, t_ack,
+                                     _settle_time(camera, settings) if settle is None else settle, settings, counters)
+    bad = None if truth is None else _mislabeled(truth, windows, levels, b)
+    return image, windows, contacts, bad
 
 
 # ---------------------------------------------------------------------------- the plan

@@ -27,6 +27,7 @@ COMMANDS = [
     ("reconstruct", "pipeline.cli.reconstruct", "normals and depth from a capture"),
     ("compare-modes", "pipeline.cli.compare_modes", "compare lighting modes by reconstruction error"),
     ("batch", "pipeline.cli.batch", "reconstruct many recorded captures with a shared calibration"),
+    ("live", "pipeline.cli.live", "reconstruct a camera or the virtual sensor live (record, view in a browser)"),
     ("bench", "pipeline.cli.bench", "benchmarks that print error and time side by side"),
     ("cache", "pipeline.cli.cache", "inspect and maintain the stage store"),
     ("import", "pipeline.cli.importers", "import captures from other formats"),

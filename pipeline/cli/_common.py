@@ -13,14 +13,14 @@ EXIT_NOT_IMPLEMENTED = 3
 ARGV: list[str] = []
 
 
-def add_solver_flags(parser, *, solver: bool = True, integrator: bool = True) -> None:
+def add_solver_flags(parser, *, solver: bool = True, integrator: bool = True, default_solver: str = "lstsq") -> None:
     """``--solver`` and ``--integrator``, with the choices of their registries
     (:mod:`pipeline.base.registry`)."""
     from pipeline.base.registry import INTEGRATORS, SOLVERS
 
     if solver:
-        parser.add_argument("--solver", choices=SOLVERS.names(), default="lstsq", metavar="SOLVER",
-                            help=f"photometric-stereo solver (default lstsq): {SOLVERS.help()}")
+        parser.add_argument("--solver", choices=SOLVERS.names(), default=default_solver, metavar="SOLVER",
+                            help=f"photometric-stereo solver (default {default_solver}): {SOLVERS.help()}")
     if integrator:
         parser.add_argument("--integrator", choices=INTEGRATORS.names(), default="dst", metavar="INTEGRATOR",
                             help=f"depth integrator (default dst): {INTEGRATORS.help()}")
@@ -30,6 +30,14 @@ def add_mask_flag(parser) -> None:
     """``--mask FILE``: the pixels to reconstruct (``reconstruct``, ``batch``)."""
     parser.add_argument("--mask", metavar="FILE.png",
                         help="reconstruct only these pixels (PNG/NPY, non-zero inside; replaces the capture's mask)")
+
+
+def add_markers_flag(parser) -> None:
+    """``--markers auto|none|MASK.png``: printed gel markers to fill in (``reconstruct``, ``batch``, ``live``)."""
+    parser.add_argument("--markers", default=None, metavar="auto|none|MASK.png",
+                        help="printed gel markers: filled in before normals are solved, invalid in the mask, "
+                             "integrated through (auto: found in the reference; default: the capture's own, else "
+                             "the calibration's)")
 
 
 def mode_help(what: str = "lighting mode") -> str:

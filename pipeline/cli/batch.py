@@ -6,7 +6,8 @@ Calls :func:`pipeline.batch_reconstruct.batch_reconstruct` and prints
 
 from __future__ import annotations
 
-from pipeline.cli._common import add_heal_flag, add_json_flag, add_mask_flag, add_solver_flags, print_json
+from pipeline.cli._common import (add_heal_flag, add_json_flag, add_markers_flag, add_mask_flag, add_solver_flags,
+                                  print_json)
 
 
 def register(sub, name, help_text):
@@ -17,6 +18,7 @@ def register(sub, name, help_text):
     src.add_argument("--illumination", metavar="ILL", help="shared illumination.h5")
     add_solver_flags(p)
     add_mask_flag(p)
+    add_markers_flag(p)
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     where.add_argument("--scheduler", metavar="ADDRESS",
@@ -39,7 +41,8 @@ def _run(args) -> int:
                               solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                               images=args.images, device=args.device, workers=args.workers,
                               scheduler=args.scheduler, progress=not args.json,
-                              connect_timeout=args.connect_timeout, heal=not args.no_heal, mask=args.mask)
+                              connect_timeout=args.connect_timeout, heal=not args.no_heal, mask=args.mask,
+                              markers=args.markers)
     failed = sum(not i.ok for i in items)
     if args.json:
         print_json({"items": [i.to_json() for i in items], "processed": len(items) - failed, "failed": failed})

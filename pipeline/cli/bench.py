@@ -20,6 +20,7 @@ BENCHMARKS = [
     ("capture", "capture: pattern changes per second over the emulator"),
     ("reconstruct", "normals and depth: time and error per solver, integrator and size"),
     ("calibration", "calibration: time and cross-validated error per model"),
+    ("live", "live paths: uint8 frames to heights per solver, size and thread count, fast vs eager"),
     ("lens", "lens optimizer: issue 16's targets, CMA-ES against random search and Nelder-Mead"),
     ("all", "every benchmark; writes docs/benchmarks.md and an error-vs-time plot"),
 ]

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from pipeline.cli._common import add_heal_flag, add_json_flag, add_mask_flag, add_solver_flags, print_json
+from pipeline.cli._common import (add_heal_flag, add_json_flag, add_markers_flag, add_mask_flag, add_solver_flags,
+                                  print_json)
 
 #: The stable key set of ``--json`` (truth errors only when the capture carries truth).
-JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "outputs")
+JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "markers", "outputs")
 
 
 def register(sub, name, help_text):
@@ -16,6 +17,7 @@ def register(sub, name, help_text):
     src.add_argument("--illumination", metavar="ILL", help="illumination.h5 (V or light_matrices)")
     add_solver_flags(p)
     add_mask_flag(p)
+    add_markers_flag(p)
     p.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
     p.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
@@ -36,7 +38,8 @@ def _run(args) -> int:
     res = reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
                       solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
-                      images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask)
+                      images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
+                      markers=args.markers)
     s = res.summary
     if args.json:
         print_json(s)

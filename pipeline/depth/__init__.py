@@ -11,11 +11,16 @@
 
 from __future__ import annotations
 
+from pipeline.base.lazy import lazy_names
 from pipeline.base.registry import INTEGRATORS
 from pipeline.depth._common import DepthResult
-from pipeline.depth.fourier import frankot_chellappa
-from pipeline.depth.poisson import poisson_dct, poisson_dst
-from pipeline.depth.sparse import sparse_lstsq
+
+# The integrators are imported on first use (PEP 562): ``sparse`` loads scipy.sparse and
+# scipy.optimize, half a second a live start (``pipeline.depth.fast``) does not need.
+_WHERE = {"frankot_chellappa": "fourier", "poisson_dct": "poisson", "poisson_dst": "poisson",
+          "sparse_lstsq": "sparse"}
+
+__getattr__, __dir__ = lazy_names(__name__, _WHERE, globals())
 
 __all__ = ["DepthResult", "frankot_chellappa", "poisson_dct", "poisson_dst", "sparse_lstsq", "integrate"]
 

@@ -23,14 +23,15 @@ Observations are ``(N_obs, H, W)`` (patterns x channels flattened), lights ``(N_
 ``(N_obs, H, W, 3)``. Every result is a :class:`NormalResult` with finite arrays.
 """
 
-from pipeline.normals.farfield import FarFieldSolver, solve_farfield
-from pipeline.normals.lut import LUTSolver, solve_lut
-from pipeline.normals.masking import PixelMask, masked_solve
-from pipeline.normals.nearfield import NearFieldSolver, solve_nearfield
-from pipeline.normals.ratio import ratio_to_reference
-from pipeline.normals.result import NormalResult
-from pipeline.normals.robust import solve_robust
-from pipeline.normals.robust_irls import solve_robust_irls
+from pipeline.base.lazy import lazy_names
+
+# Names are imported on first use (PEP 562): the solvers load torch, and the live fast paths
+# (``pipeline.normals.fast``, Numba) must not pay for it (about a second of a live start).
+_WHERE = {"FarFieldSolver": "farfield", "solve_farfield": "farfield", "LUTSolver": "lut", "solve_lut": "lut",
+          "PixelMask": "masking", "masked_solve": "masking", "NearFieldSolver": "nearfield",
+          "solve_nearfield": "nearfield", "ratio_to_reference": "ratio", "NormalResult": "result",
+          "solve_robust": "robust", "solve_robust_irls": "robust_irls"}
+__getattr__, __dir__ = lazy_names(__name__, _WHERE, globals())
 
 __all__ = ["NormalResult", "FarFieldSolver", "solve_farfield", "NearFieldSolver", "solve_nearfield",
            "solve_robust", "solve_robust_irls", "LUTSolver", "solve_lut", "ratio_to_reference", "PixelMask",

@@ -161,6 +161,7 @@ class PixelMask:
             mask=self.scatter_array(res.mask, False),
             count=self.scatter_array(res.count, 0),
             meta=dict(res.meta, masked_pixels=self.count),
+            confidence=None if res.confidence is None else self.scatter_array(res.confidence, 0),
         )
 
     def restrict(self, res: NormalResult) -> NormalResult:
@@ -168,8 +169,9 @@ class PixelMask:
         that must see the whole frame, like a lookup table with a per-pixel reference)."""
         if tuple(res.mask.shape) != self.shape:
             raise ValueError(f"PixelMask.restrict: result is {tuple(res.mask.shape)}, mask is {self.shape}")
-        take = {k: self.gather(getattr(res, k)[None], axis=1)[0]
-                for k in ("normals", "albedo", "residual", "condition", "mask", "count")}
+        names = ("normals", "albedo", "residual", "condition", "mask", "count") + \
+            (("confidence",) if res.confidence is not None else ())
+        take = {k: self.gather(getattr(res, k)[None], axis=1)[0] for k in names}
         return self.scatter(NormalResult(**take, meta=res.meta))
 
 

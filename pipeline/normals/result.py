@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
-import torch
 
-from pipeline.normals import _lstsq
-from pipeline.normals import _torch as T
+if TYPE_CHECKING:  # torch is imported by the functions that use it: NormalResult alone needs none
+    import torch
+
+    from pipeline.normals import _lstsq
 
 __all__ = ["NormalResult", "finalize", "finalize_tensors", "to_result", "concat"]
 
@@ -37,6 +38,9 @@ class NormalResult:
         Number of observations used at each pixel.
     meta : dict
         Solver name and parameters.
+    confidence : ndarray, shape (H, W), float32, optional
+        In [0, 1], 0 outside the mask, from solvers that rate their own answers (the
+        calibration models: what it measures is in ``meta["confidence"]``); None otherwise.
     """
 
     normals: np.ndarray
@@ -46,6 +50,7 @@ class NormalResult:
     mask: np.ndarray
     count: np.ndarray
     meta: dict[str, Any] = field(default_factory=dict)
+    confidence: np.ndarray | None = None
 
     @property
     def valid_fraction(self) -> float:
@@ -56,6 +61,11 @@ class NormalResult:
 def finalize_tensors(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, *, max_condition: float = 1e3,
                      min_count: int = 3, finite_inputs: bool = False) -> dict[str, torch.Tensor]:
     """The per-pixel outputs as tensors with pixels last (see :func:`finalize`)."""
+    import torch
+
+    from pipeline.normals import _lstsq
+    from pipeline.normals import _torch as T
+
     if not finite_inputs:
         finite = torch.isfinite(b).all(0)
         b = torch.nan_to_num(b, nan=0.0, posinf=0.0, neginf=0.0)
@@ -69,11 +79,11 @@ def finalize_tensors(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, *, 
     rho, p, q = _lstsq.group_albedo(m, n)
     res = _lstsq.residual_rms(m, p, q)
     zero = torch.zeros((), dtype=n.dtype, device=n.device)
-    if not finite_inputs:
-        # Moments of huge (but finite) float inputs can overflow to Inf in the products.
-        rho = torch.nan_to_num(rho, nan=0.0, posinf=0.0, neginf=0.0)
-        res = torch.nan_to_num(res, nan=0.0, posinf=0.0, neginf=0.0)
-        cond = torch.nan_to_num(cond, nan=T.COND_CAP, posinf=T.COND_CAP, neginf=T.COND_CAP)
+    # Moments of huge but finite inputs can overflow to Inf in the products (a 1e30 observation
+    # squares to Inf in float32), also when every input is finite: outputs are always cleaned.
+    rho = torch.nan_to_num(rho, nan=0.0, posinf=0.0, neginf=0.0)
+    res = torch.nan_to_num(res, nan=0.0, posinf=torch.finfo(res.dtype).max, neginf=0.0)  # overflowed: a huge misfit
+    cond = torch.nan_to_num(cond, nan=T.COND_CAP, posinf=T.COND_CAP, neginf=T.COND_CAP)
     return {"normals": n, "albedo": torch.where(valid, rho, zero), "residual": torch.where(valid, res, zero),
             "condition": cond.expand(n.shape[1]) if cond.numel() == 1 else cond, "mask": valid,
             "count": m.count}
@@ -81,6 +91,8 @@ def finalize_tensors(b: torch.Tensor, m: _lstsq.Moments, cond: torch.Tensor, *, 
 
 def to_result(t: dict[str, torch.Tensor], shape: tuple[int, int], meta: dict | None = None) -> NormalResult:
     """Tensors with pixels last -> a :class:`NormalResult` of ``(H, W, ...)`` numpy arrays."""
+    import torch
+
     H, W = shape
     out_dtype = np.float64 if t["normals"].dtype == torch.float64 else np.float32
 
@@ -103,6 +115,8 @@ def to_result(t: dict[str, torch.Tensor], shape: tuple[int, int], meta: dict | N
 
 def concat(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
     """Join per-chunk outputs along the pixel axis."""
+    import torch
+
     if len(parts) == 1:
         return parts[0]
     return {k: torch.cat([p[k] for p in parts], dim=-1) for k in parts[0]}

@@ -16,7 +16,9 @@ the solver's adapter. Each adapter below turns the stack into the solver's obser
   robust solver :func:`pipeline.normals.robust.solve_robust`): the light field if present, else
   the far field; dark values (within ``dark_threshold`` of the dark level) and saturated raw
   values are excluded;
-- :func:`solve_lut`: the lookup table, one RGB pattern per contact.
+- the calibration's fitted models (``far``, ``near``, ``traced``, ``lut``, ``mlp``): their
+  adapters live in :mod:`pipeline.stages.model_solvers` (a model is a calibration object, a
+  layer above this one) and call the model's batched ``normal_maps``.
 
 A new solver is its module in ``pipeline/normals/`` plus an adapter with the signature of
 these (``(frames, lights, **options) -> list[NormalResult]``), registered by one entry in
@@ -34,7 +36,7 @@ from pipeline.base.errors import UserError
 from pipeline.base.registry import SOLVERS
 
 __all__ = ["LightSource", "solve_capture", "solve_lstsq", "solve_nearfield", "solve_robust", "solve_cauchy",
-           "solve_lut", "applicable_solvers"]
+           "applicable_solvers"]
 
 
 @dataclass
@@ -49,8 +51,12 @@ class LightSource:
         Per-pixel light vectors.
     flat_field : ndarray, shape (P, C, H, W), optional
         Observations are divided by it before solving (goes with ``field``).
-    table : object, optional
-        A lookup table with ``lookup(images (N, H, W, 3)) -> (gradients, valid)``.
+    models : dict, optional
+        A calibration's fitted models, name -> object with ``normal_maps(frames, reference,
+        markers=...)`` (:func:`calibration.stored.calibration_from_record`).
+    markers : ndarray, shape (H, W), bool, optional
+        The printed gel markers the calibration found (the default marker mask of frames
+        reconstructed with it).
     source : str
         Where the lights came from (for the record's attributes).
     key : str
@@ -60,7 +66,8 @@ class LightSource:
     far: np.ndarray | None = None
     field: np.ndarray | None = None
     flat_field: np.ndarray | None = None
-    table: Any = None
+    models: dict[str, Any] | None = None
+    markers: np.ndarray | None = None
     source: str = ""
     key: str = ""
 
@@ -71,8 +78,7 @@ class LightSource:
             out.add("vectors")
         if self.field is not None:
             out.add("field")
-        if self.table is not None:
-            out.add("table")
+        out.update(f"model:{name}" for name in (self.models or {}))
         return out
 
 
@@ -85,7 +91,7 @@ def applicable_solvers(patterns: int, channels: int, kinds: set[str], variants: 
     --------
     >>> applicable_solvers(24, 3, {"vectors", "field"})
     ('lstsq', 'nearfield', 'robust')
-    >>> applicable_solvers(1, 3, {"vectors", "field", "table"})
+    >>> applicable_solvers(1, 3, {"vectors", "field", "model:lut"})
     ('lstsq', 'nearfield', 'robust', 'lut')
     """
     return tuple(e.name for e in SOLVERS if e.info.get("needs") in kinds
@@ -95,17 +101,21 @@ def applicable_solvers(patterns: int, channels: int, kinds: set[str], variants: 
 
 def _check_lights(solver: str, lights: LightSource, P: int, C: int) -> None:
     info = SOLVERS.get(solver).info
-    needs = info.get("needs")
-    if needs == "table" and lights.table is None:
-        raise UserError(f"--solver {solver} needs a calibration with a lookup table (models/lut/*); "
-                        f"{lights.source or 'the light source'} has none")
+    needs = info.get("needs") or ""
+    if needs.startswith("model:") and needs[6:] not in (lights.models or {}):
+        have = ", ".join(lights.models or {}) or "none"
+        what = {"lut": "the lookup table", "mlp": "the MLP", "far": "the far-field model",
+                "near": "the near-field model", "traced": "the traced model"}.get(needs[6:], "the model")
+        raise UserError(f"--solver {solver} needs a calibration with {what} fitted (models/{needs[6:]}/*); "
+                        f"{lights.source or 'the light source'} has {have} (fit it with iristac calibrate --model)")
     if info.get("patterns") == "one-rgb" and (P != 1 or C != 3):
         raise UserError(f"--solver {solver} needs one RGB pattern per frame, the capture has P={P}, C={C}")
     if needs == "field" and lights.field is None:
         raise UserError(f"--solver {solver} needs per-pixel lights (an illumination file or a calibration "
                         f"with light_field); {lights.source} has only far-field light vectors")
     if needs in ("vectors", "field") and lights.field is None and lights.far is None:
-        raise UserError(f"--solver {solver} needs light vectors; {lights.source} has only a lookup table")
+        raise UserError(f"--solver {solver} needs light vectors; {lights.source} has only fitted models "
+                        f"({', '.join(lights.models or {})}): use --solver with one of them")
     if needs in ("vectors", "field"):
         _check_light_count(None if lights.far is None else lights.far.reshape(P * C, 3), P, C,
                            lights.source or "the light source")
@@ -130,7 +140,7 @@ def _check_light_count(far, P: int, C: int, source: str) -> None:
 
 def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", reference=None, saturated=None,
                   ratio: bool = False, max_condition: float = 1e3, dark_threshold: float = 0.0,
-                  device="cpu", dtype="float32", compile: bool = False) -> list:
+                  device="cpu", dtype="float32", compile: bool = False, markers=None) -> list:
     """Normals of every contact instance.
 
     Parameters
@@ -152,6 +162,10 @@ def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", referen
     compile : bool
         ``lstsq`` only: the ``torch.compile``-d far-field solver
         (:class:`pipeline.normals.FarFieldSolver`), for long recordings.
+    markers : ndarray, shape (H, W), bool, optional
+        Printed gel markers, for the calibration-model solvers (they fill them in themselves,
+        as ``eval calibration`` does); the other solvers get frames already filled in by the
+        normals stage and ignore it.
 
     Returns
     -------
@@ -164,7 +178,7 @@ def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", referen
     _check_lights(solver, lights, P, C)
     return entry.load()(frames, lights, reference=reference, saturated=saturated, ratio=ratio,
                         max_condition=max_condition, dark_threshold=dark_threshold, device=device, dtype=dtype,
-                        compile=compile)
+                        compile=compile, markers=markers)
 
 
 def _observations(frames_k: np.ndarray) -> np.ndarray:
@@ -258,11 +272,3 @@ def _robust(robust, frames, lights: LightSource, *, reference=None, saturated=No
     thr = dark_threshold if not ratio else 0.0
     return _per_contact(frames, L, _flat(lights, P, C, H, W), reference, ratio,
                         lambda obs, Lk: robust(obs, Lk, dark_threshold=thr, **common), saturated=saturated)
-
-
-def solve_lut(frames, lights: LightSource, **_) -> list:
-    """The calibration's lookup table on the one RGB frame of each contact."""
-    from pipeline.normals.lut import LUTSolver
-
-    lut = LUTSolver(lights.table)
-    return [lut.solve(frames[k, 0]) for k in range(frames.shape[0])]

@@ -34,13 +34,14 @@ def params(integrator: str, mm_per_px: float | None) -> dict:
     return {"integrator": INTEGRATORS.check(integrator), "mm_per_px": None if mm_per_px is None else float(mm_per_px)}
 
 
-def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, region=None):
+def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, region=None, device="cpu"):
     """Integrate every instance of a ``normals`` record into a ``depth`` record (no caching).
 
     Parameters
     ----------
     n_rec : Record
-        Schema ``normals``: ``normals (K, H, W, 3)``, ``mask (K, H, W)``, attribute ``mm_per_px``.
+        Schema ``normals``: ``normals (K, H, W, 3)``, ``mask (K, H, W)``, optional ``filled
+        (H, W)`` (filled-in marker pixels, integrated through), attribute ``mm_per_px``.
     integrator : str
         A name in :data:`pipeline.base.registry.INTEGRATORS`.
     mm_per_px : float, optional
@@ -49,6 +50,10 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
         The solved region (:func:`pipeline.stages.normals.capture_region`): ``sparse``
         integrates on it, the others on its bounding box (:func:`pipeline.depth.integrate`).
         It is decided by the normals stage's inputs, so it needs no key of its own.
+    device : str
+        ``dst`` on the whole frame with a device other than the CPU: every instance at once by
+        FFT on the device (:func:`pipeline.normals.batched.dst_heights`; equal to the DST to
+        float rounding, so the device stays out of the key).
 
     Returns
     -------
@@ -63,7 +68,14 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
     if mm_per_px is not None and not np.isclose(pitch, mm_per_px, rtol=1e-9, atol=0.0):
         raise UserError(f"depth: the normals are at {pitch} mm/px but the stage was keyed with {mm_per_px} "
                         f"(the capture's pitch differs from its config section's)")
-    outs = [integrate(n_rec.data["normals"][k], pitch, n_rec.data["mask"][k], method=integrator, region=region)
+    # Filled-in marker pixels (``filled``) are no measurements but fit to integrate through:
+    # taken as flat gel they would dent every contact they cross.
+    filled = n_rec.data.get("filled")
+    if integrator == "dst" and region is None and str(device) != "cpu":
+        return _compute_on_device(n_rec, pitch, filled, device)
+    usable = [n_rec.data["mask"][k] if filled is None else (n_rec.data["mask"][k] | filled)
+              for k in range(n_rec.data["normals"].shape[0])]
+    outs = [integrate(n_rec.data["normals"][k], pitch, usable[k], method=integrator, region=region)
             for k in range(n_rec.data["normals"].shape[0])]
     data = {"height": np.stack([o.height for o in outs]), "mask": np.stack([o.mask for o in outs])}
     meta: dict[str, Any] = {"integrator": integrator, "mm_per_px": pitch}
@@ -72,12 +84,29 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
     return Record("depth", data, meta)
 
 
-def run(store, n_rec, n_key, *, integrator: str = "dst", force: bool = False, heal: bool = True, region=None):
+def _compute_on_device(n_rec, pitch: float, filled, device):
+    import torch
+
+    from pipeline.base.store import Record
+    from pipeline.normals.batched import dst_divergence_torch, dst_heights
+
+    n = torch.as_tensor(np.asarray(n_rec.data["normals"], np.float32), device=device)
+    m = np.asarray(n_rec.data["mask"], bool)
+    if filled is not None:
+        m = m | np.asarray(filled, bool)
+    f, valid = dst_divergence_torch(n, torch.as_tensor(m, device=device), pitch)
+    h = dst_heights(f)
+    return Record("depth", {"height": h.cpu().numpy().astype(np.float32), "mask": valid.cpu().numpy()},
+                  {"integrator": "dst", "mm_per_px": pitch, "device": str(device)})
+
+
+def run(store, n_rec, n_key, *, integrator: str = "dst", force: bool = False, heal: bool = True, region=None,
+        device="cpu"):
     """``(record, key, cached)`` of the depth of ``n_rec`` (identified by ``n_key``) through
     ``store``, integrated on ``region`` (see :func:`compute`)."""
     mm = float(n_rec.meta["mm_per_px"])
     return SPEC.get_or_compute(store, params(integrator, mm), [n_key],
-                               lambda: compute(n_rec, integrator, mm, region), force=force, heal=heal)
+                               lambda: compute(n_rec, integrator, mm, region, device), force=force, heal=heal)
 
 
 def node(config: Mapping[str, Any], ctx):

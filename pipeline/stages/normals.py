@@ -10,8 +10,10 @@ not change the result and stay out of the key.
 Where the lights come from (:func:`load_lights`, first that applies):
 
 - ``calibration``: ``light_field (P, C, H, W, 3)`` (with optional ``flat_field (P, C, H, W)``
-  by which observations are divided first), ``light_vectors (P, C, 3)`` (far field) and
-  ``models/lut/*`` (the lookup table);
+  by which observations are divided first), ``light_vectors (P, C, 3)`` (far field) and every
+  fitted model ``models/<name>/*`` (:func:`calibration.stored.calibration_from_record`; the
+  ``far``, ``near``, ``traced``, ``lut`` and ``mlp`` solvers apply them,
+  :mod:`pipeline.stages.model_solvers`);
 - ``illumination``: ``light_matrices (P, 3, H, W, 3)``, or ``V (L, H, W, 3)`` combined with
   the capture's ``drive``, ``brightness`` and ``exposure`` (and ``gains (L,)`` or ``(L, 3)``
   if the file has them) by :func:`sim.illumination_model.light_matrices`;
@@ -21,6 +23,13 @@ Where to solve (:func:`capture_region`): the capture's ``mask`` dataset (an obje
 silhouette: DiLiGenT's, ``iristac sim ps-object``'s), or a user's ``mask`` (``--mask``), which
 replaces it and enters the key. Only those pixels are read out of the frames and solved
 (:class:`pipeline.normals.masking.PixelMask`); every pixel outside is invalid in the record.
+The calibration models read whole frames (pixel position is one of their inputs) and are
+masked afterwards.
+
+Printed gel markers (:func:`marker_mask`: the capture's ``markers``, else the calibration's,
+or ``--markers auto|none|MASK.png``) are filled in before normals are solved
+(:func:`calibration.markers.fill_markers`), False in the record's ``mask`` and True in its
+``filled (H, W)``: the depth stage integrates through them. A marker mask enters the key.
 """
 
 from __future__ import annotations
@@ -37,9 +46,12 @@ from pipeline.stages.base import StageSpec, record_key
 if TYPE_CHECKING:  # the solvers load torch: only when normals are computed
     from pipeline.normals.solve import LightSource
 
-__all__ = ["SPEC", "load_lights", "capture_region", "reference_frames", "params", "compute", "run", "node"]
+__all__ = ["SPEC", "load_lights", "capture_region", "reference_frames", "marker_mask", "params", "compute", "run",
+           "node"]
 
-SPEC = StageSpec("normals", version=2, schema="normals",  # 2: only the capture's (or user's) mask is solved
+# 2: only the capture's (or user's) mask is solved; 3: the lut solver applies the calibrated model
+# (per-bin position correction, tilt gain), markers are filled in, confidence and filled are written.
+SPEC = StageSpec("normals", version=3, schema="normals",
                  defaults={"solver": "lstsq", "ratio": False, "max_condition": 1e3, "dtype": "float32"})
 
 
@@ -67,17 +79,15 @@ def load_lights(capture, calibration=None, illumination=None) -> LightSource:
                 src.flat_field = _check_shape(d["flat_field"], (P, C, H, W), path, "flat_field")
         if "light_vectors" in d:
             src.far = _check_shape(d["light_vectors"], (P, C, 3), path, "light_vectors")
-        lut = {k.split("/", 2)[2]: v for k, v in d.items() if k.startswith("models/lut/")}
-        if lut:
-            from calibration.models.lut import LookupTable
+        if any(k.startswith("models/") for k in d):
+            from calibration.stored import calibration_from_record
 
-            try:
-                src.table = LookupTable.from_arrays(lut)
-            except KeyError as exc:
-                raise UserError(f"{path}: lookup table is missing dataset models/lut/{exc.args[0]}") from None
-        if src.field is None and src.far is None and src.table is None:
+            src.models, cal_meta = calibration_from_record(calibration)
+            src.markers = cal_meta.get("markers")
+            _check_model_shapes(src.models, (P, H, W, C), path)
+        if src.field is None and src.far is None and not src.models:
             raise UserError(f"{path}: calibration has no light model (expected dataset 'light_field', "
-                            f"'light_vectors' or 'models/lut/*')")
+                            f"'light_vectors' or 'models/<name>/*')")
         return src
     if illumination is not None:
         from sim.illumination_model import light_matrices
@@ -108,6 +118,61 @@ def load_lights(capture, calibration=None, illumination=None) -> LightSource:
         return src
     raise UserError(f"{capture.path}: no light model: pass --calibration or --illumination "
                     f"(the capture has no embedded lights/light_vectors)")
+
+
+def _check_model_shapes(models, want: tuple, path) -> None:
+    """A model made for other frames (size, patterns, channels) is one clear error, not a
+    broadcast failure deep inside it."""
+    P, H, W, C = want
+    for name, m in models.items():
+        ref = m.stored_reference() if hasattr(m, "stored_reference") else None
+        field = getattr(m, "field", None)
+        have = ref.shape if ref is not None else (None if field is None else
+                                                   (field.shape[0], field.shape[2], field.shape[3], field.shape[1]))
+        if have is not None and tuple(have) != (P, H, W, C):
+            raise UserError(f"{path}: model '{name}' was calibrated for {have[0]} pattern(s) x {have[1]}x{have[2]} px "
+                            f"x {have[3]} channel(s), the capture has {P} x {H}x{W} px x {C}")
+
+
+def marker_mask(cap, spec=None, lights: LightSource | None = None) -> np.ndarray | None:
+    """The printed gel markers to fill in: ``(H, W)`` bool, or None.
+
+    Parameters
+    ----------
+    cap : Record
+        The capture (its ``markers`` dataset, its ``reference`` for ``auto``).
+    spec : None, "none", "auto", path or ndarray
+        None: the capture's own ``markers``, else the calibration's (``lights.markers``);
+        ``"none"``: no markers; ``"auto"``: detected in the capture's reference
+        (:func:`calibration.markers.detect_markers`); a mask image (non-zero = marker) or an
+        ``(H, W)`` array.
+    lights : LightSource, optional
+    """
+    from calibration.markers import resolve_markers
+
+    H, W = cap.data["frames"].shape[2:4]
+    if spec is None:
+        if "markers" in cap.data:
+            m = np.asarray(cap.data["markers"]).astype(bool)
+        elif lights is not None and lights.markers is not None:
+            m = np.asarray(lights.markers, bool)
+            if m.shape != (H, W):
+                raise UserError(f"the calibration's marker mask is {m.shape}, the capture's frames {(H, W)}")
+        else:
+            return None
+        return m if m.any() else None
+    if isinstance(spec, str) and spec == "auto":
+        ref = reference_frames(cap)
+        if ref is None:
+            raise UserError(f"{cap.path or 'capture'}: --markers auto finds markers in the no-contact reference; the "
+                            f"capture has none (give a mask image instead)")
+        spec_ref = np.asarray(ref, np.float32)
+        if "dark" in cap.data:
+            spec_ref = spec_ref - np.asarray(cap.data["dark"], np.float32)
+        m = resolve_markers("auto", spec_ref)
+    else:
+        m = resolve_markers(spec, np.zeros((1, H, W, 1), np.uint8))
+    return None if m is None or not np.asarray(m).any() else np.asarray(m, bool)
 
 
 def capture_region(cap, mask=None) -> np.ndarray | None:
@@ -151,10 +216,10 @@ def reference_frames(cap) -> np.ndarray | None:
 
 
 def params(*, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3, dtype: str = "float32",
-           lights: str, mask=None) -> dict:
+           lights: str, mask=None, markers=None) -> dict:
     """The key parameters; ``lights`` is ``calibration``, ``illumination`` or ``capture``;
     ``mask``, a user's region (the capture's own is part of the capture's identity), enters
-    as its digest.
+    as its digest, and so does the marker mask filled in (``markers``, :func:`marker_mask`).
 
     Examples
     --------
@@ -167,6 +232,10 @@ def params(*, solver: str = "lstsq", ratio: bool = False, max_condition: float =
         from pipeline.base.hashing import digest
 
         p["mask"] = digest(np.asarray(mask, bool))
+    if markers is not None:
+        from pipeline.base.hashing import digest
+
+        p["markers"] = digest(np.asarray(markers, bool))
     return p
 
 
@@ -175,7 +244,8 @@ def _stack(results, name: str) -> np.ndarray:
 
 
 def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3,
-            device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False, mask=None):
+            device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False, mask=None, markers=None,
+            batched: bool | None = None):
     """The ``normals`` :class:`~pipeline.base.store.Record` of a capture (no caching).
 
     Parameters
@@ -190,12 +260,22 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
     mask : path or ndarray, shape (H, W), optional
         The pixels to solve, replacing the capture's ``mask`` (:func:`capture_region`). Only
         they are read out of the frames and solved; the others are invalid in the result.
+    markers : ndarray, shape (H, W), bool, optional
+        Printed gel markers (:func:`marker_mask`): filled in before the solve (the calibration
+        models fill them in themselves, as ``eval calibration`` does), False in ``mask``, True
+        in ``filled``.
+    batched : bool, optional
+        ``nearfield`` on the whole frame: solve all K instances as one batch on ``device``
+        (:class:`pipeline.normals.batched.NearFieldBatched`, no host round trip inside the
+        batch). None: when ``device`` is not the CPU. Equal to the per-instance solver to float
+        rounding, so it stays out of the key like the device.
 
     Returns
     -------
     Record
         Schema ``normals``: ``normals (K, H, W, 3)``, ``albedo``, ``residual``, ``condition``,
-        ``mask``, ``count``.
+        ``mask``, ``count``; ``confidence (K, H, W)`` from the calibration models; ``filled
+        (H, W)`` with markers.
     """
     from pipeline.base.store import Record
     from pipeline.base.threads import limit_threads
@@ -206,41 +286,97 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
     raw = cap.data["frames"]
     H, W = raw.shape[2:4]
     region = capture_region(cap, mask)
+    if batched is None:
+        batched = str(device) != "cpu"
+    if (batched and solver == "nearfield" and not ratio and region is None and markers is None
+            and lights.field is not None and str(dtype) == "float32"):
+        return _compute_batched(cap, lights, max_condition=max_condition, device=device, mm_per_px=mm_per_px)
     ref = reference_frames(cap)
     dark = cap.data.get("dark")
+    whole_frame = bool(SOLVERS.get(solver).info.get("whole_frame"))
+    model_fills = str(SOLVERS.get(solver).info.get("needs", "")).startswith("model:")
+    if markers is not None:
+        markers = np.asarray(markers, bool)
+        if markers.shape != (H, W):
+            raise UserError(f"marker mask has shape {markers.shape}, expected (H, W) = {(H, W)} like the frames")
     pixels = None
-    if region is not None and SOLVERS.get(solver).info.get("needs") != "table":
+    if region is not None and not whole_frame:
         # Gather the region once, from the raw frames (no full-frame float copy), as a (1, M)
-        # image; the solvers then see only its pixels. (A lookup table needs whole frames:
-        # it is masked after.)
+        # image; the solvers then see only its pixels. (Solvers that read whole frames, whose
+        # inputs include the pixel position, are masked after; marker filling needs the
+        # neighbourhood of each marker, so with markers the gather follows the fill.)
         pixels = PixelMask(region, (H, W), f"{cap.path or 'capture'}: mask")
+    bits = cap.meta.get("bit_depth")
+    full = (2 ** int(bits) - 1) if bits else (np.iinfo(raw.dtype).max if raw.dtype.kind in "iu" else None)
+    early = pixels is not None and markers is None
+    if early:
         raw = pixels.gather(raw, axis=2)
         ref = None if ref is None else pixels.gather(ref, axis=1)
         dark = None if dark is None else pixels.gather(dark, axis=0)
-        lights = _gather_lights(lights, pixels, solver)
+    saturated = (raw >= full) if full is not None else None
     frames = raw.astype(np.float32)
     ref = None if ref is None else ref.astype(np.float32)
     if dark is not None:
         frames = frames - dark.astype(np.float32)
         ref = None if ref is None else ref - dark.astype(np.float32)
-    bits = cap.meta.get("bit_depth")
-    full = (2 ** int(bits) - 1) if bits else (np.iinfo(raw.dtype).max if raw.dtype.kind in "iu" else None)
-    saturated = (raw >= full) if full is not None else None
+    if markers is not None and not model_fills:
+        from calibration.markers import fill_markers
+
+        frames = fill_markers(frames, markers)
+        ref = None if ref is None else fill_markers(ref, markers)
+    if pixels is not None:
+        if not early:
+            frames = pixels.gather(frames, axis=2)
+            ref = None if ref is None else pixels.gather(ref, axis=1)
+            saturated = None if saturated is None else pixels.gather(saturated, axis=2)
+        lights = _gather_lights(lights, pixels, solver)
     dark_thr = 0.01 * full if full is not None else 0.0
     with limit_threads(torch=threads):
         res = solve_capture(frames, lights, solver=solver, reference=ref, saturated=saturated, ratio=ratio,
                             max_condition=max_condition, dark_threshold=dark_thr, device=device, dtype=dtype,
-                            compile=compile)
+                            compile=compile, markers=markers if model_fills else None)
     if pixels is not None:
         res = [pixels.scatter(r) for r in res]
     elif region is not None:
         res = [PixelMask(region, (H, W)).restrict(r) for r in res]
+    if markers is not None:
+        for r in res:  # a filled-in value is a guess, not a measurement
+            r.mask = r.mask & ~markers
+            if r.confidence is not None:
+                r.confidence = np.where(markers, np.float32(0), r.confidence).astype(np.float32)
     data = {name: _stack(res, name) for name in ("normals", "albedo", "residual", "condition", "mask", "count")}
+    if all(r.confidence is not None for r in res) and res:
+        data["confidence"] = _stack(res, "confidence").astype(np.float32)
+    if markers is not None:
+        # Marker pixels hold normals from filled-in observations: not measurements (False in
+        # mask) but fit to integrate through (docs: NormalMaps.filled).
+        data["filled"] = markers & (region if region is not None else True)
     meta = {"solver": solver, "mm_per_px": mm_per_px, "ratio": bool(ratio), "max_condition": float(max_condition),
             "lights": lights.source, "valid_fraction": float(data["mask"].mean())}
     if region is not None:
         meta["region_pixels"] = int(region.sum())
+    if markers is not None:
+        meta["markers"] = int(markers.sum())
     meta.update({k: v for k, v in res[0].meta.items() if k not in meta and isinstance(v, (str, int, float))})
+    return Record("normals", data, meta)
+
+
+def _compute_batched(cap, lights: LightSource, *, max_condition: float, device, mm_per_px: float):
+    """The ``nearfield`` record of every instance at once on ``device`` (see :func:`compute`)."""
+    from pipeline.base.store import Record
+    from pipeline.normals.batched import NearFieldBatched
+
+    raw = cap.data["frames"]
+    K, P, H, W, C = raw.shape
+    nb = NearFieldBatched(lights.field, flat_field=lights.flat_field, max_condition=max_condition, device=device)
+    out = {k: v.cpu().numpy() for k, v in nb.solve(raw, dark=cap.data.get("dark")).items()}
+    cond = nb.condition.cpu().numpy().reshape(H, W)
+    data = {"normals": out["normals"], "albedo": out["albedo"], "residual": out["residual"],
+            "condition": np.broadcast_to(cond, (K, H, W)).copy(), "mask": out["mask"],
+            "count": np.full((K, H, W), P * C, np.int32)}
+    meta = {"solver": "nearfield", "mm_per_px": mm_per_px, "ratio": False, "max_condition": float(max_condition),
+            "lights": lights.source, "valid_fraction": float(data["mask"].mean()), "method": "batched",
+            "device": str(device)}
     return Record("normals", data, meta)
 
 
@@ -260,16 +396,16 @@ def _gather_lights(lights: LightSource, pixels, solver: str) -> LightSource:
 
 def run(store, cap, cap_key, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False,
         max_condition: float = 1e3, device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False,
-        force: bool = False, heal: bool = True, mask=None):
+        force: bool = False, heal: bool = True, mask=None, markers=None):
     """``(record, key, cached)`` of the normals of ``cap`` (identified by ``cap_key``) through
     ``store``; ``mask``: a user's region (an array, see :func:`capture_region`) instead of the
-    capture's."""
+    capture's; ``markers``: the marker mask to fill in (:func:`marker_mask`)."""
     p = params(solver=solver, ratio=ratio, max_condition=max_condition, dtype=dtype,
-               lights=lights.source.split(":")[0], mask=mask)
+               lights=lights.source.split(":")[0], mask=mask, markers=markers)
     return SPEC.get_or_compute(
         store, p, [cap_key, lights.key],
         lambda: compute(cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, device=device,
-                        dtype=dtype, threads=threads, compile=compile, mask=mask),
+                        dtype=dtype, threads=threads, compile=compile, mask=mask, markers=markers),
         force=force, heal=heal)
 
 

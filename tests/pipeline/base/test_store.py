@@ -193,8 +193,8 @@ def _concurrent_writer(root, seed, barrier):
     rec = example_record("normals", rng=np.random.default_rng(seed))
     rec.data["normals"] = np.random.default_rng(seed).standard_normal((2, 200, 300, 3)).astype(np.float32)
     rec.data["mask"] = np.ones((2, 200, 300), bool)
-    for k in ("albedo", "residual", "condition"):
-        rec.data.pop(k)
+    for k in ("albedo", "residual", "condition", "confidence", "filled"):  # the other (H, W)-sized extras
+        rec.data.pop(k, None)
     barrier.wait()
     for _ in range(3):
         s.put(key, rec)

@@ -55,6 +55,19 @@ def test_any_input_gives_finite_output_with_mask(lights, data, solver):
     assert not (res.mask & (usable.sum(0) < 3)).any()
 
 
+
+@pytest.mark.parametrize("solver", ["far", "near"])
+def test_huge_finite_observation_stays_finite(solver):
+    """A 1e30 observation is finite, but its square overflows float32 (hypothesis found it):
+    every output stays finite, the residual saturating instead of going to Inf."""
+    L = np.full((6, 3), 8.1e-43)
+    L[0, 2] = L[2, 0] = L[5, 1] = 1.0
+    I = np.zeros((6, 3, 4))
+    I[1, 0, 0] = 1e30
+    res = (solve_farfield(I, L) if solver == "far"
+           else solve_nearfield(I, np.broadcast_to(L[:, None, None], (6, 3, 4, 3))))
+    _assert_finite(res, (3, 4))
+
 @settings(max_examples=25, deadline=None)
 @given(direction=arrays(np.float64, 3, elements=st.floats(-1, 1)),
        repeats=st.integers(3, 8), kind=st.sampled_from(["repeated", "coplanar"]),

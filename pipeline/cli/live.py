@@ -1,0 +1,94 @@
+"""``iristac live``: reconstruct a camera stream or the virtual sensor live (calls :func:`pipeline.live.run_live`)."""
+
+from __future__ import annotations
+
+import sys
+
+from pipeline.cli._common import add_json_flag, add_markers_flag, add_solver_flags, mode_help, print_json
+
+
+def _size(text: str) -> tuple[int, int]:
+    import argparse
+
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--size must be WxH (e.g. 160x120), got {text!r}") from None
+    if w < 8 or h < 8:
+        raise argparse.ArgumentTypeError(f"--size must be at least 8x8, got {text!r}")
+    return h, w
+
+
+def register(sub, name, help_text):
+    p = sub.add_parser(name, help=help_text, description=help_text)
+    src = p.add_mutually_exclusive_group(required=True)
+    src.add_argument("--camera", metavar="SOURCE", help="OpenCV camera index, device, URL or video file")
+    src.add_argument("--virtual", action="store_true",
+                     help="the virtual sensor: rendered gel under the emulated ring, scripted ball presses")
+    p.add_argument("--mode", default="trichromatic", help=mode_help() + " (default trichromatic)")
+    add_solver_flags(p, default_solver="lut")
+    lights = p.add_mutually_exclusive_group()
+    lights.add_argument("--calibration", metavar="CAL.h5", help="calibration.h5 (with --virtual: default, calibrate "
+                                                                "the virtual sensor first, cached)")
+    lights.add_argument("--illumination", metavar="ILL.h5", help="illumination.h5 (per-pixel light matrices)")
+    ring = p.add_mutually_exclusive_group()
+    ring.add_argument("--port", help="serial port of the LED ring (multi-pattern modes)")
+    ring.add_argument("--emulate", action="store_true", help="drive the ring emulator instead (pty)")
+    p.add_argument("--ring-firmware", metavar="PROGRAM",
+                   help="with --emulate/--virtual: serve the ring with the C firmware's host build")
+    p.add_argument("--frames", type=int, default=None, metavar="N", help="stop after N results")
+    p.add_argument("--seconds", type=float, default=None, help="stop after this many seconds")
+    p.add_argument("--record", metavar="FILE.h5", help="record frames, normals, depth, timestamps and drops "
+                                                       "(valid HDF5 even if the process is killed)")
+    p.add_argument("--view", action="store_true", help="serve a live page on 127.0.0.1 (depth, normals, contact)")
+    p.add_argument("--view-port", type=int, default=8765, help="port of the live page (0: any free port)")
+    p.add_argument("--queue", type=int, default=4, help="samples waiting before the oldest is dropped (default 4)")
+    p.add_argument("--threads", type=int, default=1, help="threads of the per-frame solver and transforms")
+    p.add_argument("--size", type=_size, default=(120, 160), metavar="WxH", help="virtual sensor image size")
+    p.add_argument("--mm-per-px", type=float, default=0.15, help="virtual sensor pixel pitch")
+    p.add_argument("--fps", type=float, default=None,
+                   help="virtual camera frame rate (default 120; 1000 in multi-pattern modes)")
+    p.add_argument("--reference", choices=["start", "calibration"], default=None,
+                   help="no-contact frame of the LUT/MLP: the first one (start with no contact; default with "
+                        "--virtual) or the calibration's (default with --camera)")
+    p.add_argument("--eager", action="store_true", help="the eager solver even where a fast path exists")
+    add_markers_flag(p)
+    p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
+    add_json_flag(p)
+    p.set_defaults(func=_run)
+
+
+def _run(args) -> int:
+    from pipeline.live import run_live
+
+    quiet = args.json
+    log = (lambda m: None) if quiet else (lambda m: print(f"iristac live: {m}", file=sys.stderr, flush=True))
+
+    def ready(info):
+        if info.get("view"):
+            # Always on stderr (also with --json): the address to open.
+            print(f"iristac live: view at {info['view']}", file=sys.stderr, flush=True)
+
+    res = run_live(mode=args.mode, solver=args.solver, camera=args.camera, virtual=args.virtual,
+                   calibration=args.calibration, illumination=args.illumination, port=args.port,
+                   emulate=args.emulate, ring_firmware=args.ring_firmware, frames=args.frames, seconds=args.seconds,
+                   record=args.record, view=args.view, view_port=args.view_port, queue=args.queue,
+                   threads=args.threads, integrator=args.integrator, size=args.size, mm_per_px=args.mm_per_px,
+                   fps=args.fps, cache=args.cache, reference=args.reference, markers=args.markers,
+                   fast=not args.eager, on_ready=ready, log=log)
+    s = res.summary
+    if res.error:
+        print(f"iristac live: stopped: {res.error}"
+              + (f"; the recording {s['record']} is closed and holds {s['results']} results" if s.get("record") else ""),
+              file=sys.stderr)
+    if args.json:
+        print_json(s)
+    else:
+        print(f"{s['results']} results ({s['mode']}, {s['solver']} {s['method']}) at {s['fps']:.1f} /s, latency "
+              f"p50 {s['latency_ms_p50']:.1f} ms, p99 {s['latency_ms_p99']:.1f} ms; dropped {s['dropped']}, "
+              f"stale {s['stale']}, torn cycles {s['torn']}")
+    if args.frames is not None and s["results"] < args.frames:
+        return 1  # asked for more results than the source gave
+    if res.error and not res.end_of_file:
+        return 1  # the camera failed mid-stream
+    return 0
