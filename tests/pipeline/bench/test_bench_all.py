@@ -1,4 +1,4 @@
-"""iristac bench all: one report, rows with the machine, and a plot (run on the cheapest benchmark)."""
+"""iristac bench all: one report, rows with the machine, and a plot (run on the cheapest benchmark: render, 10 s quick)."""
 
 import json
 
@@ -8,7 +8,7 @@ from pipeline.bench.all import common_rows, format_markdown
 
 def test_bench_all_writes_markdown_json_and_plot(tmp_path):
     md, png = tmp_path / "b.md", tmp_path / "b.png"
-    r = run_cli("bench", "all", "--quick", "--only", "capture", "--out", md, "--plot", png, "--json", timeout=300)
+    r = run_cli("bench", "all", "--quick", "--only", "render", "--out", md, "--plot", png, "--json", timeout=300)
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
     rows = res["sections"][0]["rows"]
