@@ -371,7 +371,26 @@ class NearFieldFast:
         sym = [0, 1, 2, 4, 5, 8]  # xx, xy, xz, yy, yz, zz of a symmetric 3x3
         self.inv = _blocked(inv.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512): the inverse is symmetric too
         scale = self._shared_scale(Lm)
-        if scale is None:
+        counts = np.bincount(self.groups, minlength=self.num_groups)
+        if albedo_iterations is None:
+            shared = self._channels_share_lights(Lm)
+            albedo_iterations = 0 if shared or (counts < 3).any() else 3
+        self.iterations = int(albedo_iterations) if self.num_groups > 1 else 0
+        # White patterns (channels share their lights, no alternation): the pseudo-inverse
+        # kernel (pipeline.normals.fast_shared), which reads fewer bytes and vectorises.
+        self.pinv = scale is not None and self.iterations == 0
+        if self.pinv:
+            from pipeline.normals.fast_shared import shared_factors
+
+            L0 = Lm[::self.num_groups]  # (P, M, 3): the first channel's lights
+            Q0 = np.einsum("kmi,kmj->mij", L0, L0)
+            Pi = shared_factors(L0, Q0, invertible)
+            self.Lt = _blocked(Pi.transpose(0, 2, 1))  # (nb, P, 3, 512): Q_0^-1 L_p
+            self.Q = _blocked(Q0.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512)
+            self.scale = _blocked(scale)  # (nb, G, 512)
+            self.invscale = _blocked(np.where(scale > 0, 1.0 / np.where(scale > 0, scale, 1.0), 0.0))
+            self.inv = np.zeros((0, 0, 0), np.float32)  # folded into Pi
+        elif scale is None:
             self.Lt = _blocked(Lm.transpose(0, 2, 1))  # (nb, N, 3, 512)
             self.Q = _blocked(Qg.reshape(self.num_groups, -1, 9)[:, :, sym].transpose(0, 2, 1))  # (nb, G, 6, 512)
             self.scale = np.zeros((0, 0, 0), np.float32)
@@ -382,11 +401,6 @@ class NearFieldFast:
             self.Q = _blocked(Q0.T[None])  # (nb, 1, 6, 512)
             self.scale = _blocked(scale)  # (nb, G, 512)
         self.shared = scale is not None
-        counts = np.bincount(self.groups, minlength=self.num_groups)
-        if albedo_iterations is None:
-            shared = self._channels_share_lights(Lm)
-            albedo_iterations = 0 if shared or (counts < 3).any() else 3
-        self.iterations = int(albedo_iterations) if self.num_groups > 1 else 0
         self.valid0 = finite & invertible & (self.condition_m <= self.max_condition) & (N >= 3)
         M = len(self.index)
         if flat_field is not None:
@@ -464,10 +478,17 @@ class NearFieldFast:
         albedo = np.empty((M, self.num_groups), np.float32)
         residual = np.empty(M, np.float32)
         mask = np.empty(M, np.bool_)
-        args = (planes, self.dark, self.invflat, self.Lt, self.inv, self.Q, self.scale, self.groups, self.num_groups,
-                self.valid0, self.iterations)
         outs = (normals, albedo, residual, mask)
-        run_split(lambda a, b: _nearfield_kernel(*args, a, b, *outs), M, threads)
+        if self.pinv:
+            from pipeline.normals.fast_shared import shared_kernel
+
+            args = (planes, self.dark, self.invflat, self.Lt, self.Q, self.scale, self.invscale, self.valid0)
+            flat = (normals.reshape(-1), albedo.reshape(-1), residual, mask)
+            run_split(lambda a, b: shared_kernel(*args, a, b, *flat), M, threads)
+        else:
+            args = (planes, self.dark, self.invflat, self.Lt, self.inv, self.Q, self.scale, self.groups,
+                    self.num_groups, self.valid0, self.iterations)
+            run_split(lambda a, b: _nearfield_kernel(*args, a, b, *outs), M, threads)
         return normals, albedo, residual, mask
 
     def solve(self, frames, threads: int = 1) -> NormalResult:
