@@ -30,7 +30,7 @@ from numba import njit
 
 from pipeline.normals.result import NormalResult
 
-__all__ = ["NearFieldFast", "frame_planes_np", "run_split", "BLOCK"]
+__all__ = ["NearFieldFast", "frame_planes_np", "split_into", "run_split", "BLOCK"]
 
 #: Pixels per block: the block's accumulators (4 G planes) and light rows stay in L1/L2.
 BLOCK = 512
@@ -71,16 +71,25 @@ def frame_planes_np(frames: np.ndarray, index: np.ndarray | None = None) -> np.n
     """
     a = np.asarray(frames)
     P, H, W, C = a.shape
-    if a.dtype in (np.uint8, np.uint16, np.float32) and 1 < C <= 4 and a.flags.c_contiguous:
-        import cv2  # SIMD de-interleave: ~3x numpy's transposing copy
-
-        planes = np.empty((P * C, H * W), a.dtype)
-        for p in range(P):
-            for c, ch in enumerate(cv2.split(a[p])):
-                planes[p * C + c] = ch.reshape(H * W)
-    else:
-        planes = np.ascontiguousarray(a.transpose(0, 3, 1, 2)).reshape(P * C, H * W)
+    planes = np.empty((P * C, H * W), a.dtype)
+    split_into(a, planes, 0, H * W)
     return planes if index is None else np.ascontiguousarray(planes[:, index])
+
+
+def split_into(frames: np.ndarray, planes: np.ndarray, start: int, stop: int) -> None:
+    """Pixels ``start:stop`` of frames ``(P, H, W, C)`` into ``planes[:, start:stop]`` (``planes``
+    ``(P * C, H * W)``, same dtype), in place (splitting into new arrays and copying them took
+    ~2.5x as long: 0.26 against 0.10 ms for 8 RGB frames at 320 x 240)."""
+    P, H, W, C = frames.shape
+    n = stop - start
+    if frames.dtype in (np.uint8, np.uint16, np.float32) and 1 < C <= 4 and frames.flags.c_contiguous:
+        import cv2  # SIMD de-interleave (~3x numpy's transposing copy), written into the planes
+
+        for p in range(P):
+            src = frames[p].reshape(H * W, 1, C)[start:stop]
+            cv2.split(src, [planes[p * C + c, start:stop].reshape(n, 1) for c in range(C)])
+    else:
+        planes[:, start:stop] = frames.reshape(P, H * W, C)[:, start:stop].transpose(0, 2, 1).reshape(P * C, n)
 
 
 _TINY = np.float32(1.1754944e-38)
