@@ -310,6 +310,17 @@ def _nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, 
             mask[x] = ok
 
 
+def _interleave(planes: np.ndarray) -> np.ndarray:
+    """Planes ``(K, M)`` as ``(M, K)`` (OpenCV's SIMD merge for 2 to 4 float32 planes: 0.03 ms
+    for 3 x 76800 against numpy's 0.28)."""
+    K = planes.shape[0]
+    if 1 < K <= 4:
+        import cv2
+
+        return cv2.merge(list(planes)).reshape(planes.shape[1], K)
+    return np.ascontiguousarray(planes.T)
+
+
 class NearFieldFast:
     """Near-field photometric stereo with everything that depends on the lights precomputed.
 
@@ -418,6 +429,7 @@ class NearFieldFast:
             self.invflat = _blocked(np.where(f > 0, 1.0 / np.where(f > 0, f, 1.0), 0.0))
         else:
             self.invflat = np.zeros((0, 0, 0), np.float32)  # absent: the kernel skips it
+        self._count = np.full(M, N, np.int32)  # every observation is used: the same every frame
         self.set_dark(dark)
 
     def _shared_scale(self, Lm: np.ndarray, rtol: float = 2e-7):
@@ -492,8 +504,9 @@ class NearFieldFast:
             from pipeline.normals.fast_shared import shared_kernel
 
             args = (planes, self.dark, self.invflat, self.Lt, self.Q, self.scale, self.invscale, self.valid0)
-            flat = (normals.reshape(-1), albedo.reshape(-1), residual, mask)
-            run_split(lambda a, b: shared_kernel(*args, a, b, *flat), M, threads)
+            np_, ap = np.empty((3, M), np.float32), np.empty((self.num_groups, M), np.float32)
+            run_split(lambda a, b: shared_kernel(*args, a, b, np_, ap, residual, mask), M, threads)
+            normals, albedo = _interleave(np_), _interleave(ap)
         else:
             args = (planes, self.dark, self.invflat, self.Lt, self.inv, self.Q, self.scale, self.groups,
                     self.num_groups, self.valid0, self.iterations)
@@ -525,7 +538,7 @@ class NearFieldFast:
                 out[self.index] = a
                 return out.reshape((H, W) + a.shape[1:])
         cond = self.condition_m
-        count = np.where(self.valid0 | True, self.n_obs, 0).astype(np.int32)
+        count = self._count
         return NormalResult(normals=full(n, np.array([0, 0, 1], np.float32)), albedo=full(rho, 0), residual=full(res, 0),
                             condition=full(cond, _COND_CAP), mask=full(ok, False), count=full(count, 0),
                             meta={"solver": "nearfield", "method": "fast", "max_condition": self.max_condition})
