@@ -86,10 +86,13 @@ def dst_divergence(normals, mask, mm_per_px: float, max_slope: float = 20.0):
     and its validity mask, from float32 unit normals ``(H, W, 3)`` and ``mask (H, W)``."""
     import cv2
 
-    n = np.ascontiguousarray(normals, np.float32)
     m = np.ascontiguousarray(mask, np.bool_)
     H, W = m.shape
-    nx, ny, nz = cv2.split(n)  # planes: the kernel's loops then vectorise
+    planes = np.moveaxis(np.asarray(normals), -1, 0)
+    if planes.dtype == np.float32 and planes.flags.c_contiguous:
+        nx, ny, nz = planes  # the fast near-field path's normals are a view of its planes
+    else:
+        nx, ny, nz = cv2.split(np.ascontiguousarray(normals, np.float32))  # planes: the loops vectorise
     f = np.empty((H, W), np.float32)
     valid = np.empty((H, W), np.bool_)
     _divergence_planes(nx, ny, nz, m, np.float32(mm_per_px), np.float32(max_slope), f, valid)

@@ -489,8 +489,6 @@ class FastMLP(_Base):
     def solve(self, frames, threads: int = 1):
         """Normals, mask and confidence of one frame set ``(P, H, W, C)`` (integer); as
         ``MLPModel._predict_features`` then the output correction."""
-        from pipeline.normals.fast import _interleave
-
         outs = np.ascontiguousarray(self.outputs(frames, threads).transpose(0, 2, 1))  # (members, 2, M): no copy
         H, W = self.shape
         M = H * W
@@ -499,4 +497,5 @@ class FastMLP(_Base):
         conf = np.empty(M, np.float32)
         run_split(lambda a, b: _mlp_finish(outs, self.apply_tilt, self.gain, self.limit, a, b, planes, mask, conf),
                   M, threads)
-        return self._result(_interleave(planes), mask, conf, {"solver": "mlp", "method": "fast"})
+        # (M, 3) view of the planes (FastDST reads them back without a split).
+        return self._result(planes.T, mask, conf, {"solver": "mlp", "method": "fast"})
