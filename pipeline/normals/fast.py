@@ -397,7 +397,6 @@ class NearFieldFast:
             self.Lt = _blocked(Pi.transpose(0, 2, 1))  # (nb, P, 3, 512): Q_0^-1 L_p
             self.Q = _blocked(Q0.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512)
             self.scale = _blocked(scale)  # (nb, G, 512)
-            self.invscale = _blocked(np.where(scale > 0, 1.0 / np.where(scale > 0, scale, 1.0), 0.0))
             self.inv = np.zeros((0, 0, 0), np.float32)  # folded into Pi
         elif scale is None:
             self.Lt = _blocked(Lm.transpose(0, 2, 1))  # (nb, N, 3, 512)
@@ -418,6 +417,8 @@ class NearFieldFast:
             self.invflat = _blocked(np.where(f > 0, 1.0 / np.where(f > 0, f, 1.0), 0.0))
         else:
             self.invflat = np.zeros((0, 0, 0), np.float32)  # absent: the kernel skips it
+        if self.pinv:  # the validity folded into the scalars: the kernel reads no mask
+            self.scale = _blocked(np.where(self.valid0, scale, 0.0))
         self._count = np.full(M, N, np.int32)  # every observation is used: the same every frame
         self.set_dark(dark)
 
@@ -492,7 +493,7 @@ class NearFieldFast:
         if self.pinv:
             from pipeline.normals.fast_shared import shared_kernel
 
-            args = (planes, self.dark, self.invflat, self.Lt, self.Q, self.scale, self.invscale, self.valid0)
+            args = (planes, self.dark, self.invflat, self.Lt, self.Q, self.scale)
             np_, ap = np.empty((3, M), np.float32), np.empty((self.num_groups, M), np.float32)
             run_split(lambda a, b: shared_kernel(*args, a, b, np_, ap, residual, mask), M, threads)
             # (M, 3) and (M, G) views of the planes, not copies: FastDST reads the planes back

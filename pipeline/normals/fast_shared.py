@@ -38,20 +38,20 @@ def shared_factors(L0: np.ndarray, Q0: np.ndarray, invertible: np.ndarray):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
-def shared_kernel(obs, dark, invflat, Pi, Q0, scale, invscale, valid0, start, stop,
+def shared_kernel(obs, dark, invflat, Pi, Q0, scale, start, stop,
                   normals, albedo, residual, mask):  # pragma: no cover - compiled
     """Pixels ``start:stop`` (``start`` a multiple of 512) of observation planes ``obs (N, M)``
     (pattern-major, channel-minor, ``N = P G``).
 
     Blocked layout (``pipeline.normals.fast._blocked``): ``Pi (nb, P, 3, 512)``, ``Q0 (nb, 6,
-    512)`` (xx, xy, xz, yy, yz, zz), ``scale (nb, G, 512)`` and ``invscale`` (``1 / scale``,
-    0 where it is not positive), ``dark``/``invflat`` ``(nb, N,
-    512)`` or ``(0, 0, 0)`` when absent, float32; ``valid0 (M,)`` bool. Outputs as planes:
-    ``normals (3, M)``, ``albedo (G, M)``, ``residual (M,)`` float32, ``mask (M,)`` bool.
+    512)`` (xx, xy, xz, yy, yz, zz), ``scale (nb, G, 512)`` (0 at pixels not to solve: the
+    validity costs no plane of its own), ``dark``/``invflat`` ``(nb, N, 512)`` or ``(0, 0,
+    0)`` when absent, float32. Outputs as planes: ``normals (3, M)``, ``albedo (G, M)``,
+    ``residual (M,)`` float32, ``mask (M,)`` bool.
 
     Every loop over a block's pixels runs the whole 512 (a short last block is zero-padded
-    into ``tail``): with a trip count LLVM knows the loops vectorise (measured: the moments
-    at 22 ns a pixel with ``range(B)``, 2 with ``range(512)``).
+    into ``tail``): with a trip count LLVM knows the loops vectorise (measured on one moment's
+    loop: 22 ns a pixel with a computed ``range(B)``, 2 with ``range(512)``).
     """
     N = obs.shape[0]
     P = Pi.shape[1]
@@ -113,10 +113,6 @@ def shared_kernel(obs, dark, invflat, Pi, Q0, scale, invscale, valid0, start, st
                 F[1, j] += s * Ug[1, j]
                 F[2, j] += s * Ug[2, j]
                 F[3, j] += s * s
-        for j in range(B):
-            F[8, j] = np.float32(1.0) if valid0[j0 + j] else np.float32(0.0)
-        for j in range(B, 512):
-            F[8, j] = 0.0
         Qb = Q0[blk]
         for j in range(512):
             # b = A^-1 sum_g r_g up to the positive factor 1 / sum_g s_g^2: the normal is its
@@ -127,7 +123,7 @@ def shared_kernel(obs, dark, invflat, Pi, Q0, scale, invscale, valid0, start, st
             nrm = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
             sc = np.float32(1.0) / max(nrm, _TINY)
             n2 = b2 * sc
-            ok = (F[8, j] > 0) & (nrm > 0) & (n2 > 0) & (F[3, j] > 0)
+            ok = (nrm > 0) & (n2 > 0) & (F[3, j] > 0)  # scale 0: invalid pixel or padding
             n0 = b0 * sc if ok else np.float32(0.0)
             n1 = b1 * sc if ok else np.float32(0.0)
             n2 = n2 if ok else np.float32(1.0)
@@ -145,13 +141,15 @@ def shared_kernel(obs, dark, invflat, Pi, Q0, scale, invscale, valid0, start, st
             F[9, j] = 0.0
             F[3, j] = 0.0  # now the total energy sum_g S_g
         for g in range(G):
-            isc = invscale[blk, g]
+            sc_ = scale[blk, g]
             Ug = U[g]
             rg = rh[g]
             for j in range(512):  # no branch, no division: it vectorises
                 w = F[4, j] * Ug[0, j] + F[5, j] * Ug[1, j] + F[6, j] * Ug[2, j]
                 wq = w * F[7, j]
-                rg[j] = wq * isc[j] * F[8, j]
+                s = sc_[j]
+                isc = np.float32(1.0) / s if s > 0 else np.float32(0.0)
+                rg[j] = wq * isc * F[8, j]
                 F[9, j] += w * wq
                 F[3, j] += Ug[3, j]
         # Outputs as planes (contiguous stores; interleaving them here took 6 ns a pixel in
