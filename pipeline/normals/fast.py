@@ -87,7 +87,11 @@ def split_into(frames: np.ndarray, planes: np.ndarray, start: int, stop: int) ->
 
         for p in range(P):
             src = frames[p].reshape(H * W, 1, C)[start:stop]
-            cv2.split(src, [planes[p * C + c, start:stop].reshape(n, 1) for c in range(C)])
+            dst = [planes[p * C + c, start:stop].reshape(n, 1) for c in range(C)]
+            out = cv2.split(src, dst)
+            for d, o in zip(dst, out):
+                if o.ctypes.data != d.ctypes.data:  # OpenCV reallocated instead of writing in place
+                    d[...] = o.reshape(d.shape)
     else:
         planes[:, start:stop] = frames.reshape(P, H * W, C)[:, start:stop].transpose(0, 2, 1).reshape(P * C, n)
 
@@ -396,8 +400,7 @@ class NearFieldFast:
             Pi = shared_factors(L0, Q0, invertible)
             self.Lt = _blocked(Pi.transpose(0, 2, 1))  # (nb, P, 3, 512): Q_0^-1 L_p
             self.Q = _blocked(Q0.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512)
-            self.scale = _blocked(scale)  # (nb, G, 512)
-            self.inv = np.zeros((0, 0, 0), np.float32)  # folded into Pi
+            self.inv = np.zeros((0, 0, 0), np.float32)  # folded into Pi; scale: below, with the validity
         elif scale is None:
             self.Lt = _blocked(Lm.transpose(0, 2, 1))  # (nb, N, 3, 512)
             self.Q = _blocked(Qg.reshape(self.num_groups, -1, 9)[:, :, sym].transpose(0, 2, 1))  # (nb, G, 6, 512)
@@ -420,6 +423,7 @@ class NearFieldFast:
         if self.pinv:  # the validity folded into the scalars: the kernel reads no mask
             self.scale = _blocked(np.where(self.valid0, scale, 0.0))
         self._count = np.full(M, N, np.int32)  # every observation is used: the same every frame
+        self._count.flags.writeable = False  # shared by every result (as the condition map)
         self.set_dark(dark)
 
     def _shared_scale(self, Lm: np.ndarray, rtol: float = 2e-7):
@@ -485,11 +489,8 @@ class NearFieldFast:
         M = len(self.index)
         if planes.shape != (self.n_obs, M):
             raise ValueError(f"NearFieldFast: observation planes must be ({self.n_obs}, {M}), got {planes.shape}")
-        normals = np.empty((M, 3), np.float32)
-        albedo = np.empty((M, self.num_groups), np.float32)
         residual = np.empty(M, np.float32)
         mask = np.empty(M, np.bool_)
-        outs = (normals, albedo, residual, mask)
         if self.pinv:
             from pipeline.normals.fast_shared import shared_kernel
 
@@ -500,6 +501,9 @@ class NearFieldFast:
             # without a split, and interleaving both cost two more passes over the frame.
             normals, albedo = np_.T, ap.T
         else:
+            normals = np.empty((M, 3), np.float32)
+            albedo = np.empty((M, self.num_groups), np.float32)
+            outs = (normals, albedo, residual, mask)
             args = (planes, self.dark, self.invflat, self.Lt, self.inv, self.Q, self.scale, self.groups,
                     self.num_groups, self.valid0, self.iterations)
             run_split(lambda a, b: _nearfield_kernel(*args, a, b, *outs), M, threads)
