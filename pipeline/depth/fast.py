@@ -22,63 +22,80 @@ __all__ = ["FastDST", "dst_divergence"]
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _slopes(normals, mask, scale, max_slope, gc, gr, valid):  # pragma: no cover - compiled
-    """``pipeline.depth._common.pixel_gradients`` of float32 normals ``(H, W, 3)``: slopes in mm
-    per pixel step (``dh/dcol = -n_x / n_z s``, ``dh/drow = n_y / n_z s``), 0 where the mask
-    is False or the normal faces away, clipped to ``max_slope``."""
+def _divergence_planes(nx, ny, nz, mask, scale, max_slope, f, valid):  # pragma: no cover - compiled
+    """``pipeline.depth._common.pixel_gradients`` of float32 normal planes ``(H, W)`` each, then
+    ``poisson_dst``'s divergence of the edge gradients, a row at a time.
+
+    Slopes in mm per pixel step (``dh/dcol = -n_x / n_z s``, ``dh/drow = n_y / n_z s``), 0
+    where the mask is False or the normal faces away, clipped to ``max_slope``; the image
+    border's edges are the border pixels' own slopes (``poisson_dst``'s ``ecp``/``erp``).
+    Written without branches on planes (reading ``(H, W, 3)`` normals took a gather per pixel
+    and the branches kept the loops scalar: 0.28 -> under 0.1 ms at 320 x 240).
+    """
     H, W = mask.shape
     lim = np.float32(max_slope)
-    for r in range(H):
-        for c in range(W):
-            nz = normals[r, c, 2]
-            ok = mask[r, c] and nz > 0 and nz < np.inf
-            p = np.float32(0.0)
-            q = np.float32(0.0)
-            if ok:
-                p = -normals[r, c, 0] / nz
-                q = -normals[r, c, 1] / nz
-                ok = np.isfinite(p) and np.isfinite(q)
-                if not ok:
-                    p = np.float32(0.0)
-                    q = np.float32(0.0)
-            if abs(p) > lim / np.float32(1.5) or abs(q) > lim / np.float32(1.5):
-                mag = np.float32(np.hypot(p, q))
-                if mag > lim:
-                    f = lim / max(mag, np.float32(1.1754944e-38))
-                    p = p * f
-                    q = q * f
-            gc[r, c] = p * scale
-            gr[r, c] = (np.float32(0.0) - q) * scale
-            valid[r, c] = ok
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _divergence(gc, gr, f):  # pragma: no cover - compiled
-    """``div`` of the edge gradients with the image border's edges taken from the border
-    pixels' own slopes (``poisson_dst``'s ``ecp``/``erp`` construction)."""
-    H, W = gc.shape
+    zero = np.float32(0.0)
     half = np.float32(0.5)
-    for r in range(H):
-        for c in range(W):
-            right = gc[r, c] if c == W - 1 else half * (gc[r, c + 1] + gc[r, c])
-            left = gc[r, c] if c == 0 else half * (gc[r, c] + gc[r, c - 1])
-            down = gr[r, c] if r == H - 1 else half * (gr[r + 1, c] + gr[r, c])
-            up = gr[r, c] if r == 0 else half * (gr[r, c] + gr[r - 1, c])
-            f[r, c] = (right - left) + (down - up)
+    gc = np.empty((3, W), np.float32)  # rows r-1, r, r+1 of the column slopes, cyclically
+    gr = np.empty((3, W), np.float32)
+    for r in range(-1, H):
+        if r + 1 < H:
+            rr = r + 1
+            dc = gc[rr % 3]
+            dr = gr[rr % 3]
+            x = nx[rr]
+            y = ny[rr]
+            z = nz[rr]
+            m = mask[rr]
+            v = valid[rr]
+            for c in range(W):
+                n2 = z[c]
+                ok = m[c] & (n2 > 0) & (n2 < np.inf)
+                p = -x[c] / n2
+                q = -y[c] / n2
+                ok = ok & (p - p == 0) & (q - q == 0)  # finite
+                p = p if ok else zero
+                q = q if ok else zero
+                mag = np.sqrt(p * p + q * q)
+                k = lim / max(mag, np.float32(1.1754944e-38))
+                k = k if mag > lim else np.float32(1.0)
+                dc[c] = p * k * scale
+                dr[c] = (zero - q * k) * scale
+                v[c] = ok
+        if r < 0:
+            continue
+        cur_c = gc[r % 3]
+        cur_r = gr[r % 3]
+        up_r = gr[(r - 1) % 3] if r > 0 else cur_r
+        dn_r = gr[(r + 1) % 3] if r < H - 1 else cur_r
+        fr = f[r]
+        for c in range(1, W - 1):
+            fr[c] = (half * (cur_c[c + 1] - cur_c[c - 1])
+                     + (half * (dn_r[c] + cur_r[c]) if r < H - 1 else cur_r[c])
+                     - (half * (cur_r[c] + up_r[c]) if r > 0 else cur_r[c]))
+        for c in (0, W - 1):
+            right = cur_c[c] if c == W - 1 else half * (cur_c[c + 1] + cur_c[c])
+            left = cur_c[c] if c == 0 else half * (cur_c[c] + cur_c[c - 1])
+            down = cur_r[c] if r == H - 1 else half * (dn_r[c] + cur_r[c])
+            up = cur_r[c] if r == 0 else half * (cur_r[c] + up_r[c])
+            fr[c] = (right - left) + (down - up)
 
 
 def dst_divergence(normals, mask, mm_per_px: float, max_slope: float = 20.0):
     """``(f (H, W), valid (H, W))``: the right-hand side of ``poisson_dst``'s Poisson equation
     and its validity mask, from float32 unit normals ``(H, W, 3)`` and ``mask (H, W)``."""
-    n = np.ascontiguousarray(normals, np.float32)
+    import cv2
+
     m = np.ascontiguousarray(mask, np.bool_)
     H, W = m.shape
-    gc = np.empty((H, W), np.float32)
-    gr = np.empty((H, W), np.float32)
-    valid = np.empty((H, W), np.bool_)
-    _slopes(n, m, np.float32(mm_per_px), np.float32(max_slope), gc, gr, valid)
+    planes = np.moveaxis(np.asarray(normals), -1, 0)
+    if planes.dtype == np.float32 and planes.flags.c_contiguous:
+        nx, ny, nz = planes  # the fast near-field path's normals are a view of its planes
+    else:
+        nx, ny, nz = cv2.split(np.ascontiguousarray(normals, np.float32))  # planes: the loops vectorise
     f = np.empty((H, W), np.float32)
-    _divergence(gc, gr, f)
+    valid = np.empty((H, W), np.bool_)
+    _divergence_planes(nx, ny, nz, m, np.float32(mm_per_px), np.float32(max_slope), f, valid)
     return f, valid
 
 

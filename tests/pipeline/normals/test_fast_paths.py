@@ -32,8 +32,8 @@ def _uint8_scene(shape=(36, 52), patterns=6, seed=0, coloured=False):
     return scene.frames.astype(np.uint8), lights, scene
 
 
-@pytest.mark.parametrize("coloured", [False, True])
-def test_nearfield_fast_equals_eager(coloured):
+@pytest.mark.parametrize("coloured,masked", [(False, True), (False, False), (True, True)])
+def test_nearfield_fast_equals_eager(coloured, masked):
     from pipeline.normals.fast import NearFieldFast
     from pipeline.normals.nearfield import NearFieldSolver
 
@@ -43,9 +43,11 @@ def test_nearfield_fast_equals_eager(coloured):
     groups = np.tile(np.arange(C), P)
     region = np.zeros((H, W), bool)
     region[3:-2, 5:] = True
+    if not masked:  # every pixel: white sectors read the interleaved frames directly
+        region[:] = True
     dark = np.full((H, W, C), 2.0, np.float32)
     flat = np.random.default_rng(1).uniform(0.8, 1.2, size=(P * C, H, W))
-    fast = NearFieldFast(L, groups=groups, mask=region, dark=dark, flat_field=flat)
+    fast = NearFieldFast(L, groups=groups, mask=region if masked else None, dark=dark, flat_field=flat)
     assert fast.shared is (not coloured) and (fast.iterations > 0) is coloured
     got = fast.solve(frames, threads=2)
     obs = (frames.astype(np.float64) - dark).transpose(0, 3, 1, 2).reshape(P * C, H, W) / flat
