@@ -10,11 +10,15 @@ dropped.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
-from calibration.detect import Circle
 from calibration.truth import sphere_cap
+
+if TYPE_CHECKING:  # an annotation only: calibration.detect imports scipy.ndimage (~0.2 s), which
+    # loading a calibration (every live start, via the models) does not need (docs/live.md)
+    from calibration.detect import Circle
 
 __all__ = ["Samples", "collect_samples"]
 

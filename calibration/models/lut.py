@@ -12,7 +12,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 from calibration.models.base import CalibrationModel
 from calibration.models.nearfield import poly_terms
@@ -129,6 +128,8 @@ class LookupTable:
         >>> bool(ok.all()), float(np.abs(got - g[:100]).max()) < 0.15
         (True, True)
         """
+        from scipy import ndimage  # here: a live start loads this module, never fits (docs/live.md)
+
         diff = np.asarray(diff, dtype=np.float64)
         gradients = np.asarray(gradients, dtype=np.float64)
         if diff.ndim != 2 or diff.shape[1] != 3 or gradients.shape != (len(diff), 2):

@@ -13,7 +13,6 @@ falls back to its average. Empty bins copy the nearest measured bin's coefficien
 from __future__ import annotations
 
 import numpy as np
-from scipy import ndimage
 
 __all__ = ["fit_position_coefficients", "evaluate_position_coefficients"]
 
@@ -42,6 +41,8 @@ def fit_position_coefficients(flat_index: np.ndarray, bins: int, phi: np.ndarray
     >>> (np.round(c[0, 0, 0], 6) + 0.0).tolist()
     [[0.2, -0.3], [0.1, 0.0], [0.0, 0.0]]
     """
+    from scipy import ndimage  # here: a live start loads this module, never fits (docs/live.md)
+
     n_bins = bins ** 3
     t = phi.shape[1]
     # Moments per bin: phi phi^T (T x T) and phi g (T x 2), as bin-count channels.

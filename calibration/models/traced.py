@@ -18,7 +18,6 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from scipy.optimize import nnls
 
 from calibration.models.base import LightFieldModel
 from calibration.samples import Samples
@@ -172,6 +171,10 @@ def _nnls_tall(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:
     system instead of ``m x n`` (m is pixels x patterns, n the LEDs: 30x to 1000x faster).
     Returns the solution and the residual norm of the original problem.
     """
+    # Imported here, not at the top: scipy.optimize takes ~0.14 s to import, and loading a
+    # calibration (every live start) imports this module without fitting (docs/live.md).
+    from scipy.optimize import nnls
+
     m, n = A.shape
     if m <= 2 * n:
         return nnls(A, b, maxiter=50 * n)

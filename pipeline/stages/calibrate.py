@@ -19,7 +19,7 @@ from typing import Any, Mapping, Sequence
 from pipeline.base.errors import UserError
 from pipeline.stages.base import StageSpec, config_path, file_input_key, record_key
 
-__all__ = ["SPEC", "RENDER_DEFAULTS", "params", "compute", "run", "node", "resolve"]
+__all__ = ["SPEC", "RENDER_DEFAULTS", "params", "compute", "run", "rendered", "run_rendered", "node", "resolve"]
 
 # Version 2: every model's tilt gain and clip, the LUT's per-bin position correction, the MLP's
 # 400 steps at 2e-2 (issue 13): a calibration cached by version 1 holds other models.
@@ -112,6 +112,34 @@ def run(store, capture, *, ball_radius_mm: float, models: str | Sequence[str], f
             raise UserError("calibrate: the traced model needs the illumination model and its key")
         inputs.append(illumination_key)
     return SPEC.get_or_compute(store, params(p), inputs, lambda: compute(p, illumination), force=force, heal=heal)
+
+
+def rendered(render: Mapping[str, Any], *, ball_radius_mm: float, models: str | Sequence[str],
+             folds: int = 5) -> dict:
+    """The calibrate section of a sphere capture rendered from an illumination model, as a run
+    config's ``calibrate.render`` (``render``: :data:`RENDER_DEFAULTS` keys, defaults filled,
+    and ``mode``). Its :func:`params` are its key: :func:`run_rendered` finds a cached result
+    without rendering.
+
+    Examples
+    --------
+    >>> p = rendered({"mode": "trichromatic", "seed": 11}, ball_radius_mm=2.0, models=["lut"])
+    >>> params(p)["render"]["seed"], params(p)["source"], params(p)["mm_per_px"]
+    (11, 'render', None)
+    """
+    return {"render": {**RENDER_DEFAULTS, **render}, "ball_radius_mm": float(ball_radius_mm), "model": models,
+            "folds": int(folds), "mm_per_px": None}
+
+
+def run_rendered(store, p: Mapping[str, Any], illumination, inputs: Sequence[str], *, force: bool = False,
+                 heal: bool = True):
+    """``(record, key, cached)``: calibrate the rendered section ``p`` (:func:`rendered`)
+    through ``store``, keyed by its parameters and ``inputs`` (the identity of
+    ``illumination``, the IlluminationModel it is rendered with, and of anything else the
+    rendering reads), like ``iristac run``'s ``calibrate.render``: a hit renders nothing.
+    """
+    return SPEC.get_or_compute(store, params(p), list(inputs), lambda: compute(p, illumination), force=force,
+                               heal=heal)
 
 
 def resolve(cal: dict, cfg: Mapping[str, Any], base: Path, source: str) -> None:

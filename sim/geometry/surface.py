@@ -11,7 +11,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-from scipy import ndimage
 
 from pipeline.base.frames import gradients_to_normals, pixel_to_recon
 
@@ -165,6 +164,8 @@ def smooth(field: HeightField, sigma_mm: float) -> HeightField:
     >>> bool(s.height.max() < f.height.max() + 1e-12), bool(np.abs(s.p).max() > 0.5)
     (True, True)
     """
+    from scipy import ndimage  # here: a live start imports this module, never smooths (docs/live.md)
+
     if not sigma_mm >= 0:
         raise ValueError(f"smooth: sigma_mm must be >= 0, got {sigma_mm}")
     if sigma_mm == 0:
