@@ -115,16 +115,25 @@ def measure_nearfield(width: int, height: int, repeats: int, patterns: int = 8, 
     fast = NearFieldFast(s.lights_flat(), groups=groups)
     dst = FastDST((height, width), mm)
     prep = time.perf_counter() - t
+    return rows + _fast_rows(label, size, lambda th: fast.solve(frames, threads=th), dst, repeats, threads_all,
+                             s.normals, re_.normals, re_.mask,
+                             {"eager_error_deg": e_eager, "prepare_seconds": prep, "observations": P * 3})
+
+
+def _fast_rows(label: str, size: str, solve, dst, repeats: int, threads_all: int, truth: np.ndarray,
+               eager_normals: np.ndarray, eager_mask: np.ndarray, extra: dict) -> list[dict]:
+    """A fast path's rows, one per thread count: ``solve(threads)`` then ``dst`` heights, warmed
+    once, best of ``repeats``, its error against ``truth`` and its deviation from the eager normals."""
+    rows = []
     for th in (1, threads_all):
         def fast_pipe(th=th):
-            r = fast.solve(frames, threads=th)
+            r = solve(th)
             return r, dst.integrate(r.normals, r.mask, workers=th)
 
         fast_pipe()
         sec, (rf, _) = _best(fast_pipe, repeats)
-        rows.append(_row(label, size, "fast", th, sec, _err(rf.normals, s.normals), _dev(rf.normals, re_.normals,
-                                                                                       rf.mask & re_.mask),
-                         {"eager_error_deg": e_eager, "prepare_seconds": prep, "observations": P * 3}))
+        rows.append(_row(label, size, "fast", th, sec, _err(rf.normals, truth),
+                         _dev(rf.normals, eager_normals, rf.mask & eager_mask), extra))
     return rows
 
 
@@ -174,17 +183,8 @@ def measure_model(solver: str, width: int, height: int, repeats: int, store, thr
                       dark=dark)
     dst = FastDST((height, width), mm)
     prep = time.perf_counter() - t
-    for th in (1, threads_all):
-        def fast_pipe(th=th):
-            r = fs.solve(raw, threads=th)
-            return r, dst.integrate(r.normals, r.mask, workers=th)
-
-        fast_pipe()
-        sec, (rf, _) = _best(fast_pipe, repeats)
-        rows.append(_row(solver, size, "fast", th, sec, _err(rf.normals, truth),
-                         _dev(rf.normals, maps.normals[0], rf.mask & maps.mask[0]),
-                         {"eager_error_deg": e_eager, "prepare_seconds": prep}))
-    return rows
+    return rows + _fast_rows(solver, size, lambda th: fs.solve(raw, threads=th), dst, repeats, threads_all, truth,
+                             maps.normals[0], maps.mask[0], {"eager_error_deg": e_eager, "prepare_seconds": prep})
 
 
 def measure_device(width: int, height: int, device: str, batch: int, repeats: int) -> dict:

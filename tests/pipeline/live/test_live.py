@@ -298,12 +298,17 @@ def test_live_view_endpoints_over_http(store):
         except urllib.error.HTTPError as exc:
             assert exc.code == 404
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        proc.stderr.close()
+        _stop_view(proc)
+
+
+def _stop_view(proc) -> None:
+    """Ctrl-C the live process (killed if it has not ended in 20 s)."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        proc.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+    proc.stderr.close()
 
 
 def _chromium() -> str | None:
@@ -342,12 +347,7 @@ def test_live_page_in_headless_chromium(store, tmp_path):
         img = cv2.imread(str(shot))
         assert img is not None and img.std() > 5  # not a blank page
     finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-        proc.stderr.close()
+        _stop_view(proc)
 
 
 def test_live_bad_input_is_one_line(tmp_path):
