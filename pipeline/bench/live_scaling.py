@@ -93,7 +93,8 @@ def measure_device(width: int, height: int, device: str, batch: int, repeats: in
     from pipeline.normals.gpu_stream import GPUFramePipeline
 
     dev = torch.device(device)
-    torch.cuda.set_device(dev)
+    if dev.index is None:
+        dev = torch.device("cuda", torch.cuda.current_device())
     mm = FOV_MM / width
     s = render_sphere_scene((height, width), mm, radius=3.0, depth=0.5, num_patterns=8, noise=1.0, bits=8, seed=0)
     one = s.frames.astype(np.uint8)

@@ -56,9 +56,10 @@ def _quad(Q, c, m, n0, n1, n2):  # pragma: no cover - compiled (device)
             + n2 * (Q[c, 2, 0, m] * n0 + Q[c, 2, 1, m] * n1 + Q[c, 2, 2, m] * n2))
 
 
-def _kernel(frames, dark, invflat, L, Q, inv, valid0, iterations, normals, albedo, residual, mask):  # pragma: no cover
+def _kernel(frames, dark, invflat, use_dark, use_flat, L, Q, inv, valid0, iterations, normals, albedo, residual,
+            mask):  # pragma: no cover
     """One thread per (pixel, frame): ``frames (B, P, H, W, C)`` integer; ``dark (C, M)`` and
-    ``invflat (P, C, M)`` float32 (shape 0 on axis 0: absent); factors as NearFieldBatched's
+    ``invflat (P, C, M)`` float32 (read where ``use_dark``, ``use_flat``); factors as NearFieldBatched's
     (``L (P, C, 3, M)``, ``Q (C, 3, 3, M)``, ``inv (3, 3, M)``, ``valid0 (M,)`` uint8); outputs
     ``normals (B, 3, M)``, ``albedo (B, C, M)``, ``residual (B, M)``, ``mask (B, M)`` uint8."""
     m, b = cuda.grid(2)
@@ -74,14 +75,12 @@ def _kernel(frames, dark, invflat, L, Q, inv, valid0, iterations, normals, albed
     S = float32(0.0)
     for c in range(C):
         r[c, 0] = r[c, 1] = r[c, 2] = float32(0.0)
-    has_dark = dark.shape[0] > 0
-    has_flat = invflat.shape[0] > 0
     for p in range(P):
         for c in range(C):
             x = float32(frames[b, p, row, col, c])
-            if has_dark:
+            if use_dark:
                 x -= dark[c, m]
-            if has_flat:
+            if use_flat:
                 x *= invflat[p, c, m]
             r[c, 0] += x * L[p, c, 0, m]
             r[c, 1] += x * L[p, c, 1, m]
@@ -170,7 +169,7 @@ def kernel_signature(frame_dtype="uint8"):
 
     fr = {"uint8": nt.uint8, "uint16": nt.uint16}[np.dtype(frame_dtype).name]
     f4 = nt.float32
-    return (fr[:, :, :, :, ::1], f4[:, ::1], f4[:, :, ::1], f4[:, :, :, ::1], f4[:, :, :, ::1], f4[:, :, ::1],
+    return (fr[:, :, :, :, ::1], f4[:, ::1], f4[:, :, ::1], nt.boolean, nt.boolean, f4[:, :, :, ::1], f4[:, :, :, ::1], f4[:, :, ::1],
             nt.uint8[::1], nt.int64, f4[:, :, ::1], f4[:, :, ::1], f4[:, ::1], nt.uint8[:, ::1])
 
 
@@ -214,10 +213,12 @@ class NearFieldGPU:
         self.Q = ref.Q.contiguous()  # (C, 3, 3, M)
         self.inv = ref.inv.contiguous()  # (3, 3, M)
         self.valid0 = ref.valid0.reshape(M).to(torch.uint8).contiguous()
-        self.invflat = (ref.invflat.contiguous() if ref.invflat is not None
-                        else torch.zeros((0, 1, 1), **t))
+        # absent dark / flat field: 1-element stand-ins the kernel never reads (use_* False)
+        self.invflat = ref.invflat.contiguous() if ref.invflat is not None else torch.zeros((1, 1, 1), **t)
+        self.use_flat = ref.invflat is not None
+        self.use_dark = dark is not None
         if dark is None:
-            self.dark = torch.zeros((0, 1), **t)
+            self.dark = torch.zeros((1, 1), **t)
         else:
             d = torch.as_tensor(np.asarray(dark, np.float32), **t)
             if tuple(d.shape) != (H, W, self.C):
@@ -242,10 +243,12 @@ class NearFieldGPU:
         res = torch.empty((B, M), **t)
         ok = torch.empty((B, M), device=frames.device, dtype=torch.uint8)
         stream = cuda.external_stream(torch.cuda.current_stream(frames.device).cuda_stream)
-        a = cuda.as_cuda_array
+        def a(x):  # the kernel runs on this stream: no host synchronisation on import
+            return cuda.as_cuda_array(x, sync=False)
+
         grid = ((M + THREADS - 1) // THREADS, B)
         nearfield_kernel()[grid, (THREADS, 1), stream](
-            a(frames.contiguous()), a(self.dark), a(self.invflat), a(self.L), a(self.Q), a(self.inv), a(self.valid0),
+            a(frames.contiguous()), a(self.dark), a(self.invflat), self.use_dark, self.use_flat, a(self.L), a(self.Q), a(self.inv), a(self.valid0),
             self.iterations, a(n), a(rho), a(res), a(ok))
         return {"normals": n.permute(0, 2, 1).reshape(B, H, W, 3), "albedo": rho.permute(0, 2, 1).reshape(B, H, W, self.C),
                 "residual": res.reshape(B, H, W), "mask": ok.reshape(B, H, W).bool()}

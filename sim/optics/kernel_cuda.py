@@ -157,15 +157,33 @@ def _trace_kernel(P, F, seeds, tab, PT, PI, bins, books, counts):
     cuda.atomic.add(counts, 4, c_unconv)
 
 
+def source_digest() -> str:
+    """A digest of the kernel's source (this module and :mod:`sim.optics.kernel`, whose functions it
+    inlines): part of the compiled kernel's name, so numba's disk cache (keyed by the name and this
+    file's time stamp) never serves a kernel built from an older ``kernel.py``."""
+    import hashlib
+    import inspect
+
+    h = hashlib.sha256()
+    for mod in (K, __import__(__name__, fromlist=["_"])):
+        h.update(inspect.getsource(mod).encode())
+    return h.hexdigest()[:12]
+
+
 def kernel_function(dtype):
     """The tracer kernel's Python function for ``dtype``, its names bound to :func:`device_code` (what
     ``numba.cuda.jit`` or :func:`numba.cuda.compile_ptx` compiles)."""
-    return _copy(_trace_kernel, {"K": device_code(dtype), "cuda": cuda})
+    fn = _copy(_trace_kernel, {"K": device_code(dtype), "cuda": cuda})
+    fn.__module__ = __name__
+    fn.__qualname__ = f"trace_kernel_{np.dtype(dtype).name}_{source_digest()}"
+    return fn
 
 
 @functools.lru_cache(maxsize=None)
 def _kernel(dtype):
-    return cuda.jit(kernel_function(dtype))
+    # Cached on disk (NUMBA_CACHE_DIR moves it): the IR inlining makes the first compile take
+    # tens of seconds; a later process loads the kernel.
+    return cuda.jit(cache=True)(kernel_function(dtype))
 
 
 def kernel_signature(dtype):
@@ -218,7 +236,7 @@ def trace(P, F, seeds, tab, PT, PI, total: int, device="cuda"):
 
 
 def warm_up(dtype) -> None:
-    """Compile the kernel for ``dtype`` by tracing no rays (``numba.cuda`` caches in memory only)."""
+    """Compile (or load from numba's disk cache) the kernel for ``dtype`` by tracing no rays."""
     ft = np.dtype(dtype)
     P = np.zeros(K.P_COUNT, dtype=ft)
     F = np.zeros(K.F_COUNT, dtype=np.int64)

@@ -52,8 +52,8 @@ B, P, H, W, C = frames.shape
 M = H * W
 n, rho = np.zeros((B, 3, M), np.float32), np.zeros((B, C, M), np.float32)
 res, ok = np.zeros((B, M), np.float32), np.zeros((B, M), np.uint8)
-nearfield_kernel()[((M + THREADS - 1) // THREADS, B), (THREADS, 1)](frames, dark, invflat, L, Q, inv, valid0,
-                                                                     int(d["iterations"]), n, rho, res, ok)
+nearfield_kernel()[((M + THREADS - 1) // THREADS, B), (THREADS, 1)](frames, dark, invflat, True, True, L, Q, inv,
+                                                                     valid0, int(d["iterations"]), n, rho, res, ok)
 print(json.dumps({"n": n.tolist(), "rho": rho.tolist(), "res": res.tolist(), "ok": ok.tolist()}))
 """
 
