@@ -19,7 +19,8 @@ set -u
 OUT=${OUT:-gpu-check-out}
 mkdir -p "$OUT"
 export PYTHONUNBUFFERED=1
-PY=${PYTHON:-python3}
+export PY=${PYTHON:-python3}
+export OUT
 QUICK=${1:-}
 LOG="$OUT/gpu_check.log"
 : > "$OUT/summary.txt"
@@ -29,7 +30,11 @@ step() {  # step NAME SECONDS COMMAND...
   shift 2
   echo "=== $name (limit ${limit}s)" | tee -a "$LOG"
   local t0=$SECONDS
-  timeout "$limit" "$@" 2>&1 | tee -a "$LOG"
+  if declare -F "$1" > /dev/null; then  # a function of this script: timeout runs programs only
+    timeout "$limit" bash -c "$(declare -f "$1"); $*" 2>&1 | tee -a "$LOG"
+  else
+    timeout "$limit" "$@" 2>&1 | tee -a "$LOG"
+  fi
   local rc=${PIPESTATUS[0]}
   echo "$name: exit $rc, $((SECONDS - t0)) s" | tee -a "$OUT/summary.txt" "$LOG"
 }
@@ -37,6 +42,7 @@ step() {  # step NAME SECONDS COMMAND...
 probe() {
   nvidia-smi --query-gpu=name,driver_version,pcie.link.gen.current,pcie.link.gen.max,pcie.link.width.current,memory.total,clocks.sm,clocks.max.sm --format=csv
   echo "cores: $(nproc)"
+  lscpu | grep -E "^(Model name|Thread|Core|Socket|NUMA node\(s\)|L3)" || true
   uptime
   "$PY" - <<'EOF'
 import importlib.metadata as m

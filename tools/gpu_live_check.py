@@ -26,7 +26,8 @@ def main() -> int:
         out["cpu_rows"] = rows
         for r in rows:
             print(f"cpu {r['path']:<7}{r['threads']:>4} thr {r['seconds'] * 1e3:8.3f} ms {r['fps']:9.1f} fps "
-                  f"err {r['error_deg']:.3f} speedup {r.get('speedup', '-')}", flush=True)
+                  f"err {r['error_deg']:.3f} speedup {r.get('speedup', '-')} normals alone "
+                  f"{r.get('normals_fps', '-')} fps, depth alone {r.get('depth_fps', '-')} fps", flush=True)
         try:
             d = measure_device(320, 240, "cuda", batch, 20)
             out["device"] = d

@@ -17,8 +17,9 @@ Examples
 from __future__ import annotations
 
 import os
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Callable, Iterable, TypeVar
+from typing import TypeVar
 
 __all__ = ["FramePool", "default_threads"]
 
@@ -61,7 +62,7 @@ class FramePool:
             self._pool.shutdown()
             self._pool = None
 
-    def __enter__(self) -> "FramePool":
+    def __enter__(self) -> FramePool:
         return self
 
     def __exit__(self, *exc) -> None:

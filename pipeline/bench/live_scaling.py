@@ -18,7 +18,24 @@ import time
 
 import numpy as np
 
-__all__ = ["thread_counts", "frame_parallel_rows", "measure_device"]
+__all__ = ["format_device", "frame_parallel_rows", "measure_device", "thread_counts"]
+
+#: Field of view (mm) of the benchmark's frames (``pipeline.bench.live``'s).
+FOV_MM = 16.0
+
+
+def _err(normals, truth, mask=None) -> float:
+    from pipeline.evaluate import angular_error_deg
+
+    e = angular_error_deg(np.asarray(normals, np.float64), truth)
+    return float(e.mean() if mask is None else e[mask].mean())
+
+
+def _dev(a, b, mask) -> float:
+    from pipeline.evaluate import angular_error_deg
+
+    m = np.asarray(mask, bool)
+    return float(angular_error_deg(np.asarray(a, np.float64)[m], np.asarray(b, np.float64)[m]).max()) if m.any() else 0.0
 
 
 def thread_counts(cores: int) -> list[int]:
@@ -32,7 +49,6 @@ def frame_parallel_rows(label: str, size: str, solve, dst, frames: np.ndarray, t
     """Rows ``path = "frames"``: ``count`` frames, ``N`` at a time, each on one thread (``solve(f, 1)``
     then ``dst.integrate``); ``seconds`` is per frame (the batch's time over ``count``)."""
     from pipeline.base.frame_pool import FramePool
-    from pipeline.bench.live import _err, _row
 
     batch = np.repeat(frames[None], count, axis=0)  # distinct memory per frame, as a recording has
 
@@ -40,20 +56,32 @@ def frame_parallel_rows(label: str, size: str, solve, dst, frames: np.ndarray, t
         r = solve(f, 1)
         return r, dst.integrate(r.normals, r.mask, workers=1)
 
+    r0 = solve(frames, 1)
+
+    def best_of(pool, fn, items):
+        best = float("inf")
+        out = None
+        for _ in range(max(2, repeats // 10)):
+            t = time.perf_counter()
+            out = pool.map(fn, items)
+            best = min(best, time.perf_counter() - t)
+        return best, out
+
     rows = []
     base = None
     for n in thread_counts(cores):
         with FramePool(n) as pool:
             pool.map(one, batch[:n])  # warm
-            best = float("inf")
-            for _ in range(max(2, repeats // 10)):
-                t = time.perf_counter()
-                out = pool.map(one, batch)
-                best = min(best, time.perf_counter() - t)
-        fps = count / best
+            sec, out = best_of(pool, one, batch)
+            # where the time goes at n threads: the normals alone, the depth alone (one frame's normals)
+            sec_n, _ = best_of(pool, lambda f: solve(f, 1), batch)
+            sec_d, _ = best_of(pool, lambda _: dst.integrate(r0.normals, r0.mask, workers=1), range(count))
+        fps = count / sec
         base = base or fps
-        rows.append(_row(label, size, "frames", n, best / count, _err(out[-1][0].normals, truth), None,
-                         {"frames": count, "speedup": fps / base, "device": "cpu"}))
+        rows.append({"solver": label, "size": size, "path": "frames", "threads": n, "seconds": sec / count,
+                     "fps": fps, "error_deg": _err(out[-1][0].normals, truth), "deviation_deg": None,
+                     "frames": count, "speedup": fps / base, "device": "cpu", "normals_fps": count / sec_n,
+                     "depth_fps": count / sec_d})
     return rows
 
 
@@ -83,11 +111,10 @@ def _copy_bandwidth(device) -> float:
     return 2 * x.numel() / (ms * 1e-3)
 
 
-def measure_device(width: int, height: int, device: str, batch: int, repeats: int, batches: int = 4) -> dict:
+def measure_device(width: int, height: int, device: str, batch: int, repeats: int, batches: int = 8) -> dict:
     """The GPU pipeline at ``width x height`` (8 patterns, RGB, uint8): see the module docstring."""
     import torch
 
-    from pipeline.bench.live import FOV_MM, _dev, _err
     from pipeline.bench.recon_scene import render_sphere_scene
     from pipeline.normals.fast import NearFieldFast
     from pipeline.normals.gpu_stream import GPUFramePipeline
@@ -119,29 +146,46 @@ def measure_device(width: int, height: int, device: str, batch: int, repeats: in
         r = pipe.solve_device(d_frames)
         torch.cuda.synchronize()
         first = time.perf_counter() - t0
-        solve_ms = _events_ms(lambda: pipe.solve_device(d_frames), repeats)
+        solve_ms = _events_ms(lambda p=pipe: p.solve_device(d_frames), repeats)
+        normals_ms, depth_ms = _split_ms(pipe, d_frames, r, repeats)
         n0 = r["normals"][0].cpu().numpy()
         floor_ms = batch * (frame_bytes + 4 * width * height) / bw * 1e3
         row = {"solver": name, "first_batch_seconds": first, "error_deg": _err(n0, s.normals),
                "cpu_error_deg": _err(cpu.normals, s.normals),
                "deviation_from_cpu_deg": _dev(n0, cpu.normals, r["mask"][0].cpu().numpy() & cpu.mask),
                "solve": {"ms_per_batch": solve_ms, "frames_per_second": batch / (solve_ms * 1e-3),
-                         "memory_floor_fraction": floor_ms / solve_ms}}
-        for label, src in (("whole_pinned", pinned), ("whole_numpy", host)):
+                         "memory_floor_fraction": floor_ms / solve_ms, "normals_ms": normals_ms,
+                         "depth_ms": depth_ms}}
+        outs = {"whole_pinned": (pinned, torch.empty((K, height, width), dtype=torch.float32, pin_memory=True)),
+                "whole_numpy": (host, np.zeros((K, height, width), np.float32))}
+        for label, (src, dest) in outs.items():
             pipe.run(src[:batch])  # warm the buffers
             best = float("inf")
             for _ in range(max(2, repeats // 5)):
                 t = time.perf_counter()
-                res = pipe.run(src)
+                res = pipe.run(src, out=dest)
                 best = min(best, time.perf_counter() - t)
             fps = K / best
             row[label] = {"seconds": best, "frames_per_second": fps, "upload_fraction": fps / upload_fps}
-        h_gpu = res["height"][0]
+        h_gpu = np.asarray(res["height"][0])
         h_cpu = _cpu_height(cpu, (height, width), mm)
         row["height_max_diff_mm"] = float(np.abs(h_gpu - h_cpu)[cpu.mask].max()) if cpu.mask.any() else 0.0
         pipe.close()
         out["solvers"].append(row)
     return out
+
+
+def _split_ms(pipe, d_frames, r, repeats: int) -> tuple[float, float]:
+    """Milliseconds per batch of the normals alone and of the depth alone (its input kept)."""
+    from pipeline.normals.batched import dst_divergence_torch, dst_heights
+
+    if pipe.solver_name == "fused":
+        normals = _events_ms(lambda: pipe.solver.solve_planes(d_frames), repeats)
+        depth = _events_ms(lambda: pipe.depth.heights(r["planes"], r["planes_mask"]), repeats)
+    else:
+        normals = _events_ms(lambda: pipe.solver.solve(d_frames), repeats)
+        depth = _events_ms(lambda: dst_heights(dst_divergence_torch(r["normals"], r["mask"], pipe.mm)[0]), repeats)
+    return normals, depth
 
 
 def _cpu_height(cpu_result, shape, mm) -> np.ndarray:
@@ -159,7 +203,8 @@ def format_device(d: dict) -> list[str]:
     for r in d["solvers"]:
         sv = r["solve"]
         lines.append(f"  {r['solver']:<6} solve alone {sv['frames_per_second']:9.0f} frames/s "
-                     f"({sv['memory_floor_fraction']:.0%} of the memory floor); whole from pinned "
+                     f"({sv['memory_floor_fraction']:.0%} of the memory floor; normals {sv['normals_ms']:.2f} ms, "
+                     f"depth {sv['depth_ms']:.2f} ms a batch); whole from pinned "
                      f"{r['whole_pinned']['frames_per_second']:8.0f} frames/s ({r['whole_pinned']['upload_fraction']:.0%}"
                      f" of the upload bound), from numpy {r['whole_numpy']['frames_per_second']:8.0f} frames/s "
                      f"({r['whole_numpy']['upload_fraction']:.0%}); error {r['error_deg']:.3f} deg (CPU "

@@ -11,10 +11,9 @@ machine without a GPU can have).
 
 from __future__ import annotations
 
-import sys
 import time
 
-__all__ = ["register", "GPU_KERNELS", "check"]
+__all__ = ["GPU_KERNELS", "check", "register"]
 
 
 def _tracer_ptx(dtype):
@@ -29,12 +28,19 @@ def _nearfield_ptx(frame_dtype):
     return gpu_nearfield.compile_ptx(frame_dtype)
 
 
+def _divergence_ptx(_):
+    from pipeline.depth import gpu_dst
+
+    return gpu_dst.compile_ptx()
+
+
 #: (name, PTX builder, argument): every CUDA kernel of the project, for each type it is built for.
 GPU_KERNELS = [
     ("ray tracer (sim.optics.kernel_cuda), float32", _tracer_ptx, "float32"),
     ("ray tracer (sim.optics.kernel_cuda), float64", _tracer_ptx, "float64"),
     ("near-field normals (pipeline.normals.gpu_nearfield), uint8", _nearfield_ptx, "uint8"),
     ("near-field normals (pipeline.normals.gpu_nearfield), uint16", _nearfield_ptx, "uint16"),
+    ("DST divergence (pipeline.depth.gpu_dst), float32", _divergence_ptx, None),
 ]
 
 

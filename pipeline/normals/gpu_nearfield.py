@@ -28,7 +28,7 @@ import math
 import numpy as np
 from numba import cuda, float32
 
-__all__ = ["NearFieldGPU", "nearfield_kernel", "compile_ptx", "kernel_signature", "MAX_CHANNELS"]
+__all__ = ["MAX_CHANNELS", "NearFieldGPU", "compile_ptx", "kernel_signature", "nearfield_kernel"]
 
 #: Channels (albedo groups) a pixel's registers hold.
 MAX_CHANNELS = 4
@@ -137,7 +137,7 @@ def _kernel(frames, dark, invflat, use_dark, use_flat, L, Q, inv, valid0, iterat
     mask[b, m] = 1 if ok else 0
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _device_functions():
     return {"_solve3": cuda.jit(device=True, inline="always")(_solve3),
             "_quad": cuda.jit(device=True, inline="always")(_quad)}
@@ -157,7 +157,7 @@ def kernel_function():
     return _with_device_functions(_kernel)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def nearfield_kernel():
     """The compiled (lazily, per signature) CUDA kernel."""
     return cuda.jit(kernel_function())
@@ -225,13 +225,24 @@ class NearFieldGPU:
                 raise ValueError(f"NearFieldGPU: dark must be (H, W, C) = {(H, W, self.C)}, got {tuple(d.shape)}")
             self.dark = d.permute(2, 0, 1).reshape(self.C, M).contiguous()
 
-    def solve(self, frames, out=None) -> dict:
+    def solve(self, frames) -> dict:
         """Normals of a batch ``frames (B, P, H, W, C)`` uint8/uint16 torch tensor on the device, on
         torch's current stream. Returns torch tensors ``normals (B, H, W, 3)``, ``albedo (B, H, W, C)``
         (views of pixel-planar buffers), ``residual (B, H, W)``, ``mask (B, H, W)`` bool."""
+        n, rho, res, ok = self.solve_planes(frames)
+        B = n.shape[0]
+        H, W = self.shape
+        return {"normals": n.permute(0, 2, 1).reshape(B, H, W, 3),
+                "albedo": rho.permute(0, 2, 1).reshape(B, H, W, self.C), "residual": res.reshape(B, H, W),
+                "mask": ok.reshape(B, H, W).bool()}
+
+    def solve_planes(self, frames):
+        """The kernel's own outputs: ``normals (B, 3, M)``, ``albedo (B, C, M)``, ``residual (B, M)``
+        float32 and ``mask (B, M)`` uint8 (``M = H * W``), device tensors."""
         import torch
 
-        if tuple(frames.shape[1:]) != (self.P,) + self.shape + (self.C,) or frames.dtype not in (torch.uint8, torch.uint16):
+        want = (self.P,) + self.shape + (self.C,)
+        if tuple(frames.shape[1:]) != want or frames.dtype not in (torch.uint8, torch.uint16):
             raise ValueError(f"NearFieldGPU.solve: frames must be uint8/uint16 (B, {self.P}, {self.shape[0]}, "
                              f"{self.shape[1]}, {self.C}), got {frames.dtype} {tuple(frames.shape)}")
         B = frames.shape[0]
@@ -243,12 +254,12 @@ class NearFieldGPU:
         res = torch.empty((B, M), **t)
         ok = torch.empty((B, M), device=frames.device, dtype=torch.uint8)
         stream = cuda.external_stream(torch.cuda.current_stream(frames.device).cuda_stream)
+
         def a(x):  # the kernel runs on this stream: no host synchronisation on import
             return cuda.as_cuda_array(x, sync=False)
 
         grid = ((M + THREADS - 1) // THREADS, B)
         nearfield_kernel()[grid, (THREADS, 1), stream](
-            a(frames.contiguous()), a(self.dark), a(self.invflat), self.use_dark, self.use_flat, a(self.L), a(self.Q), a(self.inv), a(self.valid0),
-            self.iterations, a(n), a(rho), a(res), a(ok))
-        return {"normals": n.permute(0, 2, 1).reshape(B, H, W, 3), "albedo": rho.permute(0, 2, 1).reshape(B, H, W, self.C),
-                "residual": res.reshape(B, H, W), "mask": ok.reshape(B, H, W).bool()}
+            a(frames.contiguous()), a(self.dark), a(self.invflat), self.use_dark, self.use_flat, a(self.L), a(self.Q),
+            a(self.inv), a(self.valid0), self.iterations, a(n), a(rho), a(res), a(ok))
+        return n, rho, res, ok

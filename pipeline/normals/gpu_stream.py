@@ -67,9 +67,12 @@ class GPUFramePipeline:
         self.batch = int(batch)
         self.solver_name = solver
         if solver == "fused":
+            from pipeline.depth.gpu_dst import GPUDST
+
             self.solver = NearFieldGPU(lights, flat_field=flat_field, max_condition=max_condition, dark=dark,
                                        device=self.device)
             self._dark = None
+            self.depth = GPUDST(self.solver.shape, self.mm, device=self.device)
         else:
             self.solver = NearFieldBatched(lights, flat_field=flat_field, max_condition=max_condition,
                                            device=self.device)
@@ -90,12 +93,17 @@ class GPUFramePipeline:
         torch's current stream: the solve alone. Returns device tensors (``height (B, H, W)`` added)."""
         from pipeline.normals.batched import dst_divergence_torch, dst_heights
 
-        if self.solver_name == "fused":
-            r = self.solver.solve(frames)
-        else:
-            r = self.solver.solve(frames, dark=self._dark)
-        f, _ = dst_divergence_torch(r["normals"], r["mask"], self.mm)
+        if self.solver_name == "fused":  # two kernels (normals; divergence into the FFT's input), cuFFT
+            n, _, _, ok = self.solver.solve_planes(frames)
+            h, valid = self.depth.heights(n, ok)
+            B = n.shape[0]
+            H, W = self.shape
+            return {"normals": n.permute(0, 2, 1).reshape(B, H, W, 3), "mask": ok.reshape(B, H, W).bool(),
+                    "height": h, "height_mask": valid, "planes": n, "planes_mask": ok}
+        r = self.solver.solve(frames, dark=self._dark)
+        f, valid = dst_divergence_torch(r["normals"], r["mask"], self.mm)
         r["height"] = dst_heights(f)
+        r["height_mask"] = valid
         return r
 
     def _alloc(self, dtype):
@@ -112,9 +120,12 @@ class GPUFramePipeline:
             }
         return self._buffers
 
-    def run(self, frames, normals: bool = False) -> dict:
+    def run(self, frames, normals: bool = False, out=None) -> dict:
         """Heights ``(K, H, W)`` float32 (and ``normals (K, H, W, 3)`` when asked) of host frames
-        ``(K, P, H, W, C)`` uint8/uint16 (numpy; already pinned torch tensors are not staged again)."""
+        ``(K, P, H, W, C)`` uint8/uint16 (numpy; already pinned torch tensors are not staged again).
+
+        ``out``: where the heights go, a numpy array or a pinned torch tensor ``(K, H, W)`` float32
+        (a pinned one receives them straight from the device, no host copy); None: a new array."""
         import torch
 
         src = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(frames))
@@ -125,7 +136,11 @@ class GPUFramePipeline:
         staged = not (isinstance(frames, torch.Tensor) and frames.is_pinned())
         bufs = self._alloc(src.dtype)
         H, W = self.shape
-        out = np.empty((K, H, W), np.float32)
+        if out is None:
+            out = np.empty((K, H, W), np.float32)
+        if tuple(out.shape) != (K, H, W):
+            raise ValueError(f"GPUFramePipeline.run: out must be ({K}, {H}, {W}), got {tuple(out.shape)}")
+        direct = isinstance(out, torch.Tensor) and out.is_pinned() and out.dtype == torch.float32
         out_n = np.empty((K, H, W, 3), np.float32) if normals else None
         copy_s, comp_s = torch.cuda.Stream(self.device), torch.cuda.Stream(self.device)
         uploaded = [torch.cuda.Event() for _ in range(2)]
@@ -150,10 +165,11 @@ class GPUFramePipeline:
             with torch.cuda.stream(comp_s):
                 comp_s.wait_event(uploaded[k])
                 r = self.solve_device(dev)
-                bufs["heights"][k][:nb].copy_(r["height"], non_blocking=True)
+                dest = out[s:s + nb] if direct else bufs["heights"][k][:nb]
+                dest.copy_(r["height"], non_blocking=True)
                 nrm = r["normals"].to("cpu", non_blocking=False) if normals else None
                 done[k].record(comp_s)
-            pending.append((k, s, nb, nrm))
+            pending.append((k, s, nb, nrm, direct))
         for item in pending:
             done[item[0]].synchronize()
             self._finish(item, out, out_n)
@@ -163,7 +179,9 @@ class GPUFramePipeline:
         return res
 
     def _finish(self, item, out, out_n) -> None:
-        k, s, nb, nrm = item
-        out[s:s + nb] = self._buffers["heights"][k][:nb].numpy()
+        k, s, nb, nrm, direct = item
+        if not direct:
+            dst = out[s:s + nb].numpy() if hasattr(out, "numpy") else out[s:s + nb]
+            parallel_copy(dst, self._buffers["heights"][k][:nb].numpy(), self._pool, self.host_threads)
         if out_n is not None:
             out_n[s:s + nb] = nrm.numpy()

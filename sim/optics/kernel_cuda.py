@@ -38,7 +38,7 @@ from numba import cuda
 
 from sim.optics import kernel as K
 
-__all__ = ["cuda_available", "trace", "warm_up", "device_code", "kernel_function", "compile_ptx", "KERNEL_TYPES"]
+__all__ = ["KERNEL_TYPES", "compile_ptx", "cuda_available", "device_code", "kernel_function", "trace", "warm_up"]
 
 THREADS_PER_BLOCK = 256
 #: The float types the tracer's kernel is built for.
@@ -73,7 +73,7 @@ def _copy(fn, namespace: dict):
     return out
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def device_code(dtype) -> pytypes.ModuleType:
     """The device side of the kernel for float type ``dtype``: a module holding every name of
     :mod:`sim.optics.kernel`, its compiled functions replaced by CUDA device functions of the
@@ -179,7 +179,7 @@ def kernel_function(dtype):
     return fn
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _kernel(dtype):
     # Cached on disk (NUMBA_CACHE_DIR moves it): the IR inlining makes the first compile take
     # tens of seconds; a later process loads the kernel.
@@ -237,7 +237,14 @@ def trace(P, F, seeds, tab, PT, PI, total: int, device="cuda"):
 
 def warm_up(dtype) -> None:
     """Compile (or load from numba's disk cache) the kernel for ``dtype`` by tracing no rays."""
+    import warnings
+
+    from numba.core.errors import NumbaPerformanceWarning
+
     ft = np.dtype(dtype)
     P = np.zeros(K.P_COUNT, dtype=ft)
     F = np.zeros(K.F_COUNT, dtype=np.int64)
-    trace(P, F, np.zeros(3, np.uint64), np.zeros((4, 1), ft), np.zeros((1, 9), ft), np.zeros((1, 4), np.int64), 1)
+    with warnings.catch_warnings():  # one block on purpose: it traces no rays
+        warnings.simplefilter("ignore", NumbaPerformanceWarning)
+        trace(P, F, np.zeros(3, np.uint64), np.zeros((4, 1), ft), np.zeros((1, 9), ft), np.zeros((1, 4), np.int64),
+              1)

@@ -18,9 +18,7 @@ import sys
 import numpy as np
 import pytest
 import torch
-
 from helpers import REPO
-
 
 
 def _have_nvvm() -> tuple[bool, str]:
@@ -34,12 +32,13 @@ def test_nearfield_kernel_compiles_to_ptx():
     ok, why = _have_nvvm()
     if not ok:
         pytest.skip(why)
+    from pipeline.depth.gpu_dst import compile_ptx as divergence_ptx
     from pipeline.normals.gpu_nearfield import compile_ptx
 
-    for dt in ("uint8", "uint16"):
-        ptx = compile_ptx(dt)
-        assert ".entry" in ptx, dt
-        assert ".f64" not in ptx, dt  # float32 throughout: no double arithmetic
+    for name, ptx in (("uint8", compile_ptx("uint8")), ("uint16", compile_ptx("uint16")),
+                      ("divergence", divergence_ptx())):
+        assert ".entry" in ptx, name
+        assert ".f64" not in ptx, name  # float32 throughout: no double arithmetic
 
 
 _SIM = r"""
@@ -54,7 +53,13 @@ n, rho = np.zeros((B, 3, M), np.float32), np.zeros((B, C, M), np.float32)
 res, ok = np.zeros((B, M), np.float32), np.zeros((B, M), np.uint8)
 nearfield_kernel()[((M + THREADS - 1) // THREADS, B), (THREADS, 1)](frames, dark, invflat, True, True, L, Q, inv,
                                                                      valid0, int(d["iterations"]), n, rho, res, ok)
-print(json.dumps({"n": n.tolist(), "rho": rho.tolist(), "res": res.tolist(), "ok": ok.tolist()}))
+from numba import float32
+from pipeline.depth.gpu_dst import divergence_kernel
+ext, valid = np.zeros((B, 2 * H, 2 * W), np.float32), np.zeros((B, M), np.uint8)
+divergence_kernel()[((M + THREADS - 1) // THREADS, B), (THREADS, 1)](n, ok, H, W, float32(0.1), float32(20.0), ext,
+                                                                     valid)
+print(json.dumps({"n": n.tolist(), "rho": rho.tolist(), "res": res.tolist(), "ok": ok.tolist(),
+                  "ext": ext.tolist(), "valid": valid.tolist()}))
 """
 
 
@@ -92,15 +97,23 @@ def test_nearfield_kernel_logic_in_the_simulator(tmp_path):
     rho = np.array(got["rho"]).transpose(0, 2, 1).reshape(2, H, W, C)
     np.testing.assert_allclose(rho, want["albedo"].numpy(), rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(np.array(got["res"]).reshape(2, H, W), want["residual"].numpy(), rtol=1e-3, atol=1e-3)
+    # the divergence kernel on the simulated normals: dst_divergence_torch's right-hand side, extended
+    from pipeline.normals.batched import dst_divergence_torch
+
+    f, valid = dst_divergence_torch(torch.as_tensor(n, dtype=torch.float32), torch.as_tensor(ok), 0.1)
+    ext = torch.cat([f, -f.flip(-1)], dim=-1)
+    ext = torch.cat([ext, -ext.flip(-2)], dim=-2)
+    np.testing.assert_allclose(np.array(got["ext"]), ext.numpy(), rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(np.array(got["valid"]).reshape(2, H, W).astype(bool), valid.numpy())
 
 
 def test_doctor_cpu_only_reports_the_stack():
     ok, why = _have_nvvm()
     if not ok:
         pytest.skip(why)
+    path = os.pathsep.join([str(REPO)] + [p for p in os.environ.get("PYTHONPATH", "").split(os.pathsep) if p])
     p = subprocess.run([sys.executable, "-m", "pipeline", "doctor", "--cpu-only", "--no-compile"],
-                       capture_output=True, text=True, timeout=300, cwd=str(REPO),
-                       env=dict(os.environ, PYTHONPATH=str(REPO)))
+                       capture_output=True, text=True, timeout=300, cwd=str(REPO), env=dict(os.environ, PYTHONPATH=path))
     lines = p.stdout.strip().splitlines()
     assert p.returncode == 0, p.stdout + p.stderr
     assert [ln.split()[0] for ln in lines] == ["ok"] * len(lines)
@@ -122,6 +135,9 @@ def test_gpu_pipeline_heights_equal_the_cpu():
     for solver in ("fused", "torch"):
         pipe = GPUFramePipeline(s.lights, 0.1, batch=3, solver=solver)
         out = pipe.run(frames, normals=True)
+        pinned = torch.full((7, 48, 64), float("nan")).pin_memory()
+        pipe.run(torch.from_numpy(frames).pin_memory(), out=pinned)  # straight into pinned memory
         pipe.close()
         assert np.abs(out["normals"] - cpu.normals[None])[:, cpu.mask].max() < 1e-4, solver
         assert np.abs(out["height"] - h_cpu[None]).max() < 1e-4, solver
+        assert np.abs(pinned.numpy() - h_cpu[None]).max() < 1e-4, solver
