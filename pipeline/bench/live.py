@@ -50,7 +50,8 @@ def add_arguments(parser) -> None:
                         help="image sizes (default 320x240 640x480; --quick: 160x120)")
     parser.add_argument("--repeats", type=int, default=None, help="timing repeats (best kept; default 30)")
     parser.add_argument("--device", default="cpu", help="also time the batched torch path on this device (cuda)")
-    parser.add_argument("--batch", type=int, default=64, help="frames per batch of the device path")
+    parser.add_argument("--batch", type=int, default=256, help="frames per batch of the device path (8 batches are "
+                        "timed: 2,048 frames, 3.8 GB of host memory at 320 x 240)")
     parser.add_argument("--cache", default=None, help="stage store for the virtual sensor's calibrations")
     parser.add_argument("--no-startup", action="store_true", help="skip the fresh-process start-up measurements")
 
@@ -272,7 +273,7 @@ def _run(args) -> dict:
                 rows += measure_model(solver, w, h, repeats, store, threads_all=cores)
     device = None
     if getattr(args, "device", "cpu") != "cpu":
-        device = measure_device(*(int(v) for v in sizes[0].split("x")), args.device, getattr(args, "batch", 64),
+        device = measure_device(*(int(v) for v in sizes[0].split("x")), args.device, getattr(args, "batch", 256),
                                 max(3, repeats // 5))
     startup = None if (quick or getattr(args, "no_startup", False)) else measure_startup()
     targets = []
