@@ -55,7 +55,8 @@ def _sha(a: np.ndarray) -> str:
 def reconstruct_recording(recording: str, *, calibration: str | None = None, illumination: str | None = None,
                           solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
                           store: str | None = None, images: bool = False, device: str = "cpu",
-                          heal: bool = True, mask: str | None = None, markers: str | None = None) -> dict[str, Any]:
+                          heal: bool = True, mask: str | None = None, markers: str | None = None,
+                          threads: int | None = 1) -> dict[str, Any]:
     """Reconstruct one recording (the batch task; picklable as a :func:`functools.partial`).
 
     Parameters
@@ -73,6 +74,9 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
         Stage store folder (default ``$IRISTAC_CACHE`` or ``./iristac-cache``).
     device : str
         Torch device.
+    threads : int, optional
+        Threads of one recording (:func:`pipeline.reconstruct.reconstruct`'s: torch's while solving,
+        contact instances integrated at once); None: every core.
     heal : bool
         Quarantine and recompute a corrupt cache entry (False: the recording fails on it).
     mask : str, optional
@@ -95,7 +99,7 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
     dest = None if out is None else str(Path(out) / Path(recording).stem)
     res = reconstruct(recording, calibration=calibration, illumination=illumination, solver=solver,
                       integrator=integrator, out=dest, store=store, images=images, device=device, heal=heal,
-                      mask=mask, markers=markers)
+                      mask=mask, markers=markers, threads=threads)
     n, d = res.normals, res.depth
     result = {"normals_key": n.provenance.get("iristac_key") or "", "depth_key": d.provenance.get("iristac_key") or "",
               "normals_sha256": _sha(n.data["normals"]), "depth_sha256": _sha(d.data["height"]),
@@ -132,7 +136,8 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
                       solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
                       store: str | None = None, images: bool = False, device: str = "cpu", workers: int = 1,
                       scheduler: str | None = None, progress: bool = False, connect_timeout: float = 10.0,
-                      heal: bool = True, mask: str | None = None, markers: str | None = None):
+                      heal: bool = True, mask: str | None = None, markers: str | None = None,
+                      threads: int | None = 1):
     """Reconstruct every recording with a shared calibration or illumination model.
 
     Parameters
@@ -146,6 +151,9 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     scheduler : str, optional
         A Dask scheduler address (``tcp://host:8786``): the recordings are spread over its
         workers, which must see the same paths (and the store) as this machine.
+    threads : int, optional
+        Threads within each recording (:func:`reconstruct_recording`): frame-level parallelism
+        for one process; ``workers`` adds processes, one recording each.
     solver, integrator, out, store, images, device, heal, progress, connect_timeout, mask, markers
         See :func:`reconstruct_recording` and :func:`pipeline.batch.run_batch`.
 
@@ -173,6 +181,6 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     task = partial(reconstruct_recording, calibration=absolute(calibration), illumination=absolute(illumination),
                    solver=solver, integrator=integrator, out=absolute(out), store=absolute(store), images=images,
                    device=device, heal=heal, mask=absolute(mask),
-                   markers=absolute(marker_file) if marker_file else markers)
+                   markers=absolute(marker_file) if marker_file else markers, threads=threads)
     return run_batch(recs, task, workers=workers, scheduler=scheduler, progress=progress,
                      connect_timeout=connect_timeout)

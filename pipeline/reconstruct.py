@@ -91,8 +91,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     max_condition : float
         Pixels with a worse-conditioned light matrix are masked.
     device, dtype, threads
-        Torch device and dtype of the solvers; torch intra-op threads while solving
-        (default 1: fastest on a small shared CPU; None leaves torch's setting). On a GPU
+        Torch device and dtype of the solvers; torch intra-op threads while solving, and the
+        contact instances the depth stage integrates at once, one per thread (default 1:
+        fastest on a small shared CPU; None leaves torch's setting and uses every core for depth). On a GPU
         (``cuda``) ``nearfield`` solves every contact instance as one batch and ``dst``
         integrates them all by FFT on the device (:mod:`pipeline.normals.batched`).
     force : bool
@@ -142,7 +143,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         max_condition=max_condition, device=device, dtype=dtype, threads=threads, compile=compile, force=force,
         heal=heal, mask=user_region, markers=marks)
     d_rec, _, d_cached = depth_stage.run(store, n_rec, n_key, integrator=integrator, force=force, heal=heal,
-                                         region=region, device=device)
+                                         region=region, device=device, threads=threads)
     seconds = time.perf_counter() - t0
     summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": round(seconds, 4),
                                "valid_fraction": float(np.asarray(n_rec.data["mask"]).mean()),

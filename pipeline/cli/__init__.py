@@ -32,6 +32,7 @@ COMMANDS = [
     ("cache", "pipeline.cli.cache", "inspect and maintain the stage store"),
     ("import", "pipeline.cli.importers", "import captures from other formats"),
     ("eval", "pipeline.cli.evaluate", "evaluate results against ground truth"),
+    ("doctor", "pipeline.cli.doctor", "check the GPU stack and compile every GPU kernel once"),
 ]
 
 

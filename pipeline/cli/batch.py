@@ -28,6 +28,8 @@ def register(sub, name, help_text):
     p.add_argument("--images", action="store_true", help="also write PNG/PLY pictures to --out")
     p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--threads", type=int, default=1, help="threads within each recording: torch's while solving, "
+                   "contact instances integrated at once (default 1; 0: every core)")
     add_heal_flag(p)
     add_json_flag(p)
     p.set_defaults(func=_run)
@@ -37,12 +39,16 @@ def _run(args) -> int:
     from pipeline.batch import format_summary
     from pipeline.batch_reconstruct import SUMMARY_COLUMNS, batch_reconstruct
 
+    if args.threads < 0:
+        from pipeline.base.errors import UserError
+
+        raise UserError(f"--threads must be 0 (every core) or more, got {args.threads}")
     items = batch_reconstruct(args.recordings, calibration=args.calibration, illumination=args.illumination,
                               solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                               images=args.images, device=args.device, workers=args.workers,
                               scheduler=args.scheduler, progress=not args.json,
                               connect_timeout=args.connect_timeout, heal=not args.no_heal, mask=args.mask,
-                              markers=args.markers)
+                              markers=args.markers, threads=args.threads or None)
     failed = sum(not i.ok for i in items)
     if args.json:
         print_json({"items": [i.to_json() for i in items], "processed": len(items) - failed, "failed": failed})

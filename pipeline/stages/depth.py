@@ -34,7 +34,8 @@ def params(integrator: str, mm_per_px: float | None) -> dict:
     return {"integrator": INTEGRATORS.check(integrator), "mm_per_px": None if mm_per_px is None else float(mm_per_px)}
 
 
-def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, region=None, device="cpu"):
+def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, region=None, device="cpu",
+            threads: int | None = 1):
     """Integrate every instance of a ``normals`` record into a ``depth`` record (no caching).
 
     Parameters
@@ -54,6 +55,9 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
         ``dst`` on the whole frame with a device other than the CPU: every instance at once by
         FFT on the device (:func:`pipeline.normals.batched.dst_heights`; equal to the DST to
         float rounding, so the device stays out of the key).
+    threads : int, optional
+        Instances integrated at once, one per thread (:class:`pipeline.base.frame_pool.FramePool`;
+        None: every core). The same heights whatever the count, so it stays out of the key.
 
     Returns
     -------
@@ -75,8 +79,11 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
         return _compute_on_device(n_rec, pitch, filled, device)
     usable = [n_rec.data["mask"][k] if filled is None else (n_rec.data["mask"][k] | filled)
               for k in range(n_rec.data["normals"].shape[0])]
-    outs = [integrate(n_rec.data["normals"][k], pitch, usable[k], method=integrator, region=region)
-            for k in range(n_rec.data["normals"].shape[0])]
+    from pipeline.base.frame_pool import FramePool
+
+    with FramePool(threads) as pool:
+        outs = pool.map(lambda k: integrate(n_rec.data["normals"][k], pitch, usable[k], method=integrator,
+                                            region=region), range(n_rec.data["normals"].shape[0]))
     data = {"height": np.stack([o.height for o in outs]), "mask": np.stack([o.mask for o in outs])}
     meta: dict[str, Any] = {"integrator": integrator, "mm_per_px": pitch}
     if integrator == "sparse":
@@ -101,12 +108,13 @@ def _compute_on_device(n_rec, pitch: float, filled, device):
 
 
 def run(store, n_rec, n_key, *, integrator: str = "dst", force: bool = False, heal: bool = True, region=None,
-        device="cpu"):
+        device="cpu", threads: int | None = 1):
     """``(record, key, cached)`` of the depth of ``n_rec`` (identified by ``n_key``) through
     ``store``, integrated on ``region`` (see :func:`compute`)."""
     mm = float(n_rec.meta["mm_per_px"])
     return SPEC.get_or_compute(store, params(integrator, mm), [n_key],
-                               lambda: compute(n_rec, integrator, mm, region, device), force=force, heal=heal)
+                               lambda: compute(n_rec, integrator, mm, region, device, threads), force=force,
+                               heal=heal)
 
 
 def node(config: Mapping[str, Any], ctx):

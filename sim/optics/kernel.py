@@ -225,8 +225,8 @@ def polar(P, F, u):
     """``(cos, sin)`` of the polar angle of sample ``u``: the inverse CDF of ``cos^m sin`` on the cone."""
     one = P[P_ONE]
     x = one - u * P[P_EM_A]
-    ct = np.sqrt(x) if F[F_EM_SQRT] else x ** P[P_EM_EXP]
-    return ct, np.sqrt(max(one - ct * ct, one - one))
+    ct = math.sqrt(x) if F[F_EM_SQRT] else x ** P[P_EM_EXP]
+    return ct, math.sqrt(max(one - ct * ct, one - one))
 
 
 @njit(**INLINE)
@@ -265,7 +265,7 @@ def _quadratic(a, b, c, one):
     zero = one - one
     disc = b * b - a * c
     real = (disc >= zero) & (a > zero)
-    sq = np.sqrt(max(disc, zero))
+    sq = math.sqrt(max(disc, zero))
     q = -(b + (sq if b >= zero else -sq))
     r1 = q / (a if real else one)
     r2 = (c / (q if q != zero else one)) if q != zero else zero
@@ -304,11 +304,11 @@ def arc_parts(P, ox, oy, oz, dx, dy, dz, t):
     x = ox + t * dx
     y = oy + t * dy
     z = oz + t * dz
-    rho = max(np.sqrt(x * x + y * y), P[P_RHO_EPS])
+    rho = max(math.sqrt(x * x + y * y), P[P_RHO_EPS])
     zq = min(max(z, P[P_ARC_ZLO]), P[P_ARC_ZHI])
     u = zq - P[P_ARC_ZC]
     r1 = P[P_ARC_R1]
-    s = np.sqrt(r1 * r1 - u * u)
+    s = math.sqrt(r1 * r1 - u * u)
     sn = (rho - P[P_ARC_RHOC] - s) * s + u * (z - zq)
     dsn = (x * dx + y * dy) * s + u * dz * rho
     return sn, dsn, rho, s
@@ -339,8 +339,8 @@ def arc_value(P, x, y, z):
     zq = min(max(z, P[P_ARC_ZLO]), P[P_ARC_ZHI])
     u = zq - P[P_ARC_ZC]
     r1 = P[P_ARC_R1]
-    s = np.sqrt(r1 * r1 - u * u)
-    return np.sqrt(x * x + y * y) - (P[P_ARC_RHOC] + s - u / s * (z - zq))
+    s = math.sqrt(r1 * r1 - u * u)
+    return math.sqrt(x * x + y * y) - (P[P_ARC_RHOC] + s - u / s * (z - zq))
 
 
 @njit(**INLINE)
@@ -401,7 +401,7 @@ def enter_rest(P, F, ox, oy, oz, dx, dy, dz, boxok, e0):
     ts = t if hit else zero
     x, y, z = ox + ts * dx, oy + ts * dy, oz + ts * dz
     tol = P[P_BODY_TOL]
-    in_side = (arc_value(P, x, y, z) <= tol) if F[F_ARC] else (np.sqrt(x * x + y * y) <= P[P_CYL_R] + tol)
+    in_side = (arc_value(P, x, y, z) <= tol) if F[F_ARC] else (math.sqrt(x * x + y * y) <= P[P_CYL_R] + tol)
     zt = z - P[P_TOP_APEX]
     R2 = P[P_TOP_R] + P[P_TOP_R]
     in_top = x * x + y * y + zt * zt + R2 * zt <= R2 * tol
@@ -445,12 +445,12 @@ def normal(P, F, x, y, z, sid):
     zero = one - one
     inv = one / P[P_TOP_R]
     tx, ty, tz = x * inv, y * inv, (z - P[P_TOP_APEX] + P[P_TOP_R]) * inv
-    rho = max(np.sqrt(x * x + y * y), P[P_RHO_EPS])
+    rho = max(math.sqrt(x * x + y * y), P[P_RHO_EPS])
     zq = min(max(z, P[P_ARC_ZLO]), P[P_ARC_ZHI])
     u = zq - P[P_ARC_ZC]
     r1 = P[P_ARC_R1]
-    nz = (u / np.sqrt(r1 * r1 - u * u)) if F[F_ARC] else zero  # -slope of g; 0 on a cylinder
-    sc = one / (rho * np.sqrt(one + nz * nz))
+    nz = (u / math.sqrt(r1 * r1 - u * u)) if F[F_ARC] else zero  # -slope of g; 0 on a cylinder
+    sc = one / (rho * math.sqrt(one + nz * nz))
     sx, sy, sz = x * sc, y * sc, nz * rho * sc
     top = sid == TOP
     bot = sid == BOTTOM
@@ -463,7 +463,7 @@ def refract(dx, dy, dz, nx, ny, nz, eta, one):
     """Vector Snell's law at a normal on the incident side: ``(tx, ty, tz, cos_i, cos_t, tir)``."""
     ci = -(dx * nx + dy * ny + dz * nz)
     s2 = eta * eta * max(one - ci * ci, one - one)
-    ct = np.sqrt(max(one - s2, one - one))
+    ct = math.sqrt(max(one - s2, one - one))
     k = eta * ci - ct
     return eta * dx + k * nx, eta * dy + k * ny, eta * dz + k * nz, ci, ct, s2 > one
 

@@ -214,3 +214,18 @@ def test_cuda_kernel_on_the_gpu_matches_the_cpu():
     b = trace_all(s, g, rays=200_000, engine="kernel", device="cuda")
     assert abs(a.traces[0].energy.on_screen - b.traces[0].energy.on_screen) < 1e-6
     assert np.abs(a.E - b.E).sum() < 1e-3 * a.E.sum() and np.abs(a.V - b.V).sum() < 1e-3 * np.abs(a.V).sum()
+
+
+def test_cuda_kernel_compiles_to_ptx():
+    """The real numba-cuda compiler (libNVVM, no GPU, no driver) builds the tracer kernel with every
+    device function (the simulator above compiles nothing). float32 here; ``iristac doctor``
+    and ``tools/gpu_check.sh`` build both float types."""
+    from pipeline.cli.doctor import _nvvm
+    from sim.optics import kernel_cuda
+
+    status, line = _nvvm()
+    if status != "ok":
+        pytest.skip(line)
+    ptx = kernel_cuda.compile_ptx("float32")
+    assert ".entry" in ptx and "atom.global.add.f32" in ptx
+    assert ".f64" in ptx and ".f32" in ptx  # the float64 books beside float32 rays

@@ -41,6 +41,8 @@ def test_batched_normals_and_device_depth_equal_the_stages(capture_and_lights):
     assert batch.meta["method"] == "batched" and eager.meta.get("method") != "batched"
     _compare(batch, eager)
     d_ref = depth.compute(eager, "dst", region=None)
+    d_par = depth.compute(eager, "dst", region=None, threads=3)  # instances in parallel: the same heights
+    np.testing.assert_array_equal(d_par.data["height"], d_ref.data["height"])
     d_dev = depth._compute_on_device(eager, float(eager.meta["mm_per_px"]), None, "cpu")
     np.testing.assert_array_equal(d_dev.data["mask"], d_ref.data["mask"])
     scale = np.abs(d_ref.data["height"]).max()

@@ -1,0 +1,213 @@
+"""``iristac bench live``'s throughput measurements: frames in parallel on the CPU, and the GPU pipeline.
+
+CPU (:func:`frame_parallel_rows`): ``K`` distinct copies of a frame set, each solved by the
+live fast path and integrated by :class:`pipeline.depth.fast.FastDST` on one thread, ``N``
+frames at a time (:class:`pipeline.base.frame_pool.FramePool`), for ``N`` = 1, 2, 4, 8, 16 up
+to the cores; frames per second of the whole batch.
+
+GPU (:func:`measure_device`): :class:`pipeline.normals.gpu_stream.GPUFramePipeline` with the
+fused kernel and with the torch einsum solver; the pinned upload alone, the solve alone on
+frames already on the device (CUDA events), the whole from pinned host frames and from plain
+numpy frames; each with its bound: the whole against the upload alone (PCIe), the solve
+against the time the device's own copy bandwidth needs to read the frames and write the heights.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+
+__all__ = ["format_device", "frame_parallel_rows", "measure_device", "thread_counts"]
+
+#: Field of view (mm) of the benchmark's frames (``pipeline.bench.live``'s).
+FOV_MM = 16.0
+
+
+def _err(normals, truth, mask=None) -> float:
+    from pipeline.evaluate import angular_error_deg
+
+    e = angular_error_deg(np.asarray(normals, np.float64), truth)
+    return float(e.mean() if mask is None else e[mask].mean())
+
+
+def _dev(a, b, mask) -> float:
+    from pipeline.evaluate import angular_error_deg
+
+    m = np.asarray(mask, bool)
+    return float(angular_error_deg(np.asarray(a, np.float64)[m], np.asarray(b, np.float64)[m]).max()) if m.any() else 0.0
+
+
+def thread_counts(cores: int) -> list[int]:
+    """1, 2, 4, 8, 16 up to ``cores``, and ``cores`` itself."""
+    out = [n for n in (1, 2, 4, 8, 16) if n <= cores]
+    return out if cores in out else out + [cores]
+
+
+def frame_parallel_rows(label: str, size: str, solve, dst, frames: np.ndarray, truth: np.ndarray, cores: int,
+                        repeats: int, count: int = 128) -> list[dict]:
+    """Rows ``path = "frames"``: ``count`` frames, ``N`` at a time, each on one thread (``solve(f, 1)``
+    then ``dst.integrate``); ``seconds`` is per frame (the batch's time over ``count``)."""
+    from pipeline.base.frame_pool import FramePool
+
+    batch = np.repeat(frames[None], count, axis=0)  # distinct memory per frame, as a recording has
+
+    def one(f):
+        r = solve(f, 1)
+        return r, dst.integrate(r.normals, r.mask, workers=1)
+
+    r0 = solve(frames, 1)
+
+    def best_of(pool, fn, items):
+        best = float("inf")
+        out = None
+        for _ in range(max(2, repeats // 10)):
+            t = time.perf_counter()
+            out = pool.map(fn, items)
+            best = min(best, time.perf_counter() - t)
+        return best, out
+
+    rows = []
+    base = None
+    for n in thread_counts(cores):
+        with FramePool(n) as pool:
+            pool.map(one, batch[:n])  # warm
+            sec, out = best_of(pool, one, batch)
+            # where the time goes at n threads: the normals alone, the depth alone (one frame's normals)
+            sec_n, _ = best_of(pool, lambda f: solve(f, 1), batch)
+            sec_d, _ = best_of(pool, lambda _: dst.integrate(r0.normals, r0.mask, workers=1), range(count))
+        fps = count / sec
+        base = base or fps
+        rows.append({"solver": label, "size": size, "path": "frames", "threads": n, "seconds": sec / count,
+                     "fps": fps, "error_deg": _err(out[-1][0].normals, truth), "deviation_deg": None,
+                     "frames": count, "speedup": fps / base, "device": "cpu", "normals_fps": count / sec_n,
+                     "depth_fps": count / sec_d})
+    return rows
+
+
+def _events_ms(fn, repeats: int) -> float:
+    """Median milliseconds of ``fn`` on the current stream (CUDA events), after one warm-up."""
+    import torch
+
+    fn()
+    times = []
+    for _ in range(repeats):
+        a, b = torch.cuda.Event(enable_timing=True), torch.cuda.Event(enable_timing=True)
+        a.record()
+        fn()
+        b.record()
+        b.synchronize()
+        times.append(a.elapsed_time(b))
+    return float(np.median(times))
+
+
+def _copy_bandwidth(device) -> float:
+    """The device's copy bandwidth, bytes/s (read + write) of a 2 GB device-to-device copy."""
+    import torch
+
+    x = torch.empty(1 << 30, dtype=torch.uint8, device=device).random_(0, 255)
+    y = torch.empty_like(x)
+    ms = _events_ms(lambda: y.copy_(x), 10)
+    return 2 * x.numel() / (ms * 1e-3)
+
+
+def measure_device(width: int, height: int, device: str, batch: int, repeats: int, batches: int = 8) -> dict:
+    """The GPU pipeline at ``width x height`` (8 patterns, RGB, uint8): see the module docstring."""
+    import torch
+
+    from pipeline.bench.recon_scene import render_sphere_scene
+    from pipeline.normals.fast import NearFieldFast
+    from pipeline.normals.gpu_stream import GPUFramePipeline
+
+    dev = torch.device(device)
+    if dev.index is None:
+        dev = torch.device("cuda", torch.cuda.current_device())
+    mm = FOV_MM / width
+    s = render_sphere_scene((height, width), mm, radius=3.0, depth=0.5, num_patterns=8, noise=1.0, bits=8, seed=0)
+    one = s.frames.astype(np.uint8)
+    P = one.shape[0]
+    cpu = NearFieldFast(s.lights_flat(), groups=np.tile(np.arange(3), P)).solve(one)
+    K = batch * batches
+    host = np.repeat(one[None], K, axis=0)
+    pinned = torch.from_numpy(host).pin_memory()
+    frame_bytes = one.nbytes
+    bw = _copy_bandwidth(dev)
+    d_frames = torch.empty((batch,) + one.shape, dtype=torch.uint8, device=dev)
+    copy_ms = _events_ms(lambda: d_frames.copy_(pinned[:batch], non_blocking=True), repeats)
+    out = {"device": str(device), "card": torch.cuda.get_device_name(dev), "size": f"{width}x{height}",
+           "batch": batch, "frames": K, "frame_bytes": frame_bytes, "device_copy_GBps": bw / 1e9,
+           "upload": {"ms_per_batch": copy_ms, "GBps": batch * frame_bytes / (copy_ms * 1e-3) / 1e9,
+                      "frames_per_second": batch / (copy_ms * 1e-3)}, "solvers": []}
+    upload_fps = out["upload"]["frames_per_second"]
+    for name in ("fused", "torch"):
+        t0 = time.perf_counter()
+        pipe = GPUFramePipeline(s.lights, mm, batch=batch, solver=name, device=dev, host_threads=8)
+        d_frames.copy_(pinned[:batch])
+        r = pipe.solve_device(d_frames)
+        torch.cuda.synchronize()
+        first = time.perf_counter() - t0
+        solve_ms = _events_ms(lambda p=pipe: p.solve_device(d_frames), repeats)
+        normals_ms, depth_ms = _split_ms(pipe, d_frames, r, repeats)
+        n0 = r["normals"][0].cpu().numpy()
+        floor_ms = batch * (frame_bytes + 4 * width * height) / bw * 1e3
+        row = {"solver": name, "first_batch_seconds": first, "error_deg": _err(n0, s.normals),
+               "cpu_error_deg": _err(cpu.normals, s.normals),
+               "deviation_from_cpu_deg": _dev(n0, cpu.normals, r["mask"][0].cpu().numpy() & cpu.mask),
+               "solve": {"ms_per_batch": solve_ms, "frames_per_second": batch / (solve_ms * 1e-3),
+                         "memory_floor_fraction": floor_ms / solve_ms, "normals_ms": normals_ms,
+                         "depth_ms": depth_ms}}
+        outs = {"whole_pinned": (pinned, torch.empty((K, height, width), dtype=torch.float32, pin_memory=True)),
+                "whole_numpy": (host, np.zeros((K, height, width), np.float32))}
+        for label, (src, dest) in outs.items():
+            pipe.run(src[:batch])  # warm the buffers
+            best = float("inf")
+            for _ in range(max(2, repeats // 5)):
+                t = time.perf_counter()
+                res = pipe.run(src, out=dest)
+                best = min(best, time.perf_counter() - t)
+            fps = K / best
+            row[label] = {"seconds": best, "frames_per_second": fps, "upload_fraction": fps / upload_fps}
+        h_gpu = np.asarray(res["height"][0])
+        h_cpu = _cpu_height(cpu, (height, width), mm)
+        row["height_max_diff_mm"] = float(np.abs(h_gpu - h_cpu)[cpu.mask].max()) if cpu.mask.any() else 0.0
+        pipe.close()
+        out["solvers"].append(row)
+    return out
+
+
+def _split_ms(pipe, d_frames, r, repeats: int) -> tuple[float, float]:
+    """Milliseconds per batch of the normals alone and of the depth alone (its input kept)."""
+    from pipeline.normals.batched import dst_divergence_torch, dst_heights
+
+    if pipe.solver_name == "fused":
+        normals = _events_ms(lambda: pipe.solver.solve_planes(d_frames), repeats)
+        depth = _events_ms(lambda: pipe.depth.heights(r["planes"], r["planes_mask"]), repeats)
+    else:
+        normals = _events_ms(lambda: pipe.solver.solve(d_frames), repeats)
+        depth = _events_ms(lambda: dst_heights(dst_divergence_torch(r["normals"], r["mask"], pipe.mm)[0]), repeats)
+    return normals, depth
+
+
+def _cpu_height(cpu_result, shape, mm) -> np.ndarray:
+    from pipeline.depth.fast import FastDST
+
+    return FastDST(shape, mm).integrate(cpu_result.normals, cpu_result.mask).height
+
+
+def format_device(d: dict) -> list[str]:
+    """Lines of the GPU pipeline's figures for ``bench live``'s table."""
+    up = d["upload"]
+    lines = [f"device {d['device']} ({d['card']}), {d['size']}, batches of {d['batch']} ({d['frames']} frames): "
+             f"upload alone (pinned) {up['GBps']:.1f} GB/s = {up['frames_per_second']:.0f} frames/s; device copy "
+             f"bandwidth {d['device_copy_GBps']:.0f} GB/s"]
+    for r in d["solvers"]:
+        sv = r["solve"]
+        lines.append(f"  {r['solver']:<6} solve alone {sv['frames_per_second']:9.0f} frames/s "
+                     f"({sv['memory_floor_fraction']:.0%} of the memory floor; normals {sv['normals_ms']:.2f} ms, "
+                     f"depth {sv['depth_ms']:.2f} ms a batch); whole from pinned "
+                     f"{r['whole_pinned']['frames_per_second']:8.0f} frames/s ({r['whole_pinned']['upload_fraction']:.0%}"
+                     f" of the upload bound), from numpy {r['whole_numpy']['frames_per_second']:8.0f} frames/s "
+                     f"({r['whole_numpy']['upload_fraction']:.0%}); error {r['error_deg']:.3f} deg (CPU "
+                     f"{r['cpu_error_deg']:.3f}), vs CPU {r['deviation_from_cpu_deg']:.2e} deg, heights "
+                     f"{r['height_max_diff_mm']:.1e} mm; first batch {r['first_batch_seconds']:.2f} s")
+    return lines
