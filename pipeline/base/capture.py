@@ -21,7 +21,10 @@ import numpy as np
 
 from pipeline.base.errors import UserError
 
-__all__ = ["Capture", "read_capture", "capture_from_record", "write_capture"]
+__all__ = ["Capture", "read_capture", "capture_from_record", "write_capture", "CAPTURE_WIDE_TRUTH"]
+
+#: ``truth/*`` entries of the whole capture (not one per press): kept whole by :meth:`Capture.select`.
+CAPTURE_WIDE_TRUTH = frozenset({"albedo", "markers"})
 
 
 @dataclass
@@ -42,7 +45,10 @@ class Capture:
     labels : dict, optional
         ``{"center_xy": (K, 2), "radius_px": (K,)}`` hand labels (comparison only).
     truth : dict, optional
-        ``{"height": (K, H, W), "normals": (K, H, W, 3)}`` for rendered captures.
+        ``{"height": (K, H, W), "normals": (K, H, W, 3)}`` for rendered captures; virtual
+        sensors (:mod:`sim.virtual_sensor`) add ``contact (K, H, W)``, ``center_xy (K, 2)``,
+        ``radius_px (K,)``, ``drift_*`` per press and ``markers (H, W)``. Entries named in
+        :data:`CAPTURE_WIDE_TRUTH` belong to the whole capture, every other one to each press.
     markers : ndarray, shape (H, W), bool, optional
         Printed gel markers (:mod:`calibration.markers`): filled in before normals are solved,
         left out of calibration samples, False in validity masks.
@@ -97,7 +103,7 @@ class Capture:
         """
         idx = np.arange(self.frames.shape[0])[presses]
         sub = {k: np.asarray(v)[idx] for k, v in (self.labels or {}).items()} or None
-        truth = {k: (np.asarray(v)[idx] if np.asarray(v).ndim and k != "albedo" else v)
+        truth = {k: (np.asarray(v)[idx] if np.asarray(v).ndim and k not in CAPTURE_WIDE_TRUTH else v)
                  for k, v in (self.truth or {}).items()} or None
         meta = dict(self.meta)
         if isinstance(meta.get("frame_names"), list) and len(meta["frame_names"]) == self.frames.shape[0]:
