@@ -149,3 +149,19 @@ def test_bad_sensors_are_refused():
         random_sensor(0, effects=["fog"])
     with pytest.raises(ValueError, match="jpeg_quality"):
         VirtualSensor(jpeg_quality=101)
+
+
+
+def test_cli_writes_a_capture_and_an_image_folder(tmp_path, capsys):
+    import json
+
+    from pipeline.cli import main
+
+    code = main(["sim", "sensor", "--seed", "3", "--shape", "40", "60", "--presses", "2", "--effects", "jpeg,markers",
+                 "--out", str(tmp_path / "s.h5"), "--images", str(tmp_path / "imgs"), "--json"])
+    assert code == 0
+    res = json.loads(capsys.readouterr().out)
+    assert res["effects"] == ["markers", "jpeg"] and (tmp_path / "imgs" / res["reference"]).is_file()
+    assert read_capture(tmp_path / "s.h5").frames.shape == (2, 1, 40, 60, 3)
+    assert main(["sim", "sensor", "--effects", "fog", "--out", str(tmp_path / "x.h5")]) == 2
+    assert "unknown effect" in capsys.readouterr().err and not (tmp_path / "x.h5").exists()
