@@ -159,7 +159,9 @@ def read_labels_csv(path: str | Path, names: list[str]) -> dict[str, np.ndarray]
     """Hand labels ``name,x,y,radius_px`` for the presses ``names`` (in that order).
 
     ``name`` may be a frame's file name or its stem (with a template: the press id). Every
-    press needs exactly one row. Returns ``{"center_xy": (K, 2), "radius_px": (K,)}`` float32.
+    press needs exactly one row; ``name,,,`` (x, y and radius empty) marks a press a person
+    rejected (the labeller writes those). Returns ``{"center_xy": (K, 2), "radius_px": (K,)}``
+    float32 (NaN for rejected presses), plus ``"rejected": (K,)`` bool when any press is.
     """
     path = Path(path)
     if not path.is_file():
@@ -179,11 +181,15 @@ def read_labels_csv(path: str | Path, names: list[str]) -> dict[str, np.ndarray]
                 if len(row) != 4:
                     raise UserError(f"{path}:{line_no}: expected 4 fields name,x,y,radius_px, got {len(row)}: {row}")
                 name = row[0].strip()
-                try:
-                    x, y, r = (float(v) for v in row[1:])
-                except ValueError:
-                    raise UserError(f"{path}:{line_no}: x, y and radius_px must be numbers, got {row[1:]}") from None
-                if not (np.isfinite([x, y, r]).all() and r > 0):
+                if all(not v.strip() for v in row[1:]):  # "name,,,": a press a person rejected
+                    x = y = r = float("nan")
+                else:
+                    try:
+                        x, y, r = (float(v) for v in row[1:])
+                    except ValueError:
+                        raise UserError(f"{path}:{line_no}: x, y and radius_px must be numbers (or all three empty: "
+                                        f"rejected), got {row[1:]}") from None
+                if not np.isnan(r) and not (np.isfinite([x, y, r]).all() and r > 0):
                     raise UserError(f"{path}:{line_no}: x and y must be finite and radius_px positive, got {row[1:]}")
                 if name not in lookup:
                     raise UserError(f"{path}:{line_no}: no press named {name!r} (presses: "
@@ -199,7 +205,10 @@ def read_labels_csv(path: str | Path, names: list[str]) -> dict[str, np.ndarray]
         raise UserError(f"{path}: no label for press(es) {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}"
                         f" (every press needs one row name,x,y,radius_px)")
     arr = np.array([rows[k] for k in range(len(names))], np.float32)
-    return {"center_xy": arr[:, :2], "radius_px": arr[:, 2]}
+    out = {"center_xy": arr[:, :2], "radius_px": arr[:, 2]}
+    if np.isnan(arr[:, 2]).any():
+        out["rejected"] = np.isnan(arr[:, 2])
+    return out
 
 
 def _check_same(items: list[tuple[str, np.ndarray]]) -> None:
