@@ -5,9 +5,9 @@ A capture may carry hand labels ``labels/center_xy (K, 2)`` (x = column, y = row
 ``touch_center_xy`` / ``touch_radius_px``, the labeller ``iristac label``), NaN where a press
 has none, and ``labels/rejected (K,)``: presses a person rejected (rejected circles here).
 Labels are drawn by eye, often on a coarse grid, and a labelled radius may exceed the ball's
-(a contact disc cannot: the shared real frames
-have 17 px labels on a 16.1 px ball), so the contact radius used for the truth is clamped to
-``clamp_fraction`` of the ball radius, as the detector clamps its own.
+(a contact disc cannot: the shared real frames have 17 px labels on a 16.1 px ball), so the
+contact radius used for the truth is clamped to ``clamp_fraction`` of the ball radius, as the
+detector clamps its own.
 """
 
 from __future__ import annotations
