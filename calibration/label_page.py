@@ -27,10 +27,10 @@ import re
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
-import numpy as np
-
 from calibration.label_session import LabelSession
 from pipeline.base.errors import UserError
+from pipeline.base.http_page import send, send_json
+from pipeline.outputs import png_bytes
 
 __all__ = ["LabelServer", "serve_labeller", "PAGE"]
 
@@ -260,15 +260,6 @@ _PRESS = re.compile(r"^/api/press/(\d+)$")
 _IMG = re.compile(r"^/img/(frame|diff)/(\d+)\.png$")
 
 
-def _png(img: np.ndarray) -> bytes:
-    import cv2
-
-    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img[..., ::-1]))  # OpenCV writes BGR
-    if not ok:  # pragma: no cover - cv2 encodes any uint8 image
-        raise RuntimeError("PNG encoding failed")
-    return buf.tobytes()
-
-
 class LabelServer:
     """Serve a :class:`LabelSession` on 127.0.0.1 (in a background thread).
 
@@ -328,7 +319,7 @@ def _handler(session: LabelSession, owner: LabelServer):
                 elif _IMG.match(path):
                     kind, k = _IMG.match(path).groups()
                     img = session.frame_image(int(k)) if kind == "frame" else session.difference_image(int(k))
-                    self._send(200, "image/png", _png(img))
+                    self._send(200, "image/png", png_bytes(img))
                 else:
                     self._json(404, {"error": f"not found: {path}"})
             except UserError as exc:
@@ -371,15 +362,10 @@ def _handler(session: LabelSession, owner: LabelServer):
             return False
 
         def _json(self, code, obj):
-            self._send(code, "application/json", json.dumps(obj).encode())
+            send_json(self, code, obj)
 
         def _send(self, code, kind, body):
-            self.send_response(code)
-            self.send_header("Content-Type", kind)
-            self.send_header("Content-Length", str(len(body)))
-            self.send_header("Cache-Control", "no-store")
-            self.end_headers()
-            self.wfile.write(body)
+            send(self, code, kind, body)
 
         def log_message(self, *args):  # the terminal stays quiet
             pass

@@ -281,11 +281,21 @@ def write_record(path: str | os.PathLike, record: Record, key: StageKey | None =
     record.validate(str(final))
     final.parent.mkdir(parents=True, exist_ok=True)
     provenance = provenance_attrs(record.schema, key)
+    _write_atomically(final, lambda tmp: _write_h5(tmp, record, provenance))
+    record.path = final
+    record.provenance = dict(provenance)
+    return final
+
+
+def _write_atomically(final: Path, build: Callable[[Path], None]) -> None:
+    """``build(tmp)`` makes the file at a temporary name beside ``final``; then fsync and rename
+    it into place (atomic on POSIX; concurrent writers: last rename wins, both valid). On any
+    error the temporary file is removed and ``final`` is untouched."""
     tmp = _temp_name(final)
     try:
-        _write_h5(tmp, record, provenance)
+        build(tmp)
         _fsync_file(tmp)
-        os.replace(tmp, final)  # atomic on POSIX; concurrent writers: last rename wins, both valid
+        os.replace(tmp, final)
     except BaseException:
         try:
             tmp.unlink()
@@ -293,9 +303,6 @@ def write_record(path: str | os.PathLike, record: Record, key: StageKey | None =
             pass
         raise
     _fsync_dir(final.parent)
-    record.path = final
-    record.provenance = dict(provenance)
-    return final
 
 
 def replace_datasets(path: str | os.PathLike, updates: Mapping[str, Any]) -> Path:
@@ -325,8 +332,8 @@ def replace_datasets(path: str | os.PathLike, updates: Mapping[str, Any]) -> Pat
     _, provenance = describe_file(final)
     _check_provenance(final, provenance)
     schema = provenance["iristac_schema"]
-    tmp = _temp_name(final)
-    try:
+
+    def build(tmp: Path) -> None:
         shutil.copyfile(final, tmp)
         with h5py.File(tmp, "r+") as f:
             for name, value in updates.items():
@@ -341,15 +348,8 @@ def replace_datasets(path: str | os.PathLike, updates: Mapping[str, Any]) -> Pat
         except data_schemas.SchemaError as exc:
             raise StoreError(final, f"change refused, file left as it was: {_strip_source(str(exc), str(final))}") \
                 from None
-        _fsync_file(tmp)
-        os.replace(tmp, final)
-    except BaseException:
-        try:
-            tmp.unlink()
-        except FileNotFoundError:
-            pass
-        raise
-    _fsync_dir(final.parent)
+
+    _write_atomically(final, build)
     return final
 
 

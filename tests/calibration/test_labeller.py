@@ -14,6 +14,7 @@ import urllib.request
 import cv2
 import numpy as np
 import pytest
+from helpers import chromium_path
 
 from calibration.image_import import read_labels_csv
 from calibration.label_page import LabelServer
@@ -150,14 +151,6 @@ def test_cli_serves_and_reports(capture, capsys):
 
 # -- the page in a real browser ---------------------------------------------------------------
 
-def _chromium() -> str | None:
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        path = shutil.which(name)
-        if path:
-            return path
-    return None
-
-
 class _DevTools:
     """A minimal Chrome DevTools protocol client (websocket-client) for one page."""
 
@@ -217,7 +210,7 @@ def _websocket_client_missing() -> bool:
     return False
 
 
-@pytest.mark.skipif(_chromium() is None, reason="no headless Chromium installed (apt-get install chromium); the "
+@pytest.mark.skipif(chromium_path() is None, reason="no headless Chromium installed (apt-get install chromium); the "
                                                 "labeller's endpoints are tested over HTTP regardless")
 @pytest.mark.skipif(_websocket_client_missing(), reason="websocket-client not installed (pip install -e '.[test]')")
 def test_drag_and_resize_in_headless_chromium(capture, tmp_path):
@@ -227,7 +220,7 @@ def test_drag_and_resize_in_headless_chromium(capture, tmp_path):
     flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
              "--disable-background-networking", "--disable-component-update", "--disable-sync",
              f"--user-data-dir={profile}", "--remote-debugging-port=0", "--window-size=1200,900", "about:blank"]
-    proc = subprocess.Popen([_chromium(), *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen([chromium_path(), *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         port_file = profile / "DevToolsActivePort"
         end = time.monotonic() + 60

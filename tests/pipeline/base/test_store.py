@@ -226,7 +226,7 @@ def _add_paths():
 def _stored(tmp_path):
     s = StageStore(tmp_path)
     key = s.key("depth", 1, {"integrator": "dst"})
-    rec = example_record("depth")
+    rec = example_record("depth", all_datasets=False)  # height and mask, resized below
     rec.data["height"] = np.random.default_rng(0).standard_normal((2, 64, 64)).astype(np.float32)
     rec.data["mask"] = np.ones((2, 64, 64), bool)
     s.put(key, rec)
