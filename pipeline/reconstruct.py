@@ -77,8 +77,8 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     calibration, illumination : path or Record, optional
         The light model (at most one; see :func:`pipeline.stages.normals.load_lights`).
     solver : str
-        A name in :data:`pipeline.base.registry.SOLVERS` (``lstsq``, ``nearfield``, ``robust``,
-        ``cauchy``, ``lut``).
+        A name in :data:`pipeline.base.registry.SOLVERS` (``iristac reconstruct --help`` lists
+        them all).
     integrator : str
         A name in :data:`pipeline.base.registry.INTEGRATORS` (``fc``, ``dct``, ``dst``, ``sparse``).
     out : path, optional

@@ -149,8 +149,7 @@ def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", referen
         Dark-subtracted float frames.
     lights : LightSource
     solver : str
-        A name in :data:`pipeline.base.registry.SOLVERS` (``lstsq``, ``nearfield``,
-        ``robust``, ``lut``).
+        A name in :data:`pipeline.base.registry.SOLVERS`.
     reference : ndarray, shape (P, H, W, C), optional
         Dark-subtracted no-contact frames (needed for ``ratio``).
     saturated : ndarray, shape (K, P, H, W, C), bool, optional
