@@ -461,7 +461,7 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
         sat = sat - float(np.asarray(cap.dark).min())
     mask = _marker_mask(markers, cap, ref)
     if mask is not None:
-        from calibration.markers import fill_markers
+        from pipeline.normals.prepare import fill_markers
 
         frames, ref = fill_markers(frames, mask), fill_markers(ref, mask)
     t0 = time.perf_counter()

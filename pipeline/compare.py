@@ -188,7 +188,7 @@ def compare_captures(captures: dict[str, Any], *, illumination=None, calibration
         Folder for per-run outputs (normals/depth files and PNGs).
     """
     from pipeline.evaluate import angular_error_deg
-    from pipeline.normals.solve import applicable_solvers
+    from pipeline.normals.lights import applicable_solvers
     from pipeline.outputs import depth_colormap_rgb, normal_map_rgb
     from pipeline.reconstruct import reconstruct
     from pipeline.base.store import Record, read_record

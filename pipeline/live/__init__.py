@@ -305,9 +305,9 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
         from pipeline.stages.normals import load_lights
 
         lights = load_lights(probe, cal, ill)
-        from pipeline.normals.solve import _check_lights
+        from pipeline.normals.lights import check_lights
 
-        _check_lights(solver, lights, len(patterns.frames), C)
+        check_lights(solver, lights, len(patterns.frames), C)
         pitch = float(spec.model().mm_per_px) if spec is not None else float((cal.meta if cal is not None else {})
                                                                              .get("mm_per_px") or mm_per_px)
         # ---- sources -------------------------------------------------------------------------

@@ -28,13 +28,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pipeline.normals.result import NormalResult
+from pipeline.normals.result import COND_CAP, NormalResult
 
 __all__ = ["NearFieldFast", "frame_planes_np", "split_into", "run_split", "BLOCK"]
 
 #: Pixels per block: the block's accumulators (4 G planes) and light rows stay in L1/L2.
 BLOCK = 512
-_COND_CAP = 1e12
 
 
 _POOL = None
@@ -380,7 +379,7 @@ class NearFieldFast:
         with np.errstate(divide="ignore", invalid="ignore"):
             cond = np.sqrt(np.clip(ev[:, 2] / np.where(ev[:, 0] > 0, ev[:, 0], 1.0), 1.0, None))
         bad = (ev[:, 0] <= 0) | (ev[:, 2] <= 0) | ~np.isfinite(cond)
-        self.condition_m = np.where(bad, _COND_CAP, np.minimum(cond, _COND_CAP)).astype(np.float32)
+        self.condition_m = np.where(bad, COND_CAP, np.minimum(cond, COND_CAP)).astype(np.float32)
         sym = [0, 1, 2, 4, 5, 8]  # xx, xy, xz, yy, yz, zz of a symmetric 3x3
         self.inv = _blocked(inv.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512): the inverse is symmetric too
         scale = self._shared_scale(Lm)
@@ -536,5 +535,5 @@ class NearFieldFast:
         cond = self.condition_m
         count = self._count
         return NormalResult(normals=full(n, np.array([0, 0, 1], np.float32)), albedo=full(rho, 0), residual=full(res, 0),
-                            condition=full(cond, _COND_CAP), mask=full(ok, False), count=full(count, 0),
+                            condition=full(cond, COND_CAP), mask=full(ok, False), count=full(count, 0),
                             meta={"solver": "nearfield", "method": "fast", "max_condition": self.max_condition})

@@ -15,7 +15,8 @@ from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
 from pipeline.normals.farfield import _albedo_iterations
 from pipeline.normals.masking import PixelMask
-from pipeline.normals.result import NormalResult, finalize
+from pipeline.normals._lstsq import finalize
+from pipeline.normals.result import NormalResult
 
 __all__ = ["NearFieldSolver", "solve_nearfield"]
 

@@ -22,14 +22,18 @@ Where the lights come from (:func:`load_lights`, first that applies):
 Where to solve (:func:`capture_region`): the capture's ``mask`` dataset (an object's
 silhouette: DiLiGenT's, ``iristac sim ps-object``'s), or a user's ``mask`` (``--mask``), which
 replaces it and enters the key. Only those pixels are read out of the frames and solved
-(:class:`pipeline.normals.masking.PixelMask`); every pixel outside is invalid in the record.
+(:class:`pipeline.normals.prepare.FramePrep`); every pixel outside is invalid in the record.
 The calibration models read whole frames (pixel position is one of their inputs) and are
 masked afterwards.
 
 Printed gel markers (:func:`marker_mask`: the capture's ``markers``, else the calibration's,
 or ``--markers auto|none|MASK.png``) are filled in before normals are solved
-(:func:`calibration.markers.fill_markers`), False in the record's ``mask`` and True in its
+(:func:`pipeline.normals.prepare.fill_markers`), False in the record's ``mask`` and True in its
 ``filled (H, W)``: the depth stage integrates through them. A marker mask enters the key.
+
+The solve itself is the one path every entry point takes,
+:class:`pipeline.normals.solve.FrameSolver` (frames prepared by
+:class:`pipeline.normals.prepare.FramePrep`); this module reads the capture and writes the record.
 """
 
 from __future__ import annotations
@@ -44,7 +48,7 @@ from pipeline.base.registry import SOLVERS
 from pipeline.stages.base import StageSpec, record_key
 
 if TYPE_CHECKING:  # the solvers load torch: only when normals are computed
-    from pipeline.normals.solve import LightSource
+    from pipeline.normals.lights import LightSource
 
 __all__ = ["SPEC", "load_lights", "capture_region", "reference_frames", "marker_mask", "params", "compute", "run",
            "node"]
@@ -64,7 +68,7 @@ def _check_shape(arr, want: tuple, path, name: str) -> np.ndarray:
 
 def load_lights(capture, calibration=None, illumination=None) -> LightSource:
     """Resolve the light model for ``capture`` (Records; see the module docstring)."""
-    from pipeline.normals.solve import LightSource
+    from pipeline.normals.lights import LightSource
 
     frames = capture.data["frames"]
     _, P, H, W, C = frames.shape
@@ -277,73 +281,30 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         ``mask``, ``count``; ``confidence (K, H, W)`` from the calibration models; ``filled
         (H, W)`` with markers.
     """
-    from pipeline.base.store import Record
-    from pipeline.base.threads import limit_threads
-    from pipeline.normals.masking import PixelMask
-    from pipeline.normals.solve import solve_capture
+    from pipeline.normals.prepare import full_scale
+    from pipeline.normals.solve import FrameSolver
 
-    mm_per_px = float(cap.meta["mm_per_px"])
     raw = cap.data["frames"]
-    H, W = raw.shape[2:4]
     region = capture_region(cap, mask)
     if batched is None:
         batched = str(device) != "cpu"
     if (batched and solver == "nearfield" and not ratio and region is None and markers is None
             and lights.field is not None and str(dtype) == "float32"):
-        return _compute_batched(cap, lights, max_condition=max_condition, device=device, mm_per_px=mm_per_px)
-    ref = reference_frames(cap)
-    dark = cap.data.get("dark")
-    whole_frame = bool(SOLVERS.get(solver).info.get("whole_frame"))
-    model_fills = str(SOLVERS.get(solver).info.get("needs", "")).startswith("model:")
-    if markers is not None:
-        markers = np.asarray(markers, bool)
-        if markers.shape != (H, W):
-            raise UserError(f"marker mask has shape {markers.shape}, expected (H, W) = {(H, W)} like the frames")
-    pixels = None
-    if region is not None and not whole_frame:
-        # Gather the region once, from the raw frames (no full-frame float copy), as a (1, M)
-        # image; the solvers then see only its pixels. (Solvers that read whole frames, whose
-        # inputs include the pixel position, are masked after; marker filling needs the
-        # neighbourhood of each marker, so with markers the gather follows the fill.)
-        pixels = PixelMask(region, (H, W), f"{cap.path or 'capture'}: mask")
-    bits = cap.meta.get("bit_depth")
-    full = (2 ** int(bits) - 1) if bits else (np.iinfo(raw.dtype).max if raw.dtype.kind in "iu" else None)
-    early = pixels is not None and markers is None
-    if early:
-        raw = pixels.gather(raw, axis=2)
-        ref = None if ref is None else pixels.gather(ref, axis=1)
-        dark = None if dark is None else pixels.gather(dark, axis=0)
-    saturated = (raw >= full) if full is not None else None
-    frames = raw.astype(np.float32)
-    ref = None if ref is None else ref.astype(np.float32)
-    if dark is not None:
-        frames = frames - dark.astype(np.float32)
-        ref = None if ref is None else ref - dark.astype(np.float32)
-    if markers is not None and not model_fills:
-        from calibration.markers import fill_markers
+        return _compute_batched(cap, lights, max_condition=max_condition, device=device)
+    prep = FrameSolver.prep_for(solver, raw.shape[2:4], dark=cap.data.get("dark"), markers=markers, region=region,
+                                saturation=full_scale(raw.dtype, cap.meta.get("bit_depth")),
+                                name=str(cap.path or "capture"))
+    fs = FrameSolver(solver, lights, prep, reference=reference_frames(cap), ratio=ratio, max_condition=max_condition,
+                     device=device, dtype=dtype, compile=compile)
+    return _record(fs.solve_stack(raw, threads), cap, lights, solver=solver, ratio=ratio,
+                   max_condition=max_condition, region=region, markers=prep.markers)
 
-        frames = fill_markers(frames, markers)
-        ref = None if ref is None else fill_markers(ref, markers)
-    if pixels is not None:
-        if not early:
-            frames = pixels.gather(frames, axis=2)
-            ref = None if ref is None else pixels.gather(ref, axis=1)
-            saturated = None if saturated is None else pixels.gather(saturated, axis=2)
-        lights = _gather_lights(lights, pixels, solver)
-    dark_thr = 0.01 * full if full is not None else 0.0
-    with limit_threads(torch=threads):
-        res = solve_capture(frames, lights, solver=solver, reference=ref, saturated=saturated, ratio=ratio,
-                            max_condition=max_condition, dark_threshold=dark_thr, device=device, dtype=dtype,
-                            compile=compile, markers=markers if model_fills else None)
-    if pixels is not None:
-        res = [pixels.scatter(r) for r in res]
-    elif region is not None:
-        res = [PixelMask(region, (H, W)).restrict(r) for r in res]
-    if markers is not None:
-        for r in res:  # a filled-in value is a guess, not a measurement
-            r.mask = r.mask & ~markers
-            if r.confidence is not None:
-                r.confidence = np.where(markers, np.float32(0), r.confidence).astype(np.float32)
+
+def _record(res: list, cap, lights: LightSource, *, solver: str, ratio: bool, max_condition: float, region,
+            markers):
+    """The ``normals`` record of the per-instance results of :func:`compute`."""
+    from pipeline.base.store import Record
+
     data = {name: _stack(res, name) for name in ("normals", "albedo", "residual", "condition", "mask", "count")}
     if all(r.confidence is not None for r in res) and res:
         data["confidence"] = _stack(res, "confidence").astype(np.float32)
@@ -351,8 +312,9 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         # Marker pixels hold normals from filled-in observations: not measurements (False in
         # mask) but fit to integrate through (docs: NormalMaps.filled).
         data["filled"] = markers & (region if region is not None else True)
-    meta = {"solver": solver, "mm_per_px": mm_per_px, "ratio": bool(ratio), "max_condition": float(max_condition),
-            "lights": lights.source, "valid_fraction": float(data["mask"].mean())}
+    meta = {"solver": solver, "mm_per_px": float(cap.meta["mm_per_px"]), "ratio": bool(ratio),
+            "max_condition": float(max_condition), "lights": lights.source,
+            "valid_fraction": float(data["mask"].mean())}
     if region is not None:
         meta["region_pixels"] = int(region.sum())
     if markers is not None:
@@ -361,11 +323,12 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
     return Record("normals", data, meta)
 
 
-def _compute_batched(cap, lights: LightSource, *, max_condition: float, device, mm_per_px: float):
+def _compute_batched(cap, lights: LightSource, *, max_condition: float, device):
     """The ``nearfield`` record of every instance at once on ``device`` (see :func:`compute`)."""
     from pipeline.base.store import Record
     from pipeline.normals.batched import NearFieldBatched
 
+    mm_per_px = float(cap.meta["mm_per_px"])
     raw = cap.data["frames"]
     K, P, H, W, C = raw.shape
     nb = NearFieldBatched(lights.field, flat_field=lights.flat_field, max_condition=max_condition, device=device)
@@ -378,20 +341,6 @@ def _compute_batched(cap, lights: LightSource, *, max_condition: float, device, 
             "lights": lights.source, "valid_fraction": float(data["mask"].mean()), "method": "batched",
             "device": str(device)}
     return Record("normals", data, meta)
-
-
-def _gather_lights(lights: LightSource, pixels, solver: str) -> LightSource:
-    """``lights`` on the gathered pixels (per-pixel fields gathered; far-field unchanged)."""
-    from dataclasses import replace
-
-    far = lights.far
-    if far is None and lights.field is not None and solver == "lstsq":
-        # lstsq uses the light field at the image centre: take it before the centre is gone.
-        H, W = pixels.shape
-        far = lights.field[:, :, H // 2, W // 2, :]
-    return replace(lights, far=far,
-                   field=None if lights.field is None else pixels.gather(lights.field, axis=2),
-                   flat_field=None if lights.flat_field is None else pixels.gather(lights.flat_field, axis=2))
 
 
 def run(store, cap, cap_key, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False,

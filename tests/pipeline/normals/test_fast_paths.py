@@ -129,7 +129,7 @@ def real_models():
 
 @pytest.mark.parametrize("case", ["lut", "mlp", "mlp-degree2"])
 def test_model_fast_paths_equal_normal_maps(real_models, case):
-    from pipeline.normals.solve import LightSource
+    from pipeline.normals.lights import LightSource
     from pipeline.stages.fast_solvers import frame_solver
 
     all_models, cap = real_models
