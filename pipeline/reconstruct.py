@@ -1,7 +1,7 @@
 """``iristac reconstruct``: normals and depth of a capture, through the normals and depth stages.
 
 :func:`reconstruct` reads the capture and the light model (a calibration or an illumination
-file, or lights embedded in the capture by an importer; :func:`pipeline.stages.normals.load_lights`),
+file, or lights embedded in the capture by an importer; :func:`pipeline.stages.normals.capture_lights`),
 then runs the normals stage (:mod:`pipeline.stages.normals`, the solver picked from
 :data:`pipeline.base.registry.SOLVERS`) and the depth stage (:mod:`pipeline.stages.depth`)
 through the stage store: the same keys ``iristac run`` and ``iristac batch`` use, so a
@@ -75,7 +75,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     capture : path or Record
         ``capture.h5``.
     calibration, illumination : path or Record, optional
-        The light model (at most one; see :func:`pipeline.stages.normals.load_lights`).
+        The light model (at most one; see :func:`pipeline.stages.normals.capture_lights`).
     solver : str
         A name in :data:`pipeline.base.registry.SOLVERS` (``iristac reconstruct --help`` lists
         them all).
@@ -128,7 +128,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     cap = _read(capture, "capture")
     cal = None if calibration is None else _read(calibration, "calibration")
     ill = None if illumination is None else _read(illumination, "illumination")
-    lights = normals_stage.load_lights(cap, cal, ill)
+    lights = normals_stage.capture_lights(cap, cal, ill)
     if ratio and normals_stage.reference_frames(cap) is None:
         raise UserError(f"{cap.path}: --ratio needs no-contact reference frames (dataset 'reference'); this "
                         f"capture has none (source {cap.meta.get('source')!r})")

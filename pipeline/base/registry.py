@@ -122,6 +122,18 @@ class Registry:
         """The implementation of ``name``, imported now."""
         return self.get(name).load()
 
+    def fast(self, name: str) -> Any | None:
+        """The builder of the fast per-frame path ``name`` registers (``info["fast"]``, imported
+        now), or None when it has none.
+
+        Examples
+        --------
+        >>> SOLVERS.fast("robust") is None, INTEGRATORS.fast("dst").__name__
+        (True, 'FastDST')
+        """
+        target = self.get(name).info.get("fast")
+        return None if not target else Entry(f"{name}-fast", target).load()
+
     def help(self) -> str:
         """``name: summary`` for every entry, for ``--help``."""
         return "; ".join(f"{e.name}: {e.summary}" if e.summary else e.name for e in self)
@@ -177,11 +189,14 @@ SOLVERS = Registry("solver", "--solver", [
 ])
 
 #: Depth integrators: ``target(normals (H, W, 3), mm_per_px, mask, **kwargs) -> DepthResult``
-#: (see :func:`pipeline.depth.integrate`).
+#: (see :func:`pipeline.depth.integrate`). ``info["fast"]``: the builder of its live per-frame
+#: path, ``builder(shape, mm_per_px, workers=1)`` with ``integrate(normals, mask)``
+#: (:func:`pipeline.depth.frame_integrator`), absent when live use runs it eagerly.
 INTEGRATORS = Registry("integrator", "--integrator", [
     Entry("fc", "pipeline.depth.fourier:frankot_chellappa", "Frankot-Chellappa FFT projection (periodic)"),
     Entry("dct", "pipeline.depth.poisson:poisson_dct", "Poisson, Neumann border (DCT)"),
-    Entry("dst", "pipeline.depth.poisson:poisson_dst", "Poisson, zero height on the border (DST)"),
+    Entry("dst", "pipeline.depth.poisson:poisson_dst", "Poisson, zero height on the border (DST)",
+          {"fast": "pipeline.depth.fast:FastDST"}),
     Entry("sparse", "pipeline.depth.sparse:sparse_lstsq", "least squares on the valid pixels only (PCG)"),
 ])
 

@@ -139,12 +139,9 @@ def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=Non
     from pipeline.normals.solve import FrameSolver
 
     prep = FrameSolver.prep_for(solver, shape, dark=dark, markers=markers, region=region, name="live")
-    target = SOLVERS.get(solver).info.get("fast")
-    if fast and target and markers is None:
-        from pipeline.base.registry import Entry
-
-        out = Entry(f"{solver}-fast", target).load()(lights, prep, channels=channels, reference=reference,
-                                                      max_condition=max_condition)
+    build = SOLVERS.fast(solver) if fast and markers is None else None
+    if build is not None:
+        out = build(lights, prep, channels=channels, reference=reference, max_condition=max_condition)
         out.method = "fast"
         return out
     return FrameSolver(solver, lights, prep, reference=reference, max_condition=max_condition)

@@ -7,7 +7,8 @@ Inputs: the capture's identity and the light file's
 (:func:`pipeline.stages.base.record_key`). The device, the thread count and ``compile`` do
 not change the result and stay out of the key.
 
-Where the lights come from (:func:`load_lights`, first that applies):
+Where the lights come from (:func:`load_lights`, for a capture :func:`capture_lights`; first that
+applies):
 
 - ``calibration``: ``light_field (P, C, H, W, 3)`` (with optional ``flat_field (P, C, H, W)``
   by which observations are divided first), ``light_vectors (P, C, 3)`` (far field) and every
@@ -39,18 +40,16 @@ The solve itself is the one path every entry point takes,
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
 from pipeline.base.errors import UserError
 from pipeline.base.registry import SOLVERS
+from pipeline.normals.lights import LightSource
 from pipeline.stages.base import StageSpec, record_key
 
-if TYPE_CHECKING:  # the solvers load torch: only when normals are computed
-    from pipeline.normals.lights import LightSource
-
-__all__ = ["SPEC", "load_lights", "capture_region", "reference_frames", "marker_mask", "params", "compute", "run",
+__all__ = ["SPEC", "load_lights", "capture_lights", "capture_region", "reference_frames", "marker_mask", "params", "compute", "run",
            "node"]
 
 # 2: only the capture's (or user's) mask is solved; 3: the lut solver applies the calibrated model
@@ -66,62 +65,95 @@ def _check_shape(arr, want: tuple, path, name: str) -> np.ndarray:
     return a
 
 
-def load_lights(capture, calibration=None, illumination=None) -> LightSource:
-    """Resolve the light model for ``capture`` (Records; see the module docstring)."""
-    from pipeline.normals.lights import LightSource
+def load_lights(calibration=None, illumination=None, *, mode, shape, channels: int = 3, exposure: float = 1.0,
+                embedded=None, where: str = "frames") -> LightSource:
+    """The light model for frames of ``shape`` under ``mode``'s patterns (see the module docstring).
 
-    frames = capture.data["frames"]
-    _, P, H, W, C = frames.shape
+    Parameters
+    ----------
+    calibration, illumination : Record, optional
+        At most one: the light file.
+    mode : LightingMode
+        The patterns (``drive (P, L, 3)``, ``brightness (P,)``: anything with both, such as a
+        capture's own, :func:`capture_lights`); an illumination's ``V`` is combined with them.
+    shape : (H, W)
+        The frames' image size; ``channels`` their camera channels.
+    exposure : float
+        The frames' exposure (an illumination's light matrices scale with it).
+    embedded : ndarray, shape (P, C, 3), optional
+        Far-field lights that came with the frames (a capture's ``lights/light_vectors``), used
+        when neither file is given.
+    where : str
+        The frames' name (a capture file) for messages and the light source's name.
+    """
+    drive = np.asarray(mode.drive)
+    P, (H, W), C = drive.shape[0], tuple(int(s) for s in shape), int(channels)
     if calibration is not None and illumination is not None:
         raise UserError("give either a calibration or an illumination file, not both")
     if calibration is not None:
-        d, path = calibration.data, calibration.path
-        src = LightSource(source=f"calibration:{Path(path).name if path else 'memory'}", key=record_key(calibration))
-        if "light_field" in d:
-            src.field = _check_shape(d["light_field"], (P, C, H, W, 3), path, "light_field")
-            if "flat_field" in d:
-                src.flat_field = _check_shape(d["flat_field"], (P, C, H, W), path, "flat_field")
-        if "light_vectors" in d:
-            src.far = _check_shape(d["light_vectors"], (P, C, 3), path, "light_vectors")
-        if any(k.startswith("models/") for k in d):
-            from calibration.stored import calibration_from_record
-
-            src.models, cal_meta = calibration_from_record(calibration)
-            src.markers = cal_meta.get("markers")
-            _check_model_shapes(src.models, (P, H, W, C), path)
-        if src.field is None and src.far is None and not src.models:
-            raise UserError(f"{path}: calibration has no light model (expected dataset 'light_field', "
-                            f"'light_vectors' or 'models/<name>/*')")
-        return src
+        return _calibration_lights(calibration, P, H, W, C)
     if illumination is not None:
-        from sim.illumination_model import light_matrices
-
-        d, path = illumination.data, illumination.path
-        src = LightSource(source=f"illumination:{Path(path).name if path else 'memory'}",
-                          key=record_key(illumination))
-        if "light_matrices" in d and d["light_matrices"].shape[0] == P:
-            src.field = _check_shape(d["light_matrices"], (P, C, H, W, 3), path, "light_matrices")
-            return src
-        V = np.asarray(d["V"])
-        if V.shape[1:3] != (H, W):
-            raise UserError(f"{path}: dataset 'V' covers {V.shape[1:3]} pixels, the capture has {(H, W)}")
-        drive = capture.data["drive"]
-        if drive.shape[1] != V.shape[0]:
-            raise UserError(f"{path}: 'V' has {V.shape[0]} LEDs but the capture's drive has {drive.shape[1]}")
-        if C != 3:
-            raise UserError(f"{path}: illumination light matrices need 3 camera channels, the capture has {C}")
-        gains = d.get("gains")
-        src.field = light_matrices(V, drive, capture.data.get("brightness"),
-                                   float(capture.meta.get("exposure", 1.0)), gains)
+        return _illumination_lights(illumination, mode, exposure, P, H, W, C)
+    if embedded is not None:
+        src = LightSource(source=f"capture:{Path(where).name}:lights/light_vectors", key="embedded")
+        src.far = _check_shape(embedded, (P, C, 3), where, "lights/light_vectors")
         return src
-    if "lights/light_vectors" in capture.data:
-        name = Path(capture.path).name if capture.path else "memory"
-        src = LightSource(source=f"capture:{name}:lights/light_vectors", key="embedded")
-        src.far = _check_shape(capture.data["lights/light_vectors"], (P, C, 3), capture.path,
-                               "lights/light_vectors")
-        return src
-    raise UserError(f"{capture.path}: no light model: pass --calibration or --illumination "
+    raise UserError(f"{where}: no light model: pass --calibration or --illumination "
                     f"(the capture has no embedded lights/light_vectors)")
+
+
+def capture_lights(capture, calibration=None, illumination=None) -> LightSource:
+    """:func:`load_lights` for a ``capture`` Record: its patterns, image size, channels, exposure
+    and embedded far-field lights (``lights/light_vectors``, written by importers)."""
+    from types import SimpleNamespace
+
+    _, P, H, W, C = capture.data["frames"].shape
+    patterns = SimpleNamespace(drive=capture.data["drive"], brightness=capture.data.get("brightness"))
+    return load_lights(calibration, illumination, mode=patterns, shape=(H, W), channels=C,
+                       exposure=float(capture.meta.get("exposure", 1.0)),
+                       embedded=capture.data.get("lights/light_vectors"), where=str(capture.path or "memory"))
+
+
+def _calibration_lights(calibration, P: int, H: int, W: int, C: int) -> LightSource:
+    d, path = calibration.data, calibration.path
+    src = LightSource(source=f"calibration:{Path(path).name if path else 'memory'}", key=record_key(calibration))
+    if "light_field" in d:
+        src.field = _check_shape(d["light_field"], (P, C, H, W, 3), path, "light_field")
+        if "flat_field" in d:
+            src.flat_field = _check_shape(d["flat_field"], (P, C, H, W), path, "flat_field")
+    if "light_vectors" in d:
+        src.far = _check_shape(d["light_vectors"], (P, C, 3), path, "light_vectors")
+    if any(k.startswith("models/") for k in d):
+        from calibration.stored import calibration_from_record
+
+        src.models, cal_meta = calibration_from_record(calibration)
+        src.markers = cal_meta.get("markers")
+        _check_model_shapes(src.models, (P, H, W, C), path)
+    if src.field is None and src.far is None and not src.models:
+        raise UserError(f"{path}: calibration has no light model (expected dataset 'light_field', "
+                        f"'light_vectors' or 'models/<name>/*')")
+    return src
+
+
+def _illumination_lights(illumination, mode, exposure: float, P: int, H: int, W: int, C: int) -> LightSource:
+    from pipeline.normals.lights import LightSource
+    from sim.illumination_model import light_matrices
+
+    d, path = illumination.data, illumination.path
+    src = LightSource(source=f"illumination:{Path(path).name if path else 'memory'}", key=record_key(illumination))
+    if "light_matrices" in d and d["light_matrices"].shape[0] == P:
+        src.field = _check_shape(d["light_matrices"], (P, C, H, W, 3), path, "light_matrices")
+        return src
+    V = np.asarray(d["V"])
+    if V.shape[1:3] != (H, W):
+        raise UserError(f"{path}: dataset 'V' covers {V.shape[1:3]} pixels, the capture has {(H, W)}")
+    drive = np.asarray(mode.drive)
+    if drive.shape[1] != V.shape[0]:
+        raise UserError(f"{path}: 'V' has {V.shape[0]} LEDs but the capture's drive has {drive.shape[1]}")
+    if C != 3:
+        raise UserError(f"{path}: illumination light matrices need 3 camera channels, the capture has {C}")
+    src.field = light_matrices(V, drive, mode.brightness, float(exposure), d.get("gains"))
+    return src
 
 
 def _check_model_shapes(models, want: tuple, path) -> None:
@@ -371,7 +403,7 @@ def node(config: Mapping[str, Any], ctx):
     def compute_node(inputs):
         cal = inputs.get("calibrate") if p["lights"] == "calibration" else None
         ill = inputs.get("synthesize") if p["lights"] == "illumination" else None
-        lights = load_lights(inputs["capture"], cal, ill)
+        lights = capture_lights(inputs["capture"], cal, ill)
         return compute(inputs["capture"], lights, solver=p["solver"], ratio=bool(p["ratio"]),
                        max_condition=float(p["max_condition"]), device=ctx.device, dtype=p["dtype"])
 
