@@ -198,11 +198,9 @@ def load_render_settings(path) -> RenderSettings:
     pipeline.base.errors.UserError
         Unreadable file, unknown key or wrong type, naming the file and the key.
     """
-    from pipeline.base.modes import _read_yaml, _validate_config
+    from pipeline.base.modes import read_config_file
 
-    path = Path(path)
-    obj = _read_yaml(path)
-    _validate_config("render", obj, path)
+    obj = read_config_file("render", path)
     try:
         return RenderSettings(**obj)
     except ValueError as exc:

@@ -208,7 +208,7 @@ def _write_h5(path: Path, record: Record, provenance: Mapping[str, str | int]) -
         f.flush()
 
 
-def _fsync_file(path: Path) -> None:
+def fsync_file(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -216,7 +216,7 @@ def _fsync_file(path: Path) -> None:
         os.close(fd)
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)
     except OSError:
@@ -277,7 +277,7 @@ def write_record(path: str | os.PathLike, record: Record, key: StageKey | None =
     tmp = _temp_name(final)
     try:
         _write_h5(tmp, record, provenance)
-        _fsync_file(tmp)
+        fsync_file(tmp)
         os.replace(tmp, final)  # atomic on POSIX; concurrent writers: last rename wins, both valid
     except BaseException:
         try:
@@ -285,7 +285,7 @@ def write_record(path: str | os.PathLike, record: Record, key: StageKey | None =
         except FileNotFoundError:
             pass
         raise
-    _fsync_dir(final.parent)
+    fsync_dir(final.parent)
     record.path = final
     record.provenance = dict(provenance)
     return final

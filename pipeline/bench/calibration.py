@@ -68,7 +68,7 @@ def _mlp_sweep(cap, steps: list[int]) -> list[dict]:
 def run(args) -> dict:
     from calibration.calibrate import calibrate
     from calibration.importers import load_gelsight_npz
-    from calibration.models.base import angular_error_deg
+    from pipeline.evaluate import angular_error_deg
     from calibration.synthetic import synthetic_sphere_capture
 
     out: dict = {"cases": [], "rows": []}

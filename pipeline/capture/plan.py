@@ -63,7 +63,7 @@ from pipeline.capture.client import RingClient, RingError
 from pipeline.capture.emulator import ShownState
 from pipeline.base.errors import UserError
 from pipeline.base.modes import LightingMode
-from pipeline.base.store import _fsync_dir
+from pipeline.base.store import fsync_dir
 
 __all__ = [
     "CaptureSettings",
@@ -229,7 +229,7 @@ class _Journal:
         else:
             path.parent.mkdir(parents=True, exist_ok=True)
             self._append({"version": JOURNAL_VERSION, "fingerprint": fingerprint})
-            _fsync_dir(path.parent)
+            fsync_dir(path.parent)
 
     def _load(self, fingerprint: str, out: Path) -> None:
         try:

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from pipeline.normals import _torch as T
+from pipeline.normals._inputs import group_counts_ok
 from pipeline.normals.result import COND_CAP, NormalResult
 
 
@@ -197,6 +198,16 @@ def solve(m: Moments, inv: torch.Tensor, iterations: int = 0) -> torch.Tensor:
         inv_p, _ = T.inverse3(A)
         b = T.matvec3(inv_p, (m.r * rel[:, None]).sum(0))
     return b
+
+
+def albedo_iterations(requested, L, selectors, groups, num_groups) -> int:
+    """Alternation steps: as requested, or (None) 3 when the channels see different lights
+    and 0 when a joint solve is already exact; never without three observations per group."""
+    if not group_counts_ok(groups, num_groups):
+        return 0
+    if requested is None:
+        return 0 if channels_share_lights(L, selectors) else 3
+    return int(requested)
 
 
 def residual_rms(m: Moments, p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:

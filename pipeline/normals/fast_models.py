@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pipeline.normals.fast import _blocked, frame_planes_np, run_split
+from pipeline.normals.fast import blocked, frame_planes_np, run_split
 
 __all__ = ["FastLUT", "FastMLP", "finish_normals"]
 
@@ -469,7 +469,7 @@ class FastMLP(_Base):
             Wh = np.stack([np.asarray(w, np.float32) for w, _ in hidden]) if hidden else np.zeros((0, K, K), np.float32)
             bh = np.stack([np.asarray(b, np.float32) for _, b in hidden]) if hidden else np.zeros((0, K), np.float32)
             Wo, bo = (np.asarray(a, np.float32) for a in layers[-1])
-            self.members.append((_blocked(fixed), np.ascontiguousarray(Wd, np.float32), np.ascontiguousarray(Wh),
+            self.members.append((blocked(fixed), np.ascontiguousarray(Wd, np.float32), np.ascontiguousarray(Wh),
                                  np.ascontiguousarray(bh), np.ascontiguousarray(Wo), np.ascontiguousarray(bo)))
         self.dark = np.zeros((0, 0), np.float32) if dark is None else frame_planes_np(
             np.broadcast_to(np.asarray(dark, np.float32), (self.num_patterns, H, W, self.channels)).copy())

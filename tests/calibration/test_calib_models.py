@@ -6,7 +6,8 @@ import pytest
 from calibration.calibrate import calibrate
 from calibration.detect import detect_contacts
 from calibration.models import FarFieldModel, LookupTable, LUTModel, MLPModel, NearFieldModel, TracedModel
-from calibration.models.base import angular_error_deg, check_light_rank, solve_normals
+from calibration.models.base import check_light_rank, solve_normals
+from pipeline.evaluate import angular_error_deg
 from calibration.samples import collect_samples
 from calibration.synthetic import synthetic_sphere_capture
 from calibration.validate import cross_validate
