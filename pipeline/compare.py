@@ -318,7 +318,8 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
     from pipeline.base.store import StageStore, read_record
     from pipeline.report import Report
     from pipeline.stages.base import record_key
-    from pipeline.stages.synthesize import illumination_model, synthesize_to_store
+    from pipeline.stages import synthesize as synthesize_stage
+    from pipeline.stages.synthesize import illumination_model
     from sim.rendered_capture import sphere_presses
 
     say = log or (lambda m: None)
@@ -337,7 +338,7 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
         model, key = illumination_model(ill_rec), record_key(ill_rec)
     elif not captures:
         say(f"tracing scene {scene!r}: {rays:,} rays per LED onto {shape}")
-        model, key, _ = synthesize_to_store(scene, shape, mm_per_px, store, rays=rays, sampler="sobol")
+        model, key, _ = synthesize_stage.run(store, scene, shape, mm_per_px, rays=rays, sampler="sobol")
         ill_path = store.path_for(key)
     cals: dict[str, Any] = dict(calibrations or {})
     lut_skipped: dict[str, str] = {}

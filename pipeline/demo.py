@@ -100,7 +100,7 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     from pipeline.compare import add_to_report, compare_captures, lut_calibrations, render_mode_captures
     from pipeline.report import Report
     from pipeline.stages import calibrate as calibrate_stage
-    from pipeline.stages.synthesize import synthesize_to_store
+    from pipeline.stages import synthesize as synthesize_stage
     from sim.rendered_capture import render_capture, sphere_presses
     from sim.uniformity import uniformity_report
 
@@ -116,8 +116,8 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     # 1. synthesize -------------------------------------------------------------------------
     t0 = time.perf_counter()
     say(f"synthesize: tracing the {scene} scene, {settings.rays:,} rays per LED onto {settings.shape}")
-    model, ill_key, ill_cached = synthesize_to_store(scene, settings.shape, settings.mm_per_px, store,
-                                                     rays=settings.rays, sampler="sobol")
+    model, ill_key, ill_cached = synthesize_stage.run(store, scene, settings.shape, settings.mm_per_px,
+                                                      rays=settings.rays, sampler="sobol")
     ill_path = store.path_for(ill_key)
     stages["synthesize"] = {"seconds": time.perf_counter() - t0, "cached": ill_cached, "key": ill_key.digest,
                             "path": str(ill_path), "rays_per_led": settings.rays, "sampler": "sobol",

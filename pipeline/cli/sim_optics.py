@@ -3,7 +3,7 @@
 Each command parses its options and calls one documented function:
 ``trace`` -> :func:`sim.lens_design.trace_report`, ``section`` -> :func:`sim.section.draw_section`,
 ``optimize-lens`` -> :func:`sim.lens_design.optimize_lens`, ``synthesize`` ->
-:func:`pipeline.stages.synthesize.synthesize_to_store`.
+:func:`pipeline.stages.synthesize.run`.
 """
 
 from __future__ import annotations
@@ -365,14 +365,14 @@ def _synthesize(args) -> int:
     import time
 
     from pipeline.base.store import StageStore
-    from pipeline.stages.synthesize import synthesize_to_store
+    from pipeline.stages import synthesize as synthesize_stage
     from sim.synthesize import save_illumination
 
     _check_rays(args)
     t0 = time.perf_counter()
     store = StageStore(args.cache) if args.cache else StageStore()
-    model, key, cached = synthesize_to_store(
-        args.scene, tuple(args.shape), args.mm_per_px, store, drive=_load_npy(args.drive, "drive"),
+    model, key, cached = synthesize_stage.run(
+        store, args.scene, tuple(args.shape), args.mm_per_px, drive=_load_npy(args.drive, "drive"),
         brightness=_load_npy(args.brightness, "brightness"), gains=_load_npy(args.gains, "gains"),
         exposure=args.exposure, rays=args.rays, sampler=args.sampler, seed=args.seed, method=args.method,
         device=_device(args.device, args.engine), dtype=args.dtype, engine=_engine(args))

@@ -49,8 +49,8 @@ from pipeline.base.registry import SOLVERS
 from pipeline.normals.lights import LightSource
 from pipeline.stages.base import StageSpec, record_key
 
-__all__ = ["SPEC", "load_lights", "capture_lights", "capture_region", "reference_frames", "marker_mask", "params", "compute", "run",
-           "node"]
+__all__ = ["SPEC", "load_lights", "capture_lights", "capture_region", "reference_frames", "marker_mask", "params",
+           "resolve", "compute", "run", "node"]
 
 # 2: only the capture's (or user's) mask is solved; 3: the lut solver applies the calibrated model
 # (per-bin position correction, tilt gain), markers are filled in, confidence and filled are written.
@@ -251,28 +251,33 @@ def reference_frames(cap) -> np.ndarray | None:
     return cap.data["reference"]
 
 
-def params(*, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3, dtype: str = "float32",
-           lights: str, mask=None, markers=None) -> dict:
-    """The key parameters; ``lights`` is ``calibration``, ``illumination`` or ``capture``;
-    ``mask``, a user's region (the capture's own is part of the capture's identity), enters
-    as its digest, and so does the marker mask filled in (``markers``, :func:`marker_mask`).
+def params(section: Mapping[str, Any]) -> dict:
+    """The key parameters of a normals section: ``solver``, ``ratio``, ``max_condition``,
+    ``dtype`` (defaults :data:`SPEC`'s) and ``lights`` (``calibration``, ``illumination`` or
+    ``capture``); ``mask``, a user's region (the capture's own is part of the capture's
+    identity), enters as its digest, and so does the marker mask filled in (``markers``,
+    :func:`marker_mask`).
 
     Examples
     --------
-    >>> params(solver="nearfield", lights="illumination")["solver"]
+    >>> params({"solver": "nearfield", "lights": "illumination"})["solver"]
     'nearfield'
     """
-    p = {"solver": SOLVERS.check(solver), "ratio": bool(ratio), "max_condition": float(max_condition),
-         "dtype": str(dtype), "lights": str(lights)}
-    if mask is not None:
-        from pipeline.base.hashing import digest
+    s = {**SPEC.defaults, **section}
+    p = {"solver": SOLVERS.check(s["solver"]), "ratio": bool(s["ratio"]), "max_condition": float(s["max_condition"]),
+         "dtype": str(s["dtype"]), "lights": str(s["lights"])}
+    for name in ("mask", "markers"):
+        if s.get(name) is not None:
+            from pipeline.base.hashing import digest
 
-        p["mask"] = digest(np.asarray(mask, bool))
-    if markers is not None:
-        from pipeline.base.hashing import digest
-
-        p["markers"] = digest(np.asarray(markers, bool))
+            p[name] = digest(np.asarray(s[name], bool))
     return p
+
+
+def resolve(section: dict, config: Mapping[str, Any], base: Path, source: str) -> None:
+    """Fill a run config's ``normals`` section in place: the lights default to the calibration
+    when the config calibrates, else to the synthesized illumination."""
+    section.setdefault("lights", "calibration" if "calibrate" in config else "illumination")
 
 
 def _stack(results, name: str) -> np.ndarray:
@@ -381,8 +386,8 @@ def run(store, cap, cap_key, lights: LightSource, *, solver: str = "lstsq", rati
     """``(record, key, cached)`` of the normals of ``cap`` (identified by ``cap_key``) through
     ``store``; ``mask``: a user's region (an array, see :func:`capture_region`) instead of the
     capture's; ``markers``: the marker mask to fill in (:func:`marker_mask`)."""
-    p = params(solver=solver, ratio=ratio, max_condition=max_condition, dtype=dtype,
-               lights=lights.source.split(":")[0], mask=mask, markers=markers)
+    p = params({"solver": solver, "ratio": ratio, "max_condition": max_condition, "dtype": dtype,
+                "lights": lights.source.split(":")[0], "mask": mask, "markers": markers})
     return SPEC.get_or_compute(
         store, p, [cap_key, lights.key],
         lambda: compute(cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, device=device,
@@ -407,6 +412,6 @@ def node(config: Mapping[str, Any], ctx):
         return compute(inputs["capture"], lights, solver=p["solver"], ratio=bool(p["ratio"]),
                        max_condition=float(p["max_condition"]), device=ctx.device, dtype=p["dtype"])
 
-    return Stage(SPEC.name, SPEC.version, params(**{k: p[k] for k in ("solver", "ratio", "max_condition", "dtype",
-                                                                      "lights")}),
+    return Stage(SPEC.name, SPEC.version, params({k: p[k] for k in ("solver", "ratio", "max_condition", "dtype",
+                                                                     "lights")}),
                  ["capture", light_stage], compute_node, schema=SPEC.schema)
