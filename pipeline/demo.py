@@ -40,11 +40,26 @@ class DemoSettings:
         self.rays = 300_000 if quick else 2_000_000
         self.ball_radius_mm = 2.0
         self.presses = 6 if quick else 10
-        self.modes = ("point", "monochromatic", "trichromatic", "multicolour")
+        self.modes = builtin_modes()
         self.noise_dn = 1.0
         self.bit_depth = 8
         self.faults = "drop=0.02,corrupt=0.02"  # the link is not perfect; capture must still label every frame
         self.camera_fps = 60.0  # the virtual camera's frame rate
+
+
+def builtin_modes() -> tuple[str, ...]:
+    """Every built-in lighting mode (:func:`pipeline.base.registry.list_modes`), most patterns
+    first: a new mode file is in the demo without a code change.
+
+    Examples
+    --------
+    >>> builtin_modes()[0], {"trichromatic", "multicolour"} <= set(builtin_modes())
+    ('point', True)
+    """
+    from pipeline.base.modes import load_mode
+    from pipeline.base.registry import list_modes
+
+    return tuple(sorted(list_modes(), key=lambda m: (-len(load_mode(m).frames), m)))
 
 
 def _press_layout(settings: DemoSettings) -> tuple[list[float], list[tuple[float, float]]]:

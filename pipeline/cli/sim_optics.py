@@ -8,7 +8,6 @@ Each command parses its options and calls one documented function:
 
 from __future__ import annotations
 
-from pathlib import Path
 
 from pipeline.cli._common import add_json_flag, print_json
 from pipeline.base.errors import UserError
@@ -231,10 +230,9 @@ def _save_image(img, path, title):
     im = ax.imshow(img.mean(axis=2) * 1e6, origin="lower", cmap="inferno")
     fig.colorbar(im, ax=ax, label="W/m^2 per W per LED")
     ax.set_title(title)
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    from sim.figures import save_figure
+
+    save_figure(fig, path, dpi=100)
 
 
 def _section(args) -> int:
