@@ -61,6 +61,23 @@ def test_nearfield_fast_equals_eager(coloured, masked):
     np.testing.assert_array_equal(got.normals[~got.mask], np.tile([0, 0, 1], ((~got.mask).sum(), 1)))
 
 
+def test_lstsq_fast_equals_eager():
+    """``lstsq``'s fast path (the far-field vectors at every pixel through the near-field kernel)
+    against its eager solve path, both from the registry through ``frame_solver``."""
+    from pipeline.normals.lights import LightSource
+    from pipeline.stages.fast_solvers import frame_solver
+
+    frames, lights, _ = _uint8_scene()
+    P, H, W, C = frames.shape
+    src = LightSource(field=lights, source="test")  # far field: the light field at the image centre
+    fast, eager = (frame_solver("lstsq", src, shape=(H, W), fast=f) for f in (True, False))
+    assert (fast.method, eager.method) == ("fast", "eager")
+    a, b = fast.solve(frames), eager.solve(frames)
+    both = a.mask & b.mask
+    assert (a.mask == b.mask).mean() > 0.999 and both.mean() > 0.5
+    np.testing.assert_allclose(a.normals[both], b.normals[both], atol=1e-4)
+
+
 def test_nearfield_batched_equals_fast(device):
     from pipeline.normals.batched import NearFieldBatched
     from pipeline.normals.fast import NearFieldFast
