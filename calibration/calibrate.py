@@ -16,16 +16,25 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from pipeline.base.capture import Capture, read_capture
 from calibration.detect import Circle, DetectOptions, detect_contacts
 from calibration.labels import capture_label_circles, has_labels, label_errors
-from calibration.models import (MODEL_NAMES, CalibrationModel, FarFieldModel, LightFieldModel, LUTModel, MLPModel,
-                                NearFieldModel, TracedModel, check_light_rank)
+from calibration.models import (
+    MODEL_NAMES,
+    CalibrationModel,
+    FarFieldModel,
+    LightFieldModel,
+    LUTModel,
+    MLPModel,
+    NearFieldModel,
+    TracedModel,
+    check_light_rank,
+)
+from calibration.models.base import fit_tilt_gain, scale_tilt
 from calibration.models.led_geometry import geometry_basis
 from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
-from calibration.models.base import fit_tilt_gain, scale_tilt
 from calibration.validate import INVALID_ERROR_DEG, cross_validate, cv_report
+from pipeline.base.capture import Capture, read_capture
 from pipeline.base.errors import UserError
 from pipeline.evaluate import angular_error_deg
 from sim.illumination_model import IlluminationModel

@@ -26,18 +26,21 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from calibration.ballfit import ball_fit
-from pipeline.base.capture import Capture, read_capture
 from calibration.labels import capture_label_circles, has_labels, label_circles
 from calibration.samples import Samples, collect_samples
 from calibration.validate import INVALID_ERROR_DEG
+from pipeline.base.capture import Capture, read_capture
 from pipeline.base.errors import UserError
 from pipeline.evaluate import angular_error_deg
 from sim.geometry.shapes import cap_depth
+
+if TYPE_CHECKING:
+    from calibration.detect import Circle
 
 __all__ = ["evaluate_calibration", "evaluate_models", "angular_stats", "label_circles", "format_report", "CV_GAP_WARN_DEG",
            "TEST_TRUTH"]

@@ -186,7 +186,7 @@ def fixed_truth_cv(capture: Capture, ball_radius_mm: float, model: str, *, judge
     presses' ``judge`` circles: ``detected`` (:data:`calibration.evaluate.TEST_TRUTH`: the edge
     detector alone, 2 px margin) or ``labels``. Predictions are not tilt-corrected.
     """
-    from calibration.calibrate import model_factories, find_circles
+    from calibration.calibrate import find_circles, model_factories
     from calibration.evaluate import TEST_TRUTH
     from calibration.validate import cross_validate
 

@@ -17,10 +17,10 @@ import numpy as np
 
 from pipeline.base.capture import Capture
 from pipeline.base.frames import pixel_to_recon
+from pipeline.base.modes import LightingMode, ModeFrame
 from sim.geometry import sphere
 from sim.geometry.shapes import cap_depth
 from sim.illumination_model import IlluminationModel
-from pipeline.base.modes import LightingMode, ModeFrame
 from sim.point_source import point_source_field, ring_geometry
 from sim.render import RenderSettings, auto_exposure
 from sim.rendered_capture import render_capture

@@ -13,8 +13,8 @@ from typing import Any, Callable
 import numpy as np
 
 from calibration.models.base import CalibrationModel
-from pipeline.evaluate import angular_error_deg
 from calibration.samples import Samples
+from pipeline.evaluate import angular_error_deg
 
 __all__ = ["cross_validate", "cv_report", "fold_assignment"]
 

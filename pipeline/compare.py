@@ -187,11 +187,11 @@ def compare_captures(captures: dict[str, Any], *, illumination=None, calibration
     out : path, optional
         Folder for per-run outputs (normals/depth files and PNGs).
     """
+    from pipeline.base.store import Record, read_record
     from pipeline.evaluate import angular_error_deg
     from pipeline.normals.lights import applicable_solvers
     from pipeline.outputs import depth_colormap_rgb, normal_map_rgb
     from pipeline.reconstruct import reconstruct
-    from pipeline.base.store import Record, read_record
 
     if not captures:
         raise UserError("compare-modes: no captures to compare")
@@ -317,8 +317,8 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
     from pipeline.base.modes import list_modes
     from pipeline.base.store import StageStore, read_record
     from pipeline.report import Report
-    from pipeline.stages.base import record_key
     from pipeline.stages import synthesize as synthesize_stage
+    from pipeline.stages.base import record_key
     from pipeline.stages.synthesize import illumination_model
     from sim.rendered_capture import sphere_presses
 

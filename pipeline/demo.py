@@ -19,7 +19,6 @@ error maps per mode and solver, with a table of errors and times.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path

@@ -14,10 +14,9 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.evaluate import angular_error_deg
-
 from calibration.samples import Samples
 from pipeline.base.errors import UserError
+from pipeline.evaluate import angular_error_deg
 
 __all__ = ["CalibrationModel", "LightFieldModel", "solve_normals", "check_light_rank", "fit_tilt_gain", "scale_tilt"]
 

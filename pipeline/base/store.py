@@ -573,8 +573,10 @@ class StageStore:
         for e in self.entries():
             if e.kind != "temp":
                 continue
-            pid = int(_TEMP_RE.match(e.path.name).group("pid"))
-            if not include_live and _pid_alive(pid):
+            m = _TEMP_RE.match(e.path.name)
+            if m is None:  # an entry of kind "temp" matched this pattern when it was listed
+                continue
+            if not include_live and _pid_alive(int(m.group("pid"))):
                 continue
             try:
                 e.path.unlink()

@@ -243,7 +243,6 @@ def measure_startup() -> dict:
     """A fresh process: import, precompute, first frame (cached compiled code); and the compile
     itself, in a process with an empty Numba cache."""
     import tempfile
-
     from pathlib import Path
 
     import pipeline

@@ -127,8 +127,8 @@ def _paste(res, pixels):
 
 def _end_to_end(rec, device: str) -> dict:
     """``reconstruct`` of the specular sphere from its file, per solver (fresh store: no cache)."""
-    from pipeline.reconstruct import reconstruct
     from pipeline.base.capture import write_capture
+    from pipeline.reconstruct import reconstruct
 
     res = {}
     with tempfile.TemporaryDirectory() as tmp:

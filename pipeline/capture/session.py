@@ -30,11 +30,11 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from pipeline.base.errors import UserError
 from pipeline.capture.client import RingClient
 from pipeline.capture.emulator import parse_faults
 from pipeline.capture.firmware_host import ring_emulator
 from pipeline.capture.plan import CaptureResult, CaptureSettings, run_capture
-from pipeline.base.errors import UserError
 
 if TYPE_CHECKING:
     from pipeline.base.camera import Camera

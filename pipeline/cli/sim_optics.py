@@ -8,9 +8,8 @@ Each command parses its options and calls one documented function:
 
 from __future__ import annotations
 
-
-from pipeline.cli._common import add_json_flag, print_json
 from pipeline.base.errors import UserError
+from pipeline.cli._common import add_json_flag, print_json
 
 SAMPLERS = ("grid", "random", "stratified", "sobol")
 METHODS = ("hits", "image", "trace")

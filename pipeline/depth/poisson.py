@@ -16,8 +16,13 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft
 
-from pipeline.depth._common import (DepthResult, anchor_to_border, divergence_neumann, half_pixel_gradients,
-                                    pixel_gradients)
+from pipeline.depth._common import (
+    DepthResult,
+    anchor_to_border,
+    divergence_neumann,
+    half_pixel_gradients,
+    pixel_gradients,
+)
 
 __all__ = ["poisson_dct", "poisson_dst", "dst_eigenvalues"]
 

@@ -11,13 +11,13 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
+import numpy as np  # noqa: F401 - the examples (doctests) use it
 import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
-from pipeline.normals.masking import solves_in_mask
 from pipeline.normals._lstsq import finalize
+from pipeline.normals.masking import solves_in_mask
 from pipeline.normals.result import NormalResult
 
 __all__ = ["solve_cauchy", "usable_observations"]

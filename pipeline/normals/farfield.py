@@ -11,8 +11,8 @@ import torch
 
 from pipeline.normals import _inputs, _lstsq, fused
 from pipeline.normals import _torch as T
-from pipeline.normals.masking import PixelMask, masked_solve
 from pipeline.normals._lstsq import concat, finalize, finalize_tensors, to_result
+from pipeline.normals.masking import PixelMask, masked_solve
 from pipeline.normals.result import NormalResult
 
 __all__ = ["FarFieldSolver", "solve_farfield"]

@@ -121,7 +121,7 @@ def blocked(a: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, valid0, iterations, start, stop,
+def _nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, valid0, iterations, start, stop,  # noqa: C901 - compiled: the loop body stays one function so Numba vectorises it
                       normals, albedo, residual, mask):  # pragma: no cover - compiled
     """Pixels ``start:stop`` of observation planes ``obs (N, M)``: moments, solve, outputs.
 
@@ -461,7 +461,7 @@ class NearFieldFast:
 
     def set_dark(self, dark) -> None:
         """Subtract ``dark (H, W, C)`` (None: nothing) from every later frame."""
-        N, M = self.n_obs, len(self.index)
+        N = self.n_obs
         if dark is None:
             self.dark = np.zeros((0, 0, 0), np.float32)  # absent: the kernel skips it
             return

@@ -8,13 +8,13 @@ once (normal equations, or QR for the reference path) and a frame costs one weig
 
 from __future__ import annotations
 
-import numpy as np
+import numpy as np  # noqa: F401 - the examples (doctests) use it
 import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
-from pipeline.normals.masking import PixelMask
 from pipeline.normals._lstsq import finalize
+from pipeline.normals.masking import PixelMask
 from pipeline.normals.result import NormalResult
 
 __all__ = ["NearFieldSolver", "solve_nearfield"]

@@ -99,8 +99,8 @@ def run(store, scene, shape, mm_per_px: float, *, force: bool = False, heal: boo
     whether the entry was read back instead of traced.
     """
     from sim.optics.multisource import METHODS
-    from sim.synthesize import check_inputs, model_from_record, synthesize_record
     from sim.scene import Scene, load_scene
+    from sim.synthesize import check_inputs, model_from_record, synthesize_record
 
     sc = scene if isinstance(scene, Scene) else load_scene(scene)
     full = dict(drive=None, brightness=None, gains=None, exposure=1.0, rays=None, sampler=None, seed=None,

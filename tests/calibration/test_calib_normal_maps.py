@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from calibration.ballfit import ball_fit, fit_sphere
-from sim.geometry.shapes import cap_depth
 from calibration.truth import sphere_cap
+from sim.geometry.shapes import cap_depth
 
 
 @pytest.fixture(scope="module")

@@ -61,7 +61,7 @@ def test_hits_lie_on_the_sag_and_normals_are_gradients(k):
         hits += int(m.sum())
         # The normal is the surface's: perpendicular to the sag's meridian tangent, pointing up-out.
         n = top.normal(tuple(c[near][ok] for c in p))
-        r, zr = rho[near][ok], p[2][near][ok]
+        r = rho[near][ok]
         h = 1e-6
         slope = -(conic_sag(r + h, R, k) - conic_sag(r - h, R, k)) / (2 * h)  # dz/drho
         nr = (n[0] * p[0][near][ok] + n[1] * p[1][near][ok]) / r.clamp_min(1e-12)

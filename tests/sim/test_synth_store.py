@@ -2,14 +2,14 @@
 
 import numpy as np
 import pytest
+import torch
 
 from pipeline.base.errors import UserError
 from pipeline.base.store import StageStore, StoreError
+from pipeline.stages.synthesize import run as run_synthesize
 from sim.illumination_model import IlluminationModel, light_matrices
 from sim.scene import load_scene
-from pipeline.stages.synthesize import run as run_synthesize
 from sim.synthesize import default_illumination, load_illumination, save_illumination, synthesize
-import torch
 
 # Two cores shared by several test runs: a second intra-op thread mostly waits on barriers
 # (measured 4-10x slower per op under that load), so the tracer tests run single-threaded.

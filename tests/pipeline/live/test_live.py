@@ -127,7 +127,7 @@ def video_and_calibration(tmp_path_factory, store):
     import cv2
 
     from pipeline.base.modes import load_mode
-    from pipeline.base.store import StageStore, write_record, Record
+    from pipeline.base.store import Record, StageStore, write_record
     from pipeline.live import virtual_calibration
     from sim.contacts import contact_surfaces
     from sim.render import bare_ring_illumination

@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 import torch
 
-from support_recon import _one_torch_thread  # noqa: F401  (autouse: one torch thread)
 from pipeline.bench.recon_scene import render_sphere_scene
+from support_recon import _one_torch_thread  # noqa: F401  (autouse: one torch thread)
 
 
 def _uint8_scene(shape=(36, 52), patterns=6, seed=0, coloured=False):

@@ -6,11 +6,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.normals import (FarFieldSolver, NearFieldSolver, ratio_to_reference, solve_farfield,
-                              solve_nearfield, solve_cauchy)
 from pipeline.base.frames import gradients_to_normals, normals_to_gradients
-from support_recon import (NearestColourTable, _one_torch_thread, angular_error_deg,  # noqa: F401
-                           channel_groups, render_sphere_scene)
+from pipeline.normals import (
+    FarFieldSolver,
+    NearFieldSolver,
+    ratio_to_reference,
+    solve_cauchy,
+    solve_farfield,
+    solve_nearfield,
+)
+from support_recon import NearestColourTable, _one_torch_thread, angular_error_deg, channel_groups, render_sphere_scene  # noqa: F401
 
 LIGHTS = np.array([[0.0, 0.0, 1.0], [0.6, 0.0, 0.8], [0.0, 0.6, 0.8], [-0.6, 0.0, 0.8], [0.0, -0.6, 0.8],
                    [0.4, 0.4, 0.82]])

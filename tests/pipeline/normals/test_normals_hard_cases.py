@@ -10,9 +10,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from pipeline.normals import FarFieldSolver, NearFieldSolver, solve_farfield, solve_nearfield, solve_cauchy
-from support_recon import (_one_torch_thread, angular_error_deg, channel_groups,  # noqa: F401
-                           render_sphere_scene)
+from pipeline.normals import FarFieldSolver, NearFieldSolver, solve_cauchy, solve_farfield, solve_nearfield
+from support_recon import _one_torch_thread, angular_error_deg, channel_groups, render_sphere_scene  # noqa: F401
 
 FIELDS = ("normals", "albedo", "residual", "condition")
 

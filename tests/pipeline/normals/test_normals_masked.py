@@ -8,8 +8,15 @@ import numpy as np
 import pytest
 
 from pipeline.depth import integrate
-from pipeline.normals import (FarFieldSolver, NearFieldSolver, PixelMask, solve_farfield,
-                              solve_nearfield, solve_cauchy, solve_robust_irls)
+from pipeline.normals import (
+    FarFieldSolver,
+    NearFieldSolver,
+    PixelMask,
+    solve_cauchy,
+    solve_farfield,
+    solve_nearfield,
+    solve_robust_irls,
+)
 from pipeline.normals._torch import COND_CAP
 from pipeline.normals.masking import pixel_batches
 from support_recon import NearestColourTable, _one_torch_thread, channel_groups, render_sphere_scene  # noqa: F401
