@@ -40,7 +40,7 @@ import numpy as np
 from pipeline.base.errors import UserError
 from pipeline.base.registry import SOLVERS
 from pipeline.normals.lights import LightSource, check_lights
-from pipeline.normals.prepare import FramePrep
+from pipeline.normals.prepare import FramePrep, full_scale
 
 __all__ = ["FrameSolver", "solve_capture", "stack_lstsq", "stack_nearfield", "stack_robust", "stack_cauchy"]
 
@@ -85,12 +85,16 @@ class FrameSolver:
         self.method = "eager"
 
     @staticmethod
-    def prep_for(solver: str, shape, **kw) -> FramePrep:
+    def prep_for(solver: str, shape, *, raw_dtype=None, bit_depth: int | None = None, **kw) -> FramePrep:
         """The :class:`~pipeline.normals.prepare.FramePrep` of frames of ``shape`` for ``solver``
-        (its registry entry says whether it fills markers itself and reads whole frames)."""
+        (its registry entry says whether it fills markers itself and reads whole frames); with
+        the raw frames' ``raw_dtype`` (and ``bit_depth``), values at full scale are flagged
+        saturated (:func:`~pipeline.normals.prepare.full_scale`). ``kw``: the other
+        :class:`~pipeline.normals.prepare.FramePrep` fields."""
         info = SOLVERS.get(solver).info
+        saturation = None if raw_dtype is None else full_scale(raw_dtype, bit_depth)
         return FramePrep(shape, fills_markers=bool(info.get("fills_markers")), whole_frame=bool(info.get("whole_frame")),
-                         **kw)
+                         saturation=saturation, **kw)
 
     def solve_stack(self, raw, threads: int | None = 1) -> list:
         """Raw frames ``(K, P, H, W, C)`` -> one :class:`~pipeline.normals.result.NormalResult`

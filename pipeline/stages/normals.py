@@ -318,23 +318,21 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         ``mask``, ``count``; ``confidence (K, H, W)`` from the calibration models; ``filled
         (H, W)`` with markers.
     """
-    from pipeline.normals.prepare import full_scale
     from pipeline.normals.solve import FrameSolver
 
-    raw = cap.data["frames"]
-    region = capture_region(cap, mask)
+    raw, region, reference = cap.data["frames"], capture_region(cap, mask), reference_frames(cap)
     if batched is None:
         batched = str(device) != "cpu"
     if (batched and solver == "nearfield" and not ratio and region is None and markers is None
             and lights.field is not None and str(dtype) == "float32"):
         return _compute_batched(cap, lights, max_condition=max_condition, device=device)
-    prep = FrameSolver.prep_for(solver, raw.shape[2:4], dark=cap.data.get("dark"), markers=markers, region=region,
-                                saturation=full_scale(raw.dtype, cap.meta.get("bit_depth")),
+    prep = FrameSolver.prep_for(solver, raw.shape[2:4], raw_dtype=raw.dtype, bit_depth=cap.meta.get("bit_depth"),
+                                dark=cap.data.get("dark"), markers=markers, region=region,
                                 name=str(cap.path or "capture"))
-    fs = FrameSolver(solver, lights, prep, reference=reference_frames(cap), ratio=ratio, max_condition=max_condition,
-                     device=device, dtype=dtype, compile=compile)
-    return _record(fs.solve_stack(raw, threads), cap, lights, solver=solver, ratio=ratio,
-                   max_condition=max_condition, region=region, markers=prep.markers)
+    res = FrameSolver(solver, lights, prep, reference=reference, ratio=ratio, max_condition=max_condition,
+                      device=device, dtype=dtype, compile=compile).solve_stack(raw, threads)
+    return _record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, region=region,
+                   markers=prep.markers)
 
 
 def _record(res: list, cap, lights: LightSource, *, solver: str, ratio: bool, max_condition: float, region,
