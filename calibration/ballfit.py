@@ -23,22 +23,7 @@ from typing import Any
 import numpy as np
 from scipy import ndimage, optimize
 
-__all__ = ["fit_sphere", "cap_region", "ball_fit", "sphere_depth_mm"]
-
-
-def sphere_depth_mm(ball_radius_mm: float, contact_radius_mm: float) -> float:
-    """Depth of a ball of radius ``R`` whose contact disc has radius ``a``: ``R - sqrt(R^2 - a^2)``.
-
-    ``a`` is capped at ``R`` (a disc wider than the ball means the edge seen is not the
-    contact's own).
-
-    Examples
-    --------
-    >>> round(sphere_depth_mm(2.0, 1.2), 6)
-    0.4
-    """
-    a = min(float(contact_radius_mm), float(ball_radius_mm))
-    return float(ball_radius_mm - np.sqrt(ball_radius_mm ** 2 - a * a))
+__all__ = ["fit_sphere", "cap_region", "ball_fit"]
 
 
 def fit_sphere(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> dict[str, float]:

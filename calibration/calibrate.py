@@ -16,17 +16,27 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
-from pipeline.base.capture import Capture, read_capture
 from calibration.detect import Circle, DetectOptions, detect_contacts
 from calibration.labels import capture_label_circles, has_labels, label_errors
-from calibration.models import (MODEL_NAMES, CalibrationModel, FarFieldModel, LightFieldModel, LUTModel, MLPModel,
-                                NearFieldModel, TracedModel, check_light_rank)
+from calibration.models import (
+    MODEL_NAMES,
+    CalibrationModel,
+    FarFieldModel,
+    LightFieldModel,
+    LUTModel,
+    MLPModel,
+    NearFieldModel,
+    TracedModel,
+    check_light_rank,
+)
+from calibration.models.base import fit_tilt_gain, scale_tilt
 from calibration.models.led_geometry import geometry_basis
 from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
-from calibration.models.base import angular_error_deg, fit_tilt_gain, scale_tilt
 from calibration.validate import INVALID_ERROR_DEG, cross_validate, cv_report
+from pipeline.base.capture import Capture, read_capture
 from pipeline.base.errors import UserError
+from pipeline.evaluate import angular_error_deg
 from sim.illumination_model import IlluminationModel
 
 __all__ = ["CalibrationResult", "CircleFit", "calibrate", "find_circles", "label_errors", "read_illumination", "CIRCLE_COLUMNS",
@@ -207,7 +217,7 @@ def read_illumination(path: str | Path) -> IlluminationModel:
         raise UserError(f"{path}: {exc}") from None
 
 
-def _factories(names, capture: Capture, illumination, saturation, model_options) -> dict[str, Callable | str]:
+def model_factories(names, capture: Capture, illumination, saturation, model_options) -> dict[str, Callable | str]:
     out: dict[str, Callable | str] = {}
     opts = model_options or {}
     p, c = capture.frames.shape[1], capture.frames.shape[4]
@@ -343,7 +353,7 @@ def _refine_factory(refine_model: str, cap: Capture, illumination, saturation, m
     if refine_model == "auto" and illumination is None:
         return None, None
     name = "traced" if refine_model == "auto" else refine_model
-    make = _factories([name], cap, illumination, saturation, model_options)[name]
+    make = model_factories([name], cap, illumination, saturation, model_options)[name]
     if isinstance(make, str):
         raise UserError(f"calibrate: centre refinement with the '{name}' model is impossible: {make}")
     return name, make
@@ -461,7 +471,7 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
         sat = sat - float(np.asarray(cap.dark).min())
     mask = _marker_mask(markers, cap, ref)
     if mask is not None:
-        from calibration.markers import fill_markers
+        from pipeline.normals.prepare import fill_markers
 
         frames, ref = fill_markers(frames, mask), fill_markers(ref, mask)
     t0 = time.perf_counter()
@@ -553,7 +563,7 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
                                            found.circles, found.samples)
     ball_radius_mm = found.ball_radius_mm
     frames, rank, t_detect, refine_report = found.frames, found.light_rank_ratio, found.detect_seconds, found.refine
-    factories = _factories(names, cap, illumination, sat, model_options)
+    factories = model_factories(names, cap, illumination, sat, model_options)
     fitted: dict[str, CalibrationModel] = {}
     reports: dict[str, dict[str, Any]] = {}
     for name, make in factories.items():

@@ -26,17 +26,21 @@ from __future__ import annotations
 
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from calibration.ballfit import ball_fit, sphere_depth_mm
-from pipeline.base.capture import Capture, read_capture
+from calibration.ballfit import ball_fit
 from calibration.labels import capture_label_circles, has_labels, label_circles
-from calibration.models.base import angular_error_deg
 from calibration.samples import Samples, collect_samples
 from calibration.validate import INVALID_ERROR_DEG
+from pipeline.base.capture import Capture, read_capture
 from pipeline.base.errors import UserError
+from pipeline.evaluate import angular_error_deg
+from sim.geometry.shapes import cap_depth
+
+if TYPE_CHECKING:
+    from calibration.detect import Circle
 
 __all__ = ["evaluate_calibration", "evaluate_models", "angular_stats", "label_circles", "format_report", "CV_GAP_WARN_DEG",
            "TEST_TRUTH"]
@@ -111,7 +115,7 @@ def _press_depths(cap: Capture, circles: list[Circle], ball_radius_mm: float, mm
     # The detected radius, not the truth's clamped one: a visible edge at or beyond the ball's
     # radius means a press about as deep as the ball's equator (depth ~ R), whatever the truth
     # disc keeps for safety.
-    return ([sphere_depth_mm(ball_radius_mm, c.radius_px * mm_per_px) if c.accepted else None for c in circles],
+    return ([float(cap_depth(ball_radius_mm, c.radius_px * mm_per_px)) if c.accepted else None for c in circles],
             "R - sqrt(R^2 - a^2), a the detected contact radius capped at R")
 
 

@@ -256,6 +256,23 @@ def _folder_frames(folder: Path, template: str | None):
     return presses, frames, patterns
 
 
+def _source_frames(src: Path, pattern: str | None):
+    """``(names, frames (N, P, H, W, C), pattern_names, kind)`` of a folder of images or a video."""
+    if src.is_dir():
+        names, frames, pattern_names = _folder_frames(src, pattern)
+        return names, frames, pattern_names, "images"
+    if not src.is_file():
+        raise UserError(f"{src}: no such folder or video file")
+    if pattern is not None:
+        raise UserError(f"{src}: --pattern applies to a folder of images, not to a file")
+    if src.suffix.lower() in IMAGE_SUFFIXES:
+        raise UserError(f"{src}: a single image is not a capture (give the folder holding the reference and the "
+                        "presses, or a video)")
+    vid = read_video(src)
+    _check_same([(f"{src} frame {i}", f) for i, f in enumerate(vid)])
+    return [str(i) for i in range(len(vid))], np.stack(vid)[:, None], ["all"], "video"
+
+
 def load_images(source: str | Path, *, reference: str | None = None, pattern: str | None = None,
                 mm_per_px: float | None = None, ball_radius_mm: float | None = None, labels: str | Path | None = None,
                 markers: str | Path | None = None, profile=None) -> tuple[Capture, dict[str, Any]]:
@@ -307,21 +324,7 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
                         f"{mm_per_px})")
     if ball_radius_mm is not None and not (np.isfinite(ball_radius_mm) and ball_radius_mm > 0):
         raise UserError(f"{src}: --ball-radius must be a positive radius in mm, got {ball_radius_mm}")
-    if src.is_dir():
-        names, frames, pattern_names = _folder_frames(src, pattern)
-        kind = "images"
-    elif src.is_file():
-        if pattern is not None:
-            raise UserError(f"{src}: --pattern applies to a folder of images, not to a file")
-        if src.suffix.lower() in IMAGE_SUFFIXES:
-            raise UserError(f"{src}: a single image is not a capture (give the folder holding the reference and the "
-                            "presses, or a video)")
-        vid = read_video(src)
-        items = [(f"{src} frame {i}", f) for i, f in enumerate(vid)]
-        _check_same(items)
-        names, frames, pattern_names, kind = [str(i) for i in range(len(vid))], np.stack(vid)[:, None], ["all"], "video"
-    else:
-        raise UserError(f"{src}: no such folder or video file")
+    names, frames, pattern_names, kind = _source_frames(src, pattern)
     if len(names) < 2:
         raise UserError(f"{src}: only {len(names)} frame(s); a capture needs a reference and at least one press")
     if prof is not None:

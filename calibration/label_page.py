@@ -303,74 +303,85 @@ class LabelServer:
         self.thread.join(timeout=5)
 
 
+class _Handler(BaseHTTPRequestHandler):
+    """The labeller's requests; :func:`_handler` binds a session and its server."""
+
+    session: LabelSession
+    owner: LabelServer
+
+    def do_GET(self):  # noqa: N802 - http.server's name
+        if not self._host_ok():
+            return
+        path = self.path.split("?", 1)[0]
+        try:
+            self._get(path)
+        except UserError as exc:
+            self._json(404, {"error": str(exc)})
+
+    def _get(self, path: str) -> None:
+        session = self.session
+        if path in ("/", "/index.html"):
+            self._send(200, "text/html; charset=utf-8", PAGE.encode())
+        elif path == "/api/state":
+            self._json(200, session.summary())
+        elif _PRESS.match(path):
+            self._json(200, session.press(int(_PRESS.match(path)[1])))
+        elif _IMG.match(path):
+            kind, k = _IMG.match(path).groups()
+            img = session.frame_image(int(k)) if kind == "frame" else session.difference_image(int(k))
+            self._send(200, "image/png", png_bytes(img))
+        else:
+            self._json(404, {"error": f"not found: {path}"})
+
+    def do_POST(self):  # noqa: N802 - http.server's name
+        if not self._host_ok():
+            return
+        m = _PRESS.match(self.path.split("?", 1)[0])
+        if m is None:
+            self._json(404, {"error": f"not found: {self.path}"})
+            return
+        if self.headers.get("Content-Type", "").split(";")[0].strip() != "application/json":
+            self._json(415, {"error": "edits must be posted as application/json"})
+            return
+        try:
+            body = json.loads(self.rfile.read(int(self.headers.get("Content-Length") or 0)) or b"{}")
+            press = self._edit(int(m[1]), body)
+        except (ValueError, TypeError) as exc:
+            self._json(400, {"error": f"bad request: {exc}"})
+            return
+        except UserError as exc:
+            self._json(400, {"error": str(exc)})
+            return
+        self._json(200, {"ok": True, "press": press})
+
+    def _edit(self, k: int, body) -> dict:
+        action = body.get("action") if isinstance(body, dict) else None
+        if action == "set":
+            return self.session.set_label(k, body.get("x"), body.get("y"), body.get("radius_px"))
+        if action == "reject":
+            return self.session.reject(k)
+        if action == "clear":
+            return self.session.clear(k)
+        raise UserError(f"unknown action {action!r} (expected set, reject or clear)")
+
+    def _host_ok(self) -> bool:
+        if self.headers.get("Host") in self.owner.allowed_hosts:
+            return True
+        self._json(403, {"error": "this labeller answers only requests addressed to its own 127.0.0.1 address"})
+        return False
+
+    def _json(self, code, obj):
+        send_json(self, code, obj)
+
+    def _send(self, code, kind, body):
+        send(self, code, kind, body)
+
+    def log_message(self, *args):  # the terminal stays quiet
+        pass
+
+
 def _handler(session: LabelSession, owner: LabelServer):
-    class Handler(BaseHTTPRequestHandler):
-        def do_GET(self):  # noqa: N802 - http.server's name
-            if not self._host_ok():
-                return
-            path = self.path.split("?", 1)[0]
-            try:
-                if path in ("/", "/index.html"):
-                    self._send(200, "text/html; charset=utf-8", PAGE.encode())
-                elif path == "/api/state":
-                    self._json(200, session.summary())
-                elif _PRESS.match(path):
-                    self._json(200, session.press(int(_PRESS.match(path)[1])))
-                elif _IMG.match(path):
-                    kind, k = _IMG.match(path).groups()
-                    img = session.frame_image(int(k)) if kind == "frame" else session.difference_image(int(k))
-                    self._send(200, "image/png", png_bytes(img))
-                else:
-                    self._json(404, {"error": f"not found: {path}"})
-            except UserError as exc:
-                self._json(404, {"error": str(exc)})
-
-        def do_POST(self):  # noqa: N802 - http.server's name
-            if not self._host_ok():
-                return
-            m = _PRESS.match(self.path.split("?", 1)[0])
-            if m is None:
-                self._json(404, {"error": f"not found: {self.path}"})
-                return
-            if self.headers.get("Content-Type", "").split(";")[0].strip() != "application/json":
-                self._json(415, {"error": "edits must be posted as application/json"})
-                return
-            try:
-                body = json.loads(self.rfile.read(int(self.headers.get("Content-Length") or 0)) or b"{}")
-                k = int(m[1])
-                action = body.get("action") if isinstance(body, dict) else None
-                if action == "set":
-                    press = session.set_label(k, body.get("x"), body.get("y"), body.get("radius_px"))
-                elif action == "reject":
-                    press = session.reject(k)
-                elif action == "clear":
-                    press = session.clear(k)
-                else:
-                    raise UserError(f"unknown action {action!r} (expected set, reject or clear)")
-            except (ValueError, TypeError) as exc:
-                self._json(400, {"error": f"bad request: {exc}"})
-                return
-            except UserError as exc:
-                self._json(400, {"error": str(exc)})
-                return
-            self._json(200, {"ok": True, "press": press})
-
-        def _host_ok(self) -> bool:
-            if self.headers.get("Host") in owner.allowed_hosts:
-                return True
-            self._json(403, {"error": "this labeller answers only requests addressed to its own 127.0.0.1 address"})
-            return False
-
-        def _json(self, code, obj):
-            send_json(self, code, obj)
-
-        def _send(self, code, kind, body):
-            send(self, code, kind, body)
-
-        def log_message(self, *args):  # the terminal stays quiet
-            pass
-
-    return Handler
+    return type("LabelHandler", (_Handler,), {"session": session, "owner": owner})
 
 
 def serve_labeller(capture, *, port: int = 8766, ball_radius_mm: float | None = None, csv_path=None,

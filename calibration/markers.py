@@ -8,14 +8,14 @@ does not reflect the LEDs, so their pixels say nothing about the surface normal.
   :func:`skimage.feature.blob_log` finds the dots on it and each becomes a disc of radius
   ``sqrt(2) sigma + grow_px``;
 - or reads them from a **mask image** (non-zero = marker) (:func:`read_marker_mask`);
-- **fills** them in (:func:`fill_markers`) by OpenCV inpainting (Telea's fast marching, per
-  channel in float32, so 16-bit and float frames keep their values) before normals are
-  solved, and the pixels are marked invalid in the normal maps
+- and they are **filled** in before normals are solved
+  (:func:`pipeline.normals.prepare.fill_markers`, an image operation: OpenCV inpainting, per
+  channel in float32), and the pixels are marked invalid in the normal maps
   (:func:`calibration.normal_maps.predict_normal_maps`);
 - :func:`calibration.samples.collect_samples` leaves them out of the calibration samples.
 
 A marker that moves with the gel under a press further than ``grow_px`` leaves the reference's
-mask; give a larger ``grow_px`` (or a mask per frame to :func:`fill_markers`) for gels that
+mask; give a larger ``grow_px`` (or a mask per frame to the fill) for gels that
 shear a lot.
 """
 
@@ -26,17 +26,9 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.base.errors import UserError
+from pipeline.normals.prepare import check_marker_mask
 
-__all__ = ["detect_markers", "read_marker_mask", "resolve_markers", "fill_markers", "check_marker_mask",
-           "draw_markers"]
-
-
-def check_marker_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """``mask`` as bool ``(H, W)`` (or ``(N, H, W)``), checked against the image ``shape``."""
-    m = np.asarray(mask)
-    if m.shape[-2:] != tuple(shape) or m.ndim not in (2, 3):
-        raise ValueError(f"marker mask must be (H, W) = {tuple(shape)} (or (N, H, W)), got {m.shape}")
-    return m.astype(bool)
+__all__ = ["detect_markers", "read_marker_mask", "resolve_markers", "draw_markers"]
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
@@ -134,60 +126,6 @@ def resolve_markers(spec, reference: np.ndarray) -> np.ndarray | None:
     if isinstance(spec, np.ndarray):
         return check_marker_mask(spec, shape)
     return read_marker_mask(spec, shape)
-
-
-def fill_markers(frames: np.ndarray, mask: np.ndarray, *, radius_px: float = 3.0) -> np.ndarray:
-    """Fill marker pixels from their surroundings (OpenCV Telea inpainting), every frame and channel.
-
-    Parameters
-    ----------
-    frames : ndarray, shape (..., H, W, C)
-        Any stack of frames (``(N, P, H, W, C)``, ``(P, H, W, C)``, ``(H, W, C)``).
-    mask : ndarray, shape (H, W) or (N, H, W), bool
-        Marker pixels; ``(N, H, W)`` gives each of the N leading frames its own mask.
-    radius_px : float
-        Neighbourhood the inpainting draws from.
-
-    Returns
-    -------
-    ndarray, float32, same shape as ``frames``
-        Unchanged outside the mask.
-
-    Examples
-    --------
-    A smooth ramp with a hole is filled close to the ramp:
-
-    >>> img = np.tile(np.linspace(0, 100, 32, dtype=np.float32), (24, 1))[..., None]
-    >>> m = np.zeros((24, 32), bool); m[10:13, 15:18] = True
-    >>> bad = img.copy(); bad[m] = 0
-    >>> out = fill_markers(bad, m)
-    >>> float(np.abs(out - img)[m].max()) < 4, bool((out[~m] == img[~m]).all())
-    (True, True)
-    """
-    import cv2
-
-    f = np.asarray(frames, np.float32)
-    m = np.asarray(mask, bool)
-    if f.ndim < 3:
-        raise ValueError(f"fill_markers: frames must be (..., H, W, C), got {f.shape}")
-    h, w, c = f.shape[-3:]
-    m = check_marker_mask(m, (h, w))
-    lead = f.shape[:-3]
-    flat = f.reshape(-1, h, w, c).copy()
-    per_frame = m.ndim == 3
-    if per_frame and (not lead or m.shape[0] != lead[0]):
-        raise ValueError(f"fill_markers: a per-frame mask (N, H, W) needs frames (N, ..., H, W, C), got {f.shape} "
-                         f"and {m.shape}")
-    group = int(np.prod(lead[1:])) if per_frame else 1
-    for i in range(len(flat)):
-        mi = m[i // group] if per_frame else m
-        if not mi.any():
-            continue
-        m8 = mi.astype(np.uint8)
-        for ch in range(c):
-            flat[i, :, :, ch] = cv2.inpaint(np.ascontiguousarray(flat[i, :, :, ch]), m8, float(radius_px),
-                                            cv2.INPAINT_TELEA)
-    return flat.reshape(f.shape)
 
 
 def draw_markers(images: np.ndarray, spacing_px: float = 10.0, radius_px: float = 1.5, darkness: float = 0.75,

@@ -130,7 +130,7 @@ def predict_normal_maps(model, frames: np.ndarray, reference: np.ndarray | None 
         The LUT and the MLP key on the change against it, so a reference taken in the same
         session as the frames removes drift.
     markers : ndarray, shape (H, W), bool, optional
-        Printed marker pixels: filled in (:func:`calibration.markers.fill_markers`) before the
+        Printed marker pixels: filled in (:func:`pipeline.normals.prepare.fill_markers`) before the
         prediction and False in the mask.
 
     Returns
@@ -150,7 +150,7 @@ def predict_normal_maps(model, frames: np.ndarray, reference: np.ndarray | None 
     stack = np.where(np.isfinite(stack), stack, 0.0).astype(np.float32)
     meta: dict[str, Any] = {"model": getattr(model, "name", type(model).__name__)}
     if markers is not None:
-        from calibration.markers import check_marker_mask, fill_markers
+        from pipeline.normals.prepare import check_marker_mask, fill_markers
 
         markers = check_marker_mask(markers, (h, w))
         stack = fill_markers(stack, markers)

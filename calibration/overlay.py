@@ -7,8 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.base.capture import Capture
 from calibration.detect import Circle
+from pipeline.base.capture import Capture
 
 __all__ = ["overlay_image", "write_overlay"]
 

@@ -186,7 +186,7 @@ def fixed_truth_cv(capture: Capture, ball_radius_mm: float, model: str, *, judge
     presses' ``judge`` circles: ``detected`` (:data:`calibration.evaluate.TEST_TRUTH`: the edge
     detector alone, 2 px margin) or ``labels``. Predictions are not tilt-corrected.
     """
-    from calibration.calibrate import _factories, find_circles
+    from calibration.calibrate import find_circles, model_factories
     from calibration.evaluate import TEST_TRUTH
     from calibration.validate import cross_validate
 
@@ -196,7 +196,7 @@ def fixed_truth_cv(capture: Capture, ball_radius_mm: float, model: str, *, judge
     found = find_circles(sub, ball_radius_mm, **{k: v for k, v in calibrate_kwargs.items() if k in keys})
     truth = (dict(TEST_TRUTH) if judge == "detected" else {**TEST_TRUTH, "circles": "labels"})
     ref = find_circles(sub, ball_radius_mm, markers=calibrate_kwargs.get("markers"), **truth)
-    make = _factories([model], found.capture, calibrate_kwargs.get("illumination"), found.saturation,
+    make = model_factories([model], found.capture, calibrate_kwargs.get("illumination"), found.saturation,
                       calibrate_kwargs.get("model_options"))[model]
     cv = cross_validate(make, found.samples, found.reference, folds=calibrate_kwargs.get("folds", 5),
                         seed=calibrate_kwargs.get("seed", 0), judge=ref.samples)

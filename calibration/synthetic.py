@@ -17,9 +17,10 @@ import numpy as np
 
 from pipeline.base.capture import Capture
 from pipeline.base.frames import pixel_to_recon
-from sim.geometry import sphere
-from sim.illumination_model import IlluminationModel
 from pipeline.base.modes import LightingMode, ModeFrame
+from sim.geometry import sphere
+from sim.geometry.shapes import cap_depth
+from sim.illumination_model import IlluminationModel
 from sim.point_source import point_source_field, ring_geometry
 from sim.render import RenderSettings, auto_exposure
 from sim.rendered_capture import render_capture
@@ -199,9 +200,8 @@ def synthetic_sphere_capture(shape: tuple[int, int] = (60, 80), num_presses: int
     exposure = auto_exposure(model, drive, target_dn=peak_dn, gains=gains)
     settings = RenderSettings(exposure=exposure, gains=gains, read_noise=float(noise_dn), saturation=True,
                               bit_depth=8)
-    # Contact radius a on a ball of radius R: pressed depth d = R - sqrt(R^2 - a^2).
     a_mm = radii_px * mm_per_px
-    depths = ball_radius_mm - np.sqrt(ball_radius_mm ** 2 - a_mm ** 2)
+    depths = cap_depth(ball_radius_mm, a_mm)
     x, y = pixel_to_recon(centers_rc[:, 0], centers_rc[:, 1], (h, w), mm_per_px)
     presses = [sphere((h, w), mm_per_px, ball_radius_mm, float(d), center=(float(cx), float(cy)))
                for d, cx, cy in zip(depths, np.atleast_1d(x), np.atleast_1d(y))]

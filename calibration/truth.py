@@ -5,7 +5,9 @@ A ball of radius ``R`` (mm) pressed into the gel leaves a contact disc of radius
 Inside, at reconstruction-frame offset ``(dx, dy)`` from the disc centre (``d^2 = dx^2 +
 dy^2``), the height is ``h = sqrt(R^2 - d^2) - sqrt(R^2 - a^2)`` (a bump toward the camera,
 zero on the rim) and the gradients are ``dh/dx = -dx / sqrt(R^2 - d^2)`` (same for ``y``),
-turned into normals by :func:`pipeline.base.frames.gradients_to_normals`. Pixel offsets are mapped to
+turned into normals by :func:`pipeline.base.frames.gradients_to_normals`. The cap is the one
+the renderer presses, :func:`sim.geometry.shapes.sphere`, at the depth
+:func:`sim.geometry.shapes.cap_depth` of the contact radius; the centre's pixel is mapped to
 mm by :func:`pipeline.base.frames.pixel_to_recon`, so the signs follow the project's conventions.
 """
 
@@ -16,6 +18,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from pipeline.base.frames import gradients_to_normals, pixel_to_recon
+from sim.geometry.shapes import cap_depth, sphere
 
 __all__ = ["SphereCap", "sphere_cap"]
 
@@ -79,18 +82,11 @@ def sphere_cap(shape: tuple[int, int], center_rc: tuple[float, float], contact_r
         raise ValueError(
             f"sphere_cap: contact radius {contact_radius_px} px = {a_mm:.4f} mm must be in [0, ball radius "
             f"{ball_radius_mm} mm)")
-    rows, cols = np.meshgrid(np.arange(h, dtype=float), np.arange(w, dtype=float), indexing="ij")
-    # Offsets from the centre in the reconstruction frame: map both through the same camera
-    # model so that the row -> -y flip comes from pipeline.base.frames, not from here.
-    x, y = pixel_to_recon(rows, cols, (h, w), mm_per_px)
     x0, y0 = pixel_to_recon(center_rc[0], center_rc[1], (h, w), mm_per_px)
-    dx, dy = x - x0, y - y0
-    d2 = dx * dx + dy * dy
-    contact = d2 < a_mm * a_mm
-    zc = np.sqrt(np.clip(ball_radius_mm ** 2 - d2, 0.0, None))
-    zc_safe = np.where(contact, zc, 1.0)
-    p = np.where(contact, -dx / zc_safe, 0.0)
-    q = np.where(contact, -dy / zc_safe, 0.0)
-    height = np.where(contact, zc - np.sqrt(ball_radius_mm ** 2 - a_mm ** 2), 0.0)
-    return SphereCap(height=height, normals=gradients_to_normals(p, q), gradients=np.stack([p, q], axis=-1),
-                     contact=contact)
+    if a_mm == 0:
+        zero = np.zeros((h, w))
+        return SphereCap(height=zero, normals=gradients_to_normals(zero, zero), gradients=np.zeros((h, w, 2)),
+                         contact=np.zeros((h, w), bool))
+    f = sphere((h, w), mm_per_px, ball_radius_mm, float(cap_depth(ball_radius_mm, a_mm)), center=(float(x0), float(y0)))
+    return SphereCap(height=f.height, normals=gradients_to_normals(f.p, f.q), gradients=np.stack([f.p, f.q], axis=-1),
+                     contact=f.contact)

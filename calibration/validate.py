@@ -12,8 +12,9 @@ from typing import Any, Callable
 
 import numpy as np
 
-from calibration.models.base import CalibrationModel, angular_error_deg
+from calibration.models.base import CalibrationModel
 from calibration.samples import Samples
+from pipeline.evaluate import angular_error_deg
 
 __all__ = ["cross_validate", "cv_report", "fold_assignment"]
 

@@ -240,7 +240,7 @@ def _with_choices(schema: Any, choices: Mapping[str, Any]) -> Any:
     if isinstance(schema, Mapping):
         out = {k: _with_choices(v, choices) for k, v in schema.items()}
         name = schema.get("x-choices")
-        if name in choices:
+        if isinstance(name, str) and name in choices:
             out["enum"] = list(choices[name])
         return out
     if isinstance(schema, list):

@@ -172,7 +172,9 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
         if path is not None and not Path(path).is_file():
             raise UserError(f"{flag} {path}: no such file")
     # Workers may run elsewhere or in another folder: hand them absolute paths.
-    absolute = (lambda p: None if p is None else str(Path(p).resolve()))
+    def absolute(p):
+        return None if p is None else str(Path(p).resolve())
+
     recs = [str(Path(r).resolve()) for r in expand_recordings(recordings)]
     if store is None:
         from pipeline.base.store import default_store_root

@@ -187,11 +187,11 @@ def compare_captures(captures: dict[str, Any], *, illumination=None, calibration
     out : path, optional
         Folder for per-run outputs (normals/depth files and PNGs).
     """
+    from pipeline.base.store import Record, read_record
     from pipeline.evaluate import angular_error_deg
-    from pipeline.normals.solve import applicable_solvers
+    from pipeline.normals.lights import applicable_solvers
     from pipeline.outputs import depth_colormap_rgb, normal_map_rgb
     from pipeline.reconstruct import reconstruct
-    from pipeline.base.store import Record, read_record
 
     if not captures:
         raise UserError("compare-modes: no captures to compare")
@@ -317,8 +317,9 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
     from pipeline.base.modes import list_modes
     from pipeline.base.store import StageStore, read_record
     from pipeline.report import Report
+    from pipeline.stages import synthesize as synthesize_stage
     from pipeline.stages.base import record_key
-    from pipeline.stages.synthesize import illumination_model, synthesize_to_store
+    from pipeline.stages.synthesize import illumination_model
     from sim.rendered_capture import sphere_presses
 
     say = log or (lambda m: None)
@@ -337,7 +338,7 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
         model, key = illumination_model(ill_rec), record_key(ill_rec)
     elif not captures:
         say(f"tracing scene {scene!r}: {rays:,} rays per LED onto {shape}")
-        model, key, _ = synthesize_to_store(scene, shape, mm_per_px, store, rays=rays, sampler="sobol")
+        model, key, _ = synthesize_stage.run(store, scene, shape, mm_per_px, rays=rays, sampler="sobol")
         ill_path = store.path_for(key)
     cals: dict[str, Any] = dict(calibrations or {})
     lut_skipped: dict[str, str] = {}

@@ -19,7 +19,6 @@ error maps per mode and solver, with a table of errors and times.
 
 from __future__ import annotations
 
-import json
 import sys
 import time
 from pathlib import Path
@@ -40,11 +39,26 @@ class DemoSettings:
         self.rays = 300_000 if quick else 2_000_000
         self.ball_radius_mm = 2.0
         self.presses = 6 if quick else 10
-        self.modes = ("point", "monochromatic", "trichromatic", "multicolour")
+        self.modes = builtin_modes()
         self.noise_dn = 1.0
         self.bit_depth = 8
         self.faults = "drop=0.02,corrupt=0.02"  # the link is not perfect; capture must still label every frame
         self.camera_fps = 60.0  # the virtual camera's frame rate
+
+
+def builtin_modes() -> tuple[str, ...]:
+    """Every built-in lighting mode (:func:`pipeline.base.registry.list_modes`), most patterns
+    first: a new mode file is in the demo without a code change.
+
+    Examples
+    --------
+    >>> builtin_modes()[0], {"trichromatic", "multicolour"} <= set(builtin_modes())
+    ('point', True)
+    """
+    from pipeline.base.modes import load_mode
+    from pipeline.base.registry import list_modes
+
+    return tuple(sorted(list_modes(), key=lambda m: (-len(load_mode(m).frames), m)))
 
 
 def _press_layout(settings: DemoSettings) -> tuple[list[float], list[tuple[float, float]]]:
@@ -100,7 +114,7 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     from pipeline.compare import add_to_report, compare_captures, lut_calibrations, render_mode_captures
     from pipeline.report import Report
     from pipeline.stages import calibrate as calibrate_stage
-    from pipeline.stages.synthesize import synthesize_to_store
+    from pipeline.stages import synthesize as synthesize_stage
     from sim.rendered_capture import render_capture, sphere_presses
     from sim.uniformity import uniformity_report
 
@@ -116,8 +130,8 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     # 1. synthesize -------------------------------------------------------------------------
     t0 = time.perf_counter()
     say(f"synthesize: tracing the {scene} scene, {settings.rays:,} rays per LED onto {settings.shape}")
-    model, ill_key, ill_cached = synthesize_to_store(scene, settings.shape, settings.mm_per_px, store,
-                                                     rays=settings.rays, sampler="sobol")
+    model, ill_key, ill_cached = synthesize_stage.run(store, scene, settings.shape, settings.mm_per_px,
+                                                      rays=settings.rays, sampler="sobol")
     ill_path = store.path_for(ill_key)
     stages["synthesize"] = {"seconds": time.perf_counter() - t0, "cached": ill_cached, "key": ill_key.digest,
                             "path": str(ill_path), "rays_per_led": settings.rays, "sampler": "sobol",

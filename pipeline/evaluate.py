@@ -14,7 +14,7 @@ import numpy as np
 
 from pipeline.base.errors import UserError
 
-__all__ = ["angular_error_deg", "normal_error_stats", "load_normals", "load_mask", "evaluate_normals"]
+__all__ = ["angular_error_deg", "normal_error_stats", "truth_errors", "load_normals", "load_mask", "evaluate_normals"]
 
 
 def angular_error_deg(a, b) -> np.ndarray:
@@ -171,3 +171,27 @@ def evaluate_normals(pred_path, gt_path, mask_path=None, *, index: int = 0) -> d
                 mask &= m
     mask = mask & (np.linalg.norm(np.nan_to_num(gt), axis=-1) > 0)
     return normal_error_stats(pred, gt, mask)
+
+
+def truth_errors(cap, n_rec, d_rec, region=None) -> dict:
+    """Mean normal error (deg) and depth RMSE (mm) of a ``normals`` and a ``depth`` record against
+    the ``capture`` record's truth (``truth/normals``, ``truth/height``), if it has any, over
+    ``region`` (the solved mask; None: every pixel). Keys ``normal_mean_error_deg`` (mean over
+    contact instances) and ``depth_rmse_mm``."""
+
+    out: dict[str, float] = {}
+    if "truth/normals" in cap.data:
+        gt = cap.data["truth/normals"]
+        errs = []
+        for k in range(gt.shape[0]):
+            m = np.linalg.norm(gt[k], axis=-1) > 0
+            if region is not None:
+                m &= np.asarray(region, bool)
+            errs.append(normal_error_stats(n_rec.data["normals"][k], gt[k], m)["mean_deg"])
+        out["normal_mean_error_deg"] = float(np.mean(errs))
+    if "truth/height" in cap.data:
+        diff = d_rec.data["height"].astype(np.float64) - cap.data["truth/height"]
+        if region is not None:
+            diff = diff[:, np.asarray(region, bool)]
+        out["depth_rmse_mm"] = float(np.sqrt(np.mean(diff ** 2)))
+    return out

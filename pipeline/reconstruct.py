@@ -1,7 +1,7 @@
 """``iristac reconstruct``: normals and depth of a capture, through the normals and depth stages.
 
 :func:`reconstruct` reads the capture and the light model (a calibration or an illumination
-file, or lights embedded in the capture by an importer; :func:`pipeline.stages.normals.load_lights`),
+file, or lights embedded in the capture by an importer; :func:`pipeline.stages.normals.capture_lights`),
 then runs the normals stage (:mod:`pipeline.stages.normals`, the solver picked from
 :data:`pipeline.base.registry.SOLVERS`) and the depth stage (:mod:`pipeline.stages.depth`)
 through the stage store: the same keys ``iristac run`` and ``iristac batch`` use, so a
@@ -80,10 +80,10 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     capture : path or Record
         ``capture.h5``.
     calibration, illumination : path or Record, optional
-        The light model (at most one; see :func:`pipeline.stages.normals.load_lights`).
+        The light model (at most one; see :func:`pipeline.stages.normals.capture_lights`).
     solver : str
-        A name in :data:`pipeline.base.registry.SOLVERS` (``lstsq``, ``nearfield``, ``robust``,
-        ``cauchy``, ``lut``).
+        A name in :data:`pipeline.base.registry.SOLVERS` (``iristac reconstruct --help`` lists
+        them all).
     integrator : str
         A name in :data:`pipeline.base.registry.INTEGRATORS` (``fc``, ``dct``, ``dst``, ``sparse``).
     out : path, optional
@@ -125,6 +125,8 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     """
     from pipeline.base.registry import INTEGRATORS, SOLVERS
     from pipeline.base.store import StageStore
+    from pipeline.evaluate import truth_errors
+    from pipeline.outputs import write_outputs
     from pipeline.stages import capture as capture_stage
     from pipeline.stages import depth as depth_stage
     from pipeline.stages import normals as normals_stage
@@ -135,7 +137,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     cap = _read(capture, "capture")
     cal = None if calibration is None else _read(calibration, "calibration")
     ill = None if illumination is None else _read(illumination, "illumination")
-    lights = normals_stage.load_lights(cap, cal, ill)
+    lights = normals_stage.capture_lights(cap, cal, ill)
     if ratio and normals_stage.reference_frames(cap) is None:
         raise UserError(f"{cap.path}: --ratio needs no-contact reference frames (dataset 'reference'); this "
                         f"capture has none (source {cap.meta.get('source')!r})")
@@ -155,54 +157,13 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
                                "valid_fraction": float(np.asarray(n_rec.data["mask"]).mean()),
                                "cached": bool(n_cached and d_cached),
                                "markers": 0 if marks is None else int(marks.sum())}
-    summary.update(_truth_errors(cap, n_rec, d_rec, region))
+    summary.update(truth_errors(cap, n_rec, d_rec, region))
     from pipeline.contact import capture_contact_masks
 
     contact = capture_contact_masks(cap.data, d_rec.data["height"], d_rec.data["mask"], region)
     summary["contact_fraction"] = float(contact.mean()) if contact.size else 0.0
     files: list[Path] = []
     if out is not None:
-        files = _write_outputs(Path(out), n_rec, d_rec, mm_per_px, images, contact)
+        files = write_outputs(Path(out), n_rec, d_rec, mm_per_px, images, contact)
         summary["outputs"] = [str(f) for f in files]
     return ReconstructResult(normals=n_rec, depth=d_rec, summary=summary, files=files, contact=contact)
-
-
-def _truth_errors(cap, n_rec, d_rec, region=None) -> dict:
-    """Mean normal error (deg) and depth RMSE (mm) against the capture's truth, if any, over
-    ``region`` (the solved mask; None: every pixel)."""
-    from pipeline.evaluate import normal_error_stats
-
-    out: dict[str, float] = {}
-    if "truth/normals" in cap.data:
-        gt = cap.data["truth/normals"]
-        errs = []
-        for k in range(gt.shape[0]):
-            m = np.linalg.norm(gt[k], axis=-1) > 0
-            if region is not None:
-                m &= np.asarray(region, bool)
-            errs.append(normal_error_stats(n_rec.data["normals"][k], gt[k], m)["mean_deg"])
-        out["normal_mean_error_deg"] = float(np.mean(errs))
-    if "truth/height" in cap.data:
-        diff = d_rec.data["height"].astype(np.float64) - cap.data["truth/height"]
-        if region is not None:
-            diff = diff[:, np.asarray(region, bool)]
-        out["depth_rmse_mm"] = float(np.sqrt(np.mean(diff ** 2)))
-    return out
-
-
-def _write_outputs(out: Path, n_rec, d_rec, mm_per_px: float, images: bool, contact) -> list[Path]:
-    from pipeline.outputs import normal_map_rgb, write_depth_png, write_normal_png, write_ply, write_png
-    from pipeline.base.store import Record, write_record
-
-    out.mkdir(parents=True, exist_ok=True)
-    files = [write_record(out / "normals.h5", Record("normals", n_rec.data, n_rec.meta)),
-             write_record(out / "depth.h5", Record("depth", {**d_rec.data, "contact": contact}, d_rec.meta))]
-    if images:
-        for k in range(n_rec.data["normals"].shape[0]):
-            n, nm = n_rec.data["normals"][k], n_rec.data["mask"][k]
-            h, hm = d_rec.data["height"][k], d_rec.data["mask"][k]
-            files.append(write_normal_png(out / f"normals_k{k:03d}.png", n, nm))
-            files.append(write_depth_png(out / f"depth_k{k:03d}.png", h, hm))
-            files.append(write_ply(out / f"depth_k{k:03d}.ply", h, mm_per_px, hm, colors=normal_map_rgb(n, nm)))
-            files.append(write_png(out / f"contact_k{k:03d}.png", np.repeat(contact[k, ..., None] * np.uint8(255), 3, -1)))
-    return files

@@ -238,7 +238,8 @@ def _finish(config: dict, results) -> tuple[dict, list[str]]:
     import numpy as np
 
     from pipeline.base.store import read_record
-    from pipeline.reconstruct import _truth_errors, _write_outputs
+    from pipeline.evaluate import truth_errors
+    from pipeline.outputs import write_outputs
     from pipeline.stages import stage_module
 
     def rec(name):
@@ -247,10 +248,10 @@ def _finish(config: dict, results) -> tuple[dict, list[str]]:
     n_rec, d_rec, cap = rec("normals"), rec("depth"), rec("capture")
     summary: dict[str, Any] = {"valid_fraction": float(np.asarray(n_rec.data["mask"]).mean())}
     if d_rec is not None:
-        summary.update(_truth_errors(cap, n_rec, d_rec))
+        summary.update(truth_errors(cap, n_rec, d_rec))
     outputs: list[str] = []
     if config.get("out") and d_rec is not None:
-        files = _write_outputs(Path(config["out"]), n_rec, d_rec, float(n_rec.meta["mm_per_px"]),
+        files = write_outputs(Path(config["out"]), n_rec, d_rec, float(n_rec.meta["mm_per_px"]),
                                bool(config.get("images", True)))
         outputs = [str(f) for f in files]
     return summary, outputs

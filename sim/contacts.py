@@ -39,7 +39,6 @@ Examples
 from __future__ import annotations
 
 from pathlib import Path
-
 from typing import TYPE_CHECKING
 
 from pipeline.base.errors import UserError

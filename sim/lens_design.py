@@ -12,7 +12,6 @@ import time
 
 import numpy as np
 
-from pipeline.base.errors import UserError
 from sim.optics.grid import PixelGrid
 from sim.optics.metrics import image_metrics
 from sim.optics.multisource import trace_all

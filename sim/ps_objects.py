@@ -35,7 +35,7 @@ import numpy as np
 
 from sim.far_field import dome_lights, far_field_illumination
 from sim.geometry.surface import HeightField, recon_grid
-from sim.render import RenderSettings, Renderer
+from sim.render import Renderer, RenderSettings
 
 __all__ = ["PSObject", "sphere_object", "bumpy_object", "render_ps_capture", "write_ps_capture", "dome_lights",
            "OBJECTS"]
@@ -232,8 +232,8 @@ def write_ps_capture(out, object: str = "sphere", *, size: int = 160, radius_px:
     pipeline.base.errors.UserError
         An unknown object or impossible sizes, naming the option.
     """
-    from pipeline.base.errors import UserError
     from pipeline.base.capture import write_capture
+    from pipeline.base.errors import UserError
 
     if object not in OBJECTS:
         raise UserError(f"--object must be one of {', '.join(OBJECTS)}, got {object!r}")

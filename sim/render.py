@@ -23,10 +23,8 @@ small matrix product each: that is what makes the virtual camera cheap.
 
 from __future__ import annotations
 
-import json
 import math
-from dataclasses import asdict, dataclass, field, fields
-from pathlib import Path
+from dataclasses import asdict, dataclass
 from typing import Any
 
 import numpy as np
@@ -198,11 +196,9 @@ def load_render_settings(path) -> RenderSettings:
     pipeline.base.errors.UserError
         Unreadable file, unknown key or wrong type, naming the file and the key.
     """
-    from pipeline.base.modes import _read_yaml, _validate_config
+    from pipeline.base.modes import read_config_file
 
-    path = Path(path)
-    obj = _read_yaml(path)
-    _validate_config("render", obj, path)
+    obj = read_config_file("render", path)
     try:
         return RenderSettings(**obj)
     except ValueError as exc:

@@ -22,10 +22,10 @@ from typing import Sequence
 
 import numpy as np
 
+from pipeline.base.modes import LightingMode, load_mode, mode_brightness, mode_drive
 from sim.geometry import HeightField, sphere
 from sim.illumination_model import IlluminationModel
-from pipeline.base.modes import LightingMode, load_mode, mode_brightness, mode_drive
-from sim.render import RenderSettings, Renderer, auto_exposure
+from sim.render import Renderer, RenderSettings, auto_exposure
 
 __all__ = ["render_capture", "sphere_presses", "save_png", "render_scene_files"]
 
@@ -181,10 +181,9 @@ def render_scene_files(out_dir, *, mode="monochromatic", height_file=None, heigh
         ``capture`` (path), ``pngs`` (paths), ``mode``, ``patterns``, ``shape``, ``mm_per_px``,
         ``exposure``, ``effects``.
     """
+    from pipeline.base.errors import UserError
     from sim.geometry import height_from_file
     from sim.render import bare_ring_illumination, load_render_settings
-
-    from pipeline.base.errors import UserError
 
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)

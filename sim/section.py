@@ -150,8 +150,6 @@ def draw_section(scene, out, *, rays: int = 25, image: bool = True, image_rays: 
                       f"screen, CV {r['uniformity_cv']:.2f}")
         ax2.set_xlabel("x (mm)")
         ax2.set_ylabel("y (mm)")
-    fig.tight_layout()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, dpi=110)
-    plt.close(fig)
-    return out
+    from sim.figures import save_figure
+
+    return save_figure(fig, out, dpi=110)

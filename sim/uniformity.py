@@ -29,9 +29,9 @@ import numpy as np
 import torch
 
 from pipeline.base.frames import CHANNELS
+from pipeline.base.modes import list_modes, load_mode, mode_brightness, mode_drive
 from sim.figures import save_figure
 from sim.illumination_model import IlluminationModel
-from pipeline.base.modes import list_modes, load_mode, mode_brightness, mode_drive
 from sim.render import RenderSettings, render_images
 
 __all__ = ["channel_stats", "mode_uniformity", "uniformity_report", "uniformity_figure", "central_disc"]

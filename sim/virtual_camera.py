@@ -41,7 +41,7 @@ import numpy as np
 from pipeline.base.camera import CameraFrame
 from sim.geometry.surface import HeightField
 from sim.illumination_model import IlluminationModel
-from sim.render import RenderSettings, Renderer
+from sim.render import Renderer, RenderSettings
 
 __all__ = ["VirtualCamera", "ring_led_state"]
 

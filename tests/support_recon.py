@@ -9,11 +9,10 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 from scipy.spatial import cKDTree
 
-from pipeline.bench.recon_scene import render_sphere_scene, sphere_cap  # noqa: F401  (re-exported)
 from pipeline.base.threads import limit_threads
+from pipeline.bench.recon_scene import render_sphere_scene, sphere_cap  # noqa: F401  (re-exported)
 
 
 @pytest.fixture(autouse=True)

@@ -1,6 +1,9 @@
 """The layers point down: read every import of the four packages (function-level ones too) and
-fail on an import that reaches up a layer, on an import cycle, or on a third-party import in
-the base layer that is not one of its few libraries.
+fail on an import that reaches up a layer, on an import cycle, on a third-party import in
+the base layer that is not one of its few libraries, or on an import of another module's
+private name (``_name``; a package's private modules, ``pkg._mod``, only inside ``pkg``).
+The registries' string targets (``"module:attribute"``, imported only when used) are resolved
+too: each names a module of the packages, below the entry points, that defines the attribute.
 
 The layers, lowest first (``docs/developing.md`` draws them). A module may import modules of
 its own layer or of a lower one; a module nobody placed is an error, so a new module is put
@@ -111,10 +114,58 @@ def check(root: Path) -> list[str]:
                 if top not in sys.stdlib_module_names and top not in BASE_LIBRARIES and top not in PACKAGES:
                     problems.append(f"{rel}:{line}: the base layer imports {top}, not one of its libraries "
                                     f"({', '.join(sorted(BASE_LIBRARIES))})")
+    problems += private_imports(root, modules)
     for cycle in _cycles(graph):
         steps = " -> ".join(f"{a} ({where[(a, b)]})" for a, b in zip(cycle, cycle[1:] + cycle[:1]))
         problems.append(f"import cycle: {steps} -> {cycle[0]}")
     return problems
+
+
+def private_imports(root: Path, modules: dict[str, Path]) -> list[str]:
+    """Every import of another module's private name, one line each."""
+    problems = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        package = name.split(".") if path.name == "__init__.py" else name.split(".")[:-1]
+        for node in ast.walk(tree):
+            for owner, imported in _imported_names(node, package, modules):
+                if owner.split(".")[0] not in PACKAGES:
+                    continue
+                if f"{owner}.{imported}" in modules:  # a module: private ones only inside their package
+                    if imported.startswith("_") and name != owner and not name.startswith(owner + "."):
+                        problems.append(f"{path.relative_to(root)}:{node.lineno}: {name} imports the private module "
+                                        f"{owner}.{imported} from outside its package")
+                elif imported.startswith("_") and not imported.startswith("__") and owner != name:
+                    problems.append(f"{path.relative_to(root)}:{node.lineno}: {name} imports the private name "
+                                    f"{imported} of {owner}")
+    return problems
+
+
+def _imported_names(node, package: list[str], modules: dict[str, Path]) -> list[tuple[str, str]]:
+    """``(module, name)`` of every name an import statement takes from a module (``import a.b``:
+    ``("a", "b")``)."""
+    if isinstance(node, ast.Import):
+        return [(".".join(a.name.split(".")[:i]), part) for a in node.names
+                for i, part in enumerate(a.name.split(".")) if i > 0]
+    if isinstance(node, ast.ImportFrom):
+        base = node.module or ""
+        if node.level:
+            base = ".".join(package[:len(package) - node.level + 1] + ([base] if base else []))
+        return [(base, a.name) for a in node.names]
+    return []
+
+
+def registry_targets() -> list[tuple[str, str]]:
+    """``(what, "module:attribute")`` of every registered implementation and fast path."""
+    from pipeline.base.registry import INTEGRATORS, SOLVERS
+
+    out = []
+    for reg in (SOLVERS, INTEGRATORS):
+        for e in reg:
+            out.append((f"{reg.kind} {e.name}", e.target))
+            if e.info.get("fast"):
+                out.append((f"{reg.kind} {e.name} (fast path)", e.info["fast"]))
+    return out
 
 
 def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
@@ -167,6 +218,19 @@ def test_the_layers_point_down_and_nothing_imports_in_a_circle():
     assert not problems, "\n".join(problems)
 
 
+@pytest.mark.parametrize("what, target", registry_targets())
+def test_registry_targets_resolve_below_the_entry_points(what, target):
+    module, _, attr = target.partition(":")
+    modules = module_files(REPO)
+    assert module in modules, f"{what}: {target} names no module of the packages"
+    tree = ast.parse(modules[module].read_text(encoding="utf-8"))
+    defined = {n.name for n in tree.body if isinstance(n, (ast.FunctionDef, ast.ClassDef))}
+    defined |= {t.id for n in tree.body if isinstance(n, ast.Assign) for t in n.targets if isinstance(t, ast.Name)}
+    assert attr in defined, f"{what}: {module} defines no {attr!r}"
+    assert layer_of(module) <= [n for n, _ in LAYERS].index("stage registry"), \
+        f"{what}: {module} is above the stage registry (an entry point or the command line)"
+
+
 def test_every_layer_holds_modules():
     modules = module_files(REPO)
     used = {layer_of(m) for m in modules}
@@ -206,6 +270,10 @@ def _tree(root: Path, files: dict[str, str]) -> Path:
     ({"pipeline/base/hashing.py": "import scipy.ndimage\n"}, "the base layer imports scipy"),
     # an unplaced module
     ({"pipeline/newthing.py": ""}, "module pipeline.newthing is in no layer"),
+    # another module's private name, and a package's private module from outside the package
+    ({"sim/a.py": "from sim.b import _x\n", "sim/b.py": "_x = 1\n"}, "sim.a imports the private name _x of sim.b"),
+    ({"calibration/a.py": "from pipeline.normals import _torch\n", "pipeline/normals/_torch.py": ""},
+     "calibration.a imports the private module pipeline.normals._torch from outside its package"),
 ])
 def test_the_check_catches_what_it_is_for(tmp_path, files, expected):
     problems = check(_tree(tmp_path, files))

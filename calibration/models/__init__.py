@@ -3,12 +3,12 @@
 ``MODEL_NAMES`` lists them in the order ``--model all`` fits them.
 """
 
-from calibration.models.base import CalibrationModel, LightFieldModel, solve_normals, check_light_rank
+from calibration.models.base import CalibrationModel, LightFieldModel, check_light_rank, solve_normals
 from calibration.models.farfield import FarFieldModel
-from calibration.models.nearfield import NearFieldModel
-from calibration.models.traced import TracedModel
 from calibration.models.lut import LookupTable, LUTModel
 from calibration.models.mlp import MLPModel
+from calibration.models.nearfield import NearFieldModel
+from calibration.models.traced import TracedModel
 
 MODEL_NAMES = ("far", "near", "traced", "lut", "mlp")
 

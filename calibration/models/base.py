@@ -16,21 +16,9 @@ import numpy as np
 
 from calibration.samples import Samples
 from pipeline.base.errors import UserError
+from pipeline.evaluate import angular_error_deg
 
-__all__ = ["CalibrationModel", "LightFieldModel", "solve_normals", "check_light_rank", "angular_error_deg",
-           "fit_tilt_gain", "scale_tilt"]
-
-
-def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angle in degrees between unit vectors ``a (..., 3)`` and ``b (..., 3)``.
-
-    Examples
-    --------
-    >>> float(angular_error_deg(np.array([0.0, 0, 1]), np.array([1.0, 0, 0])))
-    90.0
-    """
-    dot = np.clip(np.sum(np.asarray(a, float) * np.asarray(b, float), axis=-1), -1.0, 1.0)
-    return np.degrees(np.arccos(dot))
+__all__ = ["CalibrationModel", "LightFieldModel", "solve_normals", "check_light_rank", "fit_tilt_gain", "scale_tilt"]
 
 
 def solve_normals(obs: np.ndarray, lights: np.ndarray, shadow_iterations: int = 2,

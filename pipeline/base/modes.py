@@ -47,7 +47,7 @@ import numpy as np
 from pipeline.base.errors import UserError
 from pipeline.base.registry import MODES_DIR, list_modes
 
-__all__ = ["ModeFrame", "LightingMode", "load_mode", "list_modes", "mode_drive", "mode_brightness", "save_mode", "describe_modes",
+__all__ = ["ModeFrame", "LightingMode", "load_mode", "read_config_file", "list_modes", "mode_drive", "mode_brightness", "save_mode", "describe_modes",
            "MODES_DIR"]
 
 
@@ -145,6 +145,15 @@ class LightingMode:
         return np.array([f.brightness for f in self.frames], dtype=np.float64)
 
 
+def read_config_file(kind: str, path) -> Any:
+    """A YAML config file, validated against ``data_schemas/configs/<kind>.json`` (UserError naming
+    the file and the key)."""
+    path = Path(path)
+    obj = _read_yaml(path)
+    _validate_config(kind, obj, path)
+    return obj
+
+
 def _read_yaml(path: Path) -> Any:
     import yaml
 
@@ -190,8 +199,7 @@ def load_mode(name_or_path) -> LightingMode:
         path = MODES_DIR / f"{s}.yaml"
         if not path.is_file():
             raise UserError(f"unknown lighting mode {s!r}: not a file and not one of {', '.join(list_modes())}")
-    obj = _read_yaml(path)
-    _validate_config("mode", obj, path)
+    obj = read_config_file("mode", path)
     leds = int(obj["leds"])
     frames = []
     seen = set()

@@ -122,61 +122,81 @@ class Registry:
         """The implementation of ``name``, imported now."""
         return self.get(name).load()
 
+    def fast(self, name: str) -> Any | None:
+        """The builder of the fast per-frame path ``name`` registers (``info["fast"]``, imported
+        now), or None when it has none.
+
+        Examples
+        --------
+        >>> SOLVERS.fast("robust") is None, INTEGRATORS.fast("dst").__name__
+        (True, 'FastDST')
+        """
+        target = self.get(name).info.get("fast")
+        return None if not target else Entry(f"{name}-fast", target).load()
+
     def help(self) -> str:
         """``name: summary`` for every entry, for ``--help``."""
         return "; ".join(f"{e.name}: {e.summary}" if e.summary else e.name for e in self)
 
 
 #: Photometric-stereo solvers: ``target(frames, lights, **options) -> list[NormalResult]`` (see
-#: :func:`pipeline.normals.solve.solve_capture`). ``info["needs"]``: the lights the solver
-#: uses (``vectors``: far-field vectors or a light field, ``field``: per-pixel light
-#: vectors, ``model:NAME``: the calibration's fitted model NAME, applied through its batched
-#: ``normal_maps`` exactly as ``iristac eval calibration`` does); ``info["patterns"]``: ``any``,
-#: or ``one-rgb`` for a solver that reads one RGB frame per contact; ``info["variant"]``: an
-#: alternative that comparisons leave out unless asked for by name; ``info["whole_frame"]``: the
-#: solver reads whole frames (pixel positions are inputs) and is masked after, not gathered;
-#: ``info["fast"]``: the builder of its live per-frame path (precomputed once per calibration,
-#: :func:`pipeline.stages.fast_solvers.frame_solver`), absent when live use runs it eagerly.
+#: :func:`pipeline.normals.solve.solve_capture`). ``info``, the facts callers need without
+#: importing the solver:
+#:
+#: - ``needs``: the lights the solver uses (``vectors``: far-field vectors or a light field,
+#:   ``field``: per-pixel light vectors, ``model:NAME``: the calibration's fitted model NAME,
+#:   applied through its batched ``normal_maps`` exactly as ``iristac eval calibration`` does);
+#: - ``patterns``: ``any``, or ``one-rgb`` for a solver that reads one RGB frame per contact;
+#: - ``variant``: an alternative that comparisons leave out unless asked for by name;
+#: - ``whole_frame``: the solver reads whole frames (pixel positions are inputs) and is masked
+#:   after, not gathered (:class:`pipeline.normals.prepare.FramePrep`);
+#: - ``fills_markers``: the solver fills printed markers in itself (given the marker mask);
+#:   the others get frames filled in by :class:`~pipeline.normals.prepare.FramePrep`;
+#: - ``fast``: the builder of its live per-frame path (precomputed once per calibration,
+#:   :func:`pipeline.stages.fast_solvers.frame_solver`), absent when live use runs it eagerly.
 SOLVERS = Registry("solver", "--solver", [
-    Entry("lstsq", "pipeline.normals.solve:solve_lstsq",
+    Entry("lstsq", "pipeline.normals.solve:stack_lstsq",
           "far field (Woodham): one light vector per observation, else the light field at the image centre",
-          {"needs": "vectors", "patterns": "any", "fast": "pipeline.stages.fast_solvers:lstsq_fast"}),
-    Entry("nearfield", "pipeline.normals.solve:solve_nearfield",
+          {"needs": "vectors", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_lstsq"}),
+    Entry("nearfield", "pipeline.normals.solve:stack_nearfield",
           "per-pixel light vectors (an illumination model or a calibrated light field)",
-          {"needs": "field", "patterns": "any", "fast": "pipeline.stages.fast_solvers:nearfield_fast"}),
-    Entry("robust", "pipeline.normals.solve:solve_robust",
+          {"needs": "field", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_nearfield"}),
+    Entry("robust", "pipeline.normals.solve:stack_robust",
           "shadows and highlights modelled: attached shadows from the light matrix, highlights above and cast "
           "shadows below the Lambertian prediction rejected (Tukey IRLS); light field if present, else far field",
           {"needs": "vectors", "patterns": "any"}),
-    Entry("cauchy", "pipeline.normals.solve:solve_cauchy",
+    Entry("cauchy", "pipeline.normals.solve:stack_cauchy",
           "the earlier robust solver: dark and saturated observations excluded, trimmed start, Cauchy IRLS",
           {"needs": "vectors", "patterns": "any", "variant": True}),
-    Entry("far", "pipeline.stages.model_solvers:solve_far",
+    Entry("far", "pipeline.stages.model_solvers:stack_far",
           "the calibration's far-field model (one light vector per pattern-channel, flat field from the reference), "
           "as eval calibration applies it",
-          {"needs": "model:far", "patterns": "any", "whole_frame": True}),
-    Entry("near", "pipeline.stages.model_solvers:solve_near",
+          {"needs": "model:far", "patterns": "any", "whole_frame": True, "fills_markers": True}),
+    Entry("near", "pipeline.stages.model_solvers:stack_near",
           "the calibration's polynomial near-field model, as eval calibration applies it",
-          {"needs": "model:near", "patterns": "any", "whole_frame": True}),
-    Entry("traced", "pipeline.stages.model_solvers:solve_traced",
+          {"needs": "model:near", "patterns": "any", "whole_frame": True, "fills_markers": True}),
+    Entry("traced", "pipeline.stages.model_solvers:stack_traced",
           "the calibration's traced model (ray-traced LED fields with fitted gains), as eval calibration applies it",
-          {"needs": "model:traced", "patterns": "any", "whole_frame": True}),
-    Entry("lut", "pipeline.stages.model_solvers:solve_lut",
+          {"needs": "model:traced", "patterns": "any", "whole_frame": True, "fills_markers": True}),
+    Entry("lut", "pipeline.stages.model_solvers:stack_lut",
           "the calibration's colour lookup table with its per-bin position correction (one RGB pattern)",
-          {"needs": "model:lut", "patterns": "one-rgb", "whole_frame": True,
-           "fast": "pipeline.stages.fast_solvers:lut_fast"}),
-    Entry("mlp", "pipeline.stages.model_solvers:solve_mlp",
+          {"needs": "model:lut", "patterns": "one-rgb", "whole_frame": True, "fills_markers": True,
+           "fast": "pipeline.stages.fast_solvers:fast_lut"}),
+    Entry("mlp", "pipeline.stages.model_solvers:stack_mlp",
           "the calibration's MLP (colour change, reference and position -> normal)",
-          {"needs": "model:mlp", "patterns": "any", "whole_frame": True,
-           "fast": "pipeline.stages.fast_solvers:mlp_fast"}),
+          {"needs": "model:mlp", "patterns": "any", "whole_frame": True, "fills_markers": True,
+           "fast": "pipeline.stages.fast_solvers:fast_mlp"}),
 ])
 
 #: Depth integrators: ``target(normals (H, W, 3), mm_per_px, mask, **kwargs) -> DepthResult``
-#: (see :func:`pipeline.depth.integrate`).
+#: (see :func:`pipeline.depth.integrate`). ``info["fast"]``: the builder of its live per-frame
+#: path, ``builder(shape, mm_per_px, workers=1)`` with ``integrate(normals, mask)``
+#: (:func:`pipeline.depth.frame_integrator`), absent when live use runs it eagerly.
 INTEGRATORS = Registry("integrator", "--integrator", [
     Entry("fc", "pipeline.depth.fourier:frankot_chellappa", "Frankot-Chellappa FFT projection (periodic)"),
     Entry("dct", "pipeline.depth.poisson:poisson_dct", "Poisson, Neumann border (DCT)"),
-    Entry("dst", "pipeline.depth.poisson:poisson_dst", "Poisson, zero height on the border (DST)"),
+    Entry("dst", "pipeline.depth.poisson:poisson_dst", "Poisson, zero height on the border (DST)",
+          {"fast": "pipeline.depth.fast:FastDST"}),
     Entry("sparse", "pipeline.depth.sparse:sparse_lstsq", "least squares on the valid pixels only (PCG)"),
 ])
 

@@ -215,7 +215,7 @@ def _write_h5(path: Path, record: Record, provenance: Mapping[str, str | int]) -
         f.flush()
 
 
-def _fsync_file(path: Path) -> None:
+def fsync_file(path: Path) -> None:
     fd = os.open(path, os.O_RDONLY)
     try:
         os.fsync(fd)
@@ -223,7 +223,7 @@ def _fsync_file(path: Path) -> None:
         os.close(fd)
 
 
-def _fsync_dir(path: Path) -> None:
+def fsync_dir(path: Path) -> None:
     try:
         fd = os.open(path, os.O_RDONLY)
     except OSError:
@@ -294,7 +294,7 @@ def _write_atomically(final: Path, build: Callable[[Path], None]) -> None:
     tmp = _temp_name(final)
     try:
         build(tmp)
-        _fsync_file(tmp)
+        fsync_file(tmp)
         os.replace(tmp, final)
     except BaseException:
         try:
@@ -302,7 +302,7 @@ def _write_atomically(final: Path, build: Callable[[Path], None]) -> None:
         except FileNotFoundError:
             pass
         raise
-    _fsync_dir(final.parent)
+    fsync_dir(final.parent)
 
 
 def replace_datasets(path: str | os.PathLike, updates: Mapping[str, Any]) -> Path:
@@ -635,8 +635,10 @@ class StageStore:
         for e in self.entries():
             if e.kind != "temp":
                 continue
-            pid = int(_TEMP_RE.match(e.path.name).group("pid"))
-            if not include_live and _pid_alive(pid):
+            m = _TEMP_RE.match(e.path.name)
+            if m is None:  # an entry of kind "temp" matched this pattern when it was listed
+                continue
+            if not include_live and _pid_alive(int(m.group("pid"))):
                 continue
             try:
                 e.path.unlink()

@@ -198,10 +198,9 @@ def plot_rows(rows: list[dict], path: str) -> None:
         ax.axis("off")
     if not by_knob:
         axes.flat[0].text(0.5, 0.5, "no benchmark reported error and time", ha="center")
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    from sim.figures import save_figure
+
+    save_figure(fig, path, dpi=110)
 
 
 def format_table(result: dict) -> str:

@@ -68,8 +68,8 @@ def _mlp_sweep(cap, steps: list[int]) -> list[dict]:
 def run(args) -> dict:
     from calibration.calibrate import calibrate
     from calibration.importers import load_gelsight_npz
-    from calibration.models.base import angular_error_deg
     from calibration.synthetic import synthetic_sphere_capture
+    from pipeline.evaluate import angular_error_deg
 
     out: dict = {"cases": [], "rows": []}
     quick = bool(getattr(args, "quick", False))

@@ -23,12 +23,12 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.base.modes import load_mode
 from pipeline.capture import protocol as P
 from pipeline.capture.client import RingClient
 from pipeline.capture.emulator import parse_faults
 from pipeline.capture.firmware_host import build_host_firmware, ring_emulator
 from pipeline.capture.plan import CaptureSettings, run_capture
-from pipeline.base.modes import load_mode
 
 FAULTS = "drop=0.05,corrupt=0.05,delay=0.02"
 BAUD = 115200

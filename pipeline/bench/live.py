@@ -159,7 +159,7 @@ def measure_model(solver: str, width: int, height: int, repeats: int, store, thr
     from pipeline.base.modes import load_mode
     from pipeline.depth.fast import FastDST
     from pipeline.depth.poisson import poisson_dst
-    from pipeline.normals.solve import LightSource
+    from pipeline.normals.lights import LightSource
     from pipeline.stages.fast_solvers import frame_solver
     from sim.contacts import contact_surfaces
     from sim.rendered_capture import render_capture
@@ -224,7 +224,6 @@ def measure_startup() -> dict:
     """A fresh process: import, precompute, first frame (cached compiled code); and the compile
     itself, in a process with an empty Numba cache."""
     import tempfile
-
     from pathlib import Path
 
     import pipeline

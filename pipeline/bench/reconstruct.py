@@ -90,7 +90,7 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
     """All measurements at one image size."""
     from pipeline.depth import integrate
     from pipeline.evaluate import normal_error_stats
-    from pipeline.normals import FarFieldSolver, NearFieldSolver, ratio_to_reference, solve_robust, solve_robust_irls
+    from pipeline.normals import FarFieldSolver, NearFieldSolver, ratio_to_reference, solve_cauchy, solve_robust_irls
 
     mm = FOV_MM / width
     s = render_sphere_scene((height, width), mm, radius=RADIUS, depth=DEPTH, num_patterns=PATTERNS, noise=1.0,
@@ -116,7 +116,7 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
         "nearfield": lambda: near.solve(_obs(frames)),
         "robust (near field)": lambda: solve_robust_irls(_obs(frames), s.lights_flat(), groups=groups,
                                                          dark_threshold=2.55, saturation=255.0, device=device),
-        "cauchy (near field)": lambda: solve_robust(_obs(frames), s.lights_flat(), groups=groups, dark_threshold=2.55,
+        "cauchy (near field)": lambda: solve_cauchy(_obs(frames), s.lights_flat(), groups=groups, dark_threshold=2.55,
                                                     saturation=255.0, device=device),
     }
     ref_obs = _obs(s.reference.astype(np.uint8)).astype(np.float32)
@@ -165,8 +165,8 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
     for kind in ("clipped", "partial shadow"):
         obs = _corrupt(frames, kind, rng)
         ls = near.solve(obs)
-        rb = solve_robust(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0, device=device)
-        rt = solve_robust(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0, method="trim",
+        rb = solve_cauchy(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0, device=device)
+        rt = solve_cauchy(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0, method="trim",
                           device=device)
         rn = solve_robust_irls(obs, s.lights_flat(), groups=groups, dark_threshold=2.55, saturation=255.0,
                                device=device)

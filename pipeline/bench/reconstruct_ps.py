@@ -42,14 +42,14 @@ OBJECTS = {  # name: (object, specular F0)
 
 def _solve_fn(name: str, L: np.ndarray, groups: np.ndarray, device: str):
     """``f(frames (P, H, W, C) uint16, mask or None) -> NormalResult`` for a solver name."""
-    from pipeline.normals import FarFieldSolver, PixelMask, solve_robust, solve_robust_irls
+    from pipeline.normals import FarFieldSolver, PixelMask, solve_cauchy, solve_robust_irls
 
     if name == "lstsq":
         far = FarFieldSolver(L, groups=groups, device=device)
         return lambda frames, mask: far.solve_frames(frames, mask=mask)
     kw = dict(groups=groups, dark_threshold=0.01 * 65535, saturation=65535.0, device=device)
-    solve = {"robust": solve_robust_irls, "cauchy": solve_robust,
-             "trimmed": lambda o, l, **k: solve_robust(o, l, method="trim", **k)}[name]
+    solve = {"robust": solve_robust_irls, "cauchy": solve_cauchy,
+             "trimmed": lambda o, l, **k: solve_cauchy(o, l, method="trim", **k)}[name]
 
     def run(frames, mask):
         P, H, W, C = frames.shape
@@ -127,8 +127,8 @@ def _paste(res, pixels):
 
 def _end_to_end(rec, device: str) -> dict:
     """``reconstruct`` of the specular sphere from its file, per solver (fresh store: no cache)."""
-    from pipeline.reconstruct import reconstruct
     from pipeline.base.capture import write_capture
+    from pipeline.reconstruct import reconstruct
 
     res = {}
     with tempfile.TemporaryDirectory() as tmp:

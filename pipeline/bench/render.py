@@ -66,9 +66,9 @@ def run(args) -> dict:
 def _run(args, threads: int) -> dict:
     import torch
 
-    from sim.geometry import sphere
     from pipeline.base.modes import mode_brightness, mode_drive
-    from sim.render import RenderSettings, Renderer, auto_exposure, bare_ring_illumination
+    from sim.geometry import sphere
+    from sim.render import Renderer, RenderSettings, auto_exposure, bare_ring_illumination
 
     quick = bool(getattr(args, "quick", False))
     device = getattr(args, "device", "cpu")

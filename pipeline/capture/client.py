@@ -30,8 +30,8 @@ import numpy as np
 import serial
 import serial.tools.list_ports
 
-from pipeline.capture import protocol as P
 from pipeline.base.errors import UserError
+from pipeline.capture import protocol as P
 
 __all__ = [
     "RingError",

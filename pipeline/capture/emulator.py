@@ -52,8 +52,8 @@ from typing import Callable
 
 import numpy as np
 
-from pipeline.capture import protocol as P
 from pipeline.base.errors import UserError
+from pipeline.capture import protocol as P
 
 __all__ = [
     "FaultSpec", "parse_faults", "ShownState", "LatchHistory", "EmulatorStats", "RingDevice",

@@ -39,9 +39,9 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.base.errors import UserError
 from pipeline.capture import protocol as P
 from pipeline.capture.emulator import EmulatorStats, FaultSpec, LatchHistory, RingEmulator, ShownState
-from pipeline.base.errors import UserError
 
 __all__ = ["FIRMWARE_DIR", "HOST_PROGRAM", "build_host_firmware", "FirmwareEmulator", "ring_emulator"]
 

@@ -53,17 +53,17 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable
 
 import numpy as np
 
-from pipeline.capture import protocol as P
 from pipeline.base.camera import Camera, CameraFrame
-from pipeline.capture.client import RingClient, RingError
-from pipeline.capture.emulator import ShownState
 from pipeline.base.errors import UserError
 from pipeline.base.modes import LightingMode
-from pipeline.base.store import _fsync_dir
+from pipeline.base.store import fsync_dir
+from pipeline.capture import protocol as P
+from pipeline.capture.client import RingClient, RingError
+from pipeline.capture.emulator import ShownState
 
 __all__ = [
     "CaptureSettings",
@@ -229,7 +229,7 @@ class _Journal:
         else:
             path.parent.mkdir(parents=True, exist_ok=True)
             self._append({"version": JOURNAL_VERSION, "fingerprint": fingerprint})
-            _fsync_dir(path.parent)
+            fsync_dir(path.parent)
 
     def _load(self, fingerprint: str, out: Path) -> None:
         try:

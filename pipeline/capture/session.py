@@ -30,17 +30,17 @@ from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
+from pipeline.base.errors import UserError
 from pipeline.capture.client import RingClient
 from pipeline.capture.emulator import parse_faults
 from pipeline.capture.firmware_host import ring_emulator
 from pipeline.capture.plan import CaptureResult, CaptureSettings, run_capture
-from pipeline.base.errors import UserError
 
 if TYPE_CHECKING:
     from pipeline.base.camera import Camera
     from pipeline.capture.virtual import VirtualSensorSpec
 
-__all__ = ["capture", "virtual_sensor", "json_summary",
+__all__ = ["capture", "virtual_sensor", "open_camera", "json_summary",
            "prompt_contact"]
 
 
@@ -174,7 +174,7 @@ def capture(
                 )
                 on_contact = _then(cam.set_contact, on_contact)
             else:
-                cam = _open_camera(camera, exposure)
+                cam = open_camera(camera, exposure)
             try:
                 return run_capture(
                     patterns, ring, cam, out, settings,
@@ -259,7 +259,10 @@ def _then(first: Callable[[int], None], second: Callable[[int], None] | None):
     return both
 
 
-def _open_camera(camera, exposure):
+def open_camera(camera, exposure: float | None = None):
+    """An opened camera: ``camera`` as given when it is a :class:`~pipeline.base.camera.Camera`
+    (its exposure set when given), else an OpenCV camera (an index, a device, a URL or a video
+    file)."""
     from pipeline.base.camera import Camera
 
     if isinstance(camera, Camera):

@@ -38,8 +38,8 @@ from typing import Any, Sequence
 import numpy as np
 
 from pipeline.base.errors import UserError
-from sim.geometry import HeightField
 from sim.contacts import height_field
+from sim.geometry import HeightField
 from sim.illumination_model import IlluminationModel
 from sim.render import RenderSettings, auto_exposure, bare_ring_illumination
 from sim.virtual_camera import VirtualCamera, ring_led_state

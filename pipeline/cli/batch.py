@@ -6,8 +6,14 @@ Calls :func:`pipeline.batch_reconstruct.batch_reconstruct` and prints
 
 from __future__ import annotations
 
-from pipeline.cli._common import (add_heal_flag, add_json_flag, add_markers_flag, add_mask_flag, add_solver_flags,
-                                  print_json)
+from pipeline.cli._common import (
+    add_heal_flag,
+    add_json_flag,
+    add_markers_flag,
+    add_mask_flag,
+    add_solver_flags,
+    print_json,
+)
 
 
 def register(sub, name, help_text):

@@ -60,8 +60,8 @@ def _run(args) -> int:
                     refine_model=args.refine_model, markers=args.markers, circles=args.circles)
     res.save(args.out)
     if args.overlay:
-        from pipeline.base.capture import read_capture
         from calibration.overlay import write_overlay
+        from pipeline.base.capture import read_capture
 
         cap = read_capture(args.capture)
         write_overlay(args.overlay, cap, res.circles)

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from pipeline.cli._common import add_json_flag, add_solver_flags, mode_help, object_help, print_json
 from pipeline.base.errors import UserError
+from pipeline.cli._common import add_json_flag, add_solver_flags, mode_help, object_help, print_json
 
 
 def register(sub, name, help_text):

@@ -1,7 +1,7 @@
 """``iristac import``: one subcommand module per foreign format."""
 
+from pipeline.cli import import_diligent, import_gelsight, import_images
 from pipeline.cli._common import make_group
-from pipeline.cli import import_gelsight, import_diligent, import_images
 
 
 def register(sub, name, help_text):

@@ -2,8 +2,14 @@
 
 from __future__ import annotations
 
-from pipeline.cli._common import (add_heal_flag, add_json_flag, add_markers_flag, add_mask_flag, add_solver_flags,
-                                  print_json)
+from pipeline.cli._common import (
+    add_heal_flag,
+    add_json_flag,
+    add_markers_flag,
+    add_mask_flag,
+    add_solver_flags,
+    print_json,
+)
 
 #: The stable key set of ``--json`` (truth errors only when the capture carries truth).
 JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "markers", "contact_fraction", "outputs")

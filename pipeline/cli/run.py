@@ -27,8 +27,8 @@ def register(sub, name, help_text):
 
 
 def _run(args) -> int:
-    from pipeline.stages.graph import StageFailed
     from pipeline.run import plan_pipeline, run_pipeline
+    from pipeline.stages.graph import StageFailed
 
     if args.dry_run:
         plan = plan_pipeline(args.config, cache=args.cache, force=args.force)

@@ -3,15 +3,13 @@
 Each command parses its options and calls one documented function:
 ``trace`` -> :func:`sim.lens_design.trace_report`, ``section`` -> :func:`sim.section.draw_section`,
 ``optimize-lens`` -> :func:`sim.lens_design.optimize_lens`, ``synthesize`` ->
-:func:`pipeline.stages.synthesize.synthesize_to_store`.
+:func:`pipeline.stages.synthesize.run`.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from pipeline.cli._common import add_json_flag, print_json
 from pipeline.base.errors import UserError
+from pipeline.cli._common import add_json_flag, print_json
 
 SAMPLERS = ("grid", "random", "stratified", "sobol")
 METHODS = ("hits", "image", "trace")
@@ -231,10 +229,9 @@ def _save_image(img, path, title):
     im = ax.imshow(img.mean(axis=2) * 1e6, origin="lower", cmap="inferno")
     fig.colorbar(im, ax=ax, label="W/m^2 per W per LED")
     ax.set_title(title)
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=100)
-    plt.close(fig)
+    from sim.figures import save_figure
+
+    save_figure(fig, path, dpi=100)
 
 
 def _section(args) -> int:
@@ -365,14 +362,14 @@ def _synthesize(args) -> int:
     import time
 
     from pipeline.base.store import StageStore
-    from pipeline.stages.synthesize import synthesize_to_store
+    from pipeline.stages import synthesize as synthesize_stage
     from sim.synthesize import save_illumination
 
     _check_rays(args)
     t0 = time.perf_counter()
     store = StageStore(args.cache) if args.cache else StageStore()
-    model, key, cached = synthesize_to_store(
-        args.scene, tuple(args.shape), args.mm_per_px, store, drive=_load_npy(args.drive, "drive"),
+    model, key, cached = synthesize_stage.run(
+        store, args.scene, tuple(args.shape), args.mm_per_px, drive=_load_npy(args.drive, "drive"),
         brightness=_load_npy(args.brightness, "brightness"), gains=_load_npy(args.gains, "gains"),
         exposure=args.exposure, rays=args.rays, sampler=args.sampler, seed=args.seed, method=args.method,
         device=_device(args.device, args.engine), dtype=args.dtype, engine=_engine(args))

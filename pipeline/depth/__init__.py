@@ -6,7 +6,9 @@
 - :func:`sparse_lstsq` (``sparse``): least squares on the valid pixels only, PCG.
 
 :func:`integrate` dispatches by name through the integrator registry
-(:data:`pipeline.base.registry.INTEGRATORS`), where a new integrator is registered.
+(:data:`pipeline.base.registry.INTEGRATORS`), where a new integrator is registered;
+:func:`frame_integrator` gives live use an integrator's registered fast path (``dst``:
+:class:`pipeline.depth.fast.FastDST`), else the eager one, frame after frame.
 """
 
 from __future__ import annotations
@@ -22,7 +24,8 @@ _WHERE = {"frankot_chellappa": "fourier", "poisson_dct": "poisson", "poisson_dst
 
 __getattr__, __dir__ = lazy_names(__name__, _WHERE, globals())
 
-__all__ = ["DepthResult", "frankot_chellappa", "poisson_dct", "poisson_dst", "sparse_lstsq", "integrate"]
+__all__ = ["DepthResult", "frankot_chellappa", "poisson_dct", "poisson_dst", "sparse_lstsq", "integrate",
+           "frame_integrator", "FrameIntegrator"]
 
 
 def integrate(normals, mm_per_px: float, mask=None, method: str = "dst", *, region=None, margin: int = 2,
@@ -77,3 +80,44 @@ def integrate(normals, mm_per_px: float, mask=None, method: str = "dst", *, regi
     m[rows, cols] = out.mask
     meta = dict(out.meta, bbox=[rows.start, rows.stop, cols.start, cols.stop])
     return DepthResult(np.where(pm.mask, height, 0).astype(np.float32), m & pm.mask, meta)
+
+
+class FrameIntegrator:
+    """An integrator by name on one frame's normals at a time (the eager path of
+    :func:`frame_integrator`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> flat = np.zeros((3, 4, 3), np.float32); flat[..., 2] = 1.0
+    >>> fi = FrameIntegrator("fc", (3, 4), 0.1)
+    >>> fi.method, float(np.abs(fi.integrate(flat).height).max())
+    ('eager', 0.0)
+    """
+
+    def __init__(self, name: str, shape, mm_per_px: float):
+        self.name = INTEGRATORS.check(name)
+        self.shape = (int(shape[0]), int(shape[1]))
+        self.mm_per_px = float(mm_per_px)
+        self.method = "eager"
+
+    def integrate(self, normals, mask=None) -> DepthResult:
+        """Heights of normals ``(H, W, 3)`` (``mask``: the valid ones)."""
+        return integrate(normals, self.mm_per_px, mask, method=self.name)
+
+
+def frame_integrator(name: str, shape, mm_per_px: float, *, workers: int = 1, fast: bool = True):
+    """The per-frame integrator of ``name`` for normals of ``shape`` (H, W): its registered fast
+    path (``info["fast"]`` in :data:`pipeline.base.registry.INTEGRATORS`), else
+    :class:`FrameIntegrator`. Either has ``integrate(normals, mask) -> DepthResult`` and
+    ``method`` (``fast``/``eager``).
+
+    Examples
+    --------
+    >>> frame_integrator("dst", (8, 8), 0.1).method, frame_integrator("sparse", (8, 8), 0.1).method
+    ('fast', 'eager')
+    """
+    build = INTEGRATORS.fast(name) if fast else None
+    if build is None:
+        return FrameIntegrator(name, shape, mm_per_px)
+    return build(shape, mm_per_px, workers=workers)

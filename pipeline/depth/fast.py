@@ -100,7 +100,8 @@ def dst_divergence(normals, mask, mm_per_px: float, max_slope: float = 20.0):
 
 
 class FastDST:
-    """DST Poisson integration for frames of one size (eigenvalues kept).
+    """DST Poisson integration for frames of one size (eigenvalues kept): the ``dst``
+    integrator's registered fast path (:func:`pipeline.depth.frame_integrator`).
 
     Parameters
     ----------
@@ -121,13 +122,14 @@ class FastDST:
     """
 
     def __init__(self, shape, mm_per_px: float, max_slope: float = 20.0, workers: int = 1):
-        from pipeline.depth.poisson import _dst_eigenvalues
+        from pipeline.depth.poisson import dst_eigenvalues
 
         self.shape = (int(shape[0]), int(shape[1]))
         self.mm_per_px = float(mm_per_px)
         self.max_slope = float(max_slope)
         self.workers = int(workers)
-        self.eig = _dst_eigenvalues(*self.shape).astype(np.float32)
+        self.eig = dst_eigenvalues(*self.shape).astype(np.float32)
+        self.method = "fast"
 
     def integrate(self, normals, mask=None, workers: int | None = None) -> DepthResult:
         """Heights ``(H, W)`` mm of float32 normals ``(H, W, 3)``; ``mask`` the valid ones."""

@@ -16,10 +16,15 @@ from functools import lru_cache
 import numpy as np
 import scipy.fft
 
-from pipeline.depth._common import (DepthResult, anchor_to_border, divergence_neumann, half_pixel_gradients,
-                                    pixel_gradients)
+from pipeline.depth._common import (
+    DepthResult,
+    anchor_to_border,
+    divergence_neumann,
+    half_pixel_gradients,
+    pixel_gradients,
+)
 
-__all__ = ["poisson_dct", "poisson_dst"]
+__all__ = ["poisson_dct", "poisson_dst", "dst_eigenvalues"]
 
 
 @lru_cache(maxsize=16)
@@ -67,7 +72,7 @@ def poisson_dct(normals, mm_per_px: float, mask=None, *, max_slope: float = 20.0
 
 
 @lru_cache(maxsize=16)
-def _dst_eigenvalues(H: int, W: int) -> np.ndarray:
+def dst_eigenvalues(H: int, W: int) -> np.ndarray:
     """Eigenvalues of the 5-point Laplacian with zero height half a pixel outside the image,
     in the DST-II basis ``sin(pi k (j + 1/2) / N)``, ``k = 1..N``."""
     ky = 2.0 * np.cos(np.pi * np.arange(1, H + 1) / H) - 2.0
@@ -125,7 +130,7 @@ def poisson_dst(normals, mm_per_px: float, mask=None, *, boundary=None, max_slop
     erp = np.concatenate([top, er, bottom], axis=0)  # (H + 1, W)
     f = (ecp[:, 1:] - ecp[:, :-1]) + (erp[1:, :] - erp[:-1, :])
     F = scipy.fft.dstn(f, type=2, workers=workers)
-    h = scipy.fft.idstn(F / _dst_eigenvalues(H, W).astype(f.dtype, copy=False), type=2, workers=workers)
+    h = scipy.fft.idstn(F / dst_eigenvalues(H, W).astype(f.dtype, copy=False), type=2, workers=workers)
     if B is not None:
         h = h + B
     return DepthResult(height=h.astype(np.float32), mask=m,

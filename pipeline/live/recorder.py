@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from pipeline.base.store import _fsync_dir, _fsync_file  # the store's own durable-write steps
+from pipeline.base.store import fsync_dir, fsync_file  # the store's own durable-write steps
 
 __all__ = ["LiveRecorder", "read_recording"]
 
@@ -108,7 +108,7 @@ class LiveRecorder:
         with h5py.File(tmp, "w") as f:
             for k, a in arrays.items():
                 f.create_dataset(k, data=a)
-        _fsync_file(tmp)
+        fsync_file(tmp)
         os.replace(tmp, final)
         self._segments.append((name, n))
         self.results += n
@@ -151,9 +151,9 @@ class LiveRecorder:
             for k, v in provenance_attrs("recording").items():
                 f.attrs[k] = v
             f.attrs["iristac_json_attrs"] = json.dumps(sorted(json_keys))
-        _fsync_file(tmp)
+        fsync_file(tmp)
         os.replace(tmp, self.path)
-        _fsync_dir(self.path.parent)
+        fsync_dir(self.path.parent)
 
     def close(self, stopped: str = "", dropped: int | None = None) -> Path:
         """Write what is buffered, consolidate into one self-contained file, remove the parts;

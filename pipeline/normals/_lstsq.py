@@ -13,15 +13,21 @@ alternate: solve ``b`` jointly, estimate each group's albedo, scale each group's
 relative albedo and solve again (see :func:`solve`).
 
 Layout: pixels last. Observations ``(N, M)``, lights ``(N, 3)`` (shared) or ``(N, 3, M)``.
+
+:func:`finalize` is the one place that turns a raw solve into a
+:class:`~pipeline.normals.result.NormalResult`.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 
 from pipeline.normals import _torch as T
+from pipeline.normals._inputs import group_counts_ok
+from pipeline.normals.result import COND_CAP, NormalResult
 
 
 @dataclass
@@ -194,8 +200,89 @@ def solve(m: Moments, inv: torch.Tensor, iterations: int = 0) -> torch.Tensor:
     return b
 
 
+def albedo_iterations(requested, L, selectors, groups, num_groups) -> int:
+    """Alternation steps: as requested, or (None) 3 when the channels see different lights
+    and 0 when a joint solve is already exact; never without three observations per group."""
+    if not group_counts_ok(groups, num_groups):
+        return 0
+    if requested is None:
+        return 0 if channels_share_lights(L, selectors) else 3
+    return int(requested)
+
+
 def residual_rms(m: Moments, p: torch.Tensor, q: torch.Tensor) -> torch.Tensor:
     """Weighted RMS residual ``(M,)`` of the fit with the least-squares albedo per group."""
     explained = (p * p / torch.clamp(q, min=torch.finfo(q.dtype).tiny)).sum(0)
     ss = torch.clamp(m.S.sum(0) - explained, min=0.0)
     return torch.sqrt(ss / torch.clamp(m.wsum, min=torch.finfo(ss.dtype).tiny))
+
+
+def finalize_tensors(b: torch.Tensor, m: Moments, cond: torch.Tensor, *, max_condition: float = 1e3,
+                     min_count: int = 3, finite_inputs: bool = False) -> dict[str, torch.Tensor]:
+    """The per-pixel outputs as tensors with pixels last (see :func:`finalize`)."""
+    if not finite_inputs:
+        finite = torch.isfinite(b).all(0)
+        b = torch.nan_to_num(b, nan=0.0, posinf=0.0, neginf=0.0)
+    n, norm = unit(b)
+    valid = (norm > 0) & (m.count >= min_count) & (cond <= max_condition) & (n[2] > 0)
+    if not finite_inputs:
+        valid = valid & finite
+    flat = torch.zeros((3, 1), dtype=n.dtype, device=n.device)
+    flat[2] = 1.0
+    n = torch.where(valid, n, flat)
+    rho, p, q = group_albedo(m, n)
+    res = residual_rms(m, p, q)
+    zero = torch.zeros((), dtype=n.dtype, device=n.device)
+    # Moments of huge but finite inputs can overflow to Inf in the products (a 1e30 observation
+    # squares to Inf in float32), also when every input is finite: outputs are always cleaned.
+    rho = torch.nan_to_num(rho, nan=0.0, posinf=0.0, neginf=0.0)
+    res = torch.nan_to_num(res, nan=0.0, posinf=torch.finfo(res.dtype).max, neginf=0.0)  # overflowed: a huge misfit
+    cond = torch.nan_to_num(cond, nan=COND_CAP, posinf=COND_CAP, neginf=COND_CAP)
+    return {"normals": n, "albedo": torch.where(valid, rho, zero), "residual": torch.where(valid, res, zero),
+            "condition": cond.expand(n.shape[1]) if cond.numel() == 1 else cond, "mask": valid,
+            "count": m.count}
+
+
+def to_result(t: dict[str, torch.Tensor], shape: tuple[int, int], meta: dict | None = None) -> NormalResult:
+    """Tensors with pixels last -> a :class:`NormalResult` of ``(H, W, ...)`` numpy arrays."""
+    H, W = shape
+    out_dtype = np.float64 if t["normals"].dtype == torch.float64 else np.float32
+
+    def out(x):  # (..., M) -> (H, W, ...), one transposing copy made by torch
+        x = x.detach()
+        if x.dim() == 2:
+            x = x.T.contiguous()
+        return x.cpu().numpy().reshape((H, W) + tuple(x.shape[1:]))
+
+    return NormalResult(
+        normals=out(t["normals"]).astype(out_dtype, copy=False),
+        albedo=out(t["albedo"]).astype(out_dtype, copy=False),
+        residual=out(t["residual"]).astype(out_dtype, copy=False),
+        condition=out(t["condition"]).astype(out_dtype, copy=False),
+        mask=out(t["mask"]).astype(bool, copy=False),
+        count=out(t["count"]).astype(np.int32, copy=False),
+        meta=dict(meta or {}),
+    )
+
+
+def concat(parts: list[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Join per-chunk outputs along the pixel axis."""
+    if len(parts) == 1:
+        return parts[0]
+    return {k: torch.cat([p[k] for p in parts], dim=-1) for k in parts[0]}
+
+
+def finalize(b: torch.Tensor, m: Moments, cond: torch.Tensor, shape: tuple[int, int], *,
+             max_condition: float = 1e3, min_count: int = 3, meta: dict | None = None,
+             finite_inputs: bool = False) -> NormalResult:
+    """Turn scaled normals ``b = rho n`` ``(3, M)`` and the moments they came from into a
+    :class:`NormalResult`.
+
+    Pixels with fewer than ``min_count`` used observations, ``cond > max_condition``
+    (``cond`` is ``(M,)`` or ``(1,)``), a zero or non-finite ``b`` or a normal facing away from
+    the camera are masked and get the flat normal, zero albedo and zero residual.
+    ``finite_inputs`` (integer observations, finite lights: nothing can overflow) skips the
+    NaN/Inf scrubbing, which is a good part of the real-time path's cost.
+    """
+    t = finalize_tensors(b, m, cond, max_condition=max_condition, min_count=min_count, finite_inputs=finite_inputs)
+    return to_result(t, shape, meta)

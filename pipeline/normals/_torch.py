@@ -14,8 +14,7 @@ import math
 import numpy as np
 import torch
 
-#: Condition numbers are capped here so that outputs stay finite (a singular matrix reads as this).
-COND_CAP = 1e12
+from pipeline.normals.result import COND_CAP
 
 
 def torch_dtype(dtype) -> torch.dtype:

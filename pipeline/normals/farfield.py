@@ -11,8 +11,9 @@ import torch
 
 from pipeline.normals import _inputs, _lstsq, fused
 from pipeline.normals import _torch as T
+from pipeline.normals._lstsq import concat, finalize, finalize_tensors, to_result
 from pipeline.normals.masking import PixelMask, masked_solve
-from pipeline.normals.result import NormalResult, concat, finalize, finalize_tensors, to_result
+from pipeline.normals.result import NormalResult
 
 __all__ = ["FarFieldSolver", "solve_farfield"]
 
@@ -70,7 +71,7 @@ class FarFieldSolver:
         self.selectors = _lstsq.group_selectors(self.groups, self.num_groups, self.n_obs)
         self.max_condition = float(max_condition)
         self.L, row_ok = _inputs.flatten_lights(L, self.dtype, self.device)
-        self.iterations = _albedo_iterations(albedo_iterations, self.L, self.selectors, self.groups,
+        self.iterations = _lstsq.albedo_iterations(albedo_iterations, self.L, self.selectors, self.groups,
                                              self.num_groups)
         # Rows without a finite light are dropped by weight; all rows good -> unit weights.
         self.w_rows = None if bool(row_ok.all()) else row_ok.to(self.dtype)[:, None]
@@ -190,16 +191,6 @@ def _all_moderate(x) -> bool:
 
 def _meta(self) -> dict:
     return {"solver": "lstsq", "model": "far-field", "max_condition": self.max_condition}
-
-
-def _albedo_iterations(requested, L, selectors, groups, num_groups) -> int:
-    """Alternation steps: as requested, or (None) 3 when the channels see different lights
-    and 0 when a joint solve is already exact; never without three observations per group."""
-    if not _inputs.group_counts_ok(groups, num_groups):
-        return 0
-    if requested is None:
-        return 0 if _lstsq.channels_share_lights(L, selectors) else 3
-    return int(requested)
 
 
 def solve_farfield(observations, lights, mask=None, **kwargs) -> NormalResult:

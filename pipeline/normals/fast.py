@@ -28,13 +28,12 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pipeline.normals.result import NormalResult
+from pipeline.normals.result import COND_CAP, NormalResult
 
 __all__ = ["NearFieldFast", "frame_planes_np", "split_into", "run_split", "BLOCK"]
 
 #: Pixels per block: the block's accumulators (4 G planes) and light rows stay in L1/L2.
 BLOCK = 512
-_COND_CAP = 1e12
 
 
 _POOL = None
@@ -110,7 +109,7 @@ def _quad(Q, g, x, n0, n1, n2):  # pragma: no cover - compiled
             + np.float32(2.0) * (Q[g, 1, x] * n0 * n1 + Q[g, 2, x] * n0 * n2 + Q[g, 4, x] * n1 * n2))
 
 
-def _blocked(a: np.ndarray) -> np.ndarray:
+def blocked(a: np.ndarray) -> np.ndarray:
     """``(..., M)`` -> ``(ceil(M / BLOCK), ..., BLOCK)`` float32, zero-padded: each block's data is
     one contiguous run, read as one stream (the per-plane layout made ~100 streams per block,
     more than the prefetchers follow: 3x slower once the field no longer fits the cache)."""
@@ -122,11 +121,11 @@ def _blocked(a: np.ndarray) -> np.ndarray:
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, valid0, iterations, start, stop,
+def _nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, valid0, iterations, start, stop,  # noqa: C901 - compiled: the loop body stays one function so Numba vectorises it
                       normals, albedo, residual, mask):  # pragma: no cover - compiled
     """Pixels ``start:stop`` of observation planes ``obs (N, M)``: moments, solve, outputs.
 
-    Blocked layout (:func:`_blocked`, block ``b`` = pixels ``512 b ...``): ``L (nb, N, 3, 512)``,
+    Blocked layout (:func:`blocked`, block ``b`` = pixels ``512 b ...``): ``L (nb, N, 3, 512)``,
     ``inv (nb, 6, 512)`` (symmetric: xx, xy, xz, yy, yz, zz), ``Q (nb, G, 6, 512)``, ``dark``/``invflat`` ``(nb, N, 512)`` or
     ``(0, 0, 0)`` when absent, float32; ``valid0 (M,)`` bool; ``start`` a multiple of 512.
     Channels sharing their lights (``scale (nb, G, 512)``, else ``(0, 0, 0)``): observation
@@ -380,9 +379,9 @@ class NearFieldFast:
         with np.errstate(divide="ignore", invalid="ignore"):
             cond = np.sqrt(np.clip(ev[:, 2] / np.where(ev[:, 0] > 0, ev[:, 0], 1.0), 1.0, None))
         bad = (ev[:, 0] <= 0) | (ev[:, 2] <= 0) | ~np.isfinite(cond)
-        self.condition_m = np.where(bad, _COND_CAP, np.minimum(cond, _COND_CAP)).astype(np.float32)
+        self.condition_m = np.where(bad, COND_CAP, np.minimum(cond, COND_CAP)).astype(np.float32)
         sym = [0, 1, 2, 4, 5, 8]  # xx, xy, xz, yy, yz, zz of a symmetric 3x3
-        self.inv = _blocked(inv.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512): the inverse is symmetric too
+        self.inv = blocked(inv.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512): the inverse is symmetric too
         scale = self._shared_scale(Lm)
         counts = np.bincount(self.groups, minlength=self.num_groups)
         if albedo_iterations is None:
@@ -398,30 +397,30 @@ class NearFieldFast:
             L0 = Lm[::self.num_groups]  # (P, M, 3): the first channel's lights
             Q0 = np.einsum("kmi,kmj->mij", L0, L0)
             Pi = shared_factors(L0, Q0, invertible)
-            self.Lt = _blocked(Pi.transpose(0, 2, 1))  # (nb, P, 3, 512): Q_0^-1 L_p
-            self.Q = _blocked(Q0.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512)
+            self.Lt = blocked(Pi.transpose(0, 2, 1))  # (nb, P, 3, 512): Q_0^-1 L_p
+            self.Q = blocked(Q0.reshape(-1, 9)[:, sym].T)  # (nb, 6, 512)
             self.inv = np.zeros((0, 0, 0), np.float32)  # folded into Pi; scale: below, with the validity
         elif scale is None:
-            self.Lt = _blocked(Lm.transpose(0, 2, 1))  # (nb, N, 3, 512)
-            self.Q = _blocked(Qg.reshape(self.num_groups, -1, 9)[:, :, sym].transpose(0, 2, 1))  # (nb, G, 6, 512)
+            self.Lt = blocked(Lm.transpose(0, 2, 1))  # (nb, N, 3, 512)
+            self.Q = blocked(Qg.reshape(self.num_groups, -1, 9)[:, :, sym].transpose(0, 2, 1))  # (nb, G, 6, 512)
             self.scale = np.zeros((0, 0, 0), np.float32)
         else:
             L0 = Lm[::self.num_groups]  # (P, M, 3): the first channel's lights
             Q0 = np.einsum("kmi,kmj->mij", L0, L0).reshape(-1, 9)[:, sym]
-            self.Lt = _blocked(L0.transpose(0, 2, 1))  # (nb, P, 3, 512)
-            self.Q = _blocked(Q0.T[None])  # (nb, 1, 6, 512)
-            self.scale = _blocked(scale)  # (nb, G, 512)
+            self.Lt = blocked(L0.transpose(0, 2, 1))  # (nb, P, 3, 512)
+            self.Q = blocked(Q0.T[None])  # (nb, 1, 6, 512)
+            self.scale = blocked(scale)  # (nb, G, 512)
         self.shared = scale is not None
         self.valid0 = finite & invertible & (self.condition_m <= self.max_condition) & (N >= 3)
         M = len(self.index)
         if flat_field is not None:
             f = np.asarray(flat_field, np.float64).reshape(N, H * W)[:, self.index]
             self.valid0 &= (f > 0).all(axis=0)
-            self.invflat = _blocked(np.where(f > 0, 1.0 / np.where(f > 0, f, 1.0), 0.0))
+            self.invflat = blocked(np.where(f > 0, 1.0 / np.where(f > 0, f, 1.0), 0.0))
         else:
             self.invflat = np.zeros((0, 0, 0), np.float32)  # absent: the kernel skips it
         if self.pinv:  # the validity folded into the scalars: the kernel reads no mask
-            self.scale = _blocked(np.where(self.valid0, scale, 0.0))
+            self.scale = blocked(np.where(self.valid0, scale, 0.0))
         self._count = np.full(M, N, np.int32)  # every observation is used: the same every frame
         self._count.flags.writeable = False  # shared by every result (as the condition map)
         self.set_dark(dark)
@@ -462,7 +461,7 @@ class NearFieldFast:
 
     def set_dark(self, dark) -> None:
         """Subtract ``dark (H, W, C)`` (None: nothing) from every later frame."""
-        N, M = self.n_obs, len(self.index)
+        N = self.n_obs
         if dark is None:
             self.dark = np.zeros((0, 0, 0), np.float32)  # absent: the kernel skips it
             return
@@ -472,7 +471,7 @@ class NearFieldFast:
         if d.shape != (H, W, C) or N % C:
             raise ValueError(f"NearFieldFast: dark must be (H, W, C) = ({H}, {W}, C) with C dividing {N}, got {d.shape}")
         planes = frame_planes_np(np.broadcast_to(d, (N // C, H, W, C)).copy(), self.index)
-        self.dark = _blocked(planes.astype(np.float32))
+        self.dark = blocked(planes.astype(np.float32))
 
     @property
     def pixels(self) -> int:
@@ -536,5 +535,5 @@ class NearFieldFast:
         cond = self.condition_m
         count = self._count
         return NormalResult(normals=full(n, np.array([0, 0, 1], np.float32)), albedo=full(rho, 0), residual=full(res, 0),
-                            condition=full(cond, _COND_CAP), mask=full(ok, False), count=full(count, 0),
+                            condition=full(cond, COND_CAP), mask=full(ok, False), count=full(count, 0),
                             meta={"solver": "nearfield", "method": "fast", "max_condition": self.max_condition})

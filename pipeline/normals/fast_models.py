@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from pipeline.normals.fast import _blocked, frame_planes_np, run_split
+from pipeline.normals.fast import blocked, frame_planes_np, run_split
 
 __all__ = ["FastLUT", "FastMLP", "finish_normals"]
 
@@ -62,7 +62,6 @@ def _lut_kernel(obs, dark, ref, lo, width, bins, filled, support, table, coef, p
     ``(-g_x, -g_y, 1) / |.|`` (``pipeline.base.frames.gradients_to_normals``), the output
     correction (:func:`_finish_one`), confidence ``support / (support + 1)``; all in float64
     like the model, written as float32."""
-    C = obs.shape[0]
     T = phi.shape[1]
     has_dark = dark.shape[0] > 0
     use_coef = coef.shape[0] > 0
@@ -257,7 +256,7 @@ def _silu(v):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
-def _mlp_kernel(obs, dark, ref, inv_scale, fixed, Wd, Wh, bh, Wo, bo, start, stop, out):  # pragma: no cover
+def _mlp_kernel(obs, dark, ref, inv_scale, fixed, Wd, Wh, bh, Wo, bo, start, stop, out):  # pragma: no cover  # noqa: C901 - compiled
     """Pixels ``start:stop`` (a multiple of 512) through the network, a block at a time.
 
     ``fixed (nb, K, 512)``: the first layer without the colour change; ``Wd (K, N)``: its
@@ -328,7 +327,7 @@ def _finite3(a, b, c):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _mlp_finish(outs, apply, gain, limit, start, stop, normals, mask, conf):  # pragma: no cover - compiled
+def _mlp_finish(outs, apply, gain, limit, start, stop, normals, mask, conf):  # pragma: no cover  # noqa: C901 - compiled
     """``MLPModel._predict_features`` on raw outputs ``(members, 2, M)``: the members' mean
     (float64), their spread ``s`` (confidence ``exp(-s / 0.05)``), outputs outside the unit disc
     shrunk onto ``|n_xy|^2 = 0.996``, ``n_z``; then :func:`_finish_one`. ``normals (3, M)``.
@@ -469,7 +468,7 @@ class FastMLP(_Base):
             Wh = np.stack([np.asarray(w, np.float32) for w, _ in hidden]) if hidden else np.zeros((0, K, K), np.float32)
             bh = np.stack([np.asarray(b, np.float32) for _, b in hidden]) if hidden else np.zeros((0, K), np.float32)
             Wo, bo = (np.asarray(a, np.float32) for a in layers[-1])
-            self.members.append((_blocked(fixed), np.ascontiguousarray(Wd, np.float32), np.ascontiguousarray(Wh),
+            self.members.append((blocked(fixed), np.ascontiguousarray(Wd, np.float32), np.ascontiguousarray(Wh),
                                  np.ascontiguousarray(bh), np.ascontiguousarray(Wo), np.ascontiguousarray(bo)))
         self.dark = np.zeros((0, 0), np.float32) if dark is None else frame_planes_np(
             np.broadcast_to(np.asarray(dark, np.float32), (self.num_patterns, H, W, self.channels)).copy())

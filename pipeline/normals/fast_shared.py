@@ -38,7 +38,7 @@ def shared_factors(L0: np.ndarray, Q0: np.ndarray, invertible: np.ndarray):
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
-def shared_kernel(obs, dark, invflat, Pi, Q0, scale, start, stop,
+def shared_kernel(obs, dark, invflat, Pi, Q0, scale, start, stop,  # noqa: C901 - compiled: the loop body stays one function so Numba vectorises it
                   normals, albedo, residual, mask):  # pragma: no cover - compiled
     """Pixels ``start:stop`` (``start`` a multiple of 512) of observation planes ``obs (N, M)``
     (pattern-major, channel-minor, ``N = P G``).

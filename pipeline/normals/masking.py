@@ -17,17 +17,23 @@ temporaries (``N x batch`` floats each).
 from __future__ import annotations
 
 import functools
+import sys
 
 import numpy as np
-import torch
 
-from pipeline.normals import _torch as T
-from pipeline.normals.result import NormalResult
+from pipeline.normals.result import COND_CAP, NormalResult
 
 __all__ = ["PixelMask", "masked_solve", "solves_in_mask", "pixel_batches", "BATCH_ELEMENTS"]
 
 #: Elements (observations x pixels) of one batch: 8 M floats = 32 MB per float32 temporary.
 BATCH_ELEMENTS = 1 << 23
+
+
+def _is_tensor(a) -> bool:
+    """Whether ``a`` is a torch tensor, without importing torch for numpy callers (a tensor
+    exists only once torch is imported)."""
+    torch = sys.modules.get("torch")
+    return torch is not None and isinstance(a, torch.Tensor)
 
 
 class PixelMask:
@@ -59,7 +65,7 @@ class PixelMask:
     """
 
     def __init__(self, mask, shape: tuple[int, int], name: str = "mask"):
-        m = mask.detach().cpu().numpy() if isinstance(mask, torch.Tensor) else np.asarray(mask)
+        m = mask.detach().cpu().numpy() if _is_tensor(mask) else np.asarray(mask)
         shape = tuple(int(s) for s in shape)
         if m.shape != shape:
             raise ValueError(f"{name}: mask must have shape {shape} (the image's H, W), got {m.shape}")
@@ -92,9 +98,11 @@ class PixelMask:
         if shape[ax:ax + 2] != self.shape:
             raise ValueError(f"PixelMask.gather: axes {ax}, {ax + 1} of shape {shape} must be {self.shape}")
         flat_shape = shape[:ax] + (self.shape[0] * self.shape[1],) + shape[ax + 2:]
-        if isinstance(a, torch.Tensor):
+        if _is_tensor(a):
             idx = self._index_t.get(a.device)
             if idx is None:
+                import torch
+
                 idx = self._index_t[a.device] = torch.as_tensor(self.index, device=a.device)
             out = a.reshape(flat_shape).index_select(ax, idx)
         elif len(self.runs) * 4 <= self.count:
@@ -117,7 +125,7 @@ class PixelMask:
         the full frames)."""
         P, H, W, C = tuple(frames.shape)
         g = self.gather(frames, axis=1)[:, 0]  # (P, M, C)
-        if isinstance(g, torch.Tensor):
+        if _is_tensor(g):
             return g.permute(0, 2, 1).reshape(P * C, 1, self.count)
         return np.ascontiguousarray(g.transpose(0, 2, 1)).reshape(P * C, 1, self.count)
 
@@ -157,7 +165,7 @@ class PixelMask:
             normals=self.scatter_array(res.normals, flat),
             albedo=self.scatter_array(res.albedo, np.zeros(res.albedo.shape[-1], res.albedo.dtype)),
             residual=self.scatter_array(res.residual, 0),
-            condition=self.scatter_array(res.condition, T.COND_CAP),
+            condition=self.scatter_array(res.condition, COND_CAP),
             mask=self.scatter_array(res.mask, False),
             count=self.scatter_array(res.count, 0),
             meta=dict(res.meta, masked_pixels=self.count),

@@ -8,14 +8,14 @@ once (normal equations, or QR for the reference path) and a frame costs one weig
 
 from __future__ import annotations
 
-import numpy as np
+import numpy as np  # noqa: F401 - the examples (doctests) use it
 import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
-from pipeline.normals.farfield import _albedo_iterations
+from pipeline.normals._lstsq import finalize
 from pipeline.normals.masking import PixelMask
-from pipeline.normals.result import NormalResult, finalize
+from pipeline.normals.result import NormalResult
 
 __all__ = ["NearFieldSolver", "solve_nearfield"]
 
@@ -75,7 +75,7 @@ class NearFieldSolver:
         self.selectors = _lstsq.group_selectors(self.groups, self.num_groups, self.n_obs)
         self.max_condition = float(max_condition)
         self.L, ok = _inputs.flatten_lights(lights, self.dtype, self.device)  # (N, 3, M)
-        self.iterations = _albedo_iterations(albedo_iterations, self.L, self.selectors, self.groups,
+        self.iterations = _lstsq.albedo_iterations(albedo_iterations, self.L, self.selectors, self.groups,
                                              self.num_groups)
         self.w0 = None if bool(ok.all()) else ok.to(self.dtype)
         # The light field is fixed: per-pixel moments, inverse and condition once per model.

@@ -53,8 +53,9 @@ import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
+from pipeline.normals._lstsq import concat, finalize_tensors, to_result
 from pipeline.normals.masking import pixel_batches, solves_in_mask
-from pipeline.normals.result import NormalResult, concat, finalize_tensors, to_result
+from pipeline.normals.result import NormalResult
 
 __all__ = ["solve_robust_irls", "WEIGHTS"]
 

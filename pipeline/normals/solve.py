@@ -1,141 +1,116 @@
-"""Normals of a capture's frame stack with the solver a name picks from the solver registry.
+"""One solve path: frames of any source through the solver a name picks from the solver registry.
 
-:func:`solve_capture` takes dark-subtracted frames ``(K, P, H, W, C)`` and a
-:class:`LightSource`, checks that the lights are what the solver needs
-(:data:`pipeline.base.registry.SOLVERS`, ``info["needs"]`` and ``info["patterns"]``) and calls
-the solver's adapter. Each adapter below turns the stack into the solver's observations
-``(P*C, H, W)`` (pattern-major, channel-minor) and light vectors, per contact instance:
+:class:`FrameSolver` is the path every eager solve takes (``reconstruct``, ``batch`` and
+``run`` through the normals stage, ``live`` when no fast path applies): prepare the raw
+frames (:class:`pipeline.normals.prepare.FramePrep`: dark level, saturation, markers, region),
+solve them with :func:`solve_capture`, finish the results (scatter the region back, marker
+pixels invalid). The fast per-frame paths take the same :class:`~pipeline.normals.prepare.FramePrep`
+(:func:`pipeline.stages.fast_solvers.frame_solver`).
 
-- :func:`solve_lstsq` (far field): the far-field vectors, else the light field at the image
-  centre (what a far-field calibration would measure there); a ``torch.compile``-d kernel
-  with ``compile``;
-- :func:`solve_nearfield`: per-pixel light vectors (divided by the flat field first when the
-  lights have one);
-- :func:`solve_robust` (``robust``, :func:`pipeline.normals.robust_irls.solve_robust_irls`:
-  explicit shadow and highlight models) and :func:`solve_cauchy` (``cauchy``, the earlier
-  robust solver :func:`pipeline.normals.robust.solve_robust`): the light field if present, else
-  the far field; dark values (within ``dark_threshold`` of the dark level) and saturated raw
-  values are excluded;
+:func:`solve_capture` takes prepared frames ``(K, P, H, W, C)`` and a
+:class:`~pipeline.normals.lights.LightSource`, checks that the lights are what the solver needs
+(:func:`pipeline.normals.lights.check_lights`) and calls the solver's adapter: its
+registry entry's target in :data:`pipeline.base.registry.SOLVERS`. Each adapter below turns
+the stack into the solver's observations ``(P*C, H, W)`` (pattern-major, channel-minor) and
+light vectors, per contact instance:
+
+- :func:`stack_lstsq` (far field, :class:`pipeline.normals.farfield.FarFieldSolver`): the
+  lights' far-field vectors (:meth:`~pipeline.normals.lights.LightSource.far_vectors`); a
+  ``torch.compile``-d kernel with ``compile``;
+- :func:`stack_nearfield` (:class:`pipeline.normals.nearfield.NearFieldSolver`): per-pixel
+  light vectors (divided by the flat field first when the lights have one);
+- :func:`stack_robust` (``robust``, :func:`pipeline.normals.robust_irls.solve_robust_irls`:
+  explicit shadow and highlight models) and :func:`stack_cauchy` (``cauchy``, the earlier
+  robust solver :func:`pipeline.normals.cauchy.solve_cauchy`): the light field if present,
+  else the far field; dark values (within ``dark_threshold`` of the dark level) and saturated
+  raw values are excluded;
 - the calibration's fitted models (``far``, ``near``, ``traced``, ``lut``, ``mlp``): their
   adapters live in :mod:`pipeline.stages.model_solvers` (a model is a calibration object, a
   layer above this one) and call the model's batched ``normal_maps``.
 
 A new solver is its module in ``pipeline/normals/`` plus an adapter with the signature of
 these (``(frames, lights, **options) -> list[NormalResult]``), registered by one entry in
-:data:`~pipeline.base.registry.SOLVERS`.
+:data:`~pipeline.base.registry.SOLVERS` (``docs/developing.md`` lists every file).
 """
 
 from __future__ import annotations
-
-from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from pipeline.base.errors import UserError
 from pipeline.base.registry import SOLVERS
+from pipeline.normals.lights import LightSource, check_lights
+from pipeline.normals.prepare import FramePrep, full_scale
 
-__all__ = ["LightSource", "solve_capture", "solve_lstsq", "solve_nearfield", "solve_robust", "solve_cauchy",
-           "applicable_solvers"]
+__all__ = ["FrameSolver", "solve_capture", "stack_lstsq", "stack_nearfield", "stack_robust", "stack_cauchy"]
 
 
-@dataclass
-class LightSource:
-    """The light model a reconstruction uses.
+class FrameSolver:
+    """The eager solve path of a registered solver: prepare, solve, finish.
 
-    Attributes
+    Parameters
     ----------
-    far : ndarray, shape (P, C, 3), optional
-        One light vector per pattern-channel.
-    field : ndarray, shape (P, C, H, W, 3), optional
-        Per-pixel light vectors.
-    flat_field : ndarray, shape (P, C, H, W), optional
-        Observations are divided by it before solving (goes with ``field``).
-    models : dict, optional
-        A calibration's fitted models, name -> object with ``normal_maps(frames, reference,
-        markers=...)`` (:func:`calibration.stored.calibration_from_record`).
-    markers : ndarray, shape (H, W), bool, optional
-        The printed gel markers the calibration found (the default marker mask of frames
-        reconstructed with it).
-    source : str
-        Where the lights came from (for the record's attributes).
-    key : str
-        Identity of the light file (enters the normals stage key).
-    """
-
-    far: np.ndarray | None = None
-    field: np.ndarray | None = None
-    flat_field: np.ndarray | None = None
-    models: dict[str, Any] | None = None
-    markers: np.ndarray | None = None
-    source: str = ""
-    key: str = ""
-
-    def kinds(self) -> set[str]:
-        """What these lights offer, in the terms of a solver's ``needs``."""
-        out = set()
-        if self.far is not None or self.field is not None:
-            out.add("vectors")
-        if self.field is not None:
-            out.add("field")
-        out.update(f"model:{name}" for name in (self.models or {}))
-        return out
-
-
-def applicable_solvers(patterns: int, channels: int, kinds: set[str], variants: bool = False) -> tuple[str, ...]:
-    """The registered solvers that can solve ``patterns`` x ``channels`` observations with lights
-    offering ``kinds`` (:meth:`LightSource.kinds`), in registry order; ``variants`` includes the
-    entries marked as alternatives (``info["variant"]``).
+    solver : str
+        A name in :data:`pipeline.base.registry.SOLVERS`.
+    lights : LightSource
+        For the full frames (gathered here to the region's pixels).
+    prep : FramePrep
+        How the raw frames are prepared (its ``fills_markers`` and ``whole_frame`` are the
+        solver's registry facts: :meth:`for_solver` builds it so).
+    reference : ndarray, shape (P, H, W, C), optional
+        Raw no-contact frames, prepared like the frames (the ratio and the calibration models
+        read it).
+    ratio, max_condition, device, dtype, compile
+        As in :func:`solve_capture`.
 
     Examples
     --------
-    >>> applicable_solvers(24, 3, {"vectors", "field"})
-    ('lstsq', 'nearfield', 'robust')
-    >>> applicable_solvers(1, 3, {"vectors", "field", "model:lut"})
-    ('lstsq', 'nearfield', 'robust', 'lut')
+    >>> L = np.array([[[0, 0, 1.0]], [[0.6, 0, 0.8]], [[0, 0.6, 0.8]]])  # (P, C, 3)
+    >>> fs = FrameSolver("lstsq", LightSource(far=L, source="doc"), FrameSolver.prep_for("lstsq", (2, 2)))
+    >>> frames = np.broadcast_to((L[:, 0] @ [0, 0, 1.0])[:, None, None, None] * 100, (3, 2, 2, 1))
+    >>> res = fs.solve(frames)
+    >>> np.round(res.normals[0, 0], 6).tolist(), bool(res.mask.all())
+    ([0.0, 0.0, 1.0], True)
     """
-    return tuple(e.name for e in SOLVERS if e.info.get("needs") in kinds
-                 and (variants or not e.info.get("variant"))
-                 and (e.info.get("patterns", "any") != "one-rgb" or (patterns == 1 and channels == 3)))
 
+    def __init__(self, solver: str, lights: LightSource, prep: FramePrep, *, reference=None, ratio: bool = False,
+                 max_condition: float = 1e3, device="cpu", dtype="float32", compile: bool = False):
+        self.solver = SOLVERS.check(solver)
+        self.prep = prep
+        self.lights = prep.lights(lights)
+        self.reference = prep.reference(reference)
+        self.options = dict(ratio=bool(ratio), max_condition=float(max_condition), device=device, dtype=dtype,
+                            compile=bool(compile),
+                            dark_threshold=0.01 * prep.saturation if prep.saturation is not None else 0.0)
+        self.method = "eager"
 
-def _check_lights(solver: str, lights: LightSource, P: int, C: int) -> None:
-    info = SOLVERS.get(solver).info
-    needs = info.get("needs") or ""
-    if needs.startswith("model:") and needs[6:] not in (lights.models or {}):
-        have = ", ".join(lights.models or {}) or "none"
-        what = {"lut": "the lookup table", "mlp": "the MLP", "far": "the far-field model",
-                "near": "the near-field model", "traced": "the traced model"}.get(needs[6:], "the model")
-        raise UserError(f"--solver {solver} needs a calibration with {what} fitted (models/{needs[6:]}/*); "
-                        f"{lights.source or 'the light source'} has {have} (fit it with iristac calibrate --model)")
-    if info.get("patterns") == "one-rgb" and (P != 1 or C != 3):
-        raise UserError(f"--solver {solver} needs one RGB pattern per frame, the capture has P={P}, C={C}")
-    if needs == "field" and lights.field is None:
-        raise UserError(f"--solver {solver} needs per-pixel lights (an illumination file or a calibration "
-                        f"with light_field); {lights.source} has only far-field light vectors")
-    if needs in ("vectors", "field") and lights.field is None and lights.far is None:
-        raise UserError(f"--solver {solver} needs light vectors; {lights.source} has only fitted models "
-                        f"({', '.join(lights.models or {})}): use --solver with one of them")
-    if needs in ("vectors", "field"):
-        _check_light_count(None if lights.far is None else lights.far.reshape(P * C, 3), P, C,
-                           lights.source or "the light source")
+    @staticmethod
+    def prep_for(solver: str, shape, *, raw_dtype=None, bit_depth: int | None = None, **kw) -> FramePrep:
+        """The :class:`~pipeline.normals.prepare.FramePrep` of frames of ``shape`` for ``solver``
+        (its registry entry says whether it fills markers itself and reads whole frames); with
+        the raw frames' ``raw_dtype`` (and ``bit_depth``), values at full scale are flagged
+        saturated (:func:`~pipeline.normals.prepare.full_scale`). ``kw``: the other
+        :class:`~pipeline.normals.prepare.FramePrep` fields."""
+        info = SOLVERS.get(solver).info
+        saturation = None if raw_dtype is None else full_scale(raw_dtype, bit_depth)
+        return FramePrep(shape, fills_markers=bool(info.get("fills_markers")), whole_frame=bool(info.get("whole_frame")),
+                         saturation=saturation, **kw)
 
+    def solve_stack(self, raw, threads: int | None = 1) -> list:
+        """Raw frames ``(K, P, H, W, C)`` -> one :class:`~pipeline.normals.result.NormalResult`
+        per contact instance, with ``threads`` torch threads (None: torch's setting)."""
+        from pipeline.base.threads import limit_threads
 
-def _check_light_count(far, P: int, C: int, source: str) -> None:
-    """One clear error when the lights cannot determine a normal anywhere: fewer than three
-    observations, or far-field light vectors ``far (P*C, 3)`` (None: per-pixel lights only)
-    that span fewer than three directions."""
-    if P * C < 3:
-        raise UserError(f"{source}: {P} pattern(s) x {C} channel(s) = {P * C} observations; photometric stereo "
-                        f"needs at least 3 lights")
-    if far is not None:
-        L = np.asarray(far)
-        ok = np.isfinite(L).all(-1)
-        sv = np.linalg.svd(L[ok].astype(np.float64), compute_uv=False) if ok.any() else np.zeros(1)
-        rank = int((sv > 1e-6 * sv.max()).sum()) if sv.max() > 0 else 0  # 1e-6: float32-stored lights
-        if rank < 3:
-            raise UserError(f"{source}: the {P * C} light vectors span {rank} independent direction(s); "
-                            f"photometric stereo needs at least 3 lights in different directions")
+        frames, saturated = self.prep.frames(raw)
+        with limit_threads(torch=threads):
+            res = solve_capture(frames, self.lights, solver=self.solver, reference=self.reference,
+                                saturated=saturated, markers=self.prep.solver_markers, **self.options)
+        return self.prep.finish(res)
+
+    def solve(self, frames, threads: int | None = 1):
+        """One frame set ``(P, H, W, C)`` (or ``(H, W, C)``) -> its NormalResult."""
+        f = np.asarray(frames)
+        return self.solve_stack(f[None] if f.ndim == 4 else f[None, None], threads)[0]
 
 
 def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", reference=None, saturated=None,
@@ -148,9 +123,9 @@ def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", referen
     frames : ndarray, shape (K, P, H, W, C)
         Dark-subtracted float frames.
     lights : LightSource
+        The lights of the frames' pixels.
     solver : str
-        A name in :data:`pipeline.base.registry.SOLVERS` (``lstsq``, ``nearfield``,
-        ``robust``, ``lut``).
+        A name in :data:`pipeline.base.registry.SOLVERS`.
     reference : ndarray, shape (P, H, W, C), optional
         Dark-subtracted no-contact frames (needed for ``ratio``).
     saturated : ndarray, shape (K, P, H, W, C), bool, optional
@@ -175,7 +150,7 @@ def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", referen
     entry = SOLVERS.get(solver)
     frames = np.asarray(frames, dtype=np.float32)
     _, P, _, _, C = frames.shape
-    _check_lights(solver, lights, P, C)
+    check_lights(solver, lights, P, C)
     return entry.load()(frames, lights, reference=reference, saturated=saturated, ratio=ratio,
                         max_condition=max_condition, dark_threshold=dark_threshold, device=device, dtype=dtype,
                         compile=compile, markers=markers)
@@ -221,21 +196,21 @@ def _common(C: int, P: int, max_condition, device, dtype) -> dict:
     return dict(groups=np.tile(np.arange(C), P), max_condition=max_condition, device=device, dtype=dtype)
 
 
-def solve_lstsq(frames, lights: LightSource, *, reference=None, ratio=False, max_condition=1e3, device="cpu",
+def stack_lstsq(frames, lights: LightSource, *, reference=None, ratio=False, max_condition=1e3, device="cpu",
                 dtype="float32", compile=False, **_) -> list:
-    """Far field: the calibrated vectors, else the light field at the image centre."""
+    """Far field: the lights' far-field vectors (the calibrated ones, else the light field at
+    the image centre)."""
     from pipeline.normals.farfield import FarFieldSolver
 
     K, P, H, W, C = frames.shape
-    far = lights.far if lights.far is not None else lights.field[:, :, H // 2, W // 2, :]
-    L = far.reshape(P * C, 3)
+    L = lights.far_vectors().reshape(P * C, 3)
     common = _common(C, P, max_condition, device, dtype)
     prebuilt = None if ratio else FarFieldSolver(L, compile=compile, **common)
     return _per_contact(frames, L, None, reference, ratio,
                         lambda obs, Lk: (prebuilt if prebuilt is not None else FarFieldSolver(Lk, **common)).solve(obs))
 
 
-def solve_nearfield(frames, lights: LightSource, *, reference=None, ratio=False, max_condition=1e3, device="cpu",
+def stack_nearfield(frames, lights: LightSource, *, reference=None, ratio=False, max_condition=1e3, device="cpu",
                     dtype="float32", **_) -> list:
     """Per-pixel light vectors (after the flat field, when the lights have one)."""
     from pipeline.normals.nearfield import NearFieldSolver
@@ -248,7 +223,7 @@ def solve_nearfield(frames, lights: LightSource, *, reference=None, ratio=False,
                         lambda obs, Lk: (prebuilt if prebuilt is not None else NearFieldSolver(Lk, **common)).solve(obs))
 
 
-def solve_robust(frames, lights: LightSource, **options) -> list:
+def stack_robust(frames, lights: LightSource, **options) -> list:
     """Shadows and highlights modelled (:func:`pipeline.normals.robust_irls.solve_robust_irls`):
     the light field if present, else the far field; dark and saturated values excluded."""
     from pipeline.normals.robust_irls import solve_robust_irls
@@ -256,12 +231,12 @@ def solve_robust(frames, lights: LightSource, **options) -> list:
     return _robust(solve_robust_irls, frames, lights, **options)
 
 
-def solve_cauchy(frames, lights: LightSource, **options) -> list:
-    """The earlier robust solver (:func:`pipeline.normals.robust.solve_robust`: trimmed start,
-    Cauchy IRLS), on the same observations as :func:`solve_robust`."""
-    from pipeline.normals.robust import solve_robust as cauchy
+def stack_cauchy(frames, lights: LightSource, **options) -> list:
+    """The earlier robust solver (:func:`pipeline.normals.cauchy.solve_cauchy`: trimmed start,
+    Cauchy IRLS), on the same observations as :func:`stack_robust`."""
+    from pipeline.normals.cauchy import solve_cauchy
 
-    return _robust(cauchy, frames, lights, **options)
+    return _robust(solve_cauchy, frames, lights, **options)
 
 
 def _robust(robust, frames, lights: LightSource, *, reference=None, saturated=None, ratio=False, max_condition=1e3,

@@ -14,24 +14,28 @@ Each stage module owns, in one place:
 
 - ``SPEC``: its name, version, output schema and run-config defaults
   (:class:`pipeline.stages.base.StageSpec`);
-- ``params(...)``: the parameters that change its result, which with the identities of its
+- ``params(section)``: the parameters that change its result, which with the identities of its
   inputs (:func:`pipeline.stages.base.record_key`) make its store key;
+- ``resolve(section, config, base, source)``: check and fill its run-config section;
 - ``compute(...)``: the computation, a :class:`~pipeline.base.store.Record` out;
 - ``run(store, ...)``: key, look up, compute if missing (or bad: the cache heals), for the
   entry points that call one stage (``reconstruct``, ``batch``, ``demo``, ``compare-modes``);
 - ``node(config, ctx)``: its node of the graph ``iristac run`` builds from a config
   (:mod:`pipeline.stages.config`, run by :mod:`pipeline.stages.graph`).
 
-So the same work reached through ``run``, ``reconstruct``, ``batch``, ``demo`` or
-``compare-modes`` has one key and is one cache entry. A new stage is a module here, its name
-in :data:`STAGE_ORDER`, its schema in ``data_schemas/stages/`` and its section in
-``data_schemas/configs/pipeline.json``.
+That contract is :class:`pipeline.stages.base.StageModule` (a ``typing.Protocol``, checked for
+every stage by a test). So the same work reached through ``run``, ``reconstruct``, ``batch``,
+``demo`` or ``compare-modes`` has one key and is one cache entry. A new stage: the recipe in
+``docs/developing.md`` lists every file.
 """
 
 from __future__ import annotations
 
 import importlib
-from types import ModuleType
+from typing import TYPE_CHECKING, cast
+
+if TYPE_CHECKING:
+    from pipeline.stages.base import StageModule
 
 __all__ = ["STAGE_ORDER", "stage_module"]
 
@@ -39,7 +43,7 @@ __all__ = ["STAGE_ORDER", "stage_module"]
 STAGE_ORDER = ("synthesize", "calibrate", "capture", "normals", "depth")
 
 
-def stage_module(name: str) -> ModuleType:
+def stage_module(name: str) -> StageModule:
     """The module of stage ``name`` (imported on first use).
 
     Examples
@@ -49,4 +53,4 @@ def stage_module(name: str) -> ModuleType:
     """
     if name not in STAGE_ORDER:
         raise ValueError(f"unknown stage {name!r}; stages are {', '.join(STAGE_ORDER)}")
-    return importlib.import_module(f"pipeline.stages.{name}")
+    return cast("StageModule", importlib.import_module(f"pipeline.stages.{name}"))

@@ -1,4 +1,5 @@
-"""What every stage module shares: its :class:`StageSpec`, and the identity of the records it reads.
+"""What every stage module shares: the contract it keeps (:class:`StageModule`), its
+:class:`StageSpec`, and the identity of the records it reads.
 
 A stage's output key hashes (stage name, stage version, canonical parameters, input keys)
 (:meth:`pipeline.base.store.StageStore.key`). Each stage module owns the first three
@@ -23,12 +24,12 @@ import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
 
 from pipeline.base.errors import UserError
 from pipeline.base.store import Record, StageKey, StageStore
 
-__all__ = ["StageSpec", "NodeContext", "record_key", "is_entry", "file_input_key", "config_path"]
+__all__ = ["StageModule", "StageSpec", "NodeContext", "record_key", "is_entry", "file_input_key", "config_path"]
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,35 @@ class StageSpec:
         key = self.key(store, params, inputs)
         rec, cached = store.get_or_compute(key, compute, recompute_bad=heal, force=force)
         return rec, key, cached
+
+
+@runtime_checkable
+class StageModule(Protocol):
+    """The contract of a stage module (``pipeline/stages/<name>.py``), one signature each where
+    the stages agree (``tests/pipeline/stages/test_graph.py`` checks every stage against it).
+
+    ``compute`` and ``run`` take what the stage reads (a capture, a normals record, ...), so
+    their arguments differ from stage to stage; ``run`` starts with the store and returns
+    ``(record, key, cached)``.
+    """
+
+    SPEC: StageSpec
+
+    def params(self, section: Mapping[str, Any]) -> dict:
+        """The key parameters of a (default-filled) section."""
+
+    def resolve(self, section: dict, config: Mapping[str, Any], base: Path, source: str) -> None:
+        """Check and fill a run config's section in place (paths absolute, defaults that depend
+        on the rest of ``config``)."""
+
+    def compute(self, *args: Any, **kwargs: Any) -> Any:
+        """The result record, without the store."""
+
+    def run(self, store: StageStore, *args: Any, **kwargs: Any) -> Any:
+        """``(record, key, cached)`` through the store."""
+
+    def node(self, config: Mapping[str, Any], ctx: NodeContext) -> Any:
+        """Its node of the graph ``iristac run`` builds."""
 
 
 @dataclass(frozen=True)

@@ -153,7 +153,7 @@ def resolve(cal: dict, cfg: Mapping[str, Any], base: Path, source: str) -> None:
     if "capture" in cal:
         cal["capture"] = config_path(cal["capture"], base)
     else:
-        cal["render"] = {**RENDER_DEFAULTS, "mode": capture.mode_of(cfg), **cal["render"]}
+        cal["render"] = {**RENDER_DEFAULTS, "mode": capture.mode_of(cfg, base), **cal["render"]}
 
 
 def node(config: Mapping[str, Any], ctx):

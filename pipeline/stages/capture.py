@@ -197,14 +197,15 @@ def run(store, section: Mapping[str, Any], model=None, model_key=None, *, device
                                lambda: compute(p, model, device=device, progress=progress), force=force, heal=heal)
 
 
-def mode_of(cfg: Mapping[str, Any]) -> str:
-    """The lighting mode of a run config's capture (a capture file's own ``mode`` attribute)."""
+def mode_of(cfg: Mapping[str, Any], base: Path = Path(".")) -> str:
+    """The lighting mode of a run config's capture (a capture file's own ``mode`` attribute; a
+    relative path is relative to ``base``, the config's folder)."""
     cap = cfg.get("capture") or {}
     if cap.get("file"):
         from pipeline.base.store import StoreError, read_record
 
         try:
-            mode = read_record(cap["file"], schema="capture", load=False).meta.get("mode")
+            mode = read_record(config_path(cap["file"], base), schema="capture", load=False).meta.get("mode")
         except StoreError:
             mode = None  # the capture stage reports the bad file when it runs
         if mode:
@@ -232,7 +233,7 @@ def scale(cfg: Mapping[str, Any]) -> float | None:
     return float(cap["mm_per_px"])
 
 
-def resolve(cap: dict, base: Path, source: str) -> None:
+def resolve(cap: dict, config: Mapping[str, Any], base: Path, source: str) -> None:
     """Check a run config's ``capture`` section and make its paths absolute, in place."""
     sources = [k for k in ("file", "render", "emulate", "port") if cap.get(k)]
     if len(sources) != 1:

@@ -80,15 +80,9 @@ def resolve_config(config: Mapping[str, Any], base_dir: str | os.PathLike = ".",
     for key in ("cache", "out"):
         if key in cfg:
             cfg[key] = config_path(cfg[key], base)
-    if "synthesize" in cfg:
-        stage_module("synthesize").resolve(cfg["synthesize"], base, source)
-    if "capture" in cfg:
-        stage_module("capture").resolve(cfg["capture"], base, source)
-    if "calibrate" in cfg:
-        stage_module("calibrate").resolve(cfg["calibrate"], cfg, base, source)
-    nrm = cfg.get("normals")
-    if nrm is not None and "lights" not in nrm:
-        nrm["lights"] = "calibration" if "calibrate" in cfg else "illumination"
+    for name in STAGE_ORDER:  # each stage checks and fills its own section
+        if name in cfg:
+            stage_module(name).resolve(cfg[name], cfg, base, source)
     return cfg
 
 

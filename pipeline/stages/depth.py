@@ -8,6 +8,7 @@ record (:func:`pipeline.stages.capture.scale`). Input: the normals stage's key.
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any, Mapping
 
 import numpy as np
@@ -16,22 +17,28 @@ from pipeline.base.errors import UserError
 from pipeline.base.registry import INTEGRATORS
 from pipeline.stages.base import StageSpec
 
-__all__ = ["SPEC", "params", "compute", "run", "node"]
+__all__ = ["SPEC", "params", "resolve", "compute", "run", "node"]
 
 SPEC = StageSpec("depth", version=2, schema="depth",  # 2: on the capture's mask (its bounding box)
                  defaults={"integrator": "dst"})
 
 
-def params(integrator: str, mm_per_px: float | None) -> dict:
-    """The key parameters (``mm_per_px`` None only when a run config's capture file cannot be
-    read yet: that run then fails at the capture stage).
+def params(section: Mapping[str, Any]) -> dict:
+    """The key parameters of a depth section: ``integrator`` and ``mm_per_px`` (None only when a
+    run config's capture file cannot be read yet: that run then fails at the capture stage).
 
     Examples
     --------
-    >>> params("dst", 0.1)
+    >>> params({"integrator": "dst", "mm_per_px": 0.1})
     {'integrator': 'dst', 'mm_per_px': 0.1}
     """
-    return {"integrator": INTEGRATORS.check(integrator), "mm_per_px": None if mm_per_px is None else float(mm_per_px)}
+    mm = section.get("mm_per_px")
+    return {"integrator": INTEGRATORS.check(section["integrator"]), "mm_per_px": None if mm is None else float(mm)}
+
+
+def resolve(section: dict, config: Mapping[str, Any], base: Path, source: str) -> None:
+    """A run config's ``depth`` section needs nothing filled beyond its defaults (the pitch is
+    the capture's, :func:`pipeline.stages.capture.scale`)."""
 
 
 def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, region=None, device="cpu",
@@ -112,7 +119,7 @@ def run(store, n_rec, n_key, *, integrator: str = "dst", force: bool = False, he
     """``(record, key, cached)`` of the depth of ``n_rec`` (identified by ``n_key``) through
     ``store``, integrated on ``region`` (see :func:`compute`)."""
     mm = float(n_rec.meta["mm_per_px"])
-    return SPEC.get_or_compute(store, params(integrator, mm), [n_key],
+    return SPEC.get_or_compute(store, params({"integrator": integrator, "mm_per_px": mm}), [n_key],
                                lambda: compute(n_rec, integrator, mm, region, device, threads), force=force,
                                heal=heal)
 
@@ -125,5 +132,5 @@ def node(config: Mapping[str, Any], ctx):
     p = config["depth"]
     ctx.need("depth", "normals")
     mm = capture.scale(config)
-    return Stage(SPEC.name, SPEC.version, params(p["integrator"], mm), ["normals"],
+    return Stage(SPEC.name, SPEC.version, params({"integrator": p["integrator"], "mm_per_px": mm}), ["normals"],
                  lambda inputs: compute(inputs["normals"], p["integrator"], mm), schema=SPEC.schema)

@@ -24,13 +24,13 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["solve_with_model", "maps_to_results", "solve_far", "solve_near", "solve_traced", "solve_lut",
-           "solve_mlp", "LIGHT_FIELD_MODELS"]
+from pipeline.normals.result import COND_CAP
+
+__all__ = ["solve_with_model", "maps_to_results", "stack_far", "stack_near", "stack_traced", "stack_lut",
+           "stack_mlp", "LIGHT_FIELD_MODELS"]
 
 #: Models whose confidence is the inverse condition number of a per-pixel light matrix.
 LIGHT_FIELD_MODELS = ("far", "near", "traced")
-
-_COND_CAP = 1e12
 
 
 def maps_to_results(maps, name: str, observations: int) -> list:
@@ -52,7 +52,7 @@ def maps_to_results(maps, name: str, observations: int) -> list:
         ok = np.asarray(maps.mask[k], bool)
         conf = np.asarray(maps.confidence[k], np.float32)
         if name in LIGHT_FIELD_MODELS:
-            cond = np.where(conf > 0, 1.0 / np.maximum(conf, 1.0 / _COND_CAP), _COND_CAP).astype(np.float32)
+            cond = np.where(conf > 0, 1.0 / np.maximum(conf, 1.0 / COND_CAP), COND_CAP).astype(np.float32)
         else:
             cond = np.ones(ok.shape, np.float32)
         meta = {"solver": name, "model": name, "confidence": str(maps.meta.get("confidence", ""))}
@@ -92,26 +92,26 @@ def solve_with_model(name: str, frames, lights, *, reference=None, markers=None,
     return maps_to_results(maps, name, P * C)
 
 
-def solve_far(frames, lights, **options) -> list:
+def stack_far(frames, lights, **options) -> list:
     """The calibration's far-field model (:func:`solve_with_model`)."""
     return solve_with_model("far", frames, lights, **options)
 
 
-def solve_near(frames, lights, **options) -> list:
+def stack_near(frames, lights, **options) -> list:
     """The calibration's polynomial near-field model (:func:`solve_with_model`)."""
     return solve_with_model("near", frames, lights, **options)
 
 
-def solve_traced(frames, lights, **options) -> list:
+def stack_traced(frames, lights, **options) -> list:
     """The calibration's traced model (:func:`solve_with_model`)."""
     return solve_with_model("traced", frames, lights, **options)
 
 
-def solve_lut(frames, lights, **options) -> list:
+def stack_lut(frames, lights, **options) -> list:
     """The calibration's lookup table, with its per-bin position correction (:func:`solve_with_model`)."""
     return solve_with_model("lut", frames, lights, **options)
 
 
-def solve_mlp(frames, lights, **options) -> list:
+def stack_mlp(frames, lights, **options) -> list:
     """The calibration's MLP (:func:`solve_with_model`)."""
     return solve_with_model("mlp", frames, lights, **options)

@@ -7,7 +7,8 @@ Inputs: the capture's identity and the light file's
 (:func:`pipeline.stages.base.record_key`). The device, the thread count and ``compile`` do
 not change the result and stay out of the key.
 
-Where the lights come from (:func:`load_lights`, first that applies):
+Where the lights come from (:func:`load_lights`, for a capture :func:`capture_lights`; first that
+applies):
 
 - ``calibration``: ``light_field (P, C, H, W, 3)`` (with optional ``flat_field (P, C, H, W)``
   by which observations are divided first), ``light_vectors (P, C, 3)`` (far field) and every
@@ -22,32 +23,34 @@ Where the lights come from (:func:`load_lights`, first that applies):
 Where to solve (:func:`capture_region`): the capture's ``mask`` dataset (an object's
 silhouette: DiLiGenT's, ``iristac sim ps-object``'s), or a user's ``mask`` (``--mask``), which
 replaces it and enters the key. Only those pixels are read out of the frames and solved
-(:class:`pipeline.normals.masking.PixelMask`); every pixel outside is invalid in the record.
+(:class:`pipeline.normals.prepare.FramePrep`); every pixel outside is invalid in the record.
 The calibration models read whole frames (pixel position is one of their inputs) and are
 masked afterwards.
 
 Printed gel markers (:func:`marker_mask`: the capture's ``markers``, else the calibration's,
 or ``--markers auto|none|MASK.png``) are filled in before normals are solved
-(:func:`calibration.markers.fill_markers`), False in the record's ``mask`` and True in its
+(:func:`pipeline.normals.prepare.fill_markers`), False in the record's ``mask`` and True in its
 ``filled (H, W)``: the depth stage integrates through them. A marker mask enters the key.
+
+The solve itself is the one path every entry point takes,
+:class:`pipeline.normals.solve.FrameSolver` (frames prepared by
+:class:`pipeline.normals.prepare.FramePrep`); this module reads the capture and writes the record.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 
 from pipeline.base.errors import UserError
 from pipeline.base.registry import SOLVERS
+from pipeline.normals.lights import LightSource
 from pipeline.stages.base import StageSpec, record_key
 
-if TYPE_CHECKING:  # the solvers load torch: only when normals are computed
-    from pipeline.normals.solve import LightSource
-
-__all__ = ["SPEC", "load_lights", "capture_region", "reference_frames", "marker_mask", "params", "compute", "run",
-           "node"]
+__all__ = ["SPEC", "load_lights", "capture_lights", "capture_region", "reference_frames", "marker_mask", "params",
+           "resolve", "compute", "run", "node"]
 
 # 2: only the capture's (or user's) mask is solved; 3: the lut solver applies the calibrated model
 # (per-bin position correction, tilt gain), markers are filled in, confidence and filled are written.
@@ -62,62 +65,95 @@ def _check_shape(arr, want: tuple, path, name: str) -> np.ndarray:
     return a
 
 
-def load_lights(capture, calibration=None, illumination=None) -> LightSource:
-    """Resolve the light model for ``capture`` (Records; see the module docstring)."""
-    from pipeline.normals.solve import LightSource
+def load_lights(calibration=None, illumination=None, *, mode, shape, channels: int = 3, exposure: float = 1.0,
+                embedded=None, where: str = "frames") -> LightSource:
+    """The light model for frames of ``shape`` under ``mode``'s patterns (see the module docstring).
 
-    frames = capture.data["frames"]
-    _, P, H, W, C = frames.shape
+    Parameters
+    ----------
+    calibration, illumination : Record, optional
+        At most one: the light file.
+    mode : LightingMode
+        The patterns (``drive (P, L, 3)``, ``brightness (P,)``: anything with both, such as a
+        capture's own, :func:`capture_lights`); an illumination's ``V`` is combined with them.
+    shape : (H, W)
+        The frames' image size; ``channels`` their camera channels.
+    exposure : float
+        The frames' exposure (an illumination's light matrices scale with it).
+    embedded : ndarray, shape (P, C, 3), optional
+        Far-field lights that came with the frames (a capture's ``lights/light_vectors``), used
+        when neither file is given.
+    where : str
+        The frames' name (a capture file) for messages and the light source's name.
+    """
+    drive = np.asarray(mode.drive)
+    P, (H, W), C = drive.shape[0], tuple(int(s) for s in shape), int(channels)
     if calibration is not None and illumination is not None:
         raise UserError("give either a calibration or an illumination file, not both")
     if calibration is not None:
-        d, path = calibration.data, calibration.path
-        src = LightSource(source=f"calibration:{Path(path).name if path else 'memory'}", key=record_key(calibration))
-        if "light_field" in d:
-            src.field = _check_shape(d["light_field"], (P, C, H, W, 3), path, "light_field")
-            if "flat_field" in d:
-                src.flat_field = _check_shape(d["flat_field"], (P, C, H, W), path, "flat_field")
-        if "light_vectors" in d:
-            src.far = _check_shape(d["light_vectors"], (P, C, 3), path, "light_vectors")
-        if any(k.startswith("models/") for k in d):
-            from calibration.stored import calibration_from_record
-
-            src.models, cal_meta = calibration_from_record(calibration)
-            src.markers = cal_meta.get("markers")
-            _check_model_shapes(src.models, (P, H, W, C), path)
-        if src.field is None and src.far is None and not src.models:
-            raise UserError(f"{path}: calibration has no light model (expected dataset 'light_field', "
-                            f"'light_vectors' or 'models/<name>/*')")
-        return src
+        return _calibration_lights(calibration, P, H, W, C)
     if illumination is not None:
-        from sim.illumination_model import light_matrices
-
-        d, path = illumination.data, illumination.path
-        src = LightSource(source=f"illumination:{Path(path).name if path else 'memory'}",
-                          key=record_key(illumination))
-        if "light_matrices" in d and d["light_matrices"].shape[0] == P:
-            src.field = _check_shape(d["light_matrices"], (P, C, H, W, 3), path, "light_matrices")
-            return src
-        V = np.asarray(d["V"])
-        if V.shape[1:3] != (H, W):
-            raise UserError(f"{path}: dataset 'V' covers {V.shape[1:3]} pixels, the capture has {(H, W)}")
-        drive = capture.data["drive"]
-        if drive.shape[1] != V.shape[0]:
-            raise UserError(f"{path}: 'V' has {V.shape[0]} LEDs but the capture's drive has {drive.shape[1]}")
-        if C != 3:
-            raise UserError(f"{path}: illumination light matrices need 3 camera channels, the capture has {C}")
-        gains = d.get("gains")
-        src.field = light_matrices(V, drive, capture.data.get("brightness"),
-                                   float(capture.meta.get("exposure", 1.0)), gains)
+        return _illumination_lights(illumination, mode, exposure, P, H, W, C)
+    if embedded is not None:
+        src = LightSource(source=f"capture:{Path(where).name}:lights/light_vectors", key="embedded")
+        src.far = _check_shape(embedded, (P, C, 3), where, "lights/light_vectors")
         return src
-    if "lights/light_vectors" in capture.data:
-        name = Path(capture.path).name if capture.path else "memory"
-        src = LightSource(source=f"capture:{name}:lights/light_vectors", key="embedded")
-        src.far = _check_shape(capture.data["lights/light_vectors"], (P, C, 3), capture.path,
-                               "lights/light_vectors")
-        return src
-    raise UserError(f"{capture.path}: no light model: pass --calibration or --illumination "
+    raise UserError(f"{where}: no light model: pass --calibration or --illumination "
                     f"(the capture has no embedded lights/light_vectors)")
+
+
+def capture_lights(capture, calibration=None, illumination=None) -> LightSource:
+    """:func:`load_lights` for a ``capture`` Record: its patterns, image size, channels, exposure
+    and embedded far-field lights (``lights/light_vectors``, written by importers)."""
+    from types import SimpleNamespace
+
+    _, P, H, W, C = capture.data["frames"].shape
+    patterns = SimpleNamespace(drive=capture.data["drive"], brightness=capture.data.get("brightness"))
+    return load_lights(calibration, illumination, mode=patterns, shape=(H, W), channels=C,
+                       exposure=float(capture.meta.get("exposure", 1.0)),
+                       embedded=capture.data.get("lights/light_vectors"), where=str(capture.path or "memory"))
+
+
+def _calibration_lights(calibration, P: int, H: int, W: int, C: int) -> LightSource:
+    d, path = calibration.data, calibration.path
+    src = LightSource(source=f"calibration:{Path(path).name if path else 'memory'}", key=record_key(calibration))
+    if "light_field" in d:
+        src.field = _check_shape(d["light_field"], (P, C, H, W, 3), path, "light_field")
+        if "flat_field" in d:
+            src.flat_field = _check_shape(d["flat_field"], (P, C, H, W), path, "flat_field")
+    if "light_vectors" in d:
+        src.far = _check_shape(d["light_vectors"], (P, C, 3), path, "light_vectors")
+    if any(k.startswith("models/") for k in d):
+        from calibration.stored import calibration_from_record
+
+        src.models, cal_meta = calibration_from_record(calibration)
+        src.markers = cal_meta.get("markers")
+        _check_model_shapes(src.models, (P, H, W, C), path)
+    if src.field is None and src.far is None and not src.models:
+        raise UserError(f"{path}: calibration has no light model (expected dataset 'light_field', "
+                        f"'light_vectors' or 'models/<name>/*')")
+    return src
+
+
+def _illumination_lights(illumination, mode, exposure: float, P: int, H: int, W: int, C: int) -> LightSource:
+    from pipeline.normals.lights import LightSource
+    from sim.illumination_model import light_matrices
+
+    d, path = illumination.data, illumination.path
+    src = LightSource(source=f"illumination:{Path(path).name if path else 'memory'}", key=record_key(illumination))
+    if "light_matrices" in d and d["light_matrices"].shape[0] == P:
+        src.field = _check_shape(d["light_matrices"], (P, C, H, W, 3), path, "light_matrices")
+        return src
+    V = np.asarray(d["V"])
+    if V.shape[1:3] != (H, W):
+        raise UserError(f"{path}: dataset 'V' covers {V.shape[1:3]} pixels, the capture has {(H, W)}")
+    drive = np.asarray(mode.drive)
+    if drive.shape[1] != V.shape[0]:
+        raise UserError(f"{path}: 'V' has {V.shape[0]} LEDs but the capture's drive has {drive.shape[1]}")
+    if C != 3:
+        raise UserError(f"{path}: illumination light matrices need 3 camera channels, the capture has {C}")
+    src.field = light_matrices(V, drive, mode.brightness, float(exposure), d.get("gains"))
+    return src
 
 
 def _check_model_shapes(models, want: tuple, path) -> None:
@@ -215,28 +251,33 @@ def reference_frames(cap) -> np.ndarray | None:
     return cap.data["reference"]
 
 
-def params(*, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3, dtype: str = "float32",
-           lights: str, mask=None, markers=None) -> dict:
-    """The key parameters; ``lights`` is ``calibration``, ``illumination`` or ``capture``;
-    ``mask``, a user's region (the capture's own is part of the capture's identity), enters
-    as its digest, and so does the marker mask filled in (``markers``, :func:`marker_mask`).
+def params(section: Mapping[str, Any]) -> dict:
+    """The key parameters of a normals section: ``solver``, ``ratio``, ``max_condition``,
+    ``dtype`` (defaults :data:`SPEC`'s) and ``lights`` (``calibration``, ``illumination`` or
+    ``capture``); ``mask``, a user's region (the capture's own is part of the capture's
+    identity), enters as its digest, and so does the marker mask filled in (``markers``,
+    :func:`marker_mask`).
 
     Examples
     --------
-    >>> params(solver="nearfield", lights="illumination")["solver"]
+    >>> params({"solver": "nearfield", "lights": "illumination"})["solver"]
     'nearfield'
     """
-    p = {"solver": SOLVERS.check(solver), "ratio": bool(ratio), "max_condition": float(max_condition),
-         "dtype": str(dtype), "lights": str(lights)}
-    if mask is not None:
-        from pipeline.base.hashing import digest
+    s = {**SPEC.defaults, **section}
+    p = {"solver": SOLVERS.check(s["solver"]), "ratio": bool(s["ratio"]), "max_condition": float(s["max_condition"]),
+         "dtype": str(s["dtype"]), "lights": str(s["lights"])}
+    for name in ("mask", "markers"):
+        if s.get(name) is not None:
+            from pipeline.base.hashing import digest
 
-        p["mask"] = digest(np.asarray(mask, bool))
-    if markers is not None:
-        from pipeline.base.hashing import digest
-
-        p["markers"] = digest(np.asarray(markers, bool))
+            p[name] = digest(np.asarray(s[name], bool))
     return p
+
+
+def resolve(section: dict, config: Mapping[str, Any], base: Path, source: str) -> None:
+    """Fill a run config's ``normals`` section in place: the lights default to the calibration
+    when the config calibrates, else to the synthesized illumination."""
+    section.setdefault("lights", "calibration" if "calibrate" in config else "illumination")
 
 
 def _stack(results, name: str) -> np.ndarray:
@@ -277,73 +318,28 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         ``mask``, ``count``; ``confidence (K, H, W)`` from the calibration models; ``filled
         (H, W)`` with markers.
     """
-    from pipeline.base.store import Record
-    from pipeline.base.threads import limit_threads
-    from pipeline.normals.masking import PixelMask
-    from pipeline.normals.solve import solve_capture
+    from pipeline.normals.solve import FrameSolver
 
-    mm_per_px = float(cap.meta["mm_per_px"])
-    raw = cap.data["frames"]
-    H, W = raw.shape[2:4]
-    region = capture_region(cap, mask)
+    raw, region, reference = cap.data["frames"], capture_region(cap, mask), reference_frames(cap)
     if batched is None:
         batched = str(device) != "cpu"
     if (batched and solver == "nearfield" and not ratio and region is None and markers is None
             and lights.field is not None and str(dtype) == "float32"):
-        return _compute_batched(cap, lights, max_condition=max_condition, device=device, mm_per_px=mm_per_px)
-    ref = reference_frames(cap)
-    dark = cap.data.get("dark")
-    whole_frame = bool(SOLVERS.get(solver).info.get("whole_frame"))
-    model_fills = str(SOLVERS.get(solver).info.get("needs", "")).startswith("model:")
-    if markers is not None:
-        markers = np.asarray(markers, bool)
-        if markers.shape != (H, W):
-            raise UserError(f"marker mask has shape {markers.shape}, expected (H, W) = {(H, W)} like the frames")
-    pixels = None
-    if region is not None and not whole_frame:
-        # Gather the region once, from the raw frames (no full-frame float copy), as a (1, M)
-        # image; the solvers then see only its pixels. (Solvers that read whole frames, whose
-        # inputs include the pixel position, are masked after; marker filling needs the
-        # neighbourhood of each marker, so with markers the gather follows the fill.)
-        pixels = PixelMask(region, (H, W), f"{cap.path or 'capture'}: mask")
-    bits = cap.meta.get("bit_depth")
-    full = (2 ** int(bits) - 1) if bits else (np.iinfo(raw.dtype).max if raw.dtype.kind in "iu" else None)
-    early = pixels is not None and markers is None
-    if early:
-        raw = pixels.gather(raw, axis=2)
-        ref = None if ref is None else pixels.gather(ref, axis=1)
-        dark = None if dark is None else pixels.gather(dark, axis=0)
-    saturated = (raw >= full) if full is not None else None
-    frames = raw.astype(np.float32)
-    ref = None if ref is None else ref.astype(np.float32)
-    if dark is not None:
-        frames = frames - dark.astype(np.float32)
-        ref = None if ref is None else ref - dark.astype(np.float32)
-    if markers is not None and not model_fills:
-        from calibration.markers import fill_markers
+        return _compute_batched(cap, lights, max_condition=max_condition, device=device)
+    prep = FrameSolver.prep_for(solver, raw.shape[2:4], raw_dtype=raw.dtype, bit_depth=cap.meta.get("bit_depth"),
+                                dark=cap.data.get("dark"), markers=markers, region=region,
+                                name=str(cap.path or "capture"))
+    res = FrameSolver(solver, lights, prep, reference=reference, ratio=ratio, max_condition=max_condition,
+                      device=device, dtype=dtype, compile=compile).solve_stack(raw, threads)
+    return _record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, region=region,
+                   markers=prep.markers)
 
-        frames = fill_markers(frames, markers)
-        ref = None if ref is None else fill_markers(ref, markers)
-    if pixels is not None:
-        if not early:
-            frames = pixels.gather(frames, axis=2)
-            ref = None if ref is None else pixels.gather(ref, axis=1)
-            saturated = None if saturated is None else pixels.gather(saturated, axis=2)
-        lights = _gather_lights(lights, pixels, solver)
-    dark_thr = 0.01 * full if full is not None else 0.0
-    with limit_threads(torch=threads):
-        res = solve_capture(frames, lights, solver=solver, reference=ref, saturated=saturated, ratio=ratio,
-                            max_condition=max_condition, dark_threshold=dark_thr, device=device, dtype=dtype,
-                            compile=compile, markers=markers if model_fills else None)
-    if pixels is not None:
-        res = [pixels.scatter(r) for r in res]
-    elif region is not None:
-        res = [PixelMask(region, (H, W)).restrict(r) for r in res]
-    if markers is not None:
-        for r in res:  # a filled-in value is a guess, not a measurement
-            r.mask = r.mask & ~markers
-            if r.confidence is not None:
-                r.confidence = np.where(markers, np.float32(0), r.confidence).astype(np.float32)
+
+def _record(res: list, cap, lights: LightSource, *, solver: str, ratio: bool, max_condition: float, region,
+            markers):
+    """The ``normals`` record of the per-instance results of :func:`compute`."""
+    from pipeline.base.store import Record
+
     data = {name: _stack(res, name) for name in ("normals", "albedo", "residual", "condition", "mask", "count")}
     if all(r.confidence is not None for r in res) and res:
         data["confidence"] = _stack(res, "confidence").astype(np.float32)
@@ -351,8 +347,9 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         # Marker pixels hold normals from filled-in observations: not measurements (False in
         # mask) but fit to integrate through (docs: NormalMaps.filled).
         data["filled"] = markers & (region if region is not None else True)
-    meta = {"solver": solver, "mm_per_px": mm_per_px, "ratio": bool(ratio), "max_condition": float(max_condition),
-            "lights": lights.source, "valid_fraction": float(data["mask"].mean())}
+    meta = {"solver": solver, "mm_per_px": float(cap.meta["mm_per_px"]), "ratio": bool(ratio),
+            "max_condition": float(max_condition), "lights": lights.source,
+            "valid_fraction": float(data["mask"].mean())}
     if region is not None:
         meta["region_pixels"] = int(region.sum())
     if markers is not None:
@@ -361,11 +358,12 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
     return Record("normals", data, meta)
 
 
-def _compute_batched(cap, lights: LightSource, *, max_condition: float, device, mm_per_px: float):
+def _compute_batched(cap, lights: LightSource, *, max_condition: float, device):
     """The ``nearfield`` record of every instance at once on ``device`` (see :func:`compute`)."""
     from pipeline.base.store import Record
     from pipeline.normals.batched import NearFieldBatched
 
+    mm_per_px = float(cap.meta["mm_per_px"])
     raw = cap.data["frames"]
     K, P, H, W, C = raw.shape
     nb = NearFieldBatched(lights.field, flat_field=lights.flat_field, max_condition=max_condition, device=device)
@@ -380,28 +378,14 @@ def _compute_batched(cap, lights: LightSource, *, max_condition: float, device, 
     return Record("normals", data, meta)
 
 
-def _gather_lights(lights: LightSource, pixels, solver: str) -> LightSource:
-    """``lights`` on the gathered pixels (per-pixel fields gathered; far-field unchanged)."""
-    from dataclasses import replace
-
-    far = lights.far
-    if far is None and lights.field is not None and solver == "lstsq":
-        # lstsq uses the light field at the image centre: take it before the centre is gone.
-        H, W = pixels.shape
-        far = lights.field[:, :, H // 2, W // 2, :]
-    return replace(lights, far=far,
-                   field=None if lights.field is None else pixels.gather(lights.field, axis=2),
-                   flat_field=None if lights.flat_field is None else pixels.gather(lights.flat_field, axis=2))
-
-
 def run(store, cap, cap_key, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False,
         max_condition: float = 1e3, device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False,
         force: bool = False, heal: bool = True, mask=None, markers=None):
     """``(record, key, cached)`` of the normals of ``cap`` (identified by ``cap_key``) through
     ``store``; ``mask``: a user's region (an array, see :func:`capture_region`) instead of the
     capture's; ``markers``: the marker mask to fill in (:func:`marker_mask`)."""
-    p = params(solver=solver, ratio=ratio, max_condition=max_condition, dtype=dtype,
-               lights=lights.source.split(":")[0], mask=mask, markers=markers)
+    p = params({"solver": solver, "ratio": ratio, "max_condition": max_condition, "dtype": dtype,
+                "lights": lights.source.split(":")[0], "mask": mask, "markers": markers})
     return SPEC.get_or_compute(
         store, p, [cap_key, lights.key],
         lambda: compute(cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, device=device,
@@ -422,10 +406,10 @@ def node(config: Mapping[str, Any], ctx):
     def compute_node(inputs):
         cal = inputs.get("calibrate") if p["lights"] == "calibration" else None
         ill = inputs.get("synthesize") if p["lights"] == "illumination" else None
-        lights = load_lights(inputs["capture"], cal, ill)
+        lights = capture_lights(inputs["capture"], cal, ill)
         return compute(inputs["capture"], lights, solver=p["solver"], ratio=bool(p["ratio"]),
                        max_condition=float(p["max_condition"]), device=ctx.device, dtype=p["dtype"])
 
-    return Stage(SPEC.name, SPEC.version, params(**{k: p[k] for k in ("solver", "ratio", "max_condition", "dtype",
-                                                                      "lights")}),
+    return Stage(SPEC.name, SPEC.version, params({k: p[k] for k in ("solver", "ratio", "max_condition", "dtype",
+                                                                     "lights")}),
                  ["capture", light_stage], compute_node, schema=SPEC.schema)

@@ -21,7 +21,7 @@ import numpy as np
 from pipeline.base.errors import UserError
 from pipeline.stages.base import StageSpec, config_path
 
-__all__ = ["SPEC", "params", "synthesize_to_store", "illumination_record", "illumination_model", "resolve", "node"]
+__all__ = ["SPEC", "params", "compute", "run", "illumination_record", "illumination_model", "resolve", "node"]
 
 # version 2: traced by the compiled kernel by default (sim.optics.engine), "engine" in the key.
 SPEC = StageSpec("synthesize", version=2, schema="illumination",
@@ -30,37 +30,41 @@ SPEC = StageSpec("synthesize", version=2, schema="illumination",
                            "width": 80, "mm_per_px": 0.5})
 
 
-def params(model: str = "traced", *, shape, mm_per_px: float, scene=None, gel_z: float = 35.0, rays=None,
-           sampler=None, seed=None, method: str = "hits", dtype="float32", exposure: float = 1.0, drive=None,
-           brightness=None, gains=None, engine=None) -> dict:
-    """The key parameters of a synthesize result.
+def params(section: Mapping[str, Any]) -> dict:
+    """The key parameters of a synthesize section (a run config's, or :func:`run`'s options).
 
-    Parameters
-    ----------
+    Keys of ``section``
+    -------------------
     model : {"traced", "bare_ring"}
-    shape : (H, W)
+        Default ``traced``.
+    height, width : int
+        The image grid (or ``shape`` ``(H, W)``).
     mm_per_px : float
     scene : Scene, or a shipped scene name or YAML path (traced)
         Its content enters the key (without the description).
     gel_z : float
-        Optical z of the gel (bare ring).
+        Optical z of the gel (bare ring; default 35).
     rays, sampler, seed : optional
         Traced: default to the scene's ``trace`` section.
-    method, dtype, exposure, drive, brightness, gains, engine
+    method, dtype, exposure, drive, brightness, gains, engine : optional
         Traced: as in :func:`sim.synthesize.synthesize` (``engine`` None: the default one).
 
     Examples
     --------
-    >>> params("bare_ring", shape=(4, 6), mm_per_px=0.5)
+    >>> params({"model": "bare_ring", "height": 4, "width": 6, "mm_per_px": 0.5})
     {'model': 'bare_ring', 'shape': [4, 6], 'mm_per_px': 0.5, 'gel_z': 35.0}
     """
+    p = dict(section)
+    model, mm_per_px = p.get("model", "traced"), p["mm_per_px"]
+    shape = list(p["shape"]) if "shape" in p else [p["height"], p["width"]]
     shape = [int(shape[0]), int(shape[1])]
     if model == "bare_ring":
-        return {"model": "bare_ring", "shape": shape, "mm_per_px": float(mm_per_px), "gel_z": float(gel_z)}
+        return {"model": "bare_ring", "shape": shape, "mm_per_px": float(mm_per_px), "gel_z": float(p.get("gel_z", 35.0))}
     if model != "traced":
         raise UserError(f"synthesize: model must be 'traced' or 'bare_ring', got {model!r}")
     from sim.scene import Scene, load_scene, scene_to_dict
 
+    scene = p.get("scene")
     try:
         sc = scene if isinstance(scene, Scene) else load_scene(scene)
     except UserError as exc:
@@ -71,19 +75,23 @@ def params(model: str = "traced", *, shape, mm_per_px: float, scene=None, gel_z:
     d = scene_to_dict(sc)
     d.pop("description", None)  # words do not change the light
     d.pop("design", None)  # nor does the lens optimizer's brief
-    p: dict[str, Any] = {"model": "traced", "scene": d, "shape": shape, "mm_per_px": float(mm_per_px),
-                         "rays": int(rays if rays is not None else tr.rays), "sampler": sampler or tr.sampler,
-                         "seed": int(tr.seed if seed is None else seed), "method": method,
-                         "dtype": float_dtype(dtype).name, "exposure": float(exposure),
-                         "engine": resolve_engine(engine, tr.intersection, sc)}
-    for name, arr in (("drive", drive), ("brightness", brightness), ("gains", gains)):
-        if arr is not None:
-            p[name] = np.asarray(arr, dtype=np.float64)
-    return p
+    given = {k: p.get(k) for k in ("rays", "sampler", "seed", "dtype", "engine")}
+    out: dict[str, Any] = {"model": "traced", "scene": d, "shape": shape, "mm_per_px": float(mm_per_px),
+                           "rays": int(given["rays"] if given["rays"] is not None else tr.rays),
+                           "sampler": given["sampler"] or tr.sampler,
+                           "seed": int(tr.seed if given["seed"] is None else given["seed"]),
+                           "method": p.get("method") or "hits", "dtype": float_dtype(given["dtype"] or "float32").name,
+                           "exposure": float(p.get("exposure", 1.0)),
+                           "engine": resolve_engine(given["engine"], tr.intersection, sc)}
+    for name in ("drive", "brightness", "gains"):
+        if p.get(name) is not None:
+            out[name] = np.asarray(p[name], dtype=np.float64)
+    return out
 
 
-def synthesize_to_store(scene, shape, mm_per_px: float, store, *, force: bool = False, heal: bool = True, **kw):
-    """:func:`sim.synthesize.synthesize` through ``store``: returns ``(model, key, cached)``.
+def run(store, scene, shape, mm_per_px: float, *, force: bool = False, heal: bool = True, **kw):
+    """:func:`sim.synthesize.synthesize` through ``store``: returns ``(model, key, cached)`` (the
+    :class:`~sim.illumination_model.IlluminationModel`, not the record).
 
     ``kw`` are :func:`sim.synthesize.synthesize`'s options (``drive``, ``brightness``,
     ``gains``, ``exposure``, ``rays``, ``sampler``, ``seed``, ``method``, ``device``,
@@ -91,8 +99,8 @@ def synthesize_to_store(scene, shape, mm_per_px: float, store, *, force: bool = 
     whether the entry was read back instead of traced.
     """
     from sim.optics.multisource import METHODS
-    from sim.synthesize import check_inputs, model_from_record, synthesize_record
     from sim.scene import Scene, load_scene
+    from sim.synthesize import check_inputs, model_from_record, synthesize_record
 
     sc = scene if isinstance(scene, Scene) else load_scene(scene)
     full = dict(drive=None, brightness=None, gains=None, exposure=1.0, rays=None, sampler=None, seed=None,
@@ -102,9 +110,9 @@ def synthesize_to_store(scene, shape, mm_per_px: float, store, *, force: bool = 
         raise UserError(f"synthesize: method must be one of {METHODS}, got {full['method']!r}")
     check_inputs(sc, shape, mm_per_px, full["drive"], full["brightness"], full["gains"])
     shape = (int(shape[0]), int(shape[1]))
-    p = params("traced", scene=sc, shape=shape, mm_per_px=mm_per_px,
-               **{k: full[k] for k in ("rays", "sampler", "seed", "method", "dtype", "exposure", "drive", "brightness",
-                                       "gains", "engine")})
+    p = params({"model": "traced", "scene": sc, "shape": shape, "mm_per_px": mm_per_px,
+                **{k: full[k] for k in ("rays", "sampler", "seed", "method", "dtype", "exposure", "drive",
+                                        "brightness", "gains", "engine")}})
     rec, key, cached = SPEC.get_or_compute(store, p, [], lambda: synthesize_record(sc, shape, mm_per_px, **full),
                                            force=force, heal=heal)
     return model_from_record(rec), key, cached
@@ -173,7 +181,7 @@ def compute(p: Mapping[str, Any], device: str = "cpu"):
                              seed=int(p["seed"]), method=p["method"], device=device)
 
 
-def resolve(syn: dict, base: Path, source: str) -> None:
+def resolve(syn: dict, config: Mapping[str, Any], base: Path, source: str) -> None:
     """Fill a run config's ``synthesize`` section in place: a scene file next to the config
     becomes an absolute path; a traced model's rays, sampler and seed default to the scene's."""
     if (base / syn["scene"]).is_file():
@@ -194,10 +202,7 @@ def node(config: Mapping[str, Any], ctx):
     from pipeline.stages.graph import Stage
 
     p = config["synthesize"]
-    shape = (int(p["height"]), int(p["width"]))
-    if p["model"] == "bare_ring":
-        key_params = params("bare_ring", shape=shape, mm_per_px=p["mm_per_px"], gel_z=p["gel_z"])
-    else:
-        key_params = params("traced", shape=shape, mm_per_px=p["mm_per_px"], scene=p["scene"], rays=p["rays"],
-                            sampler=p["sampler"], seed=p["seed"], method=p["method"])
-    return Stage(SPEC.name, SPEC.version, key_params, [], lambda inputs: compute(p, ctx.device), schema=SPEC.schema)
+    keys = ("model", "height", "width", "mm_per_px") + (("gel_z",) if p["model"] == "bare_ring" else
+                                                         ("scene", "rays", "sampler", "seed", "method"))
+    return Stage(SPEC.name, SPEC.version, params({k: p[k] for k in keys}), [], lambda inputs: compute(p, ctx.device),
+                 schema=SPEC.schema)

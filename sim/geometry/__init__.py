@@ -10,10 +10,10 @@ reconstruction frame (so normals are analytic, not finite differences) and the c
 ((40, 60), True, (40, 60, 3))
 """
 
-from sim.geometry.surface import HeightField, flat, combine, smooth
-from sim.geometry.shapes import sphere, cylinder, flat_punch, cone, wedge
-from sim.geometry.texture import add_texture
 from sim.geometry.from_file import height_from_file
+from sim.geometry.shapes import cone, cylinder, flat_punch, sphere, wedge
+from sim.geometry.surface import HeightField, combine, flat, smooth
+from sim.geometry.texture import add_texture
 
 __all__ = [
     "HeightField",

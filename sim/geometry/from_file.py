@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from pipeline.base.errors import UserError
-from pipeline.base.frames import normals_to_gradients, normals_from_height
+from pipeline.base.frames import normals_from_height, normals_to_gradients
 from sim.geometry.surface import HeightField
 
 __all__ = ["height_from_file"]

@@ -16,7 +16,7 @@ import numpy as np
 
 from sim.geometry.surface import HeightField, recon_grid
 
-__all__ = ["sphere", "cylinder", "flat_punch", "cone", "wedge"]
+__all__ = ["sphere", "cap_depth", "cylinder", "flat_punch", "cone", "wedge"]
 
 
 def _positive(func: str, **values) -> None:
@@ -39,6 +39,21 @@ def _pointed(func, shape, mm_per_px, half_angle_deg, depth, center):
         raise ValueError(f"{func}: half_angle_deg must be < 90, got {half_angle_deg}")
     x, y = recon_grid(shape, mm_per_px, center)
     return 1.0 / math.tan(math.radians(half_angle_deg)), x, y
+
+
+def cap_depth(radius, contact_radius):
+    """Depth ``d = R - sqrt(R^2 - a^2)`` of a ball of radius ``R`` whose contact disc has radius
+    ``a`` (the inverse of the contact radius ``a = sqrt(2 R d - d^2)`` of :func:`sphere`); ``a``
+    is capped at ``R`` (a disc wider than the ball means the edge seen is not the contact's
+    own). Scalars or arrays.
+
+    Examples
+    --------
+    >>> round(float(cap_depth(2.0, 1.2)), 6), float(cap_depth(2.0, 3.0))
+    (0.4, 2.0)
+    """
+    a = np.minimum(np.asarray(contact_radius, dtype=np.float64), radius)
+    return radius - np.sqrt(radius * radius - a * a)
 
 
 def sphere(shape, mm_per_px: float, radius: float, depth: float, center=(0.0, 0.0)) -> HeightField:

@@ -56,33 +56,9 @@ class DesignBrief:
     @classmethod
     def from_scene(cls, scene, **overrides) -> "DesignBrief":
         """The scene's ``design`` section, then ``overrides`` (``None`` values are ignored)."""
-        d = dict(getattr(scene, "design", None) or {})
-        where = f"scene file {scene.source}: field design"
-        kw: dict = {}
-        search = d.pop("search", {})
-        for key in ("objective", "method"):
-            if key in d:
-                kw[key] = d.pop(key)
-        if "modes" in d:
-            kw["modes"] = tuple(d.pop("modes"))
-        if "constraints" in d:
-            kw["constraints"] = dict(d.pop("constraints"))
-        if "manufacturing" in d:
-            kw["manufacturing"] = Manufacturing(**d.pop("manufacturing"))
-        if "vary" in d:
-            kw["vary"] = {k: tuple(float(x) for x in v) for k, v in d.pop("vary").items()}
-        if "start" in d:
-            kw["start"] = {k: float(v) for k, v in d.pop("start").items()}
-        if "reference" in d:
-            kw["reference"] = {k: float(v) for k, v in d.pop("reference").items()}
-        if d:
-            raise UserError(f"{where}: unknown keys {sorted(d)}")
         names = {f.name for f in fields(cls)}
-        for k, v in search.items():
-            if k not in names:
-                raise UserError(f"{where}/search: unknown key {k!r}")
-            kw[k] = v
-        brief = cls(**kw)
+        brief = cls(**_design_section(dict(getattr(scene, "design", None) or {}),
+                                      f"scene file {scene.source}: field design", names))
         over = {k: v for k, v in overrides.items() if v is not None}
         bad = set(over) - names
         if bad:
@@ -121,3 +97,31 @@ class DesignBrief:
             raise UserError(f"optimize-lens: sigma0 must be in (0, 1], got {self.sigma0}")
         if not 0 < self.region <= 1.5:
             raise UserError(f"optimize-lens: region must be in (0, 1.5], got {self.region}")
+
+
+#: How each key of a scene's ``design`` section becomes a :class:`DesignBrief` field.
+_DESIGN_KEYS = {
+    "objective": lambda v: v,
+    "method": lambda v: v,
+    "modes": tuple,
+    "constraints": dict,
+    "manufacturing": lambda v: Manufacturing(**v),
+    "vary": lambda v: {k: tuple(float(x) for x in r) for k, r in v.items()},
+    "start": lambda v: {k: float(x) for k, x in v.items()},
+    "reference": lambda v: {k: float(x) for k, x in v.items()},
+}
+
+
+def _design_section(d: dict, where: str, names: set) -> dict:
+    """:class:`DesignBrief` keyword arguments of a scene's ``design`` section (its ``search``
+    keys are the brief's own fields)."""
+    search = d.pop("search", {})
+    unknown = sorted(set(d) - set(_DESIGN_KEYS))
+    if unknown:
+        raise UserError(f"{where}: unknown keys {unknown}")
+    kw = {k: _DESIGN_KEYS[k](v) for k, v in d.items()}
+    for k, v in search.items():
+        if k not in names:
+            raise UserError(f"{where}/search: unknown key {k!r}")
+        kw[k] = v
+    return kw

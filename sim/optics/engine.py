@@ -7,7 +7,8 @@ Two engines trace the same physics:
             pass, parallel over the CPU cores, compiled once and cached on disk. The default
             for the robust intersection.
 ``torch``   the eager torch tracer (:mod:`sim.optics.tracer`), the reference; also the only
-            engine for the paper's intersection method.
+            engine for the paper's intersection method, and for lens surfaces the kernel does
+            not trace (each surface declares its engines: :mod:`sim.optics.surfaces`).
 
 This module imports neither torch nor the tracer: a user's ``iristac sim trace`` runs the
 kernel without paying for torch's import.
@@ -26,7 +27,7 @@ from sim.optics.emitter import actual_rays, emitter_frame, profile_constants
 from sim.optics.energy import Energy, SourceTrace
 from sim.optics.grid import BinLayout
 
-__all__ = ["ENGINES", "resolve_engine", "float_dtype", "kernel_params", "grid_tables", "pass_tables",
+__all__ = ["ENGINES", "EngineFallback", "resolve_engine", "float_dtype", "kernel_params", "grid_tables", "pass_tables",
            "trace_led", "trace_cpu", "lens_rays", "warm_up", "compile_seconds", "kernel_threads", "cuda_available"]
 
 ENGINES = ("kernel", "torch")
@@ -56,28 +57,46 @@ def float_dtype(dtype) -> np.dtype:
     return np.dtype(name)
 
 
+class EngineFallback(UserWarning):
+    """The default engine cannot trace a scene's lens and ``torch`` traces it instead."""
+
+
 def resolve_engine(engine: str | None, intersection: str = "robust", scene=None) -> str:
     """The engine that traces: ``engine`` if given (checked), else ``kernel`` for the robust
-    intersection and ``torch`` for the paper's (which only the reference implements). A
-    ``scene`` whose lens has a conic top (``top.conic != 0``, :mod:`sim.optics.conic`) is traced
-    by ``torch`` too: the kernel implements the spherical top only.
+    intersection and ``torch`` for the paper's (which only the reference implements). The
+    scene's lens surfaces say which engines trace them (:mod:`sim.optics.surfaces`): a lens with
+    a surface the kernel does not trace (a conic top) is traced by ``torch``, with an
+    :class:`EngineFallback` warning that names the surface; asking for the kernel there is an
+    error.
 
     Examples
     --------
     >>> resolve_engine(None), resolve_engine(None, "paper"), resolve_engine("torch")
     ('kernel', 'torch', 'torch')
     """
-    conic = scene is not None and scene.has("lens") and scene.lens.top_conic != 0.0
+    from sim.optics.surfaces import SURFACES, engines_for, lens_surfaces
+
+    surfaces = lens_surfaces(scene.lens) if scene is not None and scene.has("lens") else ()
+    able = engines_for(surfaces)
+    untraced = [s for s in surfaces if "kernel" not in SURFACES[s].engines]
     if engine is None:
-        return "kernel" if intersection == "robust" and not conic else "torch"
+        if intersection != "robust":
+            return "torch"
+        if "kernel" in able:
+            return "kernel"
+        import warnings
+
+        warnings.warn(f"the kernel engine does not trace the lens's {' and '.join(untraced)} surface "
+                      f"(sim/optics/surfaces.py); tracing with the torch engine", EngineFallback, stacklevel=2)
+        return "torch"
     if engine not in ENGINES:
         raise ValueError(f"engine must be one of {ENGINES}, got {engine!r}")
     if engine == "kernel" and intersection != "robust":
         raise ValueError(f"the kernel engine implements the robust intersection only, not {intersection!r}; "
                          "use engine 'torch'")
-    if engine == "kernel" and conic:
-        raise ValueError("the kernel engine implements a spherical lens top only, this scene's top is a conic; "
-                         "use engine 'torch'")
+    if engine not in able:
+        raise ValueError(f"the {engine} engine does not trace this lens's {' and '.join(untraced)} surface "
+                         f"(sim/optics/surfaces.py); use engine 'torch'")
     return engine
 
 
@@ -99,9 +118,8 @@ def kernel_params(scene, *, led: int = 0, rays: int, sampler: str, seed: int = 0
     """
     from sim.optics import kernel as K
 
-    if scene.has("lens") and scene.lens.top_conic != 0.0:
-        raise ValueError("kernel_params: the kernel implements a spherical lens top only; this scene's top is a "
-                         "conic (trace it with engine 'torch')")
+    if scene.has("lens"):
+        resolve_engine("kernel", "robust", scene)  # a surface the kernel does not trace: one clear error
     ft = float_dtype(dtype)
     P = np.zeros(K.P_COUNT, dtype=np.float64)
     F = np.zeros(K.F_COUNT, dtype=np.int64)

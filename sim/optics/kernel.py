@@ -43,7 +43,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange, types
+from numba import njit, types
 from numba.core.compiler import CompilerBase, DefaultPassBuilder
 from numba.core.compiler_machinery import FunctionPass, register_pass
 from numba.core.typed_passes import NopythonTypeInference
@@ -511,7 +511,7 @@ def cross_out(P, F, px, py, pz, dx, dy, dz, t, sid):
 
 # -- one ray, scalar (the reference's semantics with its full loops) ---------------------------
 @njit(**JIT)
-def trace_ray(P, F, ox, oy, oz, dx, dy, dz, w):
+def trace_ray(P, F, ox, oy, oz, dx, dy, dz, w):  # noqa: C901 - compiled: the loop body stays one function so Numba vectorises it
     """One ray from the LED through the lens.
 
     Returns ``(ox, oy, oz, dx, dy, dz, w, reflected, absorbed, code, bounces)``: the ray leaving

@@ -24,9 +24,9 @@ import torch
 
 from sim.optics import engine as _engine
 from sim.optics import instrument
+from sim.optics.base import Vec, box_interval
 from sim.optics.energy import Energy, SourceTrace
 from sim.optics.interface import fresnel_transmittance, reflect, refract
-from sim.optics.base import Vec, box_interval
 from sim.optics.lens import BOTTOM, TOP, LensBody
 from sim.optics.plane import plane_hit
 from sim.optics.sampling import SquareSampler, actual_rays, emission_directions

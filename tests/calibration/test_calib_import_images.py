@@ -79,8 +79,8 @@ def test_jpeg_colours_and_automatic_reference(tmp_path):
 @needs_data
 def test_real_frames_as_png_folder_equal_the_npz_import(tmp_path):
     """The shared frames written as PNGs (+ labels CSV) import to exactly the npz import's capture."""
-    from pipeline.base.capture import read_capture
     from calibration.importers import load_gelsight_npz
+    from pipeline.base.capture import read_capture
 
     raw = np.load(DATA)
     folder = tmp_path / "real"
@@ -200,8 +200,8 @@ def test_no_output_when_the_source_is_bad(tmp_path):
 
 def test_markers_auto_on_import_and_a_bad_mask(tmp_path):
     """--markers auto stores the dark dots of the reference; a mask of the wrong size is one clear error."""
-    from pipeline.base.capture import read_capture
     from calibration.markers import draw_markers
+    from pipeline.base.capture import read_capture
 
     folder = tmp_path / "dots"
     folder.mkdir()

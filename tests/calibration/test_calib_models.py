@@ -5,12 +5,13 @@ import pytest
 
 from calibration.calibrate import calibrate
 from calibration.detect import detect_contacts
-from calibration.models import FarFieldModel, LookupTable, LUTModel, MLPModel, NearFieldModel, TracedModel
-from calibration.models.base import angular_error_deg, check_light_rank, solve_normals
+from calibration.models import FarFieldModel, LookupTable, MLPModel, NearFieldModel, TracedModel
+from calibration.models.base import check_light_rank, solve_normals
 from calibration.samples import collect_samples
 from calibration.synthetic import synthetic_sphere_capture
 from calibration.validate import cross_validate
 from pipeline.base.errors import UserError
+from pipeline.evaluate import angular_error_deg
 
 
 def _samples(cap, tr):

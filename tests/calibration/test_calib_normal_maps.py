@@ -3,8 +3,9 @@
 import numpy as np
 import pytest
 
-from calibration.ballfit import ball_fit, fit_sphere, sphere_depth_mm
+from calibration.ballfit import ball_fit, fit_sphere
 from calibration.truth import sphere_cap
+from sim.geometry.shapes import cap_depth
 
 
 @pytest.fixture(scope="module")
@@ -89,7 +90,7 @@ def test_detect_markers_finds_drawn_dots_on_uneven_light():
 
 def test_sphere_fit_on_exact_cap_normals():
     cap = sphere_cap((120, 160), (61.3, 77.8), 14.0, 2.0, 0.1245)
-    r = ball_fit(cap.normals, 0.1245, 2.0, true_depth_mm=sphere_depth_mm(2.0, 14.0 * 0.1245))
+    r = ball_fit(cap.normals, 0.1245, 2.0, true_depth_mm=float(cap_depth(2.0, 14.0 * 0.1245)))
     assert abs(r["radius_error"]) < 0.005 and abs(r["depth_error"]) < 0.02 and r["pixels"] > 100
 
 

@@ -82,8 +82,8 @@ def test_cli_bad_inputs_are_one_line_errors(tmp_path):
 
 
 def test_cli_rank_deficient_capture_is_refused(tmp_path):
-    from pipeline.base.capture import write_capture
     from calibration.synthetic import synthetic_sphere_capture
+    from pipeline.base.capture import write_capture
 
     cap, _ = synthetic_sphere_capture((60, 80), 4, num_leds=6, leds=[0, 3], peak_dn=140, seed=6)
     cap.meta["pattern_names"] = ["led0", "led3"]

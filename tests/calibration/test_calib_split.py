@@ -120,8 +120,8 @@ def test_label_truth_is_reported_separately_with_its_bias(split):
 
 
 def test_eval_calibration_cli(tmp_path, capture, split):
-    from pipeline.base.capture import write_capture
     from calibration.split import TEST_PRESSES
+    from pipeline.base.capture import write_capture
 
     cal = split["calibration"].save(tmp_path / "cal.h5")
     test = write_capture(tmp_path / "test.h5", capture.select(TEST_PRESSES))
@@ -143,9 +143,9 @@ def test_eval_calibration_cli(tmp_path, capture, split):
 def test_markers_on_the_real_frames_cost_less_than_a_degree(capture, split):
     """Dark dots printed on every frame (reference included) at fixed places: detected in the reference,
     filled in and left out; the test-press error stays within 1 deg of the marker-free error."""
-    from pipeline.base.capture import Capture
     from calibration.markers import draw_markers
     from calibration.split import split_evaluation
+    from pipeline.base.capture import Capture
 
     frames, mask = draw_markers(capture.frames, spacing_px=12.0, radius_px=1.5)
     reference, _ = draw_markers(capture.reference, spacing_px=12.0, radius_px=1.5)

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from calibration.calibrate import calibrate
-from pipeline.base.capture import write_capture
 from calibration.detect import detect_contacts
 from calibration.models import TracedModel
 from calibration.models.led_geometry import geometry_basis, tilt_axes
 from calibration.samples import collect_samples
 from calibration.synthetic import ring_illumination, synthetic_sphere_capture
 from helpers import run_cli
+from pipeline.base.capture import write_capture
 from sim.point_source import ring_geometry
 from sim.synthesize import save_illumination
 

@@ -5,9 +5,9 @@ from functools import partial
 import pytest
 
 from batch_support import summarise_capture, write_capture
-from pipeline.batch import format_summary, run_batch
 from pipeline.base.errors import UserError
 from pipeline.base.store import StageStore
+from pipeline.batch import format_summary, run_batch
 
 
 @pytest.fixture(scope="module")

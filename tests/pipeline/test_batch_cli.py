@@ -6,13 +6,13 @@ import json
 
 import pytest
 
+from helpers import run_cli
+from pipeline.base.errors import UserError
+from pipeline.base.store import StageStore, write_record
 from pipeline.batch import format_summary
 from pipeline.batch_reconstruct import SUMMARY_COLUMNS, batch_reconstruct
-from pipeline.base.errors import UserError
 from pipeline.stages.synthesize import illumination_record
 from sim.contacts import contact_surfaces
-from pipeline.base.store import StageStore, write_record
-from helpers import run_cli
 
 SHAPE, PX = (12, 16), 0.5
 BAD = 7  # index of the corrupt recording
@@ -20,9 +20,9 @@ BAD = 7  # index of the corrupt recording
 
 @pytest.fixture(scope="module")
 def recordings(tmp_path_factory):
+    from pipeline.base.capture import write_capture
     from sim.render import bare_ring_illumination
     from sim.rendered_capture import render_capture
-    from pipeline.base.capture import write_capture
 
     d = tmp_path_factory.mktemp("batch")
     model = bare_ring_illumination(SHAPE, PX)

@@ -2,14 +2,12 @@
 
 import json
 
-import numpy as np
 import pytest
 
 from helpers import run_cli
-from pipeline.base.store import StageStore
-from pipeline.compare import compare_captures, render_mode_captures
 from pipeline.base.errors import UserError
-from pipeline.base.store import read_record, write_record
+from pipeline.base.store import StageStore, read_record, write_record
+from pipeline.compare import compare_captures, render_mode_captures
 
 
 @pytest.fixture(scope="module")

@@ -10,11 +10,11 @@ import pytest
 import scipy.io
 
 from helpers import run_cli
-from pipeline.diligent import import_diligent, read_diligent
 from pipeline.base.errors import UserError
+from pipeline.base.store import read_record
+from pipeline.diligent import import_diligent, read_diligent
 from pipeline.evaluate import evaluate_normals
 from pipeline.reconstruct import reconstruct
-from pipeline.base.store import read_record
 from support_recon import _one_torch_thread, sphere_cap  # noqa: F401
 
 H, W = 24, 28

@@ -13,8 +13,8 @@ import pytest
 
 from helpers import run_cli
 from pipeline.base.errors import UserError
-from pipeline.reconstruct import reconstruct
 from pipeline.base.store import Record, StoreError, read_record, write_record
+from pipeline.reconstruct import reconstruct
 from sim.ps_objects import dome_lights, render_ps_capture, sphere_object
 from support_recon import _one_torch_thread  # noqa: F401
 

@@ -10,10 +10,10 @@ import pytest
 from plyfile import PlyData
 
 from helpers import run_cli
-from pipeline.bench.recon_scene import scene_records
 from pipeline.base.errors import UserError
-from pipeline.reconstruct import reconstruct
 from pipeline.base.store import StageStore, read_record, write_record
+from pipeline.bench.recon_scene import scene_records
+from pipeline.reconstruct import reconstruct
 from support_recon import _one_torch_thread, render_sphere_scene  # noqa: F401
 
 

@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.reconstruct import reconstruct
-from pipeline.base.store import Record
 from pipeline.base.frames import normals_to_gradients
+from pipeline.base.store import Record
+from pipeline.reconstruct import reconstruct
 from sim.render import bare_ring_illumination
 from sim.rendered_capture import render_capture, sphere_presses
 from support_recon import _one_torch_thread  # noqa: F401

@@ -10,10 +10,10 @@ from pathlib import Path
 import pytest
 import yaml
 
-from pipeline.base.errors import UserError
-from pipeline.run import plan_pipeline, run_pipeline
-from pipeline.base.store import StageStore
 from helpers import REPO, run_cli
+from pipeline.base.errors import UserError
+from pipeline.base.store import StageStore
+from pipeline.run import plan_pipeline, run_pipeline
 
 STAGES = ["synthesize", "calibrate", "capture", "normals", "depth"]
 
@@ -163,10 +163,10 @@ def test_corrupt_capture_file_fails_in_one_line_and_keeps_earlier_stages(tmp_pat
 
 
 def test_capture_file_is_keyed_by_content(tmp_path):
-    from sim.render import bare_ring_illumination
-    from sim.rendered_capture import render_capture
     from pipeline.base.capture import write_capture
     from sim.contacts import contact_surfaces
+    from sim.render import bare_ring_illumination
+    from sim.rendered_capture import render_capture
 
     model = bare_ring_illumination((24, 30), 0.35)
     cap_path = tmp_path / "capture.h5"
@@ -214,11 +214,11 @@ def test_failing_calibration_names_the_config_fields_and_keeps_synthesize(tmp_pa
 
 
 def test_rendered_calibration_follows_the_capture_files_lighting_mode(tmp_path):
-    from sim.render import bare_ring_illumination
-    from sim.rendered_capture import render_capture
     from pipeline.base.capture import write_capture
     from pipeline.stages.config import resolve_config
     from sim.contacts import contact_surfaces
+    from sim.render import bare_ring_illumination
+    from sim.rendered_capture import render_capture
 
     model = bare_ring_illumination((12, 16), 0.5)
     write_capture(tmp_path / "c.h5", render_capture(model, "trichromatic", contact_surfaces("sphere", (12, 16), 0.5, 2, size_mm=3.0)))

@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from sim.optics.conic import ConicTop, conic_sag
+from sim.optics.engine import EngineFallback, resolve_engine
 from sim.optics.interface import refract
 from sim.optics.sphere import Ball
 from sim.scene import load_scene, scene_from_dict, scene_to_dict
@@ -60,7 +61,7 @@ def test_hits_lie_on_the_sag_and_normals_are_gradients(k):
         hits += int(m.sum())
         # The normal is the surface's: perpendicular to the sag's meridian tangent, pointing up-out.
         n = top.normal(tuple(c[near][ok] for c in p))
-        r, zr = rho[near][ok], p[2][near][ok]
+        r = rho[near][ok]
         h = 1e-6
         slope = -(conic_sag(r + h, R, k) - conic_sag(r - h, R, k)) / (2 * h)  # dz/drho
         nr = (n[0] * p[0][near][ok] + n[1] * p[1][near][ok]) / r.clamp_min(1e-12)
@@ -113,9 +114,29 @@ def test_scene_with_a_conic_top_loads_draws_and_balances_energy():
     assert np.allclose(s.lens.top_z(rho), s.lens.apex_z - conic_sag(rho, 200.0, -3.0))
     assert np.allclose(s.lens.top_rho(s.lens.top_z(rho)), rho, atol=1e-9)
     assert s.lens.rim_z < s.lens.apex_z and abs(s.lens.side_rho(s.lens.rim_z) - s.lens.top_rho(s.lens.rim_z)) < 1e-9
-    r = trace_report(s, rays=20000, sampler="sobol", dtype=torch.float64)
-    assert r["energy_residual"] < 1e-12 and 0 < r["fraction_on_screen"] < 1
+    with pytest.warns(EngineFallback, match="conic"):  # the kernel traces no conic: torch does, and says so
+        r = trace_report(s, rays=20000, sampler="sobol", dtype=torch.float64)
+    assert r["energy_residual"] < 1e-12 and 0 < r["fraction_on_screen"] < 1 and r["engine"] == "torch"
     assert scene_from_dict(scene_to_dict(s)).lens == s.lens  # round trip keeps the conic
+    with pytest.raises(ValueError, match="kernel engine does not trace this lens's conic surface"):
+        resolve_engine("kernel", "robust", s)
+
+
+def test_every_lens_surface_says_which_engines_trace_it():
+    """The torch tracer's lens is made of the classes sim.optics.surfaces names for the scene's
+    surfaces; every kind names a class that exists, and the kernel's kinds are the ones it
+    implements (no conic)."""
+    from sim.optics.lens import LensBody
+    from sim.optics.surfaces import SURFACES, lens_surfaces
+
+    d = scene_to_dict(load_scene("default"))
+    d["lens"]["top"].update(radius=200.0, conic=-3.0)
+    for lens in (load_scene("default").lens, scene_from_dict(d).lens):
+        body = LensBody(lens)
+        for kind, surface in zip(lens_surfaces(lens), body.sets):
+            module, _, cls = SURFACES[kind].target.partition(":")
+            assert type(surface).__module__ == module and type(surface).__name__ == cls
+    assert {k for k, s in SURFACES.items() if "kernel" in s.engines} == {"swept_arc", "cylinder", "sphere", "plane"}
 
 
 def test_cylinder_rim_on_a_conic_top_and_a_clear_error_past_an_ellipsoid():

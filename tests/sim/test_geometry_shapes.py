@@ -4,12 +4,24 @@ import math
 
 import numpy as np
 import pytest
-from hypothesis import example, given, settings, strategies as st
+from hypothesis import example, given, settings
+from hypothesis import strategies as st
 
 from pipeline.base.errors import UserError
 from pipeline.base.frames import normals_from_height, pixel_to_recon
-from sim.geometry import (HeightField, add_texture, combine, cone, cylinder, flat, flat_punch, height_from_file,
-                          smooth, sphere, wedge)
+from sim.geometry import (
+    HeightField,
+    add_texture,
+    combine,
+    cone,
+    cylinder,
+    flat,
+    flat_punch,
+    height_from_file,
+    smooth,
+    sphere,
+    wedge,
+)
 
 SHAPE = (40, 60)
 PX = 0.1
@@ -140,7 +152,9 @@ def test_smoothing_conserves_volume_and_gradients_are_its_derivatives():
 def test_texture_gradients_and_confinement():
     base = sphere(SHAPE, PX, 2.0, 0.5)
     for kind in ("grating", "random"):
-        make = lambda c: add_texture(sphere(SHAPE, PX, 2.0, 0.5), 0.01, 0.4, 30.0, kind=kind, seed=3)
+        def make(c, kind=kind):
+            return add_texture(sphere(SHAPE, PX, 2.0, 0.5), 0.01, 0.4, 30.0, kind=kind, seed=3)
+
         t = make((0.0, 0.0))
         assert np.all(t.height[~base.contact] == 0)
         assert np.abs(t.height - base.height).max() <= 0.01 + 1e-12

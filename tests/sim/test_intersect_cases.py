@@ -4,9 +4,9 @@ vs the robust ones, and the hard cases (finite and correct, never NaN)."""
 import math
 
 import numpy as np
-import pytest
 import torch
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from sim.optics.interface import fresnel_transmittance, reflect, refract
 from sim.optics.lens import SIDE, TOP, LensBody

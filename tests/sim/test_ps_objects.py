@@ -15,7 +15,7 @@ from helpers import run_cli
 from pipeline.base.store import read_record, write_record
 from sim.far_field import dome_lights, far_field_illumination, far_field_visibility
 from sim.ps_objects import bumpy_object, render_ps_capture, sphere_object
-from sim.render import RenderSettings, Renderer
+from sim.render import Renderer, RenderSettings
 from sim.specular import ggx_brdf, specular_shading
 
 

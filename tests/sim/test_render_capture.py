@@ -2,14 +2,13 @@
 
 import numpy as np
 import pytest
-import torch
 
-from pipeline.base.store import StoreError, read_record
+from pipeline.base.capture import write_capture
+from pipeline.base.modes import mode_drive
+from pipeline.base.store import read_record
 from sim.geometry import sphere
 from sim.lambertian import shade
-from pipeline.base.modes import mode_drive
 from sim.render import RenderSettings, bare_ring_illumination
-from pipeline.base.capture import write_capture
 from sim.rendered_capture import render_capture, sphere_presses
 
 SHAPE = (30, 40)

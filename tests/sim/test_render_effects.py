@@ -7,11 +7,10 @@ import pytest
 import torch
 
 from pipeline.base.frames import optical_to_recon, pixel_to_recon
-from sim.geometry import sphere
 from pipeline.base.modes import mode_drive
+from sim.geometry import sphere
 from sim.point_source import point_source_field, ring_geometry
-from sim.render import (EFFECTS, IMAGE_EFFECTS, RenderSettings, Renderer, bare_ring_illumination,
-                        render_images)
+from sim.render import EFFECTS, IMAGE_EFFECTS, Renderer, RenderSettings, bare_ring_illumination, render_images
 
 SHAPE = (24, 32)
 PX = 0.25

@@ -5,12 +5,15 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import settings as hsettings
+from hypothesis import strategies as st
 
+from pipeline.base.modes import mode_brightness, mode_drive
 from sim.geometry import sphere
 from sim.lambertian import shade
-from pipeline.base.modes import mode_brightness, mode_drive
 from sim.point_source import point_source_field, ring_geometry
-from sim.render import RenderSettings, Renderer, auto_exposure, bare_ring_illumination, render_images
+from sim.render import Renderer, RenderSettings, auto_exposure, bare_ring_illumination, render_images
 
 SHAPE = (30, 40)
 PX = 0.4
@@ -138,8 +141,6 @@ def test_input_checks_print_the_shape(model):
     with pytest.raises(ValueError, match="V_depth"):
         Renderer(model, RenderSettings(depth_field=True))
 
-
-from hypothesis import given, settings as hsettings, strategies as st
 
 
 @hsettings(max_examples=20, deadline=None)

@@ -2,14 +2,14 @@
 
 import numpy as np
 import pytest
+import torch
 
 from pipeline.base.errors import UserError
 from pipeline.base.store import StageStore, StoreError
+from pipeline.stages.synthesize import run as run_synthesize
 from sim.illumination_model import IlluminationModel, light_matrices
 from sim.scene import load_scene
-from pipeline.stages.synthesize import synthesize_to_store
 from sim.synthesize import default_illumination, load_illumination, save_illumination, synthesize
-import torch
 
 # Two cores shared by several test runs: a second intra-op thread mostly waits on barriers
 # (measured 4-10x slower per op under that load), so the tracer tests run single-threaded.
@@ -41,11 +41,11 @@ def test_store_round_trip_and_cache(tmp_path):
     store = StageStore(tmp_path / "cache")
     drive = _drive(P=2)
     scene = load_scene("default").with_effects(add=["depth_field"])
-    a = synthesize_to_store(scene, (8, 10), 3.0, store, rays=10_000, drive=drive)[0]
+    a = run_synthesize(store, scene, (8, 10), 3.0, rays=10_000, drive=drive)[0]
     files = list((tmp_path / "cache").rglob("*.h5"))
     assert len(files) == 1
     mtime = files[0].stat().st_mtime_ns
-    b = synthesize_to_store(scene, (8, 10), 3.0, store, rays=10_000, drive=drive)[0]
+    b = run_synthesize(store, scene, (8, 10), 3.0, rays=10_000, drive=drive)[0]
     assert files[0].stat().st_mtime_ns == mtime  # read back, not recomputed
     assert np.array_equal(a.V, b.V) and np.array_equal(a.V_depth, b.V_depth)
     c = load_illumination(files[0])
@@ -55,7 +55,7 @@ def test_store_round_trip_and_cache(tmp_path):
     # The field changes with gel height (depth-dependent light field).
     assert not np.allclose(c.V_depth[0], c.V_depth[-1])
     # A different parameter is a different entry.
-    synthesize_to_store(scene, (8, 10), 3.0, store, rays=12_000, drive=drive)
+    run_synthesize(store, scene, (8, 10), 3.0, rays=12_000, drive=drive)
     assert len(list((tmp_path / "cache").rglob("*.h5"))) == 2
     # Standalone file written and read back.
     out = save_illumination(a, tmp_path / "illumination.h5")

@@ -3,12 +3,12 @@
 import json
 
 import numpy as np
+import torch
 
 from helpers import run_cli
 from pipeline.cli import main
 from sim.lens_design import TRACE_KEYS
 from sim.synthesize import load_illumination
-import torch
 
 # Two cores shared by several test runs: a second intra-op thread mostly waits on barriers
 # (measured 4-10x slower per op under that load), so the tracer tests run single-threaded.

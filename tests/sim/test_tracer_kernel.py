@@ -17,7 +17,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim.optics import engine, kernel as K
+from sim.optics import engine
+from sim.optics import kernel as K
 from sim.optics.grid import ImageBins, PixelGrid
 from sim.optics.multisource import led_azimuths, trace_all
 from sim.scene import load_scene, scene_from_dict, scene_to_dict

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from pipeline.base.camera import Camera
-from sim.geometry import sphere
 from pipeline.base.modes import mode_drive
-from sim.render import RenderSettings, Renderer, auto_exposure, bare_ring_illumination
+from sim.geometry import sphere
+from sim.render import Renderer, RenderSettings, auto_exposure, bare_ring_illumination
 from sim.virtual_camera import VirtualCamera, ring_led_state
 
 SHAPE = (12, 16)

@@ -30,7 +30,6 @@ def test_live_fast_paths_import_without_torch():
 def test_lazy_names_resolve_and_list():
     import pipeline.depth as depth
     import pipeline.normals as normals
-
     from pipeline.normals.result import NormalResult
 
     assert normals.NormalResult is NormalResult and "solve_nearfield" in dir(normals)

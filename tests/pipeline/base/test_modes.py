@@ -7,8 +7,16 @@ import pytest
 import yaml
 
 from pipeline.base.errors import UserError
-from pipeline.base.modes import (MODES_DIR, LightingMode, ModeFrame, list_modes, load_mode, mode_brightness, mode_drive,
-                       save_mode)
+from pipeline.base.modes import (
+    MODES_DIR,
+    LightingMode,
+    ModeFrame,
+    list_modes,
+    load_mode,
+    mode_brightness,
+    mode_drive,
+    save_mode,
+)
 
 BUILTIN = ["monochromatic", "multicolour", "point", "trichromatic"]
 

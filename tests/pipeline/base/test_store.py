@@ -7,17 +7,16 @@ import subprocess
 import sys
 import textwrap
 import time
-from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
-from hypothesis import given, settings, strategies as st
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from helpers import REPO
-from pipeline.base.store import Record, StageStore, StoreError, read_record, write_record
+from pipeline.base.store import StageStore, StoreError, read_record, write_record
 from schema_examples import example_record
-
 
 # -- keys -------------------------------------------------------------------------------
 
@@ -37,7 +36,9 @@ def test_int_vs_float_differs_where_schema_does_not_say_number(tmp_path):
 def test_arrays_hash_by_content_dtype_and_shape(tmp_path):
     s = StageStore(tmp_path)
     a = np.arange(6, dtype=np.float32)
-    k = lambda v: s.key("depth", 1, {"w": v}).digest
+    def k(v):
+        return s.key("depth", 1, {"w": v}).digest
+
     assert k(a) == k(a.copy())
     assert k(a) != k(a + 1)
     assert k(a) != k(a.astype(np.float64))

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from pipeline.capture.camera import CameraError, CameraSettingWarning, OpenCVCamera
 from pipeline.base.camera import Camera
+from pipeline.capture.camera import CameraError, CameraSettingWarning, OpenCVCamera
 from pipeline.capture.emulator import ShownState
 from pipeline.capture.virtual import ContactCamera
 from sim.render import RenderSettings, bare_ring_illumination

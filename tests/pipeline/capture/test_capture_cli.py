@@ -11,8 +11,8 @@ import sys
 import numpy as np
 
 from helpers import REPO, run_cli
-from pipeline.capture.client import RingClient
 from pipeline.base.store import read_record
+from pipeline.capture.client import RingClient
 
 FAST = ["--emulate", "--virtual-camera", "--mode", "point", "--camera-fps", "500",
         "--camera-size", "6", "8", "--timeout", "0.01"]

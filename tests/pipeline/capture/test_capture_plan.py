@@ -4,27 +4,26 @@ resume after a disconnect, the journal."""
 from __future__ import annotations
 
 import re
-
 import time
 
 import numpy as np
 import pytest
 
+from pipeline.base.errors import UserError
+from pipeline.base.modes import LightingMode
+from pipeline.base.store import read_record
 from pipeline.capture.client import RingClient, RingDisconnected
 from pipeline.capture.emulator import FaultSpec, parse_faults
 from pipeline.capture.plan import (
+    CaptureSettings,
     _fingerprint,
     _Journal,
-    CaptureSettings,
     journal_path,
     plan_steps,
     run_capture,
 )
-from pipeline.base.modes import LightingMode
 from pipeline.capture.protocol import quantize_state
 from pipeline.capture.virtual import ContactCamera, VirtualSensorSpec, open_virtual_camera
-from pipeline.base.errors import UserError
-from pipeline.base.store import read_record
 from sim.render import RenderSettings, bare_ring_illumination, render_images
 from sim.virtual_camera import ring_led_state
 

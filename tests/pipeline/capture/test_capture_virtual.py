@@ -6,9 +6,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from pipeline.base.errors import UserError
+from pipeline.base.frames import normals_to_gradients
+from pipeline.base.modes import list_modes, load_mode
+from pipeline.base.store import Record, read_record
 from pipeline.capture.client import RingDisconnected
 from pipeline.capture.plan import journal_path
-from pipeline.base.modes import list_modes, load_mode
 from pipeline.capture.session import capture
 from pipeline.capture.virtual import (
     VirtualSensorSpec,
@@ -16,11 +19,8 @@ from pipeline.capture.virtual import (
     open_virtual_camera,
     truth_data,
 )
-from pipeline.base.errors import UserError
-from pipeline.base.store import Record, read_record
-from pipeline.base.frames import normals_to_gradients
-from sim.geometry import HeightField
 from sim.contacts import contact_surfaces
+from sim.geometry import HeightField
 from sim.render import RenderSettings, render_images
 
 SHAPE = (40, 50)

@@ -7,6 +7,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline.base.errors import UserError
 from pipeline.capture import protocol as P
 from pipeline.capture.client import (
     RingClient,
@@ -16,7 +17,6 @@ from pipeline.capture.client import (
     RingTimeout,
 )
 from pipeline.capture.emulator import FaultSpec, parse_faults
-from pipeline.base.errors import UserError
 
 
 def test_handshake_and_every_command(ring_backend):

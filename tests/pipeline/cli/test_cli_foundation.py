@@ -1,11 +1,9 @@
 """The CLI through a real subprocess: groups, unimplemented commands, cache maintenance."""
 
 import json
-import os
 import shutil
 import subprocess
 
-import numpy as np
 import pytest
 
 from helpers import run_cli

@@ -9,9 +9,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
+from pipeline.base.frames import gradients_to_normals, normals_from_height
 from pipeline.base.registry import INTEGRATORS
 from pipeline.depth import frankot_chellappa, integrate, poisson_dct, poisson_dst, sparse_lstsq
-from pipeline.base.frames import gradients_to_normals, normals_from_height
 from support_recon import sphere_cap
 
 S = 0.1  # mm per pixel

@@ -57,16 +57,33 @@ def test_live_virtual_point_nearfield_cycles(store):
     assert s["mislabeled"] == 0 and s["stale"] > 0
 
 
+class _PressOnSecondPattern:
+    """The ring, with a press that changes as the second pattern of every other cycle is asked
+    for: the first pattern's frame was read before the change and the second's is exposed
+    after the ring confirms it, so that cycle is torn by construction (no clock involved)."""
+
+    def __init__(self, ring, camera, patterns: int):
+        self.ring, self.camera, self.patterns, self.calls, self.contact = ring, camera, patterns, 0, 0
+
+    def show_pattern(self, drive, brightness):
+        if self.calls % (2 * self.patterns) == 1:
+            self.contact = 1 - self.contact
+            self.camera.set_contact(self.contact)
+        self.calls += 1
+        return self.ring.show_pattern(drive, brightness)
+
+
 def test_cycle_source_never_mixes_cycles(ring_backend):
-    """Presses that change every 30 ms tear many cycles: those are discarded and counted; a
-    sample holds the frames of one contact only; every frame's LED state is the one its
-    pattern asked for (checked against the emulator's history; the Python emulator and the C
+    """A cycle whose frames saw two contacts is discarded and counted, never a sample: the press
+    changes inside every other cycle, so three samples cost exactly three torn cycles, and each
+    sample holds one contact (the new one). Every frame's LED state is the one its pattern
+    asked for (checked against the emulator's history; the Python emulator and the C
     firmware's host build)."""
     from pipeline.base.modes import load_mode
     from pipeline.capture.client import RingClient
     from pipeline.capture.session import virtual_sensor
     from pipeline.capture.virtual import open_virtual_camera
-    from pipeline.live.sources import CycleSource, PressScript
+    from pipeline.live.sources import CycleSource
 
     patterns = load_mode("monochromatic")
     spec = virtual_sensor(obj="sphere", contacts=2, shape=(24, 32), mm_per_px=0.3, fps=400.0)
@@ -75,22 +92,19 @@ def test_cycle_source_never_mixes_cycles(ring_backend):
     try:
         with RingClient(port) as ring:
             cam = open_virtual_camera(spec, emu, patterns.drive, patterns.brightness)
-            script = PressScript(cam, 2, press_s=0.03, gap_s=0.03).start()
             try:
-                src = CycleSource(ring, cam, patterns, truth=emu, max_attempts=400)
-                # Cycles are short (~20-30 ms) against presses that change every 30 ms: most tear,
-                # but not necessarily among the first few; draw until one has (bounded).
+                cam.set_contact(0)
+                src = CycleSource(_PressOnSecondPattern(ring, cam, len(patterns.frames)), cam, patterns, truth=emu,
+                                  max_attempts=2)
                 samples = [src.next() for _ in range(3)]
-                while src.counters["torn"] == 0 and len(samples) < 60:
-                    samples.append(src.next())
             finally:
-                script.stop()
                 cam.close()
     finally:
         emu.stop()
-    assert src.counters["torn"] > 0 and src.counters["mislabeled"] == 0
+    assert src.counters["torn"] == 3 and src.counters["mislabeled"] == 0
+    assert [s.info["contact"] for s in samples] == [1, 0, 1]
     for s in samples:
-        assert s.frames.shape == (len(patterns.frames), 24, 32, 3) and s.info["contact"] in (-1, 0, 1)
+        assert s.frames.shape == (len(patterns.frames), 24, 32, 3)
 
 
 def test_live_drops_the_oldest_when_processing_falls_behind(store, tmp_path):
@@ -113,7 +127,7 @@ def video_and_calibration(tmp_path_factory, store):
     import cv2
 
     from pipeline.base.modes import load_mode
-    from pipeline.base.store import StageStore, write_record, Record
+    from pipeline.base.store import Record, StageStore, write_record
     from pipeline.live import virtual_calibration
     from sim.contacts import contact_surfaces
     from sim.render import bare_ring_illumination

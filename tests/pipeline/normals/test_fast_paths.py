@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 import torch
 
-from support_recon import _one_torch_thread  # noqa: F401  (autouse: one torch thread)
 from pipeline.bench.recon_scene import render_sphere_scene
+from support_recon import _one_torch_thread  # noqa: F401  (autouse: one torch thread)
 
 
 def _uint8_scene(shape=(36, 52), patterns=6, seed=0, coloured=False):
@@ -59,6 +59,23 @@ def test_nearfield_fast_equals_eager(coloured, masked):
     np.testing.assert_allclose(got.albedo[both], ref.albedo[both], rtol=2e-4, atol=1e-4)
     np.testing.assert_allclose(got.residual[both], ref.residual[both], atol=2e-2 * ref.residual[both].max())
     np.testing.assert_array_equal(got.normals[~got.mask], np.tile([0, 0, 1], ((~got.mask).sum(), 1)))
+
+
+def test_lstsq_fast_equals_eager():
+    """``lstsq``'s fast path (the far-field vectors at every pixel through the near-field kernel)
+    against its eager solve path, both from the registry through ``frame_solver``."""
+    from pipeline.normals.lights import LightSource
+    from pipeline.stages.fast_solvers import frame_solver
+
+    frames, lights, _ = _uint8_scene()
+    P, H, W, C = frames.shape
+    src = LightSource(field=lights, source="test")  # far field: the light field at the image centre
+    fast, eager = (frame_solver("lstsq", src, shape=(H, W), fast=f) for f in (True, False))
+    assert (fast.method, eager.method) == ("fast", "eager")
+    a, b = fast.solve(frames), eager.solve(frames)
+    both = a.mask & b.mask
+    assert (a.mask == b.mask).mean() > 0.999 and both.mean() > 0.5
+    np.testing.assert_allclose(a.normals[both], b.normals[both], atol=1e-4)
 
 
 def test_nearfield_batched_equals_fast(device):
@@ -129,7 +146,7 @@ def real_models():
 
 @pytest.mark.parametrize("case", ["lut", "mlp", "mlp-degree2"])
 def test_model_fast_paths_equal_normal_maps(real_models, case):
-    from pipeline.normals.solve import LightSource
+    from pipeline.normals.lights import LightSource
     from pipeline.stages.fast_solvers import frame_solver
 
     all_models, cap = real_models

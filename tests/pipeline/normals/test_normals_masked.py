@@ -8,8 +8,15 @@ import numpy as np
 import pytest
 
 from pipeline.depth import integrate
-from pipeline.normals import (FarFieldSolver, LUTSolver, NearFieldSolver, PixelMask, solve_farfield,
-                              solve_nearfield, solve_robust, solve_robust_irls)
+from pipeline.normals import (
+    FarFieldSolver,
+    NearFieldSolver,
+    PixelMask,
+    solve_cauchy,
+    solve_farfield,
+    solve_nearfield,
+    solve_robust_irls,
+)
 from pipeline.normals._torch import COND_CAP
 from pipeline.normals.masking import pixel_batches
 from support_recon import NearestColourTable, _one_torch_thread, channel_groups, render_sphere_scene  # noqa: F401
@@ -49,7 +56,7 @@ SOLVERS = {
     "nearfield": lambda s, o, g, m: solve_nearfield(o, s.lights_flat(), groups=g, mask=m, **F64),
     "nearfield qr": lambda s, o, g, m: NearFieldSolver(s.lights_flat(), method="qr", mask=m, **F64).solve(o),
     "robust": lambda s, o, g, m: solve_robust_irls(o, s.lights_flat(), groups=g, dark_threshold=2.55, mask=m, **F64),
-    "cauchy": lambda s, o, g, m: solve_robust(o, s.lights_flat(), groups=g, dark_threshold=2.55, mask=m, **F64),
+    "cauchy": lambda s, o, g, m: solve_cauchy(o, s.lights_flat(), groups=g, dark_threshold=2.55, mask=m, **F64),
 }
 
 
@@ -57,14 +64,6 @@ SOLVERS = {
 def test_masked_solve_equals_full_frame_on_the_mask(name, scene):
     s, obs, mask, g = scene
     _same_on_mask(SOLVERS[name](s, obs, g, None), SOLVERS[name](s, obs, g, mask), mask)
-
-
-def test_lut_mask_restricts_a_whole_frame_lookup(scene):
-    s, obs, mask, g = scene
-    img = s.frames[0].astype(np.float64)
-    table = NearestColourTable(img.reshape(-1, 3), np.zeros((img.shape[0] * img.shape[1], 2)), 1e9)
-    lut = LUTSolver(table)
-    _same_on_mask(lut.solve(img), lut.solve(img, mask=mask), mask)
 
 
 def test_gather_scatter_round_trip_and_bbox():

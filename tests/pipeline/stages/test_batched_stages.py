@@ -13,7 +13,7 @@ from support_recon import _one_torch_thread  # noqa: F401  (autouse)
 
 @pytest.fixture(scope="module")
 def capture_and_lights():
-    from pipeline.stages.normals import load_lights
+    from pipeline.stages.normals import capture_lights
     from pipeline.stages.synthesize import illumination_record
     from sim.contacts import contact_surfaces
     from sim.render import bare_ring_illumination
@@ -22,7 +22,7 @@ def capture_and_lights():
     model = bare_ring_illumination((40, 56), 0.2)
     cap = render_capture(model, "monochromatic", contact_surfaces("sphere", (40, 56), 0.2, 3, size_mm=2.0, seed=2),
                          noise_dn=1.0, bit_depth=8, seed=4)
-    return cap, load_lights(cap, None, illumination_record(model))
+    return cap, capture_lights(cap, None, illumination_record(model))
 
 
 def _compare(a, b):

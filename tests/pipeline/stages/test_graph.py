@@ -1,14 +1,14 @@
 """The stage graph engine: caching, reasons, --force, failures that keep earlier results."""
 
-import numpy as np
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from pipeline.base.errors import UserError
+from pipeline.base.store import Record, StageStore
 from pipeline.stages.base import file_input_key
 from pipeline.stages.graph import Stage, StageFailed, plan_stages, run_stages
-from pipeline.base.store import Record, StageStore
 
 
 def _chain(calls, scale=1.0, fail_at=None):
@@ -102,7 +102,9 @@ def test_corrupt_cached_entry_is_recomputed_or_with_no_heal_reported(tmp_path):
 
 
 def test_cycles_and_unknown_dependencies_are_rejected(tmp_path):
-    noop = lambda inputs: None
+    def noop(inputs):
+        return None
+
     with pytest.raises(ValueError, match="cycle"):
         plan_stages([Stage("a", 1, {}, ["b"], noop, schema="depth"), Stage("b", 1, {}, ["a"], noop, schema="depth")],
                     StageStore(tmp_path))

@@ -86,10 +86,10 @@ def test_a_capture_file_is_one_entry_through_run_reconstruct_and_batch(ran, tmp_
 
 def test_the_demos_trace_and_runs_trace_are_one_entry(tmp_path):
     from pipeline.run import plan_pipeline
-    from pipeline.stages.synthesize import synthesize_to_store
+    from pipeline.stages import synthesize
 
     store = StageStore(tmp_path / "cache")
-    _, key, cached = synthesize_to_store("default", (6, 8), 2.0, store, rays=4096, sampler="sobol")
+    _, key, cached = synthesize.run(store, "default", (6, 8), 2.0, rays=4096, sampler="sobol")
     assert not cached
     config = tmp_path / "run.yaml"
     config.write_text(yaml.safe_dump({"cache": "cache", "synthesize": {
@@ -114,36 +114,41 @@ def _variants(base: dict, changes: dict) -> list[tuple[str, dict]]:
     return out
 
 
-def _params(stage: str):
-    """(base key parameters, {parameter: another value that changes the result})."""
-    if stage == "synthesize":
-        s = stage_module("synthesize")
-        base = dict(shape=(6, 8), mm_per_px=2.0, rays=4096, sampler="sobol", seed=0, method="hits")
-        changes = dict(shape=(6, 9), mm_per_px=1.5, rays=4097, sampler="grid", seed=1, method="image",
-                       dtype="float64", exposure=2.0, drive=np.ones((1, 24, 3)), brightness=np.ones(1),
-                       gains=np.ones(24))
-        return (lambda **kw: s.params("traced", scene="default", **{**base, **kw})), changes
-    if stage == "calibrate":
-        s = stage_module("calibrate")
-        base = {"capture": "s.h5", "ball_radius_mm": 2.0, "mm_per_px": None, "model": "far", "folds": 5}
-        changes = dict(ball_radius_mm=2.5, mm_per_px=0.1, model="near", folds=4,
+#: Per stage: (a base section, {parameter: another value that changes the result}).
+KEY_CASES = {
+    "synthesize": (dict(scene="default", height=6, width=8, mm_per_px=2.0, rays=4096, sampler="sobol", seed=0,
+                        method="hits"),
+                   dict(height=7, width=9, mm_per_px=1.5, rays=4097, sampler="grid", seed=1, method="image",
+                        dtype="float64", exposure=2.0, drive=np.ones((1, 24, 3)), brightness=np.ones(1),
+                        gains=np.ones(24))),
+    "calibrate": ({"capture": "s.h5", "ball_radius_mm": 2.0, "mm_per_px": None, "model": "far", "folds": 5},
+                  dict(ball_radius_mm=2.5, mm_per_px=0.1, model="near", folds=4,
                        render={"presses": 8, "depth_mm": 0.6, "spread_mm": 4.0, "noise_dn": 1.0, "target_dn": 200.0,
-                               "seed": 0, "mode": "point"})
-        return (lambda **kw: s.params({**base, **kw})), changes
-    if stage == "capture":
-        s = stage_module("capture")
-        base = {**s.SPEC.defaults, "render": True}
-        changes = dict(mode="point", object="cylinder", size_mm=2.0, depth_mm=0.3, contacts=3, spread_mm=1.0,
-                       noise_dn=2.0, target_dn=150.0, seed=4)
-        return (lambda **kw: s.params({**base, **kw})), changes
-    if stage == "normals":
-        s = stage_module("normals")
-        base = dict(solver="lstsq", ratio=False, max_condition=1e3, dtype="float32", lights="illumination")
-        changes = dict(solver="robust", ratio=True, max_condition=100.0, dtype="float64", lights="calibration")
-        return (lambda **kw: s.params(**{**base, **kw})), changes
-    s = stage_module("depth")
-    base = dict(integrator="dst", mm_per_px=0.1)
-    return (lambda **kw: s.params(**{**base, **kw})), dict(integrator="sparse", mm_per_px=0.2)
+                               "seed": 0, "mode": "point"})),
+    "capture": ({**stage_module("capture").SPEC.defaults, "render": True},
+                dict(mode="point", object="cylinder", size_mm=2.0, depth_mm=0.3, contacts=3, spread_mm=1.0,
+                     noise_dn=2.0, target_dn=150.0, seed=4)),
+    "normals": (dict(solver="lstsq", ratio=False, max_condition=1e3, dtype="float32", lights="illumination"),
+                dict(solver="robust", ratio=True, max_condition=100.0, dtype="float64", lights="calibration",
+                     mask=np.eye(3, dtype=bool), markers=np.eye(3, dtype=bool))),
+    "depth": (dict(integrator="dst", mm_per_px=0.1), dict(integrator="sparse", mm_per_px=0.2)),
+}
+
+
+def _params(stage: str):
+    """(make key parameters from section overrides, {parameter: another value that changes the
+    result}); an unknown stage is an error, never another stage's parameters."""
+    if stage not in KEY_CASES:
+        raise KeyError(f"no key-parameter case for stage {stage!r}: add one to KEY_CASES")
+    base, changes = KEY_CASES[stage]
+    s = stage_module(stage)
+    return (lambda **kw: s.params({**base, **kw})), changes
+
+
+def test_every_stage_has_a_key_case_and_an_unknown_one_fails():
+    assert set(KEY_CASES) == set(STAGE_ORDER)
+    with pytest.raises(KeyError, match="no key-parameter case"):
+        _params("nostage")
 
 
 @pytest.mark.parametrize("stage", STAGE_ORDER)
@@ -174,8 +179,9 @@ def test_a_traced_scene_is_keyed_by_its_content_not_its_name_or_words():
     from sim.scene import load_scene
 
     scene = load_scene("default")
-    key = _key("synthesize", params("traced", scene=scene, shape=(6, 8), mm_per_px=2.0))
-    reworded = replace(scene, description="other words", source="elsewhere.yaml")
-    assert _key("synthesize", params("traced", scene=reworded, shape=(6, 8), mm_per_px=2.0)) == key
-    moved = replace(scene, plane=replace(scene.plane, z=scene.plane.z + 1.0))
-    assert _key("synthesize", params("traced", scene=moved, shape=(6, 8), mm_per_px=2.0)) != key
+    def key_of(sc):
+        return _key("synthesize", params({"scene": sc, "height": 6, "width": 8, "mm_per_px": 2.0}))
+
+    key = key_of(scene)
+    assert key_of(replace(scene, description="other words", source="elsewhere.yaml")) == key
+    assert key_of(replace(scene, plane=replace(scene.plane, z=scene.plane.z + 1.0))) != key

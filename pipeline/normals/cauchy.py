@@ -1,4 +1,4 @@
-"""Robust photometric stereo: drop dark (shadowed) and saturated observations per pixel,
+"""Robust photometric stereo (``--solver cauchy``): drop dark (shadowed) and saturated observations per pixel,
 then a trimmed or iteratively reweighted least-squares solve.
 
 Least squares assumes ``I_k = rho n . L_k`` for every observation; a cast or attached shadow
@@ -11,15 +11,16 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
+import numpy as np  # noqa: F401 - the examples (doctests) use it
 import torch
 
 from pipeline.normals import _inputs, _lstsq
 from pipeline.normals import _torch as T
+from pipeline.normals._lstsq import finalize
 from pipeline.normals.masking import solves_in_mask
-from pipeline.normals.result import NormalResult, finalize
+from pipeline.normals.result import NormalResult
 
-__all__ = ["solve_robust", "usable_observations"]
+__all__ = ["solve_cauchy", "usable_observations"]
 
 _METHODS = ("irls", "trim")
 # Cauchy weight constant: 95% efficiency under Gaussian noise.
@@ -49,7 +50,7 @@ def _trim(I: torch.Tensor, usable: torch.Tensor, low: float, high: float) -> tor
 
 
 @solves_in_mask
-def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturation: float = math.inf,
+def solve_cauchy(observations, lights, *, dark_threshold: float = 0.0, saturation: float = math.inf,
                  method: str = "irls", iterations: int = 5, trim_low: float = 0.25, trim_high: float = 0.1,
                  noise_floor: float | None = None, groups=None, max_condition: float = 1e3, device="cpu",
                  dtype="float32") -> NormalResult:
@@ -89,13 +90,13 @@ def solve_robust(observations, lights, *, dark_threshold: float = 0.0, saturatio
     >>> L = np.array([[0, 0, 1.0], [0.7, 0, 1], [0, 0.7, 1], [-0.7, 0, 1], [0, -0.7, 1]])
     >>> n = np.array([0.0, 0.0, 1.0])
     >>> I = (L @ n * 100)[:, None, None].copy(); I[1] = 255.0
-    >>> res = solve_robust(I, L, saturation=250.0, dtype="float64")
+    >>> res = solve_cauchy(I, L, saturation=250.0, dtype="float64")
     >>> (np.round(res.normals[0, 0], 6) + 0.0).tolist(), int(res.count[0, 0])
     ([0.0, 0.0, 1.0], 4)
     """
     if method not in _METHODS:
-        raise ValueError(f"solve_robust: method must be one of {_METHODS}, got {method!r}")
-    N, H, W, dev, dt, g, num_groups = _inputs.check_stack(observations, lights, groups, device, dtype, "solve_robust")
+        raise ValueError(f"solve_cauchy: method must be one of {_METHODS}, got {method!r}")
+    N, H, W, dev, dt, g, num_groups = _inputs.check_stack(observations, lights, groups, device, dtype, "solve_cauchy")
     selectors = _lstsq.group_selectors(g, num_groups, N)
     # Per-pixel weights differ between channels here, so a joint albedo would be biased even
     # under white patterns: refine for per-group albedo (see _lstsq.solve).

@@ -1,0 +1,239 @@
+"""Frame preparation: what camera frames go through before a solver sees them, and its results after.
+
+Every solve path (``reconstruct``, ``batch`` and ``run`` through the normals stage; ``live``
+through its per-frame solver, eager or fast) prepares frames in one way, held by a
+:class:`FramePrep`::
+
+    raw frames ─► saturated = raw at full scale ─► float32 − dark ─► fill printed markers ─► region's pixels
+                                                                     (unless the solver        (gathered once;
+                                                                      fills them itself)        whole-frame solvers:
+                                                                                                 restricted after)
+    solver ─► results ─► scattered back to the frame ─► marker pixels invalid (a filled-in value is a guess)
+
+Whether a solver fills markers itself, or reads whole frames, is a fact of its registry entry
+(``info["fills_markers"]``, ``info["whole_frame"]`` in :data:`pipeline.base.registry.SOLVERS`).
+The fast per-frame paths (:mod:`pipeline.normals.fast`, :mod:`pipeline.normals.fast_models`)
+take the same :class:`FramePrep` and do its steps inside their compiled kernels (the dark
+level and the region); they do not fill markers, so with markers the eager path runs.
+
+Marker filling is an image operation (:func:`fill_markers`, OpenCV inpainting); the
+calibration's models use it too (:func:`calibration.normal_maps.predict_normal_maps`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from pipeline.base.errors import UserError
+
+__all__ = ["FramePrep", "fill_markers", "check_marker_mask", "full_scale"]
+
+
+def check_marker_mask(mask: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """``mask`` as bool ``(H, W)`` (or ``(N, H, W)``), checked against the image ``shape``.
+
+    Examples
+    --------
+    >>> check_marker_mask(np.ones((2, 3)), (2, 3)).dtype
+    dtype('bool')
+    """
+    m = np.asarray(mask)
+    if m.shape[-2:] != tuple(shape) or m.ndim not in (2, 3):
+        raise ValueError(f"marker mask must be (H, W) = {tuple(shape)} (or (N, H, W)), got {m.shape}")
+    return m.astype(bool)
+
+
+def fill_markers(frames: np.ndarray, mask: np.ndarray, *, radius_px: float = 3.0) -> np.ndarray:
+    """Fill marker pixels from their surroundings (OpenCV Telea inpainting), every frame and channel.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (..., H, W, C)
+        Any stack of frames (``(N, P, H, W, C)``, ``(P, H, W, C)``, ``(H, W, C)``).
+    mask : ndarray, shape (H, W) or (N, H, W), bool
+        Marker pixels; ``(N, H, W)`` gives each of the N leading frames its own mask.
+    radius_px : float
+        Neighbourhood the inpainting draws from.
+
+    Returns
+    -------
+    ndarray, float32, same shape as ``frames``
+        Unchanged outside the mask.
+
+    Examples
+    --------
+    A smooth ramp with a hole is filled close to the ramp:
+
+    >>> img = np.tile(np.linspace(0, 100, 32, dtype=np.float32), (24, 1))[..., None]
+    >>> m = np.zeros((24, 32), bool); m[10:13, 15:18] = True
+    >>> bad = img.copy(); bad[m] = 0
+    >>> out = fill_markers(bad, m)
+    >>> float(np.abs(out - img)[m].max()) < 4, bool((out[~m] == img[~m]).all())
+    (True, True)
+    """
+    import cv2
+
+    f = np.asarray(frames, np.float32)
+    m = np.asarray(mask, bool)
+    if f.ndim < 3:
+        raise ValueError(f"fill_markers: frames must be (..., H, W, C), got {f.shape}")
+    h, w, c = f.shape[-3:]
+    m = check_marker_mask(m, (h, w))
+    lead = f.shape[:-3]
+    flat = f.reshape(-1, h, w, c).copy()
+    per_frame = m.ndim == 3
+    if per_frame and (not lead or m.shape[0] != lead[0]):
+        raise ValueError(f"fill_markers: a per-frame mask (N, H, W) needs frames (N, ..., H, W, C), got {f.shape} "
+                         f"and {m.shape}")
+    group = int(np.prod(lead[1:])) if per_frame else 1
+    for i in range(len(flat)):
+        mi = m[i // group] if per_frame else m
+        if not mi.any():
+            continue
+        m8 = mi.astype(np.uint8)
+        for ch in range(c):
+            flat[i, :, :, ch] = cv2.inpaint(np.ascontiguousarray(flat[i, :, :, ch]), m8, float(radius_px),
+                                            cv2.INPAINT_TELEA)
+    return flat.reshape(f.shape)
+
+
+def full_scale(dtype, bit_depth: int | None = None) -> float | None:
+    """The raw value of a saturated pixel: ``2**bit_depth - 1``, else the integer type's maximum,
+    else None (float frames: no saturation known).
+
+    Examples
+    --------
+    >>> full_scale(np.uint16, 12), full_scale(np.uint8), full_scale(np.float32)
+    (4095, 255, None)
+    """
+    dt = np.dtype(dtype)
+    if bit_depth:
+        return 2 ** int(bit_depth) - 1
+    return int(np.iinfo(dt).max) if dt.kind in "iu" else None
+
+
+@dataclass
+class FramePrep:
+    """How frames of one sensor are prepared for a solver (see the module docstring).
+
+    Parameters
+    ----------
+    shape : (H, W)
+        The frames' image size.
+    dark : ndarray, shape (H, W, C), optional
+        The dark level (raw units), subtracted first.
+    markers : ndarray, shape (H, W), bool, optional
+        Printed gel markers: filled in before the solve (or handed to a solver that
+        ``fills_markers``), invalid in every result.
+    fills_markers : bool
+        The solver fills markers itself (its registry entry's ``info["fills_markers"]``).
+    region : ndarray, shape (H, W), bool, optional
+        The pixels to solve; the others are invalid in every result.
+    whole_frame : bool
+        The solver reads whole frames (``info["whole_frame"]``): the region is applied to its
+        results, not gathered from the frames.
+    saturation : float, optional
+        Raw value at full scale (:func:`full_scale`); such observations are flagged.
+    name : str
+        Who the frames are (a capture file): errors start with it.
+
+    Examples
+    --------
+    >>> prep = FramePrep((2, 3), dark=np.ones((2, 3, 1)), region=np.eye(2, 3, dtype=bool), saturation=255)
+    >>> frames, saturated = prep.frames(np.full((1, 1, 2, 3, 1), 255, np.uint8))
+    >>> frames.shape, float(frames.max()), bool(saturated.all())
+    ((1, 1, 1, 2, 1), 254.0, True)
+    """
+
+    shape: tuple[int, int]
+    dark: np.ndarray | None = None
+    markers: np.ndarray | None = None
+    fills_markers: bool = False
+    region: np.ndarray | None = None
+    whole_frame: bool = False
+    saturation: float | None = None
+    name: str = "frames"
+    pixels: object = field(init=False, default=None)
+
+    def __post_init__(self):
+        self.shape = (int(self.shape[0]), int(self.shape[1]))
+        if self.markers is not None:
+            self.markers = np.asarray(self.markers, bool)
+            if self.markers.shape != self.shape:
+                raise UserError(f"marker mask has shape {self.markers.shape}, expected (H, W) = {self.shape} like the "
+                                f"frames")
+        if self.region is not None and not self.whole_frame:
+            # Gather the region once, from the raw frames (no full-frame float copy) when no
+            # marker needs filling (filling needs each marker's neighbourhood, so the gather
+            # then follows the fill); the solver then sees only its pixels.
+            from pipeline.normals.masking import PixelMask
+
+            self.pixels = PixelMask(self.region, self.shape, f"{self.name}: mask")
+
+    @property
+    def fills_here(self) -> bool:
+        """Whether markers are filled in here (not by the solver)."""
+        return self.markers is not None and not self.fills_markers
+
+    @property
+    def solver_markers(self) -> np.ndarray | None:
+        """The markers a solver that fills them itself is given (None for the others)."""
+        return self.markers if self.fills_markers else None
+
+    def _gather(self, a):
+        return None if a is None else self.pixels.gather(a, axis=np.ndim(a) - 3)
+
+    def frames(self, raw) -> tuple[np.ndarray, np.ndarray | None]:
+        """Raw frames ``(..., H, W, C)`` -> (float32 frames ready for the solver, the saturated
+        observations (bool, same shape) or None). Gathered frames have ``(1, M)`` for ``(H, W)``."""
+        early = self.pixels is not None and not self.fills_here
+        dark = self.dark
+        if early:
+            raw, dark = self._gather(raw), self._gather(dark)
+        saturated = (raw >= self.saturation) if self.saturation is not None else None
+        out = self._linear(raw, dark)
+        if self.pixels is not None and not early:
+            out, saturated = self._gather(out), self._gather(saturated)
+        return out, saturated
+
+    def reference(self, ref) -> np.ndarray | None:
+        """A no-contact reference ``(P, H, W, C)`` prepared like the frames (None stays None)."""
+        if ref is None:
+            return None
+        early = self.pixels is not None and not self.fills_here
+        dark = self.dark
+        if early:
+            ref, dark = self._gather(ref), self._gather(dark)
+        out = self._linear(ref, dark)
+        return self._gather(out) if self.pixels is not None and not early else out
+
+    def _linear(self, raw, dark) -> np.ndarray:
+        out = np.asarray(raw).astype(np.float32)
+        if dark is not None:
+            out = out - np.asarray(dark).astype(np.float32)
+        if self.fills_here:
+            out = fill_markers(out, self.markers)
+        return out
+
+    def lights(self, lights):
+        """``lights`` (a :class:`~pipeline.normals.lights.LightSource`) on the solved pixels."""
+        return lights if self.pixels is None else lights.gathered(self.pixels)
+
+    def finish(self, results: list) -> list:
+        """The solver's results as full frames: outside the region invalid, marker pixels
+        invalid (confidence 0)."""
+        if self.pixels is not None:
+            results = [self.pixels.scatter(r) for r in results]
+        elif self.region is not None:
+            from pipeline.normals.masking import PixelMask
+
+            pm = PixelMask(self.region, self.shape, f"{self.name}: mask")
+            results = [pm.restrict(r) for r in results]
+        if self.markers is not None:
+            for r in results:  # a filled-in value is a guess, not a measurement
+                r.mask = r.mask & ~self.markers
+                if r.confidence is not None:
+                    r.confidence = np.where(self.markers, np.float32(0), r.confidence).astype(np.float32)
+        return results
