@@ -18,7 +18,7 @@ from typing import Any
 
 from pipeline.report import format_number
 
-BENCHES = ["sim", "render", "capture", "reconstruct", "calibration", "live"]
+BENCHES = ["sim", "render", "capture", "reconstruct", "calibration", "live", "modes"]
 
 
 def add_arguments(parser) -> None:
@@ -111,15 +111,28 @@ def common_rows(name: str, result: dict) -> list[dict]:
     def finite(v):
         return None if v is None or v != v else float(v)
 
+    def kept(r, *keys):
+        return {k: r[k] for k in keys if k in r}
+
     for r in result.get("rays_sampler", {}).get("rows", []):
         rows.append({"knob": "rays x sampler", "setting": f"{r['sampler']} {r['rays']:,}",
-                     "error": finite(r["image_error"]), "error_unit": "rel. L2 vs reference", "seconds": r["seconds"]})
+                     "error": finite(r["image_error"]), "error_unit": "rel. L2 vs reference", "seconds": r["seconds"],
+                     **kept(r, "sampler", "rays", "seconds_runs", "default")})
+    flux = result.get("flux", {})
+    for what, key in (("flux", "flux_error_pct"), ("uniformity", "cv_error_pct")):
+        for r in flux.get("rows", []):
+            rows.append({"knob": f"lens design: {what} error (rays x sampler)", "setting": f"{r['sampler']} {r['rays']:,}",
+                         "error": finite(r[key]), "error_unit": "% (RMS over seeds)", "seconds": r["seconds"],
+                         "error_runs": r[key.replace("_pct", "s_pct")],
+                         **kept(r, "sampler", "rays", "seeds", "seconds_runs", "default")})
     for r in result.get("newton", {}).get("rows", []):
         rows.append({"knob": f"intersection iterations ({r['dtype']})", "setting": f"{r['method']} x{r['iterations']}",
-                     "error": finite(r["median_error_mm"]), "error_unit": "mm (median)", "seconds": r["seconds"]})
+                     "error": finite(r["median_error_mm"]), "error_unit": "mm (median)", "seconds": r["seconds"],
+                     **kept(r, "seconds_runs", "default")})
     for r in result.get("multi_source", {}).get("rows", []):
         rows.append({"knob": "multi-source method", "setting": r["method"], "error": finite(r["sum_error"]),
-                     "error_unit": "rel. error of the 24-LED image", "seconds": r["seconds"]})
+                     "error_unit": "rel. error of the 24-LED image", "seconds": r["seconds"],
+                     **kept(r, "seconds_runs", "default")})
     for r in result.get("effects", {}).get("rows", []):
         rows.append({"knob": "effect set", "setting": r["effects"], "error": None, "seconds": r["seconds"]})
     return rows

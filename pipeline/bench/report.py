@@ -1,0 +1,139 @@
+"""``iristac bench report RESULTS.json --out page.html``: the charts of a saved benchmark run.
+
+From the JSON that ``iristac bench all`` writes (or one benchmark's ``--json``), all from the
+same rows (:mod:`pipeline.charts.decisions`):
+
+- an offline interactive page (``--out``): one chart per decision, hover for the exact
+  figures and the machine, a stage selector; the figures no chart shows as tables;
+- a summary figure (``--figure``): at most six panels, 900 px wide (README, docs);
+- with ``--charts DIR``: one PNG per decision chart (what ``docs/benchmarks.md`` shows).
+
+Python: :func:`build_report`, :func:`markdown_charts`.
+"""
+
+from __future__ import annotations
+
+import html
+from pathlib import Path
+
+from pipeline.charts.decisions import Overview, overview, summary_charts
+from pipeline.charts.model import Table, format_seconds, format_value
+from pipeline.charts.rows import load_results, result_rows
+
+__all__ = ["add_arguments", "run", "format_table", "build_report", "markdown_charts", "chart_tables"]
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("results", metavar="RESULTS.json", help="a saved run: iristac bench all's JSON")
+    parser.add_argument("--out", default="benchmarks.html", help="the page to write (default benchmarks.html)")
+    parser.add_argument("--figure", default=None, metavar="PNG", help="also write the summary figure here")
+    parser.add_argument("--charts", default=None, metavar="DIR", help="also write one PNG per decision chart here")
+    parser.add_argument("--inline-js", action="store_true",
+                        help="embed the chart library in the page (one file to send, +4.8 MB) instead of "
+                             "writing plotly-VERSION.min.js beside it")
+
+
+def chart_tables(ov: Overview) -> list[Table]:
+    """The overview's un-charted figures as page tables."""
+    out = []
+    for t in ov.tables:
+        header = ["setting", "error", "time", "machine"]
+        rows = [[str(r["setting"]),
+                 "–" if r.get("error") is None else f"{format_value(r['error'])} {r.get('error_unit') or ''}".strip(),
+                 format_seconds(r.get("seconds")), str(r.get("machine", ""))] for r in t["rows"]]
+        out.append(Table(f"{t['bench']}: {t['knob']}", t["why"], header, rows, (str(t["bench"]),)))
+    return out
+
+
+def _intro(results: dict, source: str, ov: Overview) -> str:
+    machines = "; ".join(html.escape(m) for m in ov.machines) or "unknown"
+    quick = " (a --quick run: smaller sizes, for a smoke test)" if results.get("quick") else ""
+    load = results.get("load_average")
+    load_txt = f" Load average {', '.join(f'{x:.2f}' for x in load)} when it started." if load else ""
+    return (f"<p>Error against time for every decision the benchmarks measure{quick}: log axes, the Pareto front "
+            f"dashed (no setting is both faster and more accurate than a point on it), the shipped default ringed, "
+            f"and under each chart what to pick, computed from the figures. Hover a point for its exact figures and "
+            f"the machine.</p><p class=\"note\">Source: {html.escape(source)}. Machine: {machines}.{load_txt}</p>")
+
+
+def build_report(results: dict | str | Path, out: str | Path, *, figure: str | Path | None = None,
+                 charts_dir: str | Path | None = None, js: str = "beside", source: str | None = None) -> dict:
+    """Write the page (and the summary figure, the chart PNGs) of a benchmark run.
+
+    ``results`` is a run (dict) or the path of its JSON. Returns what was written and the
+    charts' keys, titles and sentences.
+    """
+    from pipeline.charts.page import write_page
+
+    if not isinstance(results, dict):
+        source = source or str(results)
+        results = load_results(results)
+    ov = overview(result_rows(results))
+    page = write_page(out, ov.charts, chart_tables(ov), title="IrisTac benchmarks: what accuracy costs in time",
+                      intro=_intro(results, source or "iristac bench all", ov), js=js)
+    written = {"page": str(page), "charts": [{"key": c.key, "title": c.title, "sentence": c.sentence,
+                                              "points": len(c.points)} for c in ov.charts],
+               "tables": len(ov.tables)}
+    if figure:
+        written["figure"] = write_summary(ov, figure)["path"]
+    if charts_dir:
+        written["chart_pngs"] = write_chart_pngs(ov, charts_dir)
+    return written
+
+
+def write_summary(ov: Overview, path: str | Path) -> dict:
+    """The summary figure: the :data:`pipeline.charts.decisions.SUMMARY` charts, 2 columns, 900 px."""
+    from pipeline.charts.static import summary_figure
+
+    charts = summary_charts(ov.charts)
+    machine = ov.machines[0] if len(ov.machines) == 1 else f"{len(ov.machines)} machines"
+    return summary_figure(charts, path, cols=2, width_px=900,
+                          title="What accuracy costs in time (iristac bench all)",
+                          footer=f"Measured on {machine}. Dashed: Pareto front; ringed: shipped default; "
+                                 f"full page: docs/benchmarks.html")
+
+
+def _decision_charts(ov: Overview):
+    return [c for c in ov.charts if not c.key.startswith(("other-",)) and not c.group.startswith("Other")]
+
+
+def write_chart_pngs(ov: Overview, folder: str | Path) -> list[str]:
+    """One PNG per decision chart (not the "other measurements" ones) into ``folder``."""
+    from pipeline.charts.static import chart_png
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    return [chart_png(c, folder / f"{c.key}.png")["path"] for c in _decision_charts(ov)]
+
+
+def markdown_charts(results: dict, image_prefix: str | None) -> list[str]:
+    """Markdown lines: per decision, its question, its chart (``image_prefix/KEY.png``) and sentence."""
+    ov = overview(result_rows(results))
+    lines: list[str] = []
+    group = None
+    for c in _decision_charts(ov):
+        if c.group != group:
+            group = c.group
+            lines += [f"### {group}", ""]
+        lines += [f"**{c.title}**", ""]
+        if image_prefix is not None:
+            lines += [f"![{c.title}]({image_prefix}/{c.key}.png)", ""]
+        lines += [f"> {c.sentence}", ""]
+        if c.note:
+            lines += [f"_{c.note}_", ""]
+    return lines
+
+
+def run(args) -> dict:
+    return build_report(args.results, args.out, figure=args.figure, charts_dir=args.charts,
+                        js="inline" if getattr(args, "inline_js", False) else "beside")
+
+
+def format_table(result: dict) -> str:
+    lines = [f"wrote {result['page']} ({len(result['charts'])} charts, {result['tables']} tables)"]
+    if result.get("figure"):
+        lines.append(f"wrote {result['figure']}")
+    if result.get("chart_pngs"):
+        lines.append(f"wrote {len(result['chart_pngs'])} chart PNGs")
+    lines += [f"- {c['title']}: {c['sentence']}" for c in result["charts"]]
+    return "\n".join(lines)
