@@ -22,11 +22,12 @@ import json
 import os
 import shutil
 import subprocess
+import sys
 import tempfile
 import threading
 import time
 
-__all__ = ["find_chromium", "Chromium", "Page", "FLAGS"]
+__all__ = ["find_chromium", "Chromium", "Page", "FLAGS", "serve", "CHART_CHECK_JS", "blank_fraction"]
 
 #: The flags every launch uses (the project's standard set for a sandboxed headless run).
 FLAGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
@@ -62,10 +63,14 @@ class Chromium:
         self._from_child, from_child_w = os.pipe()
         args = [self.executable, *FLAGS, f"--user-data-dir={self._profile}",
                 f"--window-size={self.width},{self.height}", "about:blank"]
-        # The shell maps our pipe ends onto the descriptors 3 and 4 that Chromium expects.
-        self.proc = subprocess.Popen(["sh", "-c", f'exec "$0" "$@" 3<&{to_child_r} 4>&{from_child_w}', *args],
+        # A small exec shim maps our pipe ends onto the descriptors 3 and 4 that Chromium expects
+        # (sh's redirections stop at fd 9; ours may be higher).
+        shim = (f"import os, sys; os.dup2({to_child_r}, 3); os.dup2({from_child_w}, 4); "
+                f"os.execv(sys.argv[1], sys.argv[1:])")
+        self._log = tempfile.TemporaryFile()
+        self.proc = subprocess.Popen([sys.executable, "-c", shim, *args],
                                      pass_fds=(to_child_r, from_child_w), stdin=subprocess.DEVNULL,
-                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                                     stdout=self._log, stderr=self._log)
         os.close(to_child_r)
         os.close(from_child_w)
         self._reader = threading.Thread(target=self._read, daemon=True)
@@ -88,6 +93,12 @@ class Chromium:
             except OSError:
                 pass
         shutil.rmtree(self._profile, ignore_errors=True)
+        self._log.close()
+
+    def log_tail(self, n: int = 2000) -> str:
+        """The end of Chromium's own output (why it stopped, when it did)."""
+        self._log.seek(0)
+        return self._log.read().decode(errors="replace")[-n:]
 
     def _read(self) -> None:
         buf = b""
@@ -115,7 +126,10 @@ class Chromium:
         msg = {"id": self._next, "method": method, "params": params or {}}
         if session:
             msg["sessionId"] = session
-        os.write(self._to_child, json.dumps(msg).encode() + b"\0")
+        try:
+            os.write(self._to_child, json.dumps(msg).encode() + b"\0")
+        except BrokenPipeError:
+            raise RuntimeError(f"{method}: chromium has exited ({self.proc.poll()}): {self.log_tail()}") from None
         deadline = time.monotonic() + (timeout or self.timeout)
         with self._cond:
             while True:
@@ -206,3 +220,58 @@ class Page:
         if clip:
             params.update(clip={**clip, "scale": 1}, captureBeyondViewport=True)
         return base64.b64decode(self.browser.send("Page.captureScreenshot", params, session=self.session)["data"])
+
+
+class serve:
+    """Serve ``directory`` over HTTP on 127.0.0.1 (a free port) in a thread: ``with serve(d) as base_url``."""
+
+    def __init__(self, directory):
+        self.directory = str(directory)
+
+    def __enter__(self) -> str:
+        import functools
+        import http.server
+
+        class Quiet(http.server.SimpleHTTPRequestHandler):
+            def log_message(self, *args):  # keep pytest's output clean
+                pass
+
+        self.server = http.server.ThreadingHTTPServer(("127.0.0.1", 0),
+                                                      functools.partial(Quiet, directory=self.directory))
+        self.thread = threading.Thread(target=self.server.serve_forever, daemon=True)
+        self.thread.start()
+        return f"http://127.0.0.1:{self.server.server_address[1]}"
+
+    def __exit__(self, *exc) -> None:
+        self.server.shutdown()
+        self.server.server_close()
+        self.thread.join(timeout=5)
+
+
+#: JavaScript: per chart element, its label boxes (Plotly annotations named "label") and whether
+#: any two overlap, the number of drawn points, and whether it has an SVG.
+CHART_CHECK_JS = """
+(() => [...document.querySelectorAll('.js-plotly-plot')].map(gd => {
+  const boxes = [...gd.querySelectorAll('.annotation')].map(a => a.querySelector('.annotation-text-g, text'))
+      .filter(Boolean).map(t => t.getBoundingClientRect()).filter(r => r.width > 0);
+  let overlaps = 0;
+  for (let i = 0; i < boxes.length; i++) for (let j = i + 1; j < boxes.length; j++) {
+    const a = boxes[i], b = boxes[j];
+    if (a.left < b.right - 1 && b.left < a.right - 1 && a.top < b.bottom - 1 && b.top < a.bottom - 1) overlaps++;
+  }
+  return {id: gd.id, svg: !!gd.querySelector('svg.main-svg'), points: gd.querySelectorAll('.scatterlayer .point').length,
+          labels: boxes.length, overlaps: overlaps};
+}))()
+"""
+
+
+def blank_fraction(png: bytes) -> tuple[float, float]:
+    """``(fraction of near-white pixels, grey-level standard deviation)`` of a PNG."""
+    import cv2
+    import numpy as np
+
+    img = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
+    if img is None:
+        raise ValueError("not a PNG")
+    grey = img.mean(axis=2)
+    return float((grey > 245).mean()), float(grey.std())

@@ -28,6 +28,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", default="benchmarks.html", help="the page to write (default benchmarks.html)")
     parser.add_argument("--figure", default=None, metavar="PNG", help="also write the summary figure here")
     parser.add_argument("--charts", default=None, metavar="DIR", help="also write one PNG per decision chart here")
+    parser.add_argument("--markdown", default=None, metavar="MD",
+                        help="write the docs as bench all does instead: MD, its .html page beside it, the chart "
+                             "PNGs in images/benchmarks/ and --figure (redraws docs/ from a saved run)")
     parser.add_argument("--inline-js", action="store_true",
                         help="embed the chart library in the page (one file to send, +4.8 MB) instead of "
                              "writing plotly-VERSION.min.js beside it")
@@ -125,12 +128,21 @@ def markdown_charts(results: dict, image_prefix: str | None) -> list[str]:
 
 
 def run(args) -> dict:
+    if getattr(args, "markdown", None):
+        from pipeline.bench.all import write_docs
+
+        out = load_results(args.results)
+        write_docs(out, Path(args.markdown), args.figure)
+        return {"page": out["page"], "figure": out.get("plot"), "charts": [], "tables": 0,
+                "markdown": out["markdown"]}
     return build_report(args.results, args.out, figure=args.figure, charts_dir=args.charts,
                         js="inline" if getattr(args, "inline_js", False) else "beside")
 
 
 def format_table(result: dict) -> str:
     lines = [f"wrote {result['page']} ({len(result['charts'])} charts, {result['tables']} tables)"]
+    if result.get("markdown"):
+        lines = [f"wrote {result['markdown']} and {result['page']}"]
     if result.get("figure"):
         lines.append(f"wrote {result['figure']}")
     if result.get("chart_pngs"):

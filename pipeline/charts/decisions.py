@@ -58,6 +58,7 @@ class View:
     sentence: Callable[[Chart], str] = say.front
     note: str = ""
     keep: Callable[[list[Row]], list[Row]] = lambda rows: rows
+    connect: bool = False
 
 
 def _knob(pattern: str) -> Callable[[Row], bool]:
@@ -91,6 +92,17 @@ def _multi(rows: list[Row], key: Callable[[Row], object], least: int = 2) -> lis
     for r in rows:
         counts.setdefault(key(r), set()).add(r["_label"])
     return [r for r in rows if len(counts[key(r)]) >= least]
+
+
+def _best_per(rows: list[Row], field_name: str) -> list[Row]:
+    """Per value of ``field_name``, the most accurate row, and the shipped default's row."""
+    best: dict = {}
+    for r in rows:
+        k = r.get(field_name)
+        if k not in best or r["error"] < best[k]["error"]:
+            best[k] = r
+    keep = {id(r) for r in best.values()} | {id(r) for r in rows if is_default(r)}
+    return [r for r in rows if id(r) in keep]
 
 
 def _live_series(r: Row) -> str:
@@ -139,25 +151,28 @@ VIEWS: list[View] = [
     View("rays-flux", "Ray tracer", "How many rays does the lens designer need for 1 % flux error?",
          match=_knob(r"^lens design: flux error"), series=lambda r: str(r.get("sampler", "")),
          label=lambda r: _short_rays(r.get("rays", 0)), x_label="seconds per design evaluation (24 LEDs)",
-         target=(FLUX_TARGET, "1 % flux error"), sentence=_fewest_rays,
+         target=(FLUX_TARGET, "1 % flux error"), sentence=_fewest_rays, connect=True,
          note="Flux: the fraction of the LEDs' light on the imaging plane, the designer's objective; error: RMS over "
               "seeds against 4e6 Sobol rays."),
     View("rays-cv", "Ray tracer", "How many rays for the uniformity (CV) a lens design is held to?",
          match=_knob(r"^lens design: uniformity error"), series=lambda r: str(r.get("sampler", "")),
          label=lambda r: _short_rays(r.get("rays", 0)), x_label="seconds per design evaluation (24 LEDs)",
-         target=(FLUX_TARGET, "1 % CV error"), sentence=_fewest_rays),
+         target=(FLUX_TARGET, "1 % CV error"), sentence=_fewest_rays, connect=True),
     View("rays-image", "Ray tracer", "How many rays for an illumination image (per-pixel error)?",
          match=_knob(r"^rays x sampler$"), series=lambda r: str(r["setting"]).split()[0],
          label=lambda r: _short_rays(str(r["setting"]).split()[-1].replace(",", "")),
          x_label="seconds per trace (one LED, 60 x 60 px)", target=(0.01, "1 % per-pixel error"),
-         sentence=_fewest_rays,
+         sentence=_fewest_rays, connect=True,
          note="Error: relative L2 of LED 0's 60 x 60 px irradiance image against 4e6 Sobol rays (which bounds what "
               "can be measured from below)."),
     View("modes-capture", "Lighting mode", "What does a lighting mode buy, against capture time?",
          match=_knob(r"^lighting mode x solver"), series=lambda r: str(r.get("solver", "")),
-         label=lambda r: str(r.get("mode", r["setting"])), x="capture_seconds", name=lambda r: str(r["setting"]),
+         label=lambda r: str(r["setting"]), x="capture_seconds", name=lambda r: str(r["setting"]),
+         keep=lambda rows: _best_per(rows, "mode"),
          x_label="capture seconds per contact (emulated ring + camera)",
-         sentence=lambda c: say.contrast(c, "point", "trichromatic", "capture time")),
+         sentence=lambda c: say.contrast(c, "point", "trichromatic", "capture time"),
+         note="Each mode with its most accurate solver (and the shipped default); every solver: the chart against "
+              "reconstruction time."),
     View("modes-recon", "Lighting mode", "What does a lighting mode buy, against reconstruction time?",
          match=_knob(r"^lighting mode x solver"), series=lambda r: str(r.get("solver", "")),
          label=lambda r: str(r.get("mode", r["setting"])), x_label="seconds to reconstruct one capture",
@@ -254,14 +269,14 @@ def _chart(v: View, rows: list[Row], split: str | None) -> Chart | None:
         return None
     key = v.key + (f"-{_slug(split)}" if split else "")
     unit = _unit(rows)
-    y_label = f"error ({unit})" if unit else "error"
+    y_label = (f"error: {unit}" if "(" in unit else f"error ({unit})") if unit else "error"
     pts = [row_point(r, v.x, r["_label"], r["_series"]) for r in rows]
     if v.name:
         for p, r in zip(pts, rows):
             p.name = v.name(r)
     c = Chart(key, v.title.format(split=split or ""), v.x_label, y_label, pts, front=v.front, budget=v.budget,
               target=v.target, note=v.note, stages=tuple(sorted({str(r.get("bench", "")) for r in rows})),
-              group=v.group)
+              group=v.group, connect=v.connect)
     c.sentence = v.sentence(c)
     return c
 

@@ -149,6 +149,17 @@ def _segment_boxes(xy: list[tuple[float, float]], half: float = 1.5) -> list:
     return boxes
 
 
+def _line_boxes(xy: list[tuple[float, float]], step: float = 6.0, half: float = 1.5) -> list:
+    """Small boxes along the straight segments through ``xy``."""
+    boxes = []
+    for (x0, y0), (x1, y1) in zip(xy, xy[1:]):
+        n = max(1, int(math.hypot(x1 - x0, y1 - y0) / step))
+        for k in range(n + 1):
+            x, y = x0 + (x1 - x0) * k / n, y0 + (y1 - y0) * k / n
+            boxes.append((x - half, y - half, x + half, y + half))
+    return boxes
+
+
 def chart_placement(chart, width: float, height: float, font_px: float) -> Placement:
     """The labels of ``chart`` in a ``width`` x ``height`` px plot area, clear of the points,
     the front's steps and the limit texts (what both renderers draw)."""
@@ -159,5 +170,9 @@ def chart_placement(chart, width: float, height: float, font_px: float) -> Place
     obstacles = list(limit_boxes(chart, axes, width, height, font_px).values())
     for front in chart_fronts(chart):
         obstacles += _segment_boxes([tuple(px[i]) for i in front])
+    if chart.connect:
+        for s in chart.series_names():
+            idx = [i for i, p in enumerate(chart.points) if p.series == s]
+            obstacles += _line_boxes([tuple(px[i]) for i in idx])
     return place_labels(px, [point_label(p) for p in chart.points], width, height, font_px=font_px,
                         obstacles=obstacles)

@@ -57,7 +57,8 @@ class Chart:
 
     ``front`` is ``"all"`` (the points are alternatives for one job: one front) or
     ``"series"`` (each series is its own job, e.g. eager against fast per solver: a front per
-    series). ``budget`` (x, text) and ``target`` (y, text) draw a limit line each.
+    series). ``budget`` (x, text) and ``target`` (y, text) draw a limit line each;
+    ``connect`` joins each series' points in their order (a curve, e.g. rays growing).
     """
 
     key: str
@@ -72,6 +73,7 @@ class Chart:
     target: tuple[float, str] | None = None
     stages: tuple[str, ...] = ()
     group: str = ""
+    connect: bool = False
 
     def series_names(self) -> list[str]:
         """Series in order of first appearance."""
@@ -134,7 +136,9 @@ def log_range(values: Sequence[float], pad: float = 0.12) -> tuple[float, float,
 
 def log_ticks(lo: float, hi: float) -> list[float]:
     """Tick values on a log axis from 10**lo to 10**hi: decades, or 1-2-5 steps on a short axis."""
-    subs = (1.0,) if hi - lo > 2.5 else ((1.0, 3.0) if hi - lo > 1.2 else (1.0, 2.0, 5.0))
+    span = hi - lo
+    subs = ((1.0,) if span > 2.5 else (1.0, 3.0) if span > 1.2 else (1.0, 2.0, 5.0) if span > 0.6
+            else tuple(float(k) for k in range(1, 10)))
     out = []
     for e in range(math.floor(lo) - 1, math.ceil(hi) + 1):
         out += [s * 10.0 ** e for s in subs if lo <= math.log10(s * 10.0 ** e) <= hi]

@@ -85,7 +85,8 @@ def _traces(chart: Chart, axes) -> list[dict]:
     for i, s in enumerate(chart.series_names()):
         colour, _, symbol = MARKERS[i % len(MARKERS)]
         idx = [j for j, p in enumerate(chart.points) if p.series == s]
-        traces.append({"type": "scatter", "mode": "markers", "name": s or "settings", "showlegend": bool(s),
+        traces.append({"type": "scatter", "mode": "lines+markers" if chart.connect else "markers",
+                       "line": {"color": colour, "width": 1}, "name": s or "settings", "showlegend": bool(s),
                        "x": [fx[j] for j in idx], "y": [fy[j] for j in idx],
                        "marker": {"color": colour, "symbol": symbol, "size": 10,
                                   "line": {"color": "white", "width": 1}},

@@ -25,6 +25,8 @@ __all__ = ["front", "within_budget", "within_target", "contrast", "steps", "thre
 
 def _unit(chart: Chart) -> str:
     u = chart.y_label
+    if u.startswith("error: "):
+        return u[len("error: "):]
     return u[u.find("(") + 1:u.rfind(")")] if "(" in u else ""
 
 

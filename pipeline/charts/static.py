@@ -60,8 +60,8 @@ def _pt(px: float) -> float:
     return px * 72.0 / DPI
 
 
-def _wrap(text: str, width_px: float, font_px: float) -> list[str]:
-    chars = max(10, int(width_px / (0.56 * font_px)))
+def _wrap(text: str, width_px: float, font_px: float, char_em: float = 0.56) -> list[str]:
+    chars = max(10, int(width_px / (char_em * font_px)))
     return textwrap.wrap(text, chars) if text else []
 
 
@@ -83,7 +83,7 @@ def _legend_rows(entries: list[str], width: float, font_px: float) -> int:
 
 def _panel_heights(chart: Chart, st: PanelStyle) -> dict:
     inner = st.width - st.left - st.right
-    title = _wrap(chart.title, st.width - 8, st.title_px)
+    title = _wrap(chart.title, st.width - 8, st.title_px, 0.66)
     text = _wrap(chart.sentence + (" " + chart.note if chart.note else ""), st.width - 8, st.text_px)
     legend = _legend_rows(_legend_entries(chart), inner, st.label_px)
     return {"title": title, "text": text, "legend": legend,
@@ -116,6 +116,9 @@ def _draw_axes(ax, chart: Chart, st: PanelStyle, plot_w: float, plot_h: float) -
                     where="post", color=colour, lw=1.1, ls="--", alpha=0.8, zorder=1)
     for s, (colour, marker, _) in styles.items():
         pts = [p for p in chart.points if p.series == s]
+        if chart.connect and len(pts) > 1:
+            ax.plot([plot_value(p.x, axes.x_floor) for p in pts], [plot_value(p.y, axes.y_floor) for p in pts],
+                    color=colour, lw=0.8, alpha=0.45, zorder=2)
         ax.scatter([plot_value(p.x, axes.x_floor) for p in pts], [plot_value(p.y, axes.y_floor) for p in pts],
                    s=36, color=colour, marker=marker, zorder=3, label=s or None, edgecolors="white", linewidths=0.5)
     dflt = [p for p in chart.points if p.default]
