@@ -115,7 +115,8 @@ def _size_series(r: Row) -> str:
 
 
 def _thread_series(r: Row) -> str:
-    return re.sub(r",?\s*\d+ thread\(s\)", "", f"{r['knob']} {r['setting']}").replace("  ", " ").strip()
+    path = row_path(r)
+    return f"{r['knob']} ({path})" if path else str(r["knob"])
 
 
 def _path_series(r: Row) -> str:

@@ -108,8 +108,12 @@ def row_path(row: dict) -> str | None:
 
 
 def row_device(row: dict) -> str:
-    """The device the row ran on (``cpu`` unless it says otherwise)."""
-    return str(row.get("device") or "cpu")
+    """The device the row ran on: its ``device`` field, else ``cuda`` where the setting names
+    CUDA or a GPU, else ``cpu``."""
+    if row.get("device"):
+        return str(row["device"])
+    s = str(row.get("setting", "")).lower()
+    return "cuda" if ("cuda" in s or "gpu" in s) else "cpu"
 
 
 def is_default(row: dict) -> bool:

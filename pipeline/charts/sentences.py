@@ -124,10 +124,13 @@ def within_target(chart: Chart, cost=None, cost_name: str = "cheapest setting") 
     return text + default_status(chart)
 
 
-def contrast(chart: Chart, a: str, b: str, cost: str) -> str:
-    """What label ``a`` buys over label ``b`` (the best point of each) in error and in the x cost."""
-    pa = [p for p in chart.points if p.label == a]
-    pb = [p for p in chart.points if p.label == b]
+def contrast(chart: Chart, a: str, b: str, cost: str, field: str = "mode") -> str:
+    """What ``a`` buys over ``b`` (the best point of each; a point's ``field`` from its hover
+    figures, else its label) in error and in the x cost."""
+    def key(p):
+        return p.hover.get(field, p.label)
+    pa = [p for p in chart.points if key(p) == a]
+    pb = [p for p in chart.points if key(p) == b]
     if not pa or not pb:
         return front(chart)
     ba, bb = min(pa, key=lambda p: p.y), min(pb, key=lambda p: p.y)
