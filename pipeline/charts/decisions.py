@@ -199,18 +199,18 @@ VIEWS: list[View] = [
          label=lambda r: "x" + str(r["setting"]).rsplit(" x", 1)[-1], x_label="seconds (1e5 rays, torch)"),
     View("path", "Eager or fast path", "What does the fast (compiled, precomputed) path buy?",
          match=lambda r: row_path(r) is not None and row_threads(r) in (None, 1) and row_device(r) == "cpu",
-         series=_path_series, label=_path_label, front="series", x_label="seconds per frame",
+         series=_path_series, label=_path_label, front="none", connect=True, x_label="seconds per frame",
          keep=lambda rows: _multi(rows, lambda r: r["_series"]),
          sentence=lambda c: say.steps(c, "eager", ("fast", "compiled"))),
     View("threads", "Threads and device", "What do more threads or another device buy?",
          match=lambda r: row_threads(r) is not None or r.get("device") not in (None, "cpu"),
-         series=_thread_series, label=_threads_label, front="series", x_label="seconds per frame",
+         series=_thread_series, label=_threads_label, front="none", connect=True, x_label="seconds per frame",
          keep=lambda rows: _multi(rows, lambda r: r["_series"]), sentence=say.threads),
     View("size", "Image size", "What does a bigger image cost?",
          match=lambda r: row_size(r) is not None and r.get("bench") in ("live", "reconstruct")
          and str(r.get("error_unit")) == "deg" and row_path(r) != "eager" and row_threads(r) in (None, 1)
          and "compiled" not in str(r["setting"]) and "ratio" not in str(r["setting"]),
-         series=_size_series, label=lambda r: row_size(r) or "", front="series", x_label="seconds per frame",
+         series=_size_series, label=lambda r: row_size(r) or "", front="none", connect=True, x_label="seconds per frame",
          keep=lambda rows: _multi(rows, lambda r: r["_series"]), sentence=say.sizes),
 ]
 
