@@ -4,6 +4,9 @@ One chart answers one question ("which solver for live work at 320 x 240?"): the
 settings as points, error against time on log axes, the Pareto front drawn, every point
 labelled without overlap, the shipped default ringed and one sentence read from the data.
 
+- :mod:`pipeline.charts.rows`: benchmark rows (a saved run, the fields a chart reads);
+- :mod:`pipeline.charts.decisions`: one view per decision a user makes, rows to charts and tables;
+- :mod:`pipeline.charts.sentences`: the sentence under each chart, computed from its points;
 - :mod:`pipeline.charts.model`: :class:`~pipeline.charts.model.Point`,
   :class:`~pipeline.charts.model.Chart`, the Pareto front, axis ranges and number formats;
 - :mod:`pipeline.charts.labels`: label placement without overlap (shared by both renderers);
