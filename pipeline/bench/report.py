@@ -53,10 +53,14 @@ def _intro(results: dict, source: str, ov: Overview) -> str:
     quick = " (a --quick run: smaller sizes, for a smoke test)" if results.get("quick") else ""
     load = results.get("load_average")
     load_txt = f" Load average {', '.join(f'{x:.2f}' for x in load)} when it started." if load else ""
+    glance = "".join(f'<li><a href="#fig-{c.key}">{html.escape(c.title)}</a> {html.escape(c.sentence)}</li>'
+                     for c in summary_charts(ov.charts))
+    glance = f"<h2>At a glance</h2><ul class=\"glance\">{glance}</ul>" if glance else ""
     return (f"<p>Error against time for every decision the benchmarks measure{quick}: log axes, the Pareto front "
             f"dashed (no setting is both faster and more accurate than a point on it), the shipped default ringed, "
             f"and under each chart what to pick, computed from the figures. Hover a point for its exact figures and "
-            f"the machine.</p><p class=\"note\">Source: {html.escape(source)}. Machine: {machines}.{load_txt}</p>")
+            f"the machine.</p><p class=\"note\">Source: {html.escape(source)}. Machine: {machines}.{load_txt}</p>"
+            + glance)
 
 
 def build_report(results: dict | str | Path, out: str | Path, *, figure: str | Path | None = None,

@@ -245,6 +245,7 @@ th, td {{ border: 1px solid #ddd; padding: 3px 6px; text-align: left; vertical-a
 th {{ background: #f3f3f3; }}
 .scroll {{ overflow-x: auto; }}
 .hidden {{ display: none; }}
+.glance li {{ margin-bottom: 0.4em; }}
 </style>
 {plotly}
 </head><body>
