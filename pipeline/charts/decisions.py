@@ -135,7 +135,7 @@ def _rays_cost(p: Point) -> float:
 
 
 def _fewest_rays(c: Chart) -> str:
-    return say.within_target(c, cost=_rays_cost, cost_name="fewest rays")
+    return say.within_target(c, cost=_rays_cost, cost_name="setting with the fewest rays")
 
 
 LIVE_FPS = 60.0
