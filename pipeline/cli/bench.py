@@ -32,6 +32,10 @@ BENCHMARKS = [
 ]
 
 
+#: Commands that read saved runs instead of measuring.
+ON_SAVED_RUNS = ("report", "compare")
+
+
 def register(sub, name, help_text):
     from pipeline.cli import _common
 
@@ -42,7 +46,8 @@ def register(sub, name, help_text):
     for bench_name, text in BENCHMARKS:
         p = group.add_parser(bench_name, help=text, description=text)
         add_json_flag(p)
-        p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke test")
+        if bench_name not in ON_SAVED_RUNS:
+            p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke test")
         if bench_name == wanted:
             module = _load(bench_name)
             if module is not None and hasattr(module, "add_arguments"):
