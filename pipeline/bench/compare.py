@@ -19,7 +19,11 @@ error
     round-off at 1e-14 mm is not a regression).
 
 The same tests in the other direction list what got faster or more accurate. Exit status 1
-when a row regressed (for a CI gate), 0 otherwise.
+when a row regressed (for a CI gate), 0 otherwise. The spread of the repeats is the noise
+*within* a run; on a loaded machine the load also changes *between* runs, which no repeat
+sees: a run whose recorded load average exceeds its cores is named in a warning (measured
+here: two back-to-back quick live runs under load 5 on 2 cores flagged one row of twelve
+1.6x slower; compare runs from a quiet machine).
 
 Python: :func:`compare_runs`.
 """
@@ -88,9 +92,9 @@ def _time_change(old: dict, new: dict, opts: dict) -> Change | None:
     spreads = [s for s in (time_noise(old), time_noise(new)) if s is not None]
     if len(spreads) == 2:
         thr = max(opts["time_floor"], 2.0 * max(spreads))
-        how = f"2 x repeat spread {100 * max(spreads):.0f} % (floor {100 * opts['time_floor']:.0f} %)"
+        how = f"twice the repeats' spread of {100 * max(spreads):.0f} %, floor {100 * opts['time_floor']:.0f} %"
     else:
-        thr, how = opts["time_tolerance"], "no repeats recorded: tolerance"
+        thr, how = opts["time_tolerance"], "no repeats recorded: the tolerance"
     change = b / a - 1.0
     # faster by the same margin in the other direction: a / b - 1 > thr
     if change > thr:
@@ -157,17 +161,35 @@ def compare_runs(old: dict, new: dict, *, time_floor: float = 0.10, time_toleran
             "matched": len(old_rows.keys() & new_rows.keys()), "machines": machines, "times_compared": times}
 
 
+def load_warning(run: dict, name: str) -> str | None:
+    """A warning when ``run`` recorded a load average above the cores its machine string names."""
+    import re
+
+    load = run.get("load_average") or []
+    m = re.search(r"(\d+) cores", str(run.get("machine", "")))
+    if not load or not m or max(load) <= int(m.group(1)):
+        return None
+    return (f"{name} was measured under load (load average up to {max(load):.1f} on {m.group(1)} cores): its times "
+            f"drift more between runs than its repeats show")
+
+
 def run(args) -> dict:
-    res = compare_runs(load_results(args.old), load_results(args.new), time_floor=args.time_floor,
-                       time_tolerance=args.time_tolerance, error_floor=args.error_floor,
-                       across_machines=args.across_machines)
+    old, new = load_results(args.old), load_results(args.new)
+    res = compare_runs(old, new, time_floor=args.time_floor, time_tolerance=args.time_tolerance,
+                       error_floor=args.error_floor, across_machines=args.across_machines)
+    res["warnings"] = [w for w in (load_warning(old, "OLD"), load_warning(new, "NEW")) if w]
     res["changes"] = [asdict(c) | {"regression": c.regression()} for c in res["changes"]]
     res["exit_code"] = 1 if res["regressions"] else 0
     return res
 
 
-def _fmt(kind: str, v: float) -> str:
-    return format_seconds(v) if kind in ("slower", "faster") else format_value(v)
+def _change_text(c: dict) -> str:
+    if c["kind"] in ("slower", "faster"):
+        ratio = c["new"] / c["old"] if c["kind"] == "slower" else c["old"] / c["new"]
+        return (f"{format_seconds(c['old'])} -> {format_seconds(c['new'])}: {ratio:.2f}x {c['kind']}, beyond "
+                f"{1 + c['threshold']:.2f}x ({c['noise']})")
+    return (f"{format_value(c['old'])} -> {format_value(c['new'])}: {100 * c['change']:+.1f} %, beyond "
+            f"{100 * c['threshold']:.1f} % ({c['noise']})")
 
 
 def format_table(result: dict) -> str:
@@ -175,11 +197,10 @@ def format_table(result: dict) -> str:
     if not result["times_compared"]:
         lines.append(f"times not compared: measured on different machines ({result['machines'][0]} / "
                      f"{result['machines'][1]}); --across-machines compares them")
+    lines += [f"warning: {w}" for w in result.get("warnings", [])]
     for c in result["changes"]:
         mark = "REGRESSION" if c["regression"] else "improved"
-        lines.append(f"{mark:>10}  {c['kind']:<13} {c['bench']}: {c['knob']}: {c['setting']}: "
-                     f"{_fmt(c['kind'], c['old'])} -> {_fmt(c['kind'], c['new'])} ({100 * c['change']:+.1f} %; "
-                     f"noise limit {100 * c['threshold']:.1f} %: {c['noise']})")
+        lines.append(f"{mark:>10}  {c['kind']:<13} {c['bench']}: {c['knob']}: {c['setting']}: {_change_text(c)}")
     for label, keys in (("only in OLD", result["only_old"]), ("only in NEW", result["only_new"])):
         if keys:
             lines.append(f"{len(keys)} rows {label}: " + "; ".join(f"{b}: {k}: {s}" for b, k, s in keys[:8])

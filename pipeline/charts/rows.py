@@ -55,7 +55,7 @@ def load_results(path: str | Path) -> dict:
                         f"--json), got {type(data).__name__} with keys {keys}")
     if "sections" not in data:
         data = {"machine": data.get("machine", "unknown"), "quick": data.get("quick", False),
-                "sections": [{"bench": data.get("bench", p.stem), "rows": data["rows"], "seconds": None,
+                "sections": [{"bench": data.get("bench", "run"), "rows": data["rows"], "seconds": None,
                               "error": None, "table": None}]}
     for i, s in enumerate(data["sections"]):
         for j, r in enumerate(s.get("rows") or []):

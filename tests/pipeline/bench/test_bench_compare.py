@@ -47,6 +47,6 @@ def test_times_of_different_machines_are_not_compared_unless_asked(tmp_path):
     r = run_cli("bench", "compare", tmp_path / "old.json", tmp_path / "new.json")
     assert r.returncode == 0 and "times not compared" in r.stdout, r.stderr
     r = run_cli("bench", "compare", tmp_path / "old.json", tmp_path / "new.json", "--across-machines")
-    assert r.returncode == 1 and "REGRESSION  slower" in r.stdout and "k: x: 1 s -> 3 s" in r.stdout
+    assert r.returncode == 1 and "REGRESSION  slower" in r.stdout and "k: x: 1 s -> 3 s: 3.00x slower" in r.stdout
     r = run_cli("bench", "compare", tmp_path / "old.json", tmp_path / "missing.json")
     assert r.returncode == 2 and "missing.json: no such file" in r.stderr
