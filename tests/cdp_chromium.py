@@ -259,8 +259,8 @@ CHART_CHECK_JS = """
     const a = boxes[i], b = boxes[j];
     if (a.left < b.right - 1 && b.left < a.right - 1 && a.top < b.bottom - 1 && b.top < a.bottom - 1) overlaps++;
   }
-  return {id: gd.id, svg: !!gd.querySelector('svg.main-svg'), points: gd.querySelectorAll('.scatterlayer .point').length,
-          labels: boxes.length, overlaps: overlaps};
+  return {id: gd.id, svg: !!gd.querySelector('svg.main-svg'),
+          points: gd.querySelectorAll('.scatterlayer .point').length, labels: boxes.length, overlaps: overlaps};
 }))()
 """
 

@@ -210,7 +210,8 @@ VIEWS: list[View] = [
          match=lambda r: row_size(r) is not None and r.get("bench") in ("live", "reconstruct")
          and str(r.get("error_unit")) == "deg" and row_path(r) != "eager" and row_threads(r) in (None, 1)
          and "compiled" not in str(r["setting"]) and "ratio" not in str(r["setting"]),
-         series=_size_series, label=lambda r: row_size(r) or "", front="none", connect=True, x_label="seconds per frame",
+         series=_size_series, label=lambda r: row_size(r) or "", front="none", connect=True,
+         x_label="seconds per frame",
          keep=lambda rows: _multi(rows, lambda r: r["_series"]), sentence=say.sizes),
 ]
 

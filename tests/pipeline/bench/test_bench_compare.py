@@ -3,6 +3,7 @@
 import json
 
 from helpers import run_cli
+
 from pipeline.bench.compare import compare_runs
 
 

@@ -11,7 +11,6 @@ import re
 import urllib.request
 
 import pytest
-
 from cdp_chromium import CHART_CHECK_JS, Chromium, blank_fraction, find_chromium, serve
 from helpers import REPO, run_cli
 

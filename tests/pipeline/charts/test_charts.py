@@ -5,12 +5,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
+from pipeline.base.errors import UserError
 from pipeline.charts.decisions import build_charts, overview, summary_charts
 from pipeline.charts.labels import boxes_overlap, chart_placement, place_labels
 from pipeline.charts.model import Chart, Point, front_indices
 from pipeline.charts.rows import load_results
 from pipeline.charts.static import summary_figure
-from pipeline.base.errors import UserError
 
 
 def _row(knob, setting, error, seconds, bench="live", **kw):
