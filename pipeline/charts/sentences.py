@@ -106,18 +106,19 @@ def within_target(chart: Chart, cost=None, cost_name: str = "cheapest setting") 
     """The cheapest point within the error target, overall and per series; ``cost`` (point ->
     number, default its time) says what cheapest means, ``cost_name`` how to say it."""
     limit, what = chart.target
+    # ties (the same rays) go to the more accurate setting
     cost = cost or (lambda p: p.x)
     ok = [p for p in chart.points if p.y <= limit]
     if not ok:
         best = min(chart.points, key=lambda p: p.y)
         return f"No setting measured reaches {what}; the most accurate is {describe(chart, best)}."
-    best = min(ok, key=lambda p: (cost(p), p.x))
+    best = min(ok, key=lambda p: (cost(p), p.y))
     text = f"For {what}, the {cost_name} is {describe(chart, best)}."
     per = []
     for s in chart.series_names():
         sp = [p for p in ok if p.series == s]
         if s and sp and s != best.series:
-            q = min(sp, key=lambda p: (cost(p), p.x))
+            q = min(sp, key=lambda p: (cost(p), p.y))
             per.append(f"{s} {q.label} ({format_seconds(q.x)})")
     if per:
         text += " Per series: " + ", ".join(per) + "."
@@ -163,7 +164,7 @@ def _step_sentence(chart: Chart, pairs, step: str) -> str:
     speed = [a.x / b.x for _, a, b in pairs]
     err = [b.y / a.y if a.y > 0 else 1.0 for _, a, b in pairs]
     best = max(pairs, key=lambda t: t[1].x / t[2].x)
-    return (f"{step}: {_span(speed)} faster over {len(pairs)} case{'s' if len(pairs) > 1 else ''} (most: {best[0]}, "
+    return (f"{step}: {_span(speed)} the speed over {len(pairs)} case{'s' if len(pairs) > 1 else ''} (most: {best[0]}, "
             f"{format_seconds(best[1].x)} to {format_seconds(best[2].x)}); error after / before: {_span(err, '')}.")
 
 
@@ -185,7 +186,7 @@ def threads(chart: Chart) -> str:
         rest = [p for p in pts if p not in one]
         if one and rest:
             pairs.append((s, one[0], min(rest, key=lambda p: p.x)))
-    return _step_sentence(chart, pairs, "The fastest setting against one CPU thread")
+    return _step_sentence(chart, pairs, "The fastest of more threads or another device against one CPU thread")
 
 
 def sizes(chart: Chart) -> str:
