@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pipeline.report import format_number
+from pipeline.bench.report import write_docs
 
 BENCHES = ["sim", "render", "capture", "reconstruct", "calibration", "live", "modes"]
 
@@ -104,10 +104,6 @@ def run(args) -> dict:
     return out
 
 
-#: Where the per-decision chart PNGs go, relative to the markdown file.
-CHART_DIR = "images/benchmarks"
-
-
 def _write_outputs(out: dict, md_path: Path, plot: str | None) -> None:
     import json
 
@@ -115,30 +111,6 @@ def _write_outputs(out: dict, md_path: Path, plot: str | None) -> None:
     raw = md_path.with_suffix(".json")
     raw.write_text(json.dumps(out, indent=1, default=str), encoding="utf-8")
     write_docs(out, md_path, plot)
-
-
-def write_docs(out: dict, md_path: Path, plot: str | None) -> None:
-    """The page, the summary figure, the chart PNGs and the markdown of a run (``out``, as
-    ``benchmarks.json`` holds it) beside ``md_path``; fills in what was written."""
-    from pipeline.bench.report import build_report
-
-    raw = md_path.with_suffix(".json")
-    written = build_report(dict(out), md_path.with_suffix(".html"), figure=plot,
-                           charts_dir=md_path.parent / CHART_DIR, source=f"iristac bench all ({raw.name})")
-    md = format_markdown(out, plot_name=_relative(plot, md_path.parent) if plot else None, chart_prefix=CHART_DIR,
-                         page_name=md_path.with_suffix(".html").name)
-    md_path.write_text(md, encoding="utf-8")
-    out.update(markdown=str(md_path), page=written["page"], json=str(raw))
-    if plot:
-        out["plot"] = str(plot)
-
-
-def _relative(path: str, folder: Path) -> str:
-    p = Path(path).resolve()
-    try:
-        return str(p.relative_to(folder.resolve()))
-    except ValueError:
-        return str(path)
 
 
 def common_rows(name: str, result: dict) -> list[dict]:
@@ -192,50 +164,6 @@ def _sub_args(module, args):
     ns = p.parse_args(["--quick"] if getattr(args, "quick", False) else [])
     return ns
 
-
-
-def format_markdown(result: dict, plot_name: str | None = None, chart_prefix: str | None = None,
-                    page_name: str | None = None) -> str:
-    """The run as markdown: the summary figure, one chart and sentence per decision (when
-    ``chart_prefix`` names their folder), then every row in a table per benchmark."""
-    from pipeline.bench.report import markdown_charts
-
-    load = result.get("load_average")
-    lines = ["# Benchmarks", "",
-             "Written by `iristac bench all`" + (" --quick" if result.get("quick") else "") + ". "
-             "Every figure below was measured by that command on the machine named in its row; "
-             "error and time sit side by side so that what accuracy costs in time is visible.", "",
-             f"Machine: {result['machine']}" + (f"; load average {load[0]:.2f} at the start, {load[3]:.2f} at the end"
-                                                if load else ""), ""]
-    if plot_name:
-        lines += [f"![what accuracy costs in time: six decisions]({plot_name})", ""]
-    if page_name:
-        lines += [f"Every chart, interactive (hover for the exact figures and the machine, filter by stage): "
-                  f"[{page_name}]({page_name}), offline (open it from a clone). `iristac bench report RUN.json` "
-                  f"draws the same page from any saved run; `iristac bench compare OLD.json NEW.json` lists the rows "
-                  f"that got slower or less accurate beyond the noise.", ""]
-    if chart_prefix is not None:
-        lines += ["## What to pick", "", "Each chart: error against time on log axes, the Pareto front dashed, the "
-                  "shipped default ringed; the sentence under it is computed from the figures.", ""]
-        lines += markdown_charts(result, chart_prefix)
-    lines += ["## Every row", ""]
-    for s in result["sections"]:
-        lines += [f"### {s['bench']}", "", f"(benchmark ran for {s['seconds']:.1f} s)", ""]
-        if s["error"]:
-            lines += [f"**failed**: `{s['error']}`", ""]
-            continue
-        if s["rows"]:
-            lines += ["| knob | setting | error | seconds | machine |", "|---|---|---|---|---|"]
-            for r in s["rows"]:
-                err = format_number(r.get("error"))
-                if r.get("error") is not None and r.get("error_unit"):
-                    err += f" {r['error_unit']}"
-                lines.append(f"| {r['knob']} | {r['setting']} | {err} | {format_number(r.get('seconds'))} | "
-                             f"{r['machine']} |")
-            lines.append("")
-        if s["table"]:
-            lines += ["```", s["table"].rstrip(), "```", ""]
-    return "\n".join(lines)
 
 
 def format_table(result: dict) -> str:

@@ -19,8 +19,10 @@ from pathlib import Path
 from pipeline.charts.decisions import Overview, overview, summary_charts
 from pipeline.charts.model import Table, format_seconds, format_value
 from pipeline.charts.rows import load_results, result_rows
+from pipeline.report import format_number
 
-__all__ = ["add_arguments", "run", "format_table", "build_report", "markdown_charts", "chart_tables"]
+__all__ = ["add_arguments", "run", "format_table", "build_report", "markdown_charts", "chart_tables", "write_docs",
+           "format_markdown", "CHART_DIR"]
 
 
 def add_arguments(parser) -> None:
@@ -51,8 +53,9 @@ def chart_tables(ov: Overview) -> list[Table]:
 def _intro(results: dict, source: str, ov: Overview) -> str:
     machines = "; ".join(html.escape(m) for m in ov.machines) or "unknown"
     quick = " (a --quick run: smaller sizes, for a smoke test)" if results.get("quick") else ""
-    load = results.get("load_average")
-    load_txt = f" Load average {', '.join(f'{x:.2f}' for x in load)} when it started." if load else ""
+    load = results.get("load_average") or []
+    load_txt = (f" Load average (1 min) {load[0]:.2f} at the start, {load[3]:.2f} at the end." if len(load) >= 4
+                else "")
     glance = "".join(f'<li><a href="#fig-{c.key}">{html.escape(c.title)}</a> {html.escape(c.sentence)}</li>'
                      for c in summary_charts(ov.charts))
     glance = f"<h2>At a glance</h2><ul class=\"glance\">{glance}</ul>" if glance else ""
@@ -133,8 +136,6 @@ def markdown_charts(results: dict, image_prefix: str | None) -> list[str]:
 
 def run(args) -> dict:
     if getattr(args, "markdown", None):
-        from pipeline.bench.all import write_docs
-
         out = load_results(args.results)
         write_docs(out, Path(args.markdown), args.figure)
         return {"page": out["page"], "figure": out.get("plot"), "charts": [], "tables": 0,
@@ -152,4 +153,72 @@ def format_table(result: dict) -> str:
     if result.get("chart_pngs"):
         lines.append(f"wrote {len(result['chart_pngs'])} chart PNGs")
     lines += [f"- {c['title']}: {c['sentence']}" for c in result["charts"]]
+    return "\n".join(lines)
+
+
+#: Where the per-decision chart PNGs go, relative to the markdown file.
+CHART_DIR = "images/benchmarks"
+
+
+def write_docs(out: dict, md_path: Path, plot: str | None) -> None:
+    """The page, the summary figure, the chart PNGs and the markdown of a run (``out``, as
+    ``benchmarks.json`` holds it) beside ``md_path``; fills in what was written."""
+    raw = md_path.with_suffix(".json")
+    written = build_report(dict(out), md_path.with_suffix(".html"), figure=plot,
+                           charts_dir=md_path.parent / CHART_DIR, source=f"iristac bench all ({raw.name})")
+    md = format_markdown(out, plot_name=_relative(plot, md_path.parent) if plot else None, chart_prefix=CHART_DIR,
+                         page_name=md_path.with_suffix(".html").name)
+    md_path.write_text(md, encoding="utf-8")
+    out.update(markdown=str(md_path), page=written["page"], json=str(raw))
+    if plot:
+        out["plot"] = str(plot)
+
+
+def _relative(path: str, folder: Path) -> str:
+    p = Path(path).resolve()
+    try:
+        return str(p.relative_to(folder.resolve()))
+    except ValueError:
+        return str(path)
+
+
+def format_markdown(result: dict, plot_name: str | None = None, chart_prefix: str | None = None,
+                    page_name: str | None = None) -> str:
+    """The run as markdown: the summary figure, one chart and sentence per decision (when
+    ``chart_prefix`` names their folder), then every row in a table per benchmark."""
+    load = result.get("load_average")
+    lines = ["# Benchmarks", "",
+             "Written by `iristac bench all`" + (" --quick" if result.get("quick") else "") + ". "
+             "Every figure below was measured by that command on the machine named in its row; "
+             "error and time sit side by side so that what accuracy costs in time is visible.", "",
+             f"Machine: {result['machine']}" + (f"; load average {load[0]:.2f} at the start, {load[3]:.2f} at the end"
+                                                if load else ""), ""]
+    if plot_name:
+        lines += [f"![what accuracy costs in time: six decisions]({plot_name})", ""]
+    if page_name:
+        lines += [f"Every chart, interactive (hover for the exact figures and the machine, filter by stage): "
+                  f"[{page_name}]({page_name}), offline (open it from a clone). `iristac bench report RUN.json` "
+                  f"draws the same page from any saved run; `iristac bench compare OLD.json NEW.json` lists the rows "
+                  f"that got slower or less accurate beyond the noise.", ""]
+    if chart_prefix is not None:
+        lines += ["## What to pick", "", "Each chart: error against time on log axes, the Pareto front dashed, the "
+                  "shipped default ringed; the sentence under it is computed from the figures.", ""]
+        lines += markdown_charts(result, chart_prefix)
+    lines += ["## Every row", ""]
+    for s in result["sections"]:
+        lines += [f"### {s['bench']}", "", f"(benchmark ran for {s['seconds']:.1f} s)", ""]
+        if s["error"]:
+            lines += [f"**failed**: `{s['error']}`", ""]
+            continue
+        if s["rows"]:
+            lines += ["| knob | setting | error | seconds | machine |", "|---|---|---|---|---|"]
+            for r in s["rows"]:
+                err = format_number(r.get("error"))
+                if r.get("error") is not None and r.get("error_unit"):
+                    err += f" {r['error_unit']}"
+                lines.append(f"| {r['knob']} | {r['setting']} | {err} | {format_number(r.get('seconds'))} | "
+                             f"{r['machine']} |")
+            lines.append("")
+        if s["table"]:
+            lines += ["```", s["table"].rstrip(), "```", ""]
     return "\n".join(lines)

@@ -3,7 +3,8 @@
 import json
 
 from helpers import run_cli
-from pipeline.bench.all import common_rows, format_markdown
+from pipeline.bench.all import common_rows
+from pipeline.bench.report import format_markdown
 
 
 def test_bench_all_writes_markdown_json_and_plot(tmp_path):
