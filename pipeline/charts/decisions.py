@@ -172,8 +172,8 @@ VIEWS: list[View] = [
          keep=lambda rows: _best_per(rows, "mode"),
          x_label="capture seconds per contact (emulated ring + camera)",
          sentence=lambda c: say.contrast(c, "point", "trichromatic", "capture time"),
-         note="Each mode with its most accurate solver (and the shipped default); every solver: the chart against "
-              "reconstruction time."),
+         note="Each mode with its most accurate solver (and the shipped default where one is ringed); every "
+              "solver: the chart against reconstruction time."),
     View("modes-recon", "Lighting mode", "What does a lighting mode buy, against reconstruction time?",
          match=_knob(r"^lighting mode x solver"), series=lambda r: str(r.get("solver", "")),
          label=lambda r: str(r.get("mode", r["setting"])), x_label="seconds to reconstruct one capture",
