@@ -21,7 +21,10 @@ from pipeline.base.errors import UserError
 from pipeline.report import format_number
 
 __all__ = ["ModeRun", "Comparison", "compare_captures", "compare_modes", "render_mode_captures",
-           "lut_calibrations", "add_to_report"]
+           "lut_calibrations", "add_to_report", "comparison_rows", "comparison_charts", "MODE_KNOB"]
+
+#: The knob of the benchmark rows a comparison makes (:func:`comparison_rows`).
+MODE_KNOB = "lighting mode x solver"
 
 
 @dataclass
@@ -72,6 +75,34 @@ class Comparison:
         return {"runs": [r.to_json() for r in self.runs],
                 "best": best.to_json() if best else None,
                 "best_per_mode": {m: r.to_json() for m, r in self.best_per_mode().items()}}
+
+
+def comparison_rows(runs, default: tuple[str, str] | None = None) -> list[dict]:
+    """Benchmark rows (:mod:`pipeline.charts.rows`) of a comparison's runs: per mode and solver the
+    mean normal error (deg) against the reconstruction seconds, with the capture seconds.
+
+    ``runs`` are :class:`ModeRun` objects or their JSON; ``default`` is the (mode, solver) pair
+    to mark as the shipped default. Runs without a normal error are left out.
+
+    Examples
+    --------
+    >>> r = ModeRun("point", "nearfield", 24, 5.5, "measured", 0.4, 0.62, 0.5, 0.06, 1.0)
+    >>> row = comparison_rows([r], default=("point", "nearfield"))[0]
+    >>> row["setting"], row["error"], row["capture_seconds"], row["default"]
+    ('point / nearfield', 0.62, 5.5, True)
+    """
+    rows = []
+    for r in runs:
+        j = r.to_json() if isinstance(r, ModeRun) else dict(r)
+        if j.get("normal_mean_error_deg") is None:
+            continue
+        rows.append({"knob": MODE_KNOB, "setting": f"{j['mode']} / {j['solver']}", "mode": j["mode"],
+                     "solver": j["solver"], "patterns": j["patterns"], "error": float(j["normal_mean_error_deg"]),
+                     "error_unit": "deg", "seconds": float(j["reconstruct_seconds"]),
+                     "capture_seconds": float(j["capture_seconds"]), "capture_how": j["capture_seconds_source"],
+                     "depth_rmse_mm": j.get("depth_rmse_mm"), "valid_fraction": j.get("valid_fraction"),
+                     "default": default is not None and (j["mode"], j["solver"]) == tuple(default)})
+    return rows
 
 
 def render_mode_captures(store, model, model_key, modes: Sequence[str], object: str, out: str | Path, *,
@@ -263,8 +294,18 @@ def _display_frame(frame: np.ndarray) -> np.ndarray:
     return np.clip(f / top, 0.0, 1.0)
 
 
-def add_to_report(report, comp: Comparison, title: str = "Lighting modes compared") -> None:
-    """Add the comparison's table and images to a :class:`pipeline.report.Report`."""
+def comparison_charts(comp: Comparison, default: tuple[str, str] | None = None) -> list:
+    """The comparison's error-against-time charts (:mod:`pipeline.charts`): normal error against
+    capture time and against reconstruction time, per mode and solver, the same charts as
+    ``iristac bench modes`` draws."""
+    from pipeline.charts.decisions import build_charts
+
+    return build_charts(comparison_rows(comp.runs, default))
+
+
+def add_to_report(report, comp: Comparison, title: str = "Lighting modes compared",
+                  default: tuple[str, str] | None = None) -> None:
+    """Add the comparison's charts, table and images to a :class:`pipeline.report.Report`."""
     from pipeline.outputs import depth_colormap_rgb, normal_map_rgb
 
     s = report.section(title, "Normal error is the mean angle between reconstructed and true normals over the "
@@ -275,6 +316,8 @@ def add_to_report(report, comp: Comparison, title: str = "Lighting modes compare
     rows = [[r.mode, r.solver, r.patterns, format_number(r.normal_mean_error_deg),
              format_number(r.normal_median_error_deg), format_number(r.depth_rmse_mm), f"{100 * r.valid_fraction:.1f}%", r.reconstruct_seconds,
              f"{r.capture_seconds:.3g} ({r.capture_seconds_source})"] for r in comp.runs]
+    for chart in comparison_charts(comp, default):
+        s.chart(chart)
     s.table(header, rows)
     best = comp.best()
     if best is not None:

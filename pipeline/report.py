@@ -84,6 +84,11 @@ class Section:
     def paragraph(self, text: str) -> None:
         self.items.append(("text", text))
 
+    def chart(self, chart) -> None:
+        """Add an interactive error-against-time chart (:class:`pipeline.charts.model.Chart`): the
+        report then carries the chart library (``plotly-<version>.min.js``) beside it, offline."""
+        self.items.append(("chart", chart))
+
 
 class Report:
     """A titled list of sections."""
@@ -106,6 +111,7 @@ class Report:
         img_dir = out / "images"
         img_dir.mkdir(parents=True, exist_ok=True)
         body = [f"<h1>{html.escape(self.title)}</h1>"]
+        charts = []
         if self.intro:
             body.append(f"<p>{html.escape(self.intro)}</p>")
         for si, s in enumerate(self.sections):
@@ -136,11 +142,22 @@ class Report:
                 elif kind == "table":
                     flush_grid()
                     body.append(_table(*payload))
+                elif kind == "chart":
+                    from pipeline.charts.page import chart_html
+
+                    flush_grid()
+                    charts.append(payload)
+                    body.append(chart_html(payload))
                 else:
                     flush_grid()
                     body.append(f"<p>{html.escape(payload)}</p>")
             flush_grid()
-        page = _PAGE.format(title=html.escape(self.title), body="\n".join(body))
+        head, tail = "", ""
+        if charts:
+            from pipeline.charts.page import library_tag, render_script
+
+            head, tail = library_tag(out / "report.html", "beside"), render_script(charts)
+        page = _PAGE.format(title=html.escape(self.title), body="\n".join(body), head=head, tail=tail)
         (out / "report.html").write_text(page, encoding="utf-8")
         if data is not None:
             (out / "report.json").write_text(json.dumps(data, indent=2, sort_keys=True, default=_json_default),
@@ -179,7 +196,7 @@ def _table(header, rows, caption) -> str:
 
 
 _PAGE = """<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>{title}</title>
+<html lang="en"><head><meta charset="utf-8"><title>{title}</title><link rel="icon" href="data:,">
 <style>
 body {{ font-family: system-ui, sans-serif; margin: 2em auto; max-width: 1200px; color: #222; }}
 table {{ border-collapse: collapse; margin: 1em 0; }}
@@ -189,7 +206,11 @@ caption {{ caption-side: top; text-align: left; font-style: italic; padding: 4px
 .grid {{ display: flex; flex-wrap: wrap; gap: 12px; }}
 figure {{ margin: 0; }} figure img {{ image-rendering: pixelated; width: 240px; border: 1px solid #ddd; }}
 figcaption {{ font-size: 12px; max-width: 240px; }}
-</style></head><body>
+figure.chart {{ margin: 1em 0; }}
+.rec {{ background: #f4f7fb; border-left: 4px solid #1f77b4; padding: 6px 10px; max-width: 860px; }}
+.note {{ font-size: 13px; color: #555; max-width: 860px; }}
+</style>{head}</head><body>
 {body}
+{tail}
 </body></html>
 """

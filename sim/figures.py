@@ -7,8 +7,9 @@ from pathlib import Path
 __all__ = ["save_figure"]
 
 
-def save_figure(fig, path, dpi: int = 100) -> Path:
-    """Lay out ``fig``, write it to ``path`` (parent folders created) and close it.
+def save_figure(fig, path, dpi: int = 100, tight: bool = True) -> Path:
+    """Lay out ``fig`` (``tight``: matplotlib's tight layout; False keeps a figure placed by hand),
+    write it to ``path`` (parent folders created) and close it.
 
     Examples
     --------
@@ -20,7 +21,8 @@ def save_figure(fig, path, dpi: int = 100) -> Path:
     """
     import matplotlib.pyplot as plt
 
-    fig.tight_layout()
+    if tight:
+        fig.tight_layout()
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=dpi)

@@ -1,10 +1,17 @@
-"""``iristac bench all``: run every benchmark, write ``docs/benchmarks.md`` and an error-vs-time plot.
+"""``iristac bench all``: run every benchmark; write the figures and their charts into ``docs/``.
 
-Each benchmark module returns a dict; where it has ``"rows"`` — a list of dicts with
-``knob``, ``setting``, ``seconds`` and optionally ``error`` and ``error_unit`` — those rows
-go into one table and one plot (one panel per knob: error against seconds, so what accuracy
-costs in time is visible at a glance). Every row records the machine it ran on. A benchmark
-without rows contributes its own table verbatim.
+Each benchmark module returns a dict; where it has ``"rows"`` (dicts with ``knob``,
+``setting``, ``seconds``, optionally ``error``, ``error_unit`` and the fields
+:mod:`pipeline.charts.rows` lists) those rows are the run's data. Every row records the
+machine it ran on. A benchmark without rows contributes its own table verbatim. Written,
+beside ``--out`` (``docs/benchmarks.md``):
+
+- ``benchmarks.json``: the run (the single source of every chart; ``iristac bench report``
+  and ``iristac bench compare`` read it);
+- ``benchmarks.html``: the interactive page (:mod:`pipeline.bench.report`);
+- ``--plot`` (``docs/benchmarks.png``): the summary figure, six panels, 900 px wide;
+- ``images/benchmarks/KEY.png``: one chart per decision, shown in the markdown with the
+  sentence under each.
 """
 
 from __future__ import annotations
@@ -16,14 +23,15 @@ import time
 from pathlib import Path
 from typing import Any
 
-from pipeline.report import format_number
+from pipeline.bench.report import write_docs
 
-BENCHES = ["sim", "render", "capture", "reconstruct", "calibration", "live"]
+BENCHES = ["sim", "render", "capture", "reconstruct", "calibration", "live", "modes"]
 
 
 def add_arguments(parser) -> None:
     parser.add_argument("--out", default="docs/benchmarks.md", help="markdown report to write")
-    parser.add_argument("--plot", default="docs/benchmarks.png", help="error-vs-time plot to write")
+    parser.add_argument("--plot", default="docs/benchmarks.png",
+                        help="summary figure to write (six error-against-time panels, 900 px wide)")
     parser.add_argument("--only", nargs="*", choices=BENCHES, help="run only these benchmarks")
 
 
@@ -62,6 +70,7 @@ def machine_description() -> str:
 def run(args) -> dict:
     names = args.only or BENCHES
     machine = machine_description()
+    load = list(os.getloadavg())
     sections: list[dict[str, Any]] = []
     for name in names:
         t0 = time.perf_counter()
@@ -82,22 +91,26 @@ def run(args) -> dict:
         # throughput and memory figures that are not error/time pairs).
         table = module.format_table(result) if not error and not result.get("rows") else None
         sections.append({"bench": name, "seconds": seconds, "rows": rows, "table": table, "error": error})
-    out = {"machine": machine, "quick": bool(getattr(args, "quick", False)), "sections": sections}
+    out = {"machine": machine, "quick": bool(getattr(args, "quick", False)),
+           "load_average": load + list(os.getloadavg()), "sections": sections}
     if args.out:
-        import json
+        _write_outputs(out, Path(args.out), args.plot)
+    elif args.plot:
+        from pipeline.bench.report import write_summary
+        from pipeline.charts.decisions import overview
+        from pipeline.charts.rows import result_rows
 
-        raw = Path(args.out).with_suffix(".json")
-        raw.parent.mkdir(parents=True, exist_ok=True)
-        raw.write_text(json.dumps(out, indent=1, default=str), encoding="utf-8")
-    md = format_markdown(out, plot_name=Path(args.plot).name if args.plot else None)
-    if args.out:
-        Path(args.out).parent.mkdir(parents=True, exist_ok=True)
-        Path(args.out).write_text(md, encoding="utf-8")
-        out["markdown"] = str(args.out)
-    if args.plot:
-        plot_rows([r for s in sections for r in s["rows"]], args.plot)
-        out["plot"] = str(args.plot)
+        out["plot"] = write_summary(overview(result_rows(out)), args.plot)["path"]
     return out
+
+
+def _write_outputs(out: dict, md_path: Path, plot: str | None) -> None:
+    import json
+
+    md_path.parent.mkdir(parents=True, exist_ok=True)
+    raw = md_path.with_suffix(".json")
+    raw.write_text(json.dumps(out, indent=1, default=str), encoding="utf-8")
+    write_docs(out, md_path, plot)
 
 
 def common_rows(name: str, result: dict) -> list[dict]:
@@ -111,15 +124,29 @@ def common_rows(name: str, result: dict) -> list[dict]:
     def finite(v):
         return None if v is None or v != v else float(v)
 
+    def kept(r, *keys):
+        return {k: r[k] for k in keys if k in r}
+
     for r in result.get("rays_sampler", {}).get("rows", []):
         rows.append({"knob": "rays x sampler", "setting": f"{r['sampler']} {r['rays']:,}",
-                     "error": finite(r["image_error"]), "error_unit": "rel. L2 vs reference", "seconds": r["seconds"]})
+                     "error": finite(r["image_error"]), "error_unit": "rel. L2 vs reference", "seconds": r["seconds"],
+                     **kept(r, "sampler", "rays", "seconds_runs", "default")})
+    flux = result.get("flux", {})
+    for what, key in (("flux", "flux_error_pct"), ("uniformity", "cv_error_pct")):
+        for r in flux.get("rows", []):
+            rows.append({"knob": f"lens design: {what} error (rays x sampler)",
+                         "setting": f"{r['sampler']} {r['rays']:,}",
+                         "error": finite(r[key]), "error_unit": "% (RMS over seeds)", "seconds": r["seconds"],
+                         "error_runs": r[key.replace("_pct", "s_pct")],
+                         **kept(r, "sampler", "rays", "seeds", "seconds_runs", "default")})
     for r in result.get("newton", {}).get("rows", []):
         rows.append({"knob": f"intersection iterations ({r['dtype']})", "setting": f"{r['method']} x{r['iterations']}",
-                     "error": finite(r["median_error_mm"]), "error_unit": "mm (median)", "seconds": r["seconds"]})
+                     "error": finite(r["median_error_mm"]), "error_unit": "mm (median)", "seconds": r["seconds"],
+                     **kept(r, "seconds_runs", "default")})
     for r in result.get("multi_source", {}).get("rows", []):
         rows.append({"knob": "multi-source method", "setting": r["method"], "error": finite(r["sum_error"]),
-                     "error_unit": "rel. error of the 24-LED image", "seconds": r["seconds"]})
+                     "error_unit": "rel. error of the 24-LED image", "seconds": r["seconds"],
+                     **kept(r, "seconds_runs", "default")})
     for r in result.get("effects", {}).get("rows", []):
         rows.append({"knob": "effect set", "setting": r["effects"], "error": None, "seconds": r["seconds"]})
     return rows
@@ -139,75 +166,15 @@ def _sub_args(module, args):
 
 
 
-def format_markdown(result: dict, plot_name: str | None = None) -> str:
-    lines = ["# Benchmarks", "",
-             "Written by `iristac bench all`" + (" --quick" if result.get("quick") else "") + ". "
-             "Every figure below was measured by that command on the machine named in its row; "
-             "error and time sit side by side so that what accuracy costs in time is visible.", "",
-             f"Machine: {result['machine']}", ""]
-    if plot_name:
-        lines += [f"![error against time for every knob]({plot_name})", ""]
-    for s in result["sections"]:
-        lines += [f"## {s['bench']}", "", f"(benchmark ran for {s['seconds']:.1f} s)", ""]
-        if s["error"]:
-            lines += [f"**failed**: `{s['error']}`", ""]
-            continue
-        if s["rows"]:
-            lines += ["| knob | setting | error | seconds | machine |", "|---|---|---|---|---|"]
-            for r in s["rows"]:
-                err = format_number(r.get("error"))
-                if r.get("error") is not None and r.get("error_unit"):
-                    err += f" {r['error_unit']}"
-                lines.append(f"| {r['knob']} | {r['setting']} | {err} | {format_number(r.get('seconds'))} | {r['machine']} |")
-            lines.append("")
-        if s["table"]:
-            lines += ["```", s["table"].rstrip(), "```", ""]
-    return "\n".join(lines)
-
-
-def plot_rows(rows: list[dict], path: str) -> None:
-    """One panel per knob: error against seconds, each setting labelled."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    by_knob: dict[str, list[dict]] = {}
-    for r in rows:
-        if r.get("error") is not None and r.get("seconds") is not None:
-            by_knob.setdefault(f"{r['bench']}: {r['knob']}", []).append(r)
-    n = max(1, len(by_knob))
-    cols = min(3, n)
-    nrows = (n + cols - 1) // cols
-    fig, axes = plt.subplots(nrows, cols, figsize=(5 * cols, 3.6 * nrows), squeeze=False)
-    for ax, (knob, rs) in zip(axes.flat, sorted(by_knob.items())):
-        xs = [max(float(r["seconds"]), 1e-6) for r in rs]
-        ys = [max(float(r["error"]), 1e-12) for r in rs]
-        ax.scatter(xs, ys)
-        for x, y, r in zip(xs, ys, rs):
-            ax.annotate(str(r["setting"]), (x, y), fontsize=7, xytext=(3, 3), textcoords="offset points")
-        ax.set_xscale("log")
-        if min(ys) > 0 and max(ys) / min(ys) > 20:
-            ax.set_yscale("log")
-        unit = rs[0].get("error_unit") or ""
-        ax.set_title(knob, fontsize=9)
-        ax.set_xlabel("seconds")
-        ax.set_ylabel(f"error {unit}".strip())
-        ax.grid(True, alpha=0.3)
-    for ax in list(axes.flat)[len(by_knob):]:
-        ax.axis("off")
-    if not by_knob:
-        axes.flat[0].text(0.5, 0.5, "no benchmark reported error and time", ha="center")
-    from sim.figures import save_figure
-
-    save_figure(fig, path, dpi=110)
-
-
 def format_table(result: dict) -> str:
     lines = [f"machine: {result['machine']}"]
     for s in result["sections"]:
         state = "FAILED: " + s["error"] if s["error"] else f"{len(s['rows'])} rows"
         lines.append(f"{s['bench']:<12} {s['seconds']:>7.1f} s  {state}")
     if result.get("markdown"):
-        lines.append(f"wrote {result['markdown']}" + (f" and {result['plot']}" if result.get("plot") else ""))
+        lines.append(f"wrote {result['markdown']}, {result['json']}, {result['page']}"
+                     + (f" and {result['plot']}" if result.get("plot") else ""))
+    if result.get("load_average"):
+        la = result["load_average"]
+        lines.append(f"load average {la[0]:.2f} at the start, {la[3]:.2f} at the end")
     return "\n".join(lines)

@@ -56,13 +56,19 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-startup", action="store_true", help="skip the fresh-process start-up measurements")
 
 
-def _best(fn, repeats: int):
-    best, out = float("inf"), None
+def _runs(fn, repeats: int):
+    """``(times, result)``: the wall time of each of ``repeats`` runs."""
+    times, out = [], None
     for _ in range(repeats):
         t = time.perf_counter()
         out = fn()
-        best = min(best, time.perf_counter() - t)
-    return best, out
+        times.append(time.perf_counter() - t)
+    return times, out
+
+
+def _best(fn, repeats: int):
+    times, out = _runs(fn, repeats)
+    return min(times), out
 
 
 def _err(normals, truth, mask=None) -> float:
@@ -110,9 +116,9 @@ def measure_nearfield(width: int, height: int, repeats: int, patterns: int = 8, 
         r = eager.solve(obs)
         return r, poisson_dst(r.normals, mm, r.mask)
 
-    sec, (re_, _) = _best(eager_pipe, max(3, repeats // 5))
+    times, (re_, _) = _runs(eager_pipe, max(3, repeats // 5))
     e_eager = _err(re_.normals, s.normals)
-    rows = [_row(label, size, "eager", 1, sec, e_eager)]
+    rows = [_row(label, size, "eager", 1, min(times), e_eager, extra={"seconds_runs": times})]
     t = time.perf_counter()
     fast = NearFieldFast(s.lights_flat(), groups=groups)
     dst = FastDST((height, width), mm)
@@ -137,9 +143,9 @@ def _fast_rows(label: str, size: str, solve, dst, repeats: int, threads_all: int
             return r, dst.integrate(r.normals, r.mask, workers=th)
 
         fast_pipe()
-        sec, (rf, _) = _best(fast_pipe, repeats)
-        rows.append(_row(label, size, "fast", th, sec, _err(rf.normals, truth),
-                         _dev(rf.normals, eager_normals, rf.mask & eager_mask), extra))
+        times, (rf, _) = _runs(fast_pipe, repeats)
+        rows.append(_row(label, size, "fast", th, min(times), _err(rf.normals, truth),
+                         _dev(rf.normals, eager_normals, rf.mask & eager_mask), dict(extra, seconds_runs=times)))
     return rows
 
 
@@ -181,9 +187,9 @@ def measure_model(solver: str, width: int, height: int, repeats: int, store, thr
         maps = m.normal_maps(raw.astype(np.float32)[None] - dark, ref)
         return maps, poisson_dst(maps.normals[0], mm, maps.mask[0])
 
-    sec, (maps, _) = _best(eager_pipe, max(2, repeats // 10))
+    times, (maps, _) = _runs(eager_pipe, max(2, repeats // 10))
     e_eager = _err(maps.normals[0], truth)
-    rows = [_row(solver, size, "eager", 1, sec, e_eager)]
+    rows = [_row(solver, size, "eager", 1, min(times), e_eager, extra={"seconds_runs": times})]
     t = time.perf_counter()
     fs = frame_solver(solver, LightSource(models=models, source="bench"), shape=(height, width), reference=ref,
                       dark=dark)
@@ -296,16 +302,29 @@ def _run(args) -> dict:
                         "fps": best["fps"], "threads": best["threads"],
                         "met": bool(best["fps"] >= 2000 and best["speedup"] >= 8),
                         "note": f"; {best['speedup']:.1f}x one thread (target 8x)"})
+    default_solver, default_threads = _live_defaults()
     bench_rows = [{"knob": f"live {r['solver']} @ {r['size']}", "setting": f"{r['path']}, {r['threads']} thread(s)",
-                   "error": r["error_deg"], "error_unit": "deg", "seconds": r["seconds"], "device": "cpu",
-                   "threads": r["threads"]} for r in rows]
+                   "error": r["error_deg"], "error_unit": "deg", "seconds": r["seconds"], "path": r["path"],
+                   "device": "cpu", "threads": r["threads"], "size": r["size"], "seconds_runs": r.get("seconds_runs"),
+                   "default": (r["solver"], r["path"], r["threads"]) == (default_solver, "fast", default_threads)}
+                  for r in rows]
     if device:
         bench_rows += [{"knob": f"live nearfield @ {device['size']}", "setting": f"{device['device']} {r['solver']}, "
                         f"batches of {device['batch']}", "error": r["error_deg"], "error_unit": "deg",
-                        "seconds": 1.0 / r["whole_numpy"]["frames_per_second"], "device": device["card"],
-                        "threads": None} for r in device["solvers"]]
+                        "seconds": 1.0 / r["whole_numpy"]["frames_per_second"], "path": "gpu " + r["solver"],
+                        "device": device["card"], "threads": None, "size": device["size"], "default": False}
+                       for r in device["solvers"]]
     return {"rows": bench_rows, "measurements": rows, "targets": targets, "device": device, "startup": startup,
             "repeats": repeats, "cores": cores, "load_average": list(load) + list(os.getloadavg())}
+
+
+def _live_defaults() -> tuple[str, int]:
+    """``iristac live``'s default solver and threads, read from its command line (the live view
+    always runs the fast path)."""
+    from pipeline.cli import build_parser
+
+    a = build_parser().parse_args(["live", "--virtual"])
+    return a.solver, a.threads
 
 
 def format_table(result: dict) -> str:

@@ -54,18 +54,23 @@ def add_arguments(parser) -> None:
 _CPU: dict[int, float] = {}
 
 
+_RUNS: dict[int, list] = {}
+
+
 def _best(fn, repeats: int) -> tuple[float, object]:
     """Best wall time of ``repeats`` runs; the best process CPU time of the same runs is
     left in ``_CPU[id(result)]`` (with one torch thread, CPU time is what a frame costs when
-    it has a core to itself: the shared machine's wall times include waiting for one)."""
-    best, best_cpu, out = float("inf"), float("inf"), None
+    it has a core to itself: the shared machine's wall times include waiting for one), every
+    run's wall time in ``_RUNS[id(result)]``."""
+    best_cpu, out, times = float("inf"), None, []
     for _ in range(repeats):
         t, c = time.perf_counter(), time.process_time()
         out = fn()
         best_cpu = min(best_cpu, time.process_time() - c)
-        best = min(best, time.perf_counter() - t)
+        times.append(time.perf_counter() - t)
     _CPU[id(out)] = best_cpu
-    return best, out
+    _RUNS[id(out)] = times
+    return min(times), out
 
 
 def _obs(frames: np.ndarray) -> np.ndarray:
@@ -134,6 +139,7 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
         sec, res = _best(fn, reps)
         results[name] = res
         out["solvers"][name] = {"seconds": sec, "fps": 1.0 / sec, "cpu_seconds": _CPU.pop(id(res)),
+                                "seconds_runs": _RUNS.pop(id(res)),
                                 "mean_deg": err(res), "valid_fraction": res.valid_fraction}
     from pipeline.base.registry import INTEGRATORS
 
@@ -144,6 +150,7 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
             sec, d = _best(lambda: integrate(res.normals, mm, res.mask, method=method), reps)
             rmse = float(np.sqrt(np.mean((d.height.astype(np.float64) - s.height) ** 2)))
             out["integrators"].setdefault(method, {})[src] = {"seconds": sec, "cpu_seconds": _CPU.pop(id(d)),
+                                                            "seconds_runs": _RUNS.pop(id(d)),
                                                             "rmse_mm": rmse,
                                                             "rmse_pct_depth": 100 * rmse / DEPTH}
     # Real-time pipelines: far-field least squares + DST or FC, from uint8 frames to heights,
@@ -159,6 +166,7 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
             sec, d = _best(pipeline, repeats)
             cpu = _CPU.pop(id(d))
             out["pipelines"][f"lstsq+{method} ({solver_name})"] = {"seconds": sec, "fps": 1.0 / sec,
+                                                                   "seconds_runs": _RUNS.pop(id(d)),
                                                                    "cpu_seconds": cpu, "cpu_fps": 1.0 / cpu,
                                                                    "integrator": method}
     rng = np.random.default_rng(1)
@@ -195,18 +203,24 @@ def run(args) -> dict:
             ps = measure_ps(radius, (4, 6) if quick else (8, 12), (128, 160) if quick else (512, 612),
                             repeats=min(repeats, 5), device=device)
     rows = []
+    solver, integrator = _reconstruct_defaults()
     for r in per_size:
         for name, v in r["solvers"].items():
             rows.append({"knob": f"normal solver @ {r['size']}", "setting": name, "error": v["mean_deg"],
-                         "error_unit": "deg", "seconds": v["seconds"]})
+                         "error_unit": "deg", "seconds": v["seconds"], "seconds_runs": v.get("seconds_runs"),
+                         "solver": SOLVER_NAMES.get(name, name), "size": r["size"],
+                         **({"path": "compiled" if "compiled" in name else "eager"} if name.startswith("lstsq") else {}),
+                         "default": name == "lstsq (far field)" and solver == "lstsq"})
         for method, by_src in r["integrators"].items():
             v = by_src["nearfield"]
             rows.append({"knob": f"integrator (near-field normals) @ {r['size']}", "setting": method,
-                         "error": v["rmse_mm"], "error_unit": "mm", "seconds": v["seconds"]})
+                         "error": v["rmse_mm"], "error_unit": "mm", "seconds": v["seconds"], "size": r["size"],
+                         "seconds_runs": v.get("seconds_runs"), "default": method == integrator})
         for key, v in r["pipelines"].items():
             rows.append({"knob": f"real-time lstsq + depth @ {r['size']}", "setting": key,
                          "error": r["integrators"][v["integrator"]]["lstsq (far field)"]["rmse_mm"], "error_unit": "mm",
-                         "seconds": v["seconds"]})
+                         "seconds": v["seconds"], "seconds_runs": v.get("seconds_runs"), "size": r["size"],
+                         "path": "compiled" if "compiled" in key else "eager"})
     if ps is not None:
         from pipeline.bench.reconstruct_ps import ps_rows
 
@@ -215,6 +229,19 @@ def run(args) -> dict:
                       "noise_dn": 1.0, "bits": 8},
             "repeats": repeats, "threads": getattr(args, "threads", 1), "device": device, "sizes": per_size,
             "ps": ps, "rows": rows}
+
+
+#: Registry name of each solver row (its setting names the light model too).
+SOLVER_NAMES = {"lstsq (far field)": "lstsq", "lstsq (far field, compiled)": "lstsq", "nearfield": "nearfield",
+                "robust (near field)": "robust", "cauchy (near field)": "cauchy", "nearfield + ratio": "nearfield"}
+
+
+def _reconstruct_defaults() -> tuple[str, str]:
+    """``iristac reconstruct``'s default solver and integrator, read from its command line."""
+    from pipeline.cli import build_parser
+
+    a = build_parser().parse_args(["reconstruct", "CAPTURE.h5", "--out", "OUT"])
+    return a.solver, a.integrator
 
 
 def format_table(result: dict) -> str:

@@ -9,6 +9,12 @@ rays x sampler     LED 0's flat-gel image (default scene, 60 x 60 px) against a 
 newton             the paper's case-2 Newton (iterations) and our monotone Newton against the
                    float64 quartic: max / median intersection error (mm), fallbacks, seconds
                    (on default-v1, whose LEDs' rays enter through the swept-arc side).
+flux               the lens designer's evaluation (:class:`sim.lensopt.objectives.Evaluator` with the
+                   default scene's design brief: 24 LEDs by hit rotation, its grid and modes) at
+                   1e2-1e6 rays per sampler, several seeds each: the RMS relative error of the
+                   flux (fraction on the imaging plane, the designer's objective) and of the
+                   uniformity CV against 4e6 Sobol rays, and the seconds per evaluation (every
+                   seed timed: the spread is kept).
 multi-source       the three ways to get all 24 LEDs: error against tracing each, seconds.
 effects            seconds of a trace per effect set (a disabled effect costs nothing), the
                    kernel, every row the same path timed the same way.
@@ -22,6 +28,7 @@ targets            the issue's targets, each printed met / NOT met: ``iristac si
 
 from __future__ import annotations
 
+import inspect
 import json
 import math
 import os
@@ -43,7 +50,7 @@ __all__ = ["add_arguments", "run", "format_table", "TARGETS"]
 SCENE = "default"
 NEWTON_SCENE = "default-v1"
 
-SECTIONS = ("rays", "newton", "multi", "effects", "targets")
+SECTIONS = ("rays", "flux", "newton", "multi", "effects", "targets")
 
 #: The issue's targets: (key, limit, "<=" or ">=", what).
 TARGETS = (("fresh_wall_seconds", 3.0, "<=", "sim trace default, fresh process, wall s"),
@@ -63,28 +70,39 @@ def add_arguments(parser) -> None:
     parser.add_argument("--only", default=None, help="comma list of sections: " + ",".join(SECTIONS))
 
 
-def _best(fn, repeats):
-    """``(seconds, result)``: the best wall time of a warm-up run and ``repeats`` more."""
+def _runs(fn, repeats):
+    """``(times, result)``: the wall time of each of ``repeats`` runs after a warm-up run."""
     out = fn()
-    best = math.inf
+    times = []
     for _ in range(max(1, repeats)):
         t0 = time.perf_counter()
         out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
+        times.append(time.perf_counter() - t0)
+    return times, out
 
 
-def _interleaved(fns: dict, repeats: int) -> dict:
-    """Best wall seconds of each of ``fns`` (name -> callable), run round-robin after one warm-up each."""
+def _best(fn, repeats):
+    """``(seconds, result)``: the best wall time of a warm-up run and ``repeats`` more."""
+    times, out = _runs(fn, repeats)
+    return min(times), out
+
+
+def _interleaved_runs(fns: dict, repeats: int) -> dict:
+    """Wall seconds of every run of each of ``fns`` (name -> callable), run round-robin after one warm-up each."""
     for fn in fns.values():
         fn()
-    best = {k: math.inf for k in fns}
+    runs: dict = {k: [] for k in fns}
     for _ in range(max(1, repeats)):
         for k, fn in fns.items():
             t0 = time.perf_counter()
             fn()
-            best[k] = min(best[k], time.perf_counter() - t0)
-    return best
+            runs[k].append(time.perf_counter() - t0)
+    return runs
+
+
+def _interleaved(fns: dict, repeats: int) -> dict:
+    """Best wall seconds of each of ``fns`` (name -> callable), run round-robin after one warm-up each."""
+    return {k: min(v) for k, v in _interleaved_runs(fns, repeats).items()}
 
 
 def _rel(a, b):
@@ -130,6 +148,8 @@ def run(args) -> dict:
                  "compile_seconds_this_process": engine.warm_up(None, device)}
     if "rays" in only:
         res["rays_sampler"] = _bench_rays(scene, grid, quick, reps, device)
+    if "flux" in only:
+        res["flux"] = _bench_flux(scene, quick, device)
     if "newton" in only:
         res["newton"] = _bench_newton(load_scene(NEWTON_SCENE), 20_000 if quick else 100_000, reps)
     if "multi" in only:
@@ -152,12 +172,45 @@ def _bench_rays(scene, grid, quick, reps, device):
         fns = {smp: (lambda smp=smp: trace_all(scene, grid, rays=n, sampler=smp, seed=1, leds=[0], vector=False,
                                                device=device))
                for smp in ("grid", "random", "stratified", "sobol")}
-        best = _interleaved(fns, reps)
+        runs = _interleaved_runs(fns, reps)
         for smp, fn in fns.items():
             r = fn()
             rows.append({"rays": int(r.traces[0].rays), "sampler": smp,
-                         "image_error": _rel(r.E[0, 0].astype(np.float64), E_ref), "seconds": best[smp]})
+                         "image_error": _rel(r.E[0, 0].astype(np.float64), E_ref), "seconds": min(runs[smp]),
+                         "seconds_runs": runs[smp],
+                         "default": int(r.traces[0].rays) == scene.trace.rays and smp == scene.trace.sampler})
     return {"reference_rays": ref_rays, "engine": "kernel", "rows": rows}
+
+
+def _bench_flux(scene, quick, device):
+    """The designer's figures (flux, CV) against rays and sampler: RMS relative error over seeds."""
+    from sim.lensopt.brief import DesignBrief
+    from sim.lensopt.objectives import Evaluator
+
+    brief = DesignBrief.from_scene(scene)
+    kw = dict(grid=brief.grid, modes=brief.modes, max_condition=brief.max_condition, region=brief.region,
+              device=device)
+    ref_rays = 200_000 if quick else 4_000_000
+    ref = Evaluator(rays=ref_rays, sampler="sobol", seed=0, **kw)(scene)
+    counts = [300, brief.rays] if quick else sorted({100, 1_000, 10_000, 100_000, 1_000_000, brief.rays})
+    seeds = 2 if quick else 5
+    rows = []
+    Evaluator(rays=1_000, sampler="sobol", **kw)(scene)  # warm-up: kernel load, first-call costs
+    for n in counts:
+        for smp in ("grid", "random", "stratified", "sobol"):
+            flux, cv, secs = [], [], []
+            for seed in range(1 if smp == "grid" else seeds):  # the grid sampler has no seed
+                m = Evaluator(rays=n, sampler=smp, seed=seed, **kw)(scene)
+                flux.append(100.0 * (m.fraction_on_screen - ref.fraction_on_screen) / ref.fraction_on_screen)
+                cv.append(100.0 * (m.uniformity_cv - ref.uniformity_cv) / ref.uniformity_cv)
+                secs.append(m.seconds)
+            rows.append({"rays": n, "sampler": smp, "seeds": len(secs), "flux_error_pct": float(np.sqrt(np.mean(
+                np.square(flux)))), "cv_error_pct": float(np.sqrt(np.mean(np.square(cv)))), "flux_errors_pct": flux,
+                "cv_errors_pct": cv, "seconds": min(secs), "seconds_runs": secs,
+                "default": n == brief.rays and smp == brief.sampler})
+    return {"reference_rays": ref_rays, "reference_flux": ref.fraction_on_screen, "reference_cv": ref.uniformity_cv,
+            "grid": brief.grid, "modes": list(brief.modes), "brief_rays": brief.rays, "brief_sampler": brief.sampler,
+            "rows": rows}
 
 
 def _bench_multi(scene, grid, quick, reps, device):
@@ -166,14 +219,16 @@ def _bench_multi(scene, grid, quick, reps, device):
     n_ms = 100_000 if quick else 1_000_000
     fns = {m: (lambda m=m: trace_all(scene, grid, method=m, rays=n_ms, device=device)) for m in ("trace", "hits",
                                                                                                   "image")}
-    best = _interleaved(fns, reps)
+    runs = _interleaved_runs(fns, reps)
+    default = inspect.signature(trace_all).parameters["method"].default
     truth = fns["trace"]()
     ms_rows = []
     for method, fn in fns.items():
         r = fn()
         E = r.E[0].astype(np.float64)
         V = r.V[0].astype(np.float64)
-        ms_rows.append({"method": method, "seconds": best[method],
+        ms_rows.append({"method": method, "seconds": min(runs[method]), "seconds_runs": runs[method],
+                        "default": method == default,
                         "E_error": _rel(E, truth.E[0].astype(np.float64)),
                         "V_error": _rel(V, truth.V[0].astype(np.float64)),
                         "sum_error": _rel(E.sum(0), truth.E[0].astype(np.float64).sum(0))})
@@ -215,6 +270,7 @@ def _bench_newton(scene, n, reps):
     from sim.optics.sampling import SquareSampler, emission_directions
 
     ln = scene.lens
+    robust_default = inspect.signature(LensBody).parameters["iterations"].default
     rows = []
     for dtype in (torch.float32, torch.float64):
         u, v = SquareSampler(n, "random", seed=5, dtype=dtype).draw(0, n)
@@ -228,7 +284,8 @@ def _bench_newton(scene, n, reps):
         tq = first_outer_hit(O, D, ln.arc_radius, ln.centre_rho, ln.centre_z, ln.bottom_z, ln.rim_z)
         Pq = O + np.where(np.isfinite(tq), tq, 0.0)[:, None] * D
         for it in (1, 2, 3, 5, 10, 20):
-            secs, (P, _, ok, _) = _best(lambda: side_entry(o, d, ln, it), reps)
+            times, (P, _, ok, _) = _runs(lambda: side_entry(o, d, ln, it), reps)
+            secs = min(times)
             _, _, info = case2_newton(o, d, ln.arc_radius, ln.centre_rho, ln.centre_z, it)
             P = torch.stack(P, 1).numpy().astype(np.float64)
             ok = ok.numpy() & side
@@ -240,10 +297,13 @@ def _bench_newton(scene, n, reps):
                          "iterations": it, "max_error_mm": float(err.max()) if err.size else math.nan,
                          "median_error_mm": float(np.median(err)) if err.size else math.nan,
                          "fallback_fraction": float((side & ~ok).sum() / max(side.sum(), 1)),
-                         "wrong_root_fraction": float(wrong.sum() / max(side.sum(), 1)), "seconds": secs})
+                         "wrong_root_fraction": float(wrong.sum() / max(side.sum(), 1)), "seconds": secs,
+                         "seconds_runs": times, "default": scene.trace.intersection == "paper"
+                         and it == scene.trace.newton_iterations})
         for it in (2, 3, 4, 6, 10):
             body = LensBody(ln, iterations=it)
-            secs, (tt, sid2, hit2, unc) = _best(lambda: body.enter(o, d), reps)
+            times, (tt, sid2, hit2, unc) = _runs(lambda: body.enter(o, d), reps)
+            secs = min(times)
             m = side & (hit2 & (sid2 == SIDE)).numpy()
             Pr = O + tt.numpy().astype(np.float64)[:, None] * D
             err = np.linalg.norm(Pr - Pq, axis=1)[m]
@@ -251,7 +311,8 @@ def _bench_newton(scene, n, reps):
                          "iterations": it, "max_error_mm": float(err.max()) if err.size else math.nan,
                          "median_error_mm": float(np.median(err)) if err.size else math.nan,
                          "fallback_fraction": float(unc.sum()) / max(int(side.sum()), 1),
-                         "wrong_root_fraction": 0.0, "seconds": secs})
+                         "wrong_root_fraction": 0.0, "seconds": secs, "seconds_runs": times,
+                         "default": scene.trace.intersection == "robust" and it == robust_default})
     return {"rays": n, "rows": rows}
 
 
@@ -393,6 +454,8 @@ def format_table(result: dict) -> str:
                  "before any timing)")
     if "rays_sampler" in result:
         _table_rays(L, result["rays_sampler"])
+    if "flux" in result:
+        _table_flux(L, result["flux"])
     if "newton" in result:
         _table_newton(L, result["newton"])
     if "multi_source" in result:
@@ -410,6 +473,17 @@ def _table_rays(L, rs):
     L.append(f"  {'rays':>10} {'sampler':>11} {'rel. L2 error':>14} {'seconds':>9}")
     for r in rs["rows"]:
         L.append(f"  {r['rays']:>10,} {r['sampler']:>11} {r['image_error']:>14.4f} {r['seconds']:>9.4f}")
+
+
+def _table_flux(L, fx):
+    L.append("")
+    L.append(f"lens design evaluation ({fx['grid']}-row grid, modes {', '.join(fx['modes']) or 'none'}): RMS relative "
+             f"error over seeds against {fx['reference_rays']:,} Sobol rays (flux {fx['reference_flux']:.4f}, "
+             f"CV {fx['reference_cv']:.4f}); * the design brief's rays and sampler")
+    L.append(f"  {'rays':>10} {'sampler':>11} {'seeds':>5} {'flux err %':>11} {'CV err %':>9} {'seconds':>9}")
+    for r in fx["rows"]:
+        L.append(f"  {r['rays']:>10,} {r['sampler']:>11} {r['seeds']:>5} {r['flux_error_pct']:>11.3f} "
+                 f"{r['cv_error_pct']:>9.3f} {r['seconds']:>9.4f}{' *' if r['default'] else ''}")
 
 
 def _table_newton(L, nw):

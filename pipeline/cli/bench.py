@@ -5,6 +5,9 @@ A benchmark module exposes::
     def add_arguments(parser) -> None      # optional extra flags
     def run(args) -> dict                  # measures, returns JSON-able results
     def format_table(result: dict) -> str  # the human-readable side-by-side table
+
+``report`` and ``compare`` follow the same protocol on saved runs (a result's ``exit_code``
+becomes the command's).
 """
 
 from __future__ import annotations
@@ -22,8 +25,15 @@ BENCHMARKS = [
     ("calibration", "calibration: time and cross-validated error per model"),
     ("live", "live paths: uint8 frames to heights per solver, size and thread count, fast vs eager"),
     ("lens", "lens optimizer: issue 16's targets, CMA-ES against random search and Nelder-Mead"),
-    ("all", "every benchmark; writes docs/benchmarks.md and an error-vs-time plot"),
+    ("modes", "lighting modes: normal error against capture and reconstruction time per mode and solver"),
+    ("all", "every benchmark; writes docs/benchmarks.md, .json, .html (the charts) and .png (their summary)"),
+    ("report", "the charts of a saved run: an offline interactive page (and the summary figure)"),
+    ("compare", "rows of two saved runs that got slower or less accurate beyond the noise (exit 1 if any)"),
 ]
+
+
+#: Commands that read saved runs instead of measuring.
+ON_SAVED_RUNS = ("report", "compare")
 
 
 def register(sub, name, help_text):
@@ -36,7 +46,8 @@ def register(sub, name, help_text):
     for bench_name, text in BENCHMARKS:
         p = group.add_parser(bench_name, help=text, description=text)
         add_json_flag(p)
-        p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke test")
+        if bench_name not in ON_SAVED_RUNS:
+            p.add_argument("--quick", action="store_true", help="smaller sizes, for a smoke test")
         if bench_name == wanted:
             module = _load(bench_name)
             if module is not None and hasattr(module, "add_arguments"):
@@ -72,6 +83,6 @@ def _runner(bench_name):
             print_json(result)
         else:
             print(module.format_table(result))
-        return 0
+        return int(result.get("exit_code", 0)) if isinstance(result, dict) else 0
 
     return run

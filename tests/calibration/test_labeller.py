@@ -14,12 +14,12 @@ import urllib.request
 import cv2
 import numpy as np
 import pytest
-from helpers import chromium_path
 
 from calibration.image_import import read_labels_csv
 from calibration.label_page import LabelServer
 from calibration.label_session import LabelSession
 from calibration.labels import capture_label_circles
+from helpers import chromium_path
 from pipeline.base import store
 from pipeline.base.capture import read_capture
 from pipeline.base.errors import UserError

@@ -4,6 +4,7 @@ import json
 
 import pytest
 
+from cdp_chromium import CHART_CHECK_JS, Chromium, find_chromium, serve
 from helpers import run_cli
 from pipeline.base.errors import UserError
 from pipeline.base.store import StageStore, read_record, write_record
@@ -55,15 +56,32 @@ def test_user_captures_without_truth_are_refused_clearly(small_sensor, tmp_path)
     assert r.returncode == 2 and "expected MODE=PATH" in r.stderr
 
 
-def test_demo_quick_runs_end_to_end(tmp_path):
-    r = run_cli("demo", "--quick", "--out", tmp_path / "demo", "--json", timeout=600)
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("demo") / "demo"
+    r = run_cli("demo", "--quick", "--out", out, "--json", timeout=600)
     assert r.returncode == 0, r.stderr[-2000:]
-    data = json.loads(r.stdout)
+    return out, json.loads(r.stdout)
+
+
+def test_demo_quick_runs_end_to_end(demo):
+    out, data = demo
     assert set(data["stages"]) == {"synthesize", "calibrate", "capture", "reconstruct"}
     modes = {x["mode"] for x in data["comparison"]["runs"]}
     assert modes == {"point", "monochromatic", "trichromatic", "multicolour"}
     assert all(x["normal_mean_error_deg"] is not None for x in data["comparison"]["runs"])
     assert data["calibration"]["accepted"] == data["settings"]["presses"]
-    out = tmp_path / "demo"
     assert json.loads((out / "report.json").read_text())["comparison"] == data["comparison"]
     assert (out / "report.html").read_text().count("<img") >= 4 * 3
+    assert data["summary_figure"] == str(out / "summary.png") and (out / "summary.png").stat().st_size > 20_000
+
+
+@pytest.mark.skipif(find_chromium() is None, reason="no chromium on PATH (Debian: apt-get install -y chromium)")
+def test_demo_report_charts_render_in_chromium(demo):
+    out, _ = demo
+    with serve(out) as url, Chromium() as browser:
+        page = browser.open(f"{url}/report.html", ready="document.body.dataset.rendered")
+        charts = page.evaluate(CHART_CHECK_JS)
+        assert {c["id"] for c in charts} == {"chart-modes-capture", "chart-modes-recon"}
+        assert all(c["svg"] and c["points"] >= 4 and c["overlaps"] == 0 for c in charts), charts
+        assert page.errors == []

@@ -7,11 +7,14 @@ from helpers import run_cli
 
 
 def test_bench_sim_sections_run_and_report_errors_beside_times():
-    r = run_cli("bench", "sim", "--quick", "--only", "rays,newton,multi,effects", "--repeats", "1", "--json",
+    r = run_cli("bench", "sim", "--quick", "--only", "rays,flux,newton,multi,effects", "--repeats", "1", "--json",
                 timeout=300)
     assert r.returncode == 0, r.stderr
     out = json.loads(r.stdout)
-    assert {"rays_sampler", "newton", "multi_source", "effects"} <= set(out)
+    assert {"rays_sampler", "flux", "newton", "multi_source", "effects"} <= set(out)
+    # the lens designer's flux error falls with rays; the brief's rays and sampler are the default
+    sobol = sorted((x["rays"], x["flux_error_pct"]) for x in out["flux"]["rows"] if x["sampler"] == "sobol")
+    assert sobol[-1][1] < sobol[0][1] and sum(x["default"] for x in out["flux"]["rows"]) == 1
     newton = out["newton"]
     rows = newton if isinstance(newton, list) else newton["rows"]
     # The robust solve converges to the float64 quartic's intersection with enough iterations.

@@ -3,7 +3,8 @@
 import json
 
 from helpers import run_cli
-from pipeline.bench.all import common_rows, format_markdown
+from pipeline.bench.all import common_rows
+from pipeline.bench.report import format_markdown
 
 
 def test_bench_all_writes_markdown_json_and_plot(tmp_path):
@@ -24,7 +25,7 @@ def test_sectioned_sim_results_become_common_rows():
                                    "median_error_mm": float("nan"), "seconds": 0.01}]}}
     rows = common_rows("sim", result)
     assert rows[0] == {"knob": "rays x sampler", "setting": "sobol 1,000", "error": 0.2,
-                       "error_unit": "rel. L2 vs reference", "seconds": 0.1}
+                       "error_unit": "rel. L2 vs reference", "seconds": 0.1, "sampler": "sobol", "rays": 1000}
     assert rows[1]["error"] is None  # NaN (no converged hit) is reported as no number, not NaN
     md = format_markdown({"machine": "m", "sections": [{"bench": "sim", "seconds": 1.0, "error": None,
                                                         "rows": [dict(r, machine="m") for r in rows],

@@ -18,6 +18,7 @@ import sys
 import numpy as np
 import pytest
 import torch
+
 from helpers import REPO
 
 
