@@ -35,7 +35,7 @@ from pipeline.outputs import png_bytes
 __all__ = ["LabelServer", "serve_labeller", "PAGE"]
 
 PAGE = r"""<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>IrisTac labeller</title>
+<html lang="en"><head><meta charset="utf-8"><title>IrisTac labeller</title><link rel="icon" href="data:,">
 <style>
 body { font-family: sans-serif; margin: 0; background: #1b1b1b; color: #eee; display: flex; height: 100vh; }
 #list { width: 14em; overflow-y: auto; border-right: 1px solid #444; padding: 0.5em; }

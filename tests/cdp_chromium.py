@@ -214,6 +214,30 @@ class Page:
                                    f"errors: {self.errors}")
             time.sleep(0.1)
 
+    def mouse(self, kind: str, x: float, y: float, buttons: int = 0) -> None:
+        """One ``Input.dispatchMouseEvent`` (``mouseMoved``, ``mousePressed``, ``mouseReleased``)
+        at page coordinates; ``buttons`` 1 while the left button is held."""
+        pressed = kind != "mouseMoved" or buttons
+        self.browser.send("Input.dispatchMouseEvent", {"type": kind, "x": x, "y": y,
+                                                       "button": "left" if pressed else "none", "buttons": buttons,
+                                                       "clickCount": 0 if kind == "mouseMoved" else 1},
+                          session=self.session)
+
+    def drag(self, x0: float, y0: float, x1: float, y1: float, steps: int = 6) -> None:
+        """Press the left button at ``(x0, y0)``, move in ``steps`` to ``(x1, y1)``, release."""
+        self.mouse("mouseMoved", x0, y0)
+        self.mouse("mousePressed", x0, y0, buttons=1)
+        for i in range(1, steps + 1):
+            self.mouse("mouseMoved", x0 + (x1 - x0) * i / steps, y0 + (y1 - y0) * i / steps, buttons=1)
+        self.mouse("mouseReleased", x1, y1)
+
+    def click(self, selector: str) -> None:
+        """A left click at the centre of the element ``selector`` matches."""
+        x, y = self.evaluate(f"(() => {{ const b = document.querySelector({json.dumps(selector)})"
+                             ".getBoundingClientRect(); return [b.x + b.width / 2, b.y + b.height / 2]; })()")
+        self.mouse("mousePressed", x, y, buttons=1)
+        self.mouse("mouseReleased", x, y)
+
     def screenshot(self, clip: dict | None = None) -> bytes:
         """A PNG of the viewport, or of ``clip`` (``{"x", "y", "width", "height"}`` in page px)."""
         params: dict = {"format": "png"}

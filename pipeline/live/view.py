@@ -25,7 +25,7 @@ import numpy as np
 __all__ = ["LiveView", "PAGE"]
 
 PAGE = """<!doctype html>
-<html lang="en"><head><meta charset="utf-8"><title>IrisTac live</title>
+<html lang="en"><head><meta charset="utf-8"><title>IrisTac live</title><link rel="icon" href="data:,">
 <style>
 body { font-family: sans-serif; margin: 1em; background: #111; color: #eee; }
 .maps { display: flex; gap: 1em; flex-wrap: wrap; }

@@ -6,8 +6,6 @@ from __future__ import annotations
 import http.client
 import json
 import shutil
-import subprocess
-import time
 import urllib.error
 import urllib.request
 
@@ -19,7 +17,7 @@ from calibration.image_import import read_labels_csv
 from calibration.label_page import LabelServer
 from calibration.label_session import LabelSession
 from calibration.labels import capture_label_circles
-from helpers import chromium_path
+from cdp_chromium import Chromium, find_chromium
 from pipeline.base import store
 from pipeline.base.capture import read_capture
 from pipeline.base.errors import UserError
@@ -151,111 +149,34 @@ def test_cli_serves_and_reports(capture, capsys):
 
 # -- the page in a real browser ---------------------------------------------------------------
 
-class _DevTools:
-    """A minimal Chrome DevTools protocol client (websocket-client) for one page."""
-
-    def __init__(self, ws_url):
-        import websocket
-
-        self.ws = websocket.create_connection(ws_url, timeout=60, suppress_origin=True)
-        self.n = 0
-
-    def call(self, method, **params):
-        self.n += 1
-        self.ws.send(json.dumps({"id": self.n, "method": method, "params": params}))
-        while True:
-            msg = json.loads(self.ws.recv())
-            if msg.get("id") == self.n:
-                if "error" in msg:
-                    raise RuntimeError(f"{method}: {msg['error']}")
-                return msg.get("result", {})
-
-    def js(self, expr):
-        r = self.call("Runtime.evaluate", expression=expr, returnByValue=True, awaitPromise=True)
-        if "exceptionDetails" in r:
-            raise RuntimeError(f"{expr}: {r['exceptionDetails']}")
-        return r["result"].get("value")
-
-    def wait(self, expr, timeout=30.0):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if self.js(expr):
-                return
-            time.sleep(0.05)
-        raise AssertionError(f"timed out waiting for {expr}")
-
-    def mouse(self, kind, x, y, buttons=0):
-        self.call("Input.dispatchMouseEvent", type=kind, x=x, y=y, button="left" if kind != "mouseMoved" or buttons
-                  else "none", buttons=buttons, clickCount=1 if kind != "mouseMoved" else 0)
-
-    def drag(self, x0, y0, x1, y1, steps=6):
-        self.mouse("mouseMoved", x0, y0)
-        self.mouse("mousePressed", x0, y0, buttons=1)
-        for i in range(1, steps + 1):
-            self.mouse("mouseMoved", x0 + (x1 - x0) * i / steps, y0 + (y1 - y0) * i / steps, buttons=1)
-        self.mouse("mouseReleased", x1, y1)
-
-    def click(self, selector):
-        r = self.js(f"(() => {{ const b = document.querySelector('{selector}').getBoundingClientRect(); "
-                    "return [b.x + b.width / 2, b.y + b.height / 2]; })()")
-        self.mouse("mousePressed", *r, buttons=1)
-        self.mouse("mouseReleased", *r)
-
-
-def _websocket_client_missing() -> bool:
-    try:
-        import websocket  # noqa: F401
-    except ImportError:
-        return True
-    return False
-
-
-@pytest.mark.skipif(chromium_path() is None, reason="no headless Chromium installed (apt-get install chromium); the "
-                                                "labeller's endpoints are tested over HTTP regardless")
-@pytest.mark.skipif(_websocket_client_missing(), reason="websocket-client not installed (pip install -e '.[test]')")
-def test_drag_and_resize_in_headless_chromium(capture, tmp_path):
+@pytest.mark.skipif(find_chromium() is None, reason="no headless Chromium installed (apt-get install chromium); the "
+                                                  "labeller's endpoints are tested over HTTP regardless")
+def test_drag_and_resize_in_headless_chromium(capture):
     session = LabelSession(capture)
     server = LabelServer(session)
-    profile = tmp_path / "profile"
-    flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-             "--disable-background-networking", "--disable-component-update", "--disable-sync",
-             f"--user-data-dir={profile}", "--remote-debugging-port=0", "--window-size=1200,900", "about:blank"]
-    proc = subprocess.Popen([chromium_path(), *flags], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
-        port_file = profile / "DevToolsActivePort"
-        end = time.monotonic() + 60
-        while not (port_file.is_file() and port_file.read_text().strip()) and time.monotonic() < end:
-            time.sleep(0.05)
-        port = int(port_file.read_text().split()[0])
-        pages = json.loads(_get(f"http://127.0.0.1:{port}/json/list")[2])
-        dt = _DevTools(next(p for p in pages if p["type"] == "page")["webSocketDebuggerUrl"])
-        dt.call("Page.navigate", url=server.url + "?press=0")
-        dt.wait("window.labeller !== undefined && window.labeller.ready === true")
-        scale = dt.js("window.labeller.scale")
-        det = dt.js("window.labeller.press.detected")
-        dt.click("#accept")  # the button, clicked with the mouse
-        dt.wait("window.labeller.saved === 1 && window.labeller.saving === 0")
-        rect = dt.js("(() => { const b = document.getElementById('lab').getBoundingClientRect(); "
-                     "return [b.x + b.width / 2, b.y + b.height / 2, b.width / 2]; })()")
-        cx, cy, r = rect
-        dt.drag(cx, cy, cx + 30, cy + 20)  # move: drag inside the circle
-        dt.wait("window.labeller.saved === 2 && window.labeller.saving === 0")
-        dt.drag(cx + 30 + r, cy + 20, cx + 30 + r + 16, cy + 20)  # resize: drag the handle on the rim
-        dt.wait("window.labeller.saved === 3 && window.labeller.saving === 0")
-        dt.click("#next")
-        dt.wait("window.labeller.press && window.labeller.press.index === 1")
-        dt.click("#reject")
-        dt.wait("window.labeller.saved === 4 && window.labeller.saving === 0")
-        assert dt.js("window.labeller.errors") == 0
-        assert dt.js("document.getElementById('press-1').className").startswith("rejected")
-        dt.call("Browser.close")
+        with Chromium(width=1200, height=900) as browser:
+            page = browser.open(server.url + "?press=0",
+                                ready="window.labeller !== undefined && window.labeller.ready === true")
+            scale = page.evaluate("window.labeller.scale")
+            det = page.evaluate("window.labeller.press.detected")
+            page.click("#accept")  # the button, clicked with the mouse
+            page.wait_for("window.labeller.saved === 1 && window.labeller.saving === 0")
+            cx, cy, r = page.evaluate("(() => { const b = document.getElementById('lab').getBoundingClientRect(); "
+                                      "return [b.x + b.width / 2, b.y + b.height / 2, b.width / 2]; })()")
+            page.drag(cx, cy, cx + 30, cy + 20)  # move: drag inside the circle
+            page.wait_for("window.labeller.saved === 2 && window.labeller.saving === 0")
+            page.drag(cx + 30 + r, cy + 20, cx + 30 + r + 16, cy + 20)  # resize: drag the handle on the rim
+            page.wait_for("window.labeller.saved === 3 && window.labeller.saving === 0")
+            page.click("#next")
+            page.wait_for("window.labeller.press && window.labeller.press.index === 1")
+            page.click("#reject")
+            page.wait_for("window.labeller.saved === 4 && window.labeller.saving === 0")
+            assert page.evaluate("window.labeller.errors") == 0
+            assert page.evaluate("document.getElementById('press-1').className").startswith("rejected")
+            assert page.errors == []
     finally:
         server.close()
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout=20)
     lab = read_capture(capture).labels
     np.testing.assert_allclose(lab["center_xy"][0], [det["x"] + 30 / scale, det["y"] + 20 / scale], atol=0.6)
     assert abs(lab["radius_px"][0] - (det["radius_px"] + 16 / scale)) < 0.6

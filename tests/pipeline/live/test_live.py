@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import json
 import os
-import shutil
 import signal
 import subprocess
 import sys
@@ -21,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cdp_chromium import find_chromium
 from helpers import REPO, run_cli
 
 SIZE = "80x60"
@@ -325,15 +325,7 @@ def _stop_view(proc) -> None:
     proc.stderr.close()
 
 
-def _chromium() -> str | None:
-    for name in ("chromium", "chromium-browser", "google-chrome"):
-        path = shutil.which(name)
-        if path:
-            return path
-    return None
-
-
-@pytest.mark.skipif(_chromium() is None, reason="no headless Chromium installed (apt-get install chromium); "
+@pytest.mark.skipif(find_chromium() is None, reason="no headless Chromium installed (apt-get install chromium); "
                                                 "the page's endpoints are tested over HTTP regardless")
 def test_live_page_in_headless_chromium(store, tmp_path):
     """The page, rendered by a real browser: its script fetched the stats and the three maps."""
@@ -345,7 +337,7 @@ def test_live_page_in_headless_chromium(store, tmp_path):
         flags = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
                  "--disable-component-update", "--disable-sync", "--no-first-run",
                  f"--user-data-dir={tmp_path / 'profile'}", "--virtual-time-budget=3000"]
-        dom = subprocess.run([_chromium(), *flags, "--dump-dom", url], capture_output=True, text=True, timeout=120)
+        dom = subprocess.run([find_chromium(), *flags, "--dump-dom", url], capture_output=True, text=True, timeout=120)
         assert dom.returncode == 0, dom.stderr[-2000:]
         html = dom.stdout
         assert 'id="fps"' in html and "trichromatic" in html  # filled in from stats.json by the page's script
@@ -354,7 +346,7 @@ def test_live_page_in_headless_chromium(store, tmp_path):
         assert re.search(r'<span id="fps">\d+\.\d</span>', html), html[-1500:]
         assert re.search(r'<img id="depth" alt="depth" src="depth\.png\?r=\d+"', html), html[-1500:]
         shot = tmp_path / "page.png"
-        subprocess.run([_chromium(), *flags, f"--screenshot={shot}", "--window-size=1100,700", url],
+        subprocess.run([find_chromium(), *flags, f"--screenshot={shot}", "--window-size=1100,700", url],
                        capture_output=True, timeout=120)
         import cv2
 
