@@ -1,9 +1,10 @@
 """``iristac bench live``'s throughput measurements: frames in parallel on the CPU, and the GPU pipeline.
 
-CPU (:func:`frame_parallel_rows`): ``K`` distinct copies of a frame set, each solved by the
-live fast path and integrated by :class:`pipeline.depth.fast.FastDST` on one thread, ``N``
-frames at a time (:class:`pipeline.base.frame_pool.FramePool`), for ``N`` = 1, 2, 4, 8, 16 up
-to the cores; frames per second of the whole batch.
+CPU (:func:`frame_parallel_rows`): ``K`` distinct copies of a frame set through
+:class:`pipeline.normals.cpu_batch.CPUFramePipeline` (normals by the batch kernel, each thread
+a run of pixel blocks of every frame; then heights, each thread a run of frames) on ``N`` =
+1, 2, 4, 8, 16 threads up to the cores; frames per second of the whole batch, the normals and
+the depth alone, and the Python time a frame (what holds the GIL).
 
 GPU (:func:`measure_device`): :class:`pipeline.normals.gpu_stream.GPUFramePipeline` with the
 fused kernel and with the torch einsum solver; the pinned upload alone, the solve alone on
@@ -44,44 +45,92 @@ def thread_counts(cores: int) -> list[int]:
     return out if cores in out else out + [cores]
 
 
-def frame_parallel_rows(label: str, size: str, solve, dst, frames: np.ndarray, truth: np.ndarray, cores: int,
-                        repeats: int, count: int = 128) -> list[dict]:
-    """Rows ``path = "frames"``: ``count`` frames, ``N`` at a time, each on one thread (``solve(f, 1)``
-    then ``dst.integrate``); ``seconds`` is per frame (the batch's time over ``count``)."""
-    from pipeline.base.frame_pool import FramePool
+def frame_parallel_rows(label: str, size: str, fast, dst, frames: np.ndarray, truth: np.ndarray, cores: int,
+                        repeats: int, count: int = 128, per_frame: bool = False) -> list[dict]:
+    """Rows ``path = "frames"``: ``count`` distinct frame sets through
+    :class:`pipeline.normals.cpu_batch.CPUFramePipeline` on ``N`` threads (the normals and the
+    depth also timed alone); ``seconds`` is per frame (the batch's time over ``count``).
+    ``serial_us``: the pipeline's Python time a frame (the same batch of 8 x 8 frames, whose
+    compute is nil: all of it holds the GIL), and ``gil_busy`` its share of the batch's wall
+    time (on one thread: of a frame's time; the lock is a bound once it nears 1). ``per_frame``: also rows ``path = "pool"``, one Python task per frame
+    on :class:`pipeline.base.frame_pool.FramePool` (``fast.solve`` then ``dst.integrate``: the
+    earlier design), for comparison."""
+    from pipeline.normals.cpu_batch import CPUFramePipeline
 
     batch = np.repeat(frames[None], count, axis=0)  # distinct memory per frame, as a recording has
+    r0 = fast.solve(frames, 1)
+    K, (H, W) = count, dst.shape
+    height, valid = np.empty((K, H, W), np.float32), np.empty((K, H, W), np.bool_)
+    runs = max(2, repeats // 10)
+    rows: list[dict] = []
+    base = None
+    serial = _serial_seconds(count, runs)
+    for n in thread_counts(cores):
+        with CPUFramePipeline(fast, dst, threads=n) as pipe:
+            pipe.run(batch[:n])  # warm: threads started, kernels loaded
+            sec, out = _best_of(lambda p=pipe: p.run(batch, out=height), runs)
+            planes = out["planes"]
+            sec_n, _ = _best_of(lambda p=pipe: p.normals(batch), runs)
+            sec_d, _ = _best_of(lambda p=pipe: dst.integrate_batch(planes.normals, planes.mask, p.pool,
+                                                                   out=(height, valid)), runs)
+        fps = count / sec
+        base = base or fps
+        last = planes.result(count - 1)
+        rows.append({"solver": label, "size": size, "path": "frames", "threads": n, "seconds": sec / count,
+                     "fps": fps, "error_deg": _err(last.normals, truth),
+                     "deviation_deg": _dev(last.normals, r0.normals, last.mask & r0.mask), "frames": count,
+                     "speedup": fps / base, "device": "cpu", "normals_fps": count / sec_n, "depth_fps": count / sec_d,
+                     "serial_us": serial * 1e6 / count, "gil_busy": serial / sec})
+    if per_frame:
+        rows += _pool_rows(label, size, fast, dst, batch, truth, cores, runs)
+    return rows
+
+
+def _best_of(fn, runs: int):
+    best, out = float("inf"), None
+    for _ in range(runs):
+        t = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def _serial_seconds(count: int, runs: int) -> float:
+    """Seconds a batch of ``count`` 8 x 8 frame sets takes the pipeline on one thread: its Python
+    work (the compute of such frames is nil), which is what holds the GIL."""
+    from pipeline.bench.recon_scene import render_sphere_scene
+    from pipeline.depth.fast import FastDST
+    from pipeline.normals.cpu_batch import CPUFramePipeline
+    from pipeline.normals.fast import NearFieldFast
+
+    s = render_sphere_scene((8, 8), 1.0, radius=3.0, depth=0.5, num_patterns=8, noise=1.0, bits=8, seed=0)
+    tiny = np.repeat(s.frames.astype(np.uint8)[None], count, axis=0)
+    fast = NearFieldFast(s.lights_flat(), groups=np.tile(np.arange(3), tiny.shape[1]))
+    with CPUFramePipeline(fast, FastDST((8, 8), 1.0), threads=1) as pipe:
+        pipe.run(tiny)
+        return _best_of(lambda: pipe.run(tiny), 5 * runs)[0]
+
+
+def _pool_rows(label: str, size: str, fast, dst, batch: np.ndarray, truth: np.ndarray, cores: int,
+               runs: int) -> list[dict]:
+    """Rows ``path = "pool"``: one Python task per frame (see :func:`frame_parallel_rows`)."""
+    from pipeline.base.frame_pool import FramePool
 
     def one(f):
-        r = solve(f, 1)
+        r = fast.solve(f, 1)
         return r, dst.integrate(r.normals, r.mask, workers=1)
 
-    r0 = solve(frames, 1)
-
-    def best_of(pool, fn, items):
-        best = float("inf")
-        out = None
-        for _ in range(max(2, repeats // 10)):
-            t = time.perf_counter()
-            out = pool.map(fn, items)
-            best = min(best, time.perf_counter() - t)
-        return best, out
-
-    rows = []
-    base = None
+    count = len(batch)
+    rows, base = [], None
     for n in thread_counts(cores):
         with FramePool(n) as pool:
             pool.map(one, batch[:n])  # warm
-            sec, out = best_of(pool, one, batch)
-            # where the time goes at n threads: the normals alone, the depth alone (one frame's normals)
-            sec_n, _ = best_of(pool, lambda f: solve(f, 1), batch)
-            sec_d, _ = best_of(pool, lambda _: dst.integrate(r0.normals, r0.mask, workers=1), range(count))
+            sec, out = _best_of(lambda p=pool: p.map(one, batch), runs)
         fps = count / sec
         base = base or fps
-        rows.append({"solver": label, "size": size, "path": "frames", "threads": n, "seconds": sec / count,
-                     "fps": fps, "error_deg": _err(out[-1][0].normals, truth), "deviation_deg": None,
-                     "frames": count, "speedup": fps / base, "device": "cpu", "normals_fps": count / sec_n,
-                     "depth_fps": count / sec_d})
+        rows.append({"solver": label, "size": size, "path": "pool", "threads": n, "seconds": sec / count, "fps": fps,
+                     "error_deg": _err(out[-1][0].normals, truth), "deviation_deg": None, "frames": count,
+                     "speedup": fps / base, "device": "cpu"})
     return rows
 
 

@@ -12,11 +12,13 @@ normal equations, the same per-group albedo alternation when the channels see di
 lights, the same masks), which stays as the reference: ``tests/pipeline/normals/test_fast_paths.py``
 pins the two together to float32 rounding.
 
-The kernel is Numba, compiled once and cached on disk (``cache=True``; ``NUMBA_CACHE_DIR``
-moves the cache): a first use in a fresh process loads it in well under a second. It works
-on blocks of pixels with pixel-contiguous planes (observations de-interleaved once per frame
-by OpenCV's SIMD channel split, the light field stored ``(N, 3, M)``), so the inner loops run
-over pixels and vectorise.
+The kernels (:mod:`pipeline.normals.fast_kernels`) are Numba, compiled once and cached on disk
+(``cache=True``; ``NUMBA_CACHE_DIR`` moves the cache): a first use in a fresh process loads
+them in well under a second. They work on blocks of 512 pixels with pixel-contiguous planes
+(each block's observations de-interleaved from the camera's frames in the kernel, the light
+field stored in blocks), so the inner loops run over pixels and vectorise. One frame
+(:meth:`NearFieldFast.solve`, live) and a stack of frames (:meth:`NearFieldFast.solve_batch`,
+throughput: :mod:`pipeline.normals.cpu_batch`) go through the same kernel.
 
 Integer frames only (uint8/uint16: no NaN can reach the moments); float frames with NaN/Inf
 go to the eager solver. Lights that are not finite at a pixel make that pixel invalid here
@@ -30,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.normals.fast_kernels import nearfield_batch, nearfield_kernel, shared_batch, shared_factors, shared_kernel
+from pipeline.normals.fast_kernels import nearfield_batch, shared_batch, shared_factors
 from pipeline.normals.result import COND_CAP, NormalResult
 
 __all__ = ["NearFieldFast", "PlaneBatch", "frame_planes_np", "split_into", "run_split", "BLOCK"]
@@ -306,52 +308,21 @@ class NearFieldFast:
     def pixels(self) -> int:
         return int(len(self.index))
 
-    def solve_planes(self, planes: np.ndarray, threads: int = 1):
-        """The raw kernel on observation planes ``(N, M)`` (integer dtype) of the solved pixels:
-        ``(normals (M, 3), albedo (M, G), residual (M,), mask (M,))`` float32/bool.
-
-        ``threads`` > 1 splits the pixels between that many threads (the kernel releases the
-        GIL); a frame this small is memory-bound, so two threads gain what the second core's
-        share of the memory bandwidth gives.
-        """
-        M = len(self.index)
-        if planes.shape != (self.n_obs, M):
-            raise ValueError(f"NearFieldFast: observation planes must be ({self.n_obs}, {M}), got {planes.shape}")
-        residual = np.empty(M, np.float32)
-        mask = np.empty(M, np.bool_)
-        if self.pinv:
-            args = (planes, self.dark, self.invflat, self.Lt, self.Q, self.scale)
-            np_, ap = np.empty((3, M), np.float32), np.empty((self.num_groups, M), np.float32)
-            run_split(lambda a, b: shared_kernel(*args, a, b, np_, ap, residual, mask), M, threads)
-            # (M, 3) and (M, G) views of the planes, not copies: FastDST reads the planes back
-            # without a split, and interleaving both cost two more passes over the frame.
-            normals, albedo = np_.T, ap.T
-        else:
-            normals = np.empty((M, 3), np.float32)
-            albedo = np.empty((M, self.num_groups), np.float32)
-            outs = (normals, albedo, residual, mask)
-            args = (planes, self.dark, self.invflat, self.Lt, self.inv, self.Q, self.scale, self.groups,
-                    self.num_groups, self.valid0, self.iterations)
-            run_split(lambda a, b: nearfield_kernel(*args, a, b, *outs), M, threads)
-        return normals, albedo, residual, mask
-
     def solve(self, frames, threads: int = 1) -> NormalResult:
-        """Normals of one frame set ``(P, H, W, C)`` (uint8 or uint16; ``P * C = N``) on
-        ``threads`` threads."""
-        f = np.asarray(frames)
-        if f.ndim != 4 or f.shape[1:3] != self.shape or f.shape[0] * f.shape[3] != self.n_obs:
-            raise ValueError(f"NearFieldFast.solve: frames must be (P, {self.shape[0]}, {self.shape[1]}, C) with "
-                             f"P * C = {self.n_obs}, got {f.shape}")
-        if f.dtype.kind not in "ui":
-            raise ValueError(f"NearFieldFast.solve: integer frames expected (uint8/uint16), got {f.dtype}; float "
-                             f"frames go to the eager NearFieldSolver")
-        planes = frame_planes_np(f, None if self.region is None else self.index)
-        n, rho, res, ok = self.solve_planes(planes, threads)
-        return self._result(n, rho, res, ok)
+        """Normals of one frame set ``(P, H, W, C)`` (uint8 or uint16; ``P * C = N``), its pixels
+        split between ``threads`` threads (the kernel releases the GIL; a frame this small is
+        memory-bound, so two threads gain what the second core's share of the memory bandwidth
+        gives). Normals and albedo are views of the kernel's planes, which
+        :class:`pipeline.depth.fast.FastDST` reads without a split."""
+        f = self._check(np.asarray(frames)[None], "solve")
+        out = self.batch_planes(1)
+        kernel, args, outs = self._call(f, out)
+        run_split(lambda a, b: kernel(*args, a, b, *outs), len(self.index), threads)
+        return out.result(0)
 
     def batch_planes(self, K: int) -> PlaneBatch:
         """Output planes for :meth:`solve_batch` of ``K`` frames (pixels outside the region filled
-        once here: the kernels write only the region's)."""
+        here: the kernels write only the region's)."""
         H, W = self.shape
         G = self.num_groups
         out = PlaneBatch(np.empty((K, 3, H, W), np.float32), np.empty((K, G, H, W), np.float32),
@@ -368,43 +339,50 @@ class NearFieldFast:
 
     def solve_batch(self, frames, pool=None, out: PlaneBatch | None = None, parts: int | None = None) -> PlaneBatch:
         """Normals of ``K`` frame sets ``frames (K, P, H, W, C)`` (uint8 or uint16, C-contiguous as a
-        camera or an HDF5 file gives them; ``P * C = N``) by one call of the batch kernel per part
+        camera or an HDF5 file gives them; ``P * C = N``) by one call of the kernel per part
         (:func:`pipeline.normals.fast_kernels.shared_batch` / ``nearfield_batch``): each part is a
-        range of pixels of every frame, so a block's factors are read once a batch.
+        run of pixels of every frame, so a block's factors are read once a call.
 
         ``pool``: a :class:`pipeline.base.frame_pool.FramePool` whose threads run the parts
         (None: this thread); ``parts``: how many (default four a thread: the last blocks do not
         leave threads idle); ``out``: planes to fill (:meth:`batch_planes`), else new ones. The
-        same numbers as :meth:`solve` frame by frame.
+        same numbers as :meth:`solve` frame by frame, bit for bit.
         """
-        f = np.asarray(frames)
-        if f.ndim != 5 or f.shape[2:4] != self.shape or f.shape[1] * f.shape[4] != self.n_obs:
-            raise ValueError(f"NearFieldFast.solve_batch: frames must be (K, P, {self.shape[0]}, {self.shape[1]}, C) "
-                             f"with P * C = {self.n_obs}, got {f.shape}")
-        if f.dtype.kind not in "ui":
-            raise ValueError(f"NearFieldFast.solve_batch: integer frames expected (uint8/uint16), got {f.dtype}")
-        K, P, H, W, C = f.shape
-        out = self.batch_planes(K) if out is None else out
-        if out.normals.shape != (K, 3, H, W) or out.albedo.shape[1] != self.num_groups:
-            raise ValueError(f"NearFieldFast.solve_batch: out planes are for {out.normals.shape}, frames {f.shape}")
-        flat = np.ascontiguousarray(f).reshape(K, P, H * W * C)
-        index = self.index if self.region is not None else np.zeros(0, np.int64)
-        outs = (out.normals.reshape(K, 3, H * W), out.albedo.reshape(K, self.num_groups, H * W),
-                out.residual.reshape(K, H * W), out.mask.reshape(K, H * W))
-        if self.pinv:
-            args = (flat, index, C, self.dark, self.invflat, self.Lt, self.Q, self.scale)
-            kernel = shared_batch
-        else:
-            args = (flat, index, C, self.dark, self.invflat, self.Lt, self.inv, self.Q, self.scale, self.groups,
-                    self.num_groups, self.valid0, self.iterations)
-            kernel = nearfield_batch
+        f = self._check(np.asarray(frames), "solve_batch")
+        out = self.batch_planes(f.shape[0]) if out is None else out
+        kernel, args, outs = self._call(f, out)
         M = len(self.index)
         if pool is None:
             kernel(*args, 0, M, *outs)
         else:
-            pool.split(lambda a, b: kernel(*args, a, b, *outs), M, multiple=BLOCK,
-                       parts=parts or 4 * pool.threads)
+            pool.split(lambda a, b: kernel(*args, a, b, *outs), M, multiple=BLOCK, parts=parts or 4 * pool.threads)
         return out
+
+    def _check(self, f: np.ndarray, name: str) -> np.ndarray:
+        """Frames ``(K, P, H, W, C)`` checked (C-contiguous)."""
+        if f.ndim != 5 or f.shape[2:4] != self.shape or f.shape[1] * f.shape[4] != self.n_obs:
+            got, want = (f.shape[1:], "(P, {}, {}, C)") if name == "solve" else (f.shape, "(K, P, {}, {}, C)")
+            raise ValueError(f"NearFieldFast.{name}: frames must be {want.format(*self.shape)} with P * C = "
+                             f"{self.n_obs}, got {got}")
+        if f.dtype.kind not in "ui":
+            raise ValueError(f"NearFieldFast.{name}: integer frames expected (uint8/uint16), got {f.dtype}; float "
+                             f"frames go to the eager NearFieldSolver")
+        return np.ascontiguousarray(f)
+
+    def _call(self, f: np.ndarray, out: PlaneBatch):
+        """``(kernel, arguments, outputs)`` of the kernel on frames ``f (K, P, H, W, C)``; the pixel
+        range goes between the arguments and the outputs."""
+        K, P, H, W, C = f.shape
+        if out.normals.shape != (K, 3, H, W) or out.albedo.shape[1] != self.num_groups:
+            raise ValueError(f"NearFieldFast: output planes are for {out.normals.shape}, frames {f.shape}")
+        flat = f.reshape(K, P, H * W * C)
+        index = self.index if self.region is not None else np.zeros(0, np.int64)
+        outs = (out.normals.reshape(K, 3, H * W), out.albedo.reshape(K, self.num_groups, H * W),
+                out.residual.reshape(K, H * W), out.mask.reshape(K, H * W))
+        if self.pinv:
+            return shared_batch, (flat, index, C, self.dark, self.invflat, self.Lt, self.Q, self.scale), outs
+        return nearfield_batch, (flat, index, C, self.dark, self.invflat, self.Lt, self.inv, self.Q, self.scale,
+                                 self.groups, self.num_groups, self.valid0, self.iterations), outs
 
     def _full(self, a, fill):
         """Per-pixel values of the solved pixels ``(M, ...)`` as an image ``(H, W, ...)``."""
@@ -415,10 +393,3 @@ class NearFieldFast:
         out[...] = fill
         out[self.index] = a
         return out.reshape((H, W) + a.shape[1:])
-
-    def _result(self, n, rho, res, ok) -> NormalResult:
-        full = self._full
-        return NormalResult(normals=full(n, np.array([0, 0, 1], np.float32)), albedo=full(rho, 0), residual=full(res, 0),
-                            condition=full(self.condition_m, COND_CAP), mask=full(ok, False),
-                            count=full(self._count, 0),
-                            meta={"solver": "nearfield", "method": "fast", "max_condition": self.max_condition})

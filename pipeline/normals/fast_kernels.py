@@ -1,23 +1,21 @@
 """The compiled near-field kernels of :class:`pipeline.normals.fast.NearFieldFast`.
 
 Two estimators, each written once as the work on one block of 512 pixels (``_nearfield_block``,
-``_shared_block``, inlined into their drivers by Numba: ``inline="always"``), and each driven
-two ways:
+``_shared_block``, inlined by Numba: ``inline="always"``), each driven by one kernel over
+camera frames as they arrive, interleaved ``(K, P, H*W*C)``: pixels ``start:stop`` of every
+frame, one block of every frame after the other (:func:`nearfield_batch`,
+:func:`shared_batch`). A block's precomputed factors (about 60 KB) are read from memory once a
+call and stay in the core's cache for the other frames; each frame's pixels of the block are
+de-interleaved into observation planes in the kernel (:func:`gather_block`); the outputs are
+written as whole-frame planes (:func:`_store_block`, which also scatters a region's pixels).
+One frame (the live path, ``K = 1``) is split between threads by pixels; many frames
+(``iristac bench live``'s frames rows, ``batch``/``reconstruct --threads``) by runs of pixels of
+every frame, one call per run, so Python and its lock are entered a few times per thread and
+batch, not once a frame.
 
-- one frame (:func:`nearfield_kernel`, :func:`shared_kernel`): observation planes ``(N, M)``
-  of a frame (de-interleaved by OpenCV, :func:`pipeline.normals.fast.frame_planes_np`),
-  pixels ``start:stop``; the live path, which splits one frame's pixels between threads;
-- a batch of frames (:func:`nearfield_batch`, :func:`shared_batch`): interleaved camera frames
-  ``(K, P, H*W*C)`` as they arrive, pixels ``start:stop`` of every frame, one block of every
-  frame after the other: a block's precomputed factors (about 60 KB) are read from memory once
-  a batch and stay in the core's cache for the other frames, and a frame's pixels are
-  de-interleaved into the block's planes in the kernel (:func:`gather_block`). Throughput work
-  (``iristac bench live``'s frames rows, ``batch``) calls it once per thread and batch, so
-  Python and its lock are entered once a batch, not once a frame.
-
-The general kernel (:func:`nearfield_kernel`) takes per-observation lights, per-channel Gram
+The general kernel (:func:`nearfield_batch`) takes per-observation lights, per-channel Gram
 matrices and the per-channel albedo alternation: the estimator of
-:class:`pipeline.normals.nearfield.NearFieldSolver`. The second (:func:`shared_kernel`) is its closed
+:class:`pipeline.normals.nearfield.NearFieldSolver`. The second (:func:`shared_batch`) is its closed
 form when every camera channel sees the same LEDs (white patterns): then the light
 of observation ``(p, g)`` at a pixel is ``s_g(x) L_p(x)`` (:meth:`NearFieldFast._shared_scale`),
 the Gram matrices are ``Q_g = s_g^2 Q_0`` with ``Q_0 = sum_p L_p L_p^T``, and the albedo
@@ -42,7 +40,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["shared_factors", "gather_block", "nearfield_kernel", "nearfield_batch", "shared_kernel", "shared_batch"]
+__all__ = ["shared_factors", "gather_block", "nearfield_batch", "shared_batch"]
 
 _TINY = np.float32(1.1754944e-38)
 # Every kernel is compiled with error_model="numpy": Numba's default (Python semantics) checks
@@ -291,18 +289,6 @@ def _nearfield_block(obs, o0, B, j0, x0, dark, invflat, L, inv, Q, scale, groups
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, valid0, iterations, start, stop,
-                     normals, albedo, residual, mask):  # pragma: no cover - compiled
-    """Pixels ``start:stop`` (``start`` a multiple of 512) of one frame's observation planes
-    ``obs (N, M)``: moments, solve, outputs (``_nearfield_block`` has the layouts)."""
-    scratch = _nearfield_scratch(num_groups)
-    for j0 in range(start, stop, 512):
-        B = min(stop, j0 + 512) - j0
-        _nearfield_block(obs, j0, B, j0, j0, dark, invflat, L, inv, Q, scale, groups, num_groups, valid0,
-                         iterations, scratch, normals, albedo, residual, mask)
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
 def nearfield_batch(frames, index, channels, dark, invflat, L, inv, Q, scale, groups, num_groups, valid0,
                     iterations, start, stop, normals, albedo, residual, mask):  # pragma: no cover - compiled
     """Pixels ``start:stop`` (``start`` a multiple of 512) of every frame of interleaved camera
@@ -332,22 +318,29 @@ def _store_block(nb, ab, rb, mb, index, j0, B, normals, albedo, residual, mask):
     """A block's outputs (``nb (3, 512)``, ``ab (G, 512)``, ``rb``, ``mb (512,)``, ``B`` of them
     real) into whole-frame planes ``normals (3, H*W)``, ``albedo (G, H*W)``, ``residual``,
     ``mask (H*W,)`` at pixels ``j0:j0 + B`` (``index[j0:j0 + B]`` when ``index`` is not empty)."""
-    if index.shape[0] == 0:  # contiguous stores
-        residual[j0:j0 + B] = rb[:B]
-        mask[j0:j0 + B] = mb[:B]
-        for c in range(3):
-            normals[c, j0:j0 + B] = nb[c, :B]
-        for g in range(ab.shape[0]):
-            albedo[g, j0:j0 + B] = ab[g, :B]
-        return
+    whole = index.shape[0] == 0
     for j in range(B):
-        x = index[j0 + j]
+        x = j0 + j if whole else index[j0 + j]
         residual[x] = rb[j]
         mask[x] = mb[j]
-        for c in range(3):
-            normals[c, x] = nb[c, j]
-        for g in range(ab.shape[0]):
-            albedo[g, x] = ab[g, j]
+    for c in range(3):
+        nc = normals[c]
+        bc = nb[c]
+        if whole:
+            for j in range(B):
+                nc[j0 + j] = bc[j]
+        else:
+            for j in range(B):
+                nc[index[j0 + j]] = bc[j]
+    for g in range(ab.shape[0]):
+        ag = albedo[g]
+        bg = ab[g]
+        if whole:
+            for j in range(B):
+                ag[j0 + j] = bg[j]
+        else:
+            for j in range(B):
+                ag[index[j0 + j]] = bg[j]
 
 
 @njit(inline="always", error_model="numpy", fastmath={"contract"})
@@ -470,32 +463,6 @@ def _shared_block(obs, o0, B, j0, x0, dark, invflat, Pi, Q0, scale, U, F, rh, Ib
         ag = albedo[g]
         for j in range(B):
             ag[x0 + j] = rh[g, j]
-
-
-@njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
-def shared_kernel(obs, dark, invflat, Pi, Q0, scale, start, stop, normals, albedo, residual,
-                  mask):  # pragma: no cover - compiled
-    """Pixels ``start:stop`` (``start`` a multiple of 512) of one frame's observation planes
-    ``obs (N, M)`` (``_shared_block`` has the layouts); a short last block is zero-padded."""
-    N = obs.shape[0]
-    G = N // Pi.shape[1]
-    U = np.empty((G, 4, 512), np.float32)
-    F = np.empty((10, 512), np.float32)  # b (3), sum s^2, Q_0 n (3), n^T Q_0 n, ok, explained
-    rh = np.empty((G, 512), np.float32)
-    Ib = np.empty(512, np.float32)
-    tail = np.zeros((N, 512), obs.dtype)
-    for j0 in range(start, stop, 512):
-        B = min(stop, j0 + 512) - j0
-        src = obs
-        o0 = j0
-        if B < 512:
-            for k in range(N):
-                for j in range(B):
-                    tail[k, j] = obs[k, j0 + j]
-            src = tail
-            o0 = 0
-        _shared_block(src, o0, B, j0, j0, dark, invflat, Pi, Q0, scale, U, F, rh, Ib, normals, albedo, residual,
-                      mask)
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath={"contract"})
