@@ -19,7 +19,7 @@ Examples
 [0, 1, 4, 9, 16]
 >>> with FramePool(2) as pool:
 ...     pool.split(lambda a, b: (a, b), 10, parts=3)
-[(0, 4), (4, 8), (8, 10)]
+[(0, 4), (4, 7), (7, 10)]
 """
 
 from __future__ import annotations
@@ -67,14 +67,20 @@ class FramePool:
 
     def split(self, fn: Callable[[int, int], R], n: int, *, parts: int | None = None, multiple: int = 1) -> list[R]:
         """``[fn(a, b) for (a, b) in parts of range(n)]``: ``parts`` (default: the threads)
-        contiguous parts, each a multiple of ``multiple`` long but the last, run on the threads
-        (in the calling thread with one); results in order, the first error raised."""
+        contiguous parts as equal as whole units of ``multiple`` allow (sizes differ by at most
+        one unit; the last part ends at ``n``), run on the threads (in the calling thread with
+        one); results in order, the first error raised."""
         if n < 0 or multiple < 1:
             raise ValueError(f"FramePool.split: n >= 0 and multiple >= 1 expected, got n={n}, multiple={multiple}")
-        parts = self.threads if parts is None else max(1, int(parts))
-        step = -(-n // parts) if n else 1
-        step = -(-step // multiple) * multiple
-        bounds = [(a, min(n, a + step)) for a in range(0, n, step)]
+        units = -(-n // multiple)
+        parts = max(1, min(units, self.threads if parts is None else int(parts)))
+        size, extra = divmod(units, parts)
+        bounds, a = [], 0
+        for i in range(parts):
+            b = min(n, a + (size + (i < extra)) * multiple)
+            if b > a:
+                bounds.append((a, b))
+            a = b
         if self._pool is None or len(bounds) < 2:
             return [fn(a, b) for a, b in bounds]
         futures = [self._pool.submit(fn, a, b) for a, b in bounds]

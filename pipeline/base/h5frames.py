@@ -116,7 +116,7 @@ class H5Frames:
             self._ds.read_direct(dst, np.s_[start:stop], np.s_[0:stop - start])
             return
         pieces = self._pieces(start * self.frame_bytes, stop * self.frame_bytes)
-        buf = memoryview(dst.reshape(-1).view(np.uint8))
+        buf = dst.reshape(-1).view(np.uint8).data  # a memoryview of the caller's memory
         if self.threads == 1 or len(pieces) == 1:
             for p in pieces:
                 _pread(buf, *p)

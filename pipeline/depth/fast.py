@@ -175,7 +175,7 @@ class FastDST:
         and ``mask (K, H, W)``: the same numbers as :meth:`integrate` frame by frame.
 
         ``pool``: a :class:`pipeline.base.frame_pool.FramePool` whose threads take ``parts``
-        (default two a thread) contiguous runs of frames, each run one divergence call, one
+        (default one a thread) contiguous runs of frames, each run one divergence call, one
         ``scipy.fft.dstn`` and one ``idstn`` over the run (transforms of one thread: the
         threads are the pool's); None: this thread. ``out``: ``(height, valid)`` arrays to fill.
         """
@@ -201,5 +201,5 @@ class FastDST:
         if pool is None:
             run(0, K)
         else:
-            pool.split(run, K, parts=parts or 2 * pool.threads)
+            pool.split(run, K, parts=parts)
         return height, valid

@@ -61,6 +61,7 @@ class CPUFramePipeline:
         self.pool = FramePool(None if not threads else threads)
         self.threads = self.pool.threads
         self._planes: PlaneBatch | None = None
+        self._valid: np.ndarray | None = None
 
     def close(self) -> None:
         self.pool.close()
@@ -88,13 +89,19 @@ class CPUFramePipeline:
 
         Returns ``{"height": (K, H, W) float32 mm, "height_mask": (K, H, W) bool, "planes":
         PlaneBatch}``. ``out``: the ``(K, H, W)`` float32 array the heights go to (else a new
-        one); ``planes``: where the normals go (else the pipeline's own, overwritten by the
-        next run: copy what you keep).
+        one); ``planes``: where the normals go. Without ``planes``, the normals and the height
+        mask are the pipeline's own buffers, overwritten by the next run (copy what you keep):
+        a stream of equal batches touches no new memory.
         """
         p = self.normals(frames, planes)
         K = len(p)
         H, W = self.depth.shape
         height = np.empty((K, H, W), np.float32) if out is None else out
-        valid = np.empty((K, H, W), np.bool_)
+        if planes is not None:
+            valid = np.empty((K, H, W), np.bool_)
+        else:
+            if self._valid is None or len(self._valid) != K:
+                self._valid = np.empty((K, H, W), np.bool_)
+            valid = self._valid
         self.depth.integrate_batch(p.normals, p.mask, self.pool, out=(height, valid))
         return {"height": height, "height_mask": valid, "planes": p}
