@@ -190,13 +190,22 @@ class FastDST:
         if m.shape != (K, H, W):
             raise ValueError(f"FastDST.integrate_batch: mask must be ({K}, {H}, {W}), got {m.shape}")
         height, valid = out if out is not None else (np.empty((K, H, W), np.float32), np.empty((K, H, W), np.bool_))
+        if height.shape != (K, H, W) or valid.shape != (K, H, W) or valid.dtype != np.bool_:
+            raise ValueError(f"FastDST.integrate_batch: out must be float32 heights and a bool mask ({K}, {H}, {W}), "
+                             f"got {height.shape} {height.dtype}, {valid.shape} {valid.dtype}")
+        in_place = height.dtype == np.float32 and height.flags.c_contiguous
 
         def run(k0: int, k1: int) -> None:
-            f = np.empty((k1 - k0, H, W), np.float32)
+            # The run's heights are its working memory: divergence, DST, division, inverse DST
+            # all in place (scipy.fft transforms a contiguous float32 array in place with
+            # overwrite_x), so the run's frames are read once and written once.
+            f = height[k0:k1] if in_place else np.empty((k1 - k0, H, W), np.float32)
             _divergence_batch(n, last, m, np.float32(self.mm_per_px), np.float32(self.max_slope), k0, k1, f, valid)
             F = scipy.fft.dstn(f, type=2, axes=(1, 2), workers=1, overwrite_x=True)
             _divide(F, self.eig)
-            height[k0:k1] = scipy.fft.idstn(F, type=2, axes=(1, 2), workers=1, overwrite_x=True)
+            h = scipy.fft.idstn(F, type=2, axes=(1, 2), workers=1, overwrite_x=True)
+            if not (in_place and np.may_share_memory(h, f)):
+                height[k0:k1] = h
 
         if pool is None:
             run(0, K)
