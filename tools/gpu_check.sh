@@ -102,7 +102,7 @@ fi
 want probe && step probe 30 probe
 want doctor && step doctor 60 "$PY" -m pipeline doctor --no-compile
 want live && step live 200 live
-want tests && step tests 120 "$PY" -m pytest -q -x -p no:cacheprovider tests/sim/test_tracer_kernel.py \
+want tests && step tests 120 "$PY" -m pytest -q -p no:cacheprovider tests/sim/test_tracer_kernel.py \
   tests/pipeline/normals/test_gpu_nearfield.py tests/pipeline/normals/test_fast_paths.py \
   tests/pipeline/stages/test_batched_stages.py -k "(cuda or gpu) and not ptx and not simulator"
 want trace_cli && step trace_cli 100 trace_cli
