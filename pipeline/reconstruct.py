@@ -99,7 +99,11 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     device, dtype, threads
         Torch device and dtype of the solvers; torch intra-op threads while solving, and the
         contact instances the depth stage integrates at once, one per thread (default 1:
-        fastest on a small shared CPU; None leaves torch's setting and uses every core for depth). On a GPU
+        fastest on a small shared CPU; None leaves torch's setting and uses every core). With
+        other than one thread on the CPU, ``nearfield``/``lstsq`` on integer frames and ``dst``
+        on the whole frame take their batch fast paths (every instance at once, a run of them
+        per thread in one compiled call: :mod:`pipeline.normals.cpu_batch`; equal to the eager
+        paths to float32 rounding). On a GPU
         (``cuda``) ``nearfield`` solves every contact instance as one batch and ``dst``
         integrates them all by FFT on the device (:mod:`pipeline.normals.batched`).
     force : bool

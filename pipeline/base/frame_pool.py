@@ -1,17 +1,25 @@
-"""Frame-level parallelism: many frames at once, one per thread, results in input order.
+"""Frame-level parallelism: many frames at once on the threads of one process.
 
 A 320 x 240 frame is too small to split well across many cores (its per-pixel kernels are
 memory-bound and each split costs a fork and a join: the near-field path gained 2.2-2.4x on 16
-cores that way). Throughput work (``iristac batch``, ``iristac bench live``'s throughput rows)
-instead gives each thread whole frames, each solved and integrated on one thread by the same
-kernels: the Numba kernels, OpenCV and ``scipy.fft`` release the GIL, so threads of one process
-scale with the cores while the per-frame kernels keep their one-frame latency.
+cores that way). Throughput work (``iristac batch``, ``iristac bench live``'s frames rows)
+instead hands threads many frames at once. Two ways:
+
+- :meth:`FramePool.split`: ``fn(start, stop)`` over a few contiguous parts of a range (pixels
+  or frames of a whole batch), each part one call into compiled code that releases the GIL:
+  Python and its lock are entered a few times per thread and batch, not per frame (the
+  near-field batch path, :class:`pipeline.normals.cpu_batch.CPUFramePipeline`);
+- :meth:`FramePool.map`: one Python call per item, in input order (the depth stage's other
+  integrators, one contact instance each).
 
 Examples
 --------
 >>> with FramePool(2) as pool:
 ...     pool.map(lambda x: x * x, range(5))
 [0, 1, 4, 9, 16]
+>>> with FramePool(2) as pool:
+...     pool.split(lambda a, b: (a, b), 10, parts=3)
+[(0, 4), (4, 7), (7, 10)]
 """
 
 from __future__ import annotations
@@ -56,6 +64,27 @@ class FramePool:
         if self._pool is None:
             return [fn(f) for f in frames]
         return list(self._pool.map(fn, frames))
+
+    def split(self, fn: Callable[[int, int], R], n: int, *, parts: int | None = None, multiple: int = 1) -> list[R]:
+        """``[fn(a, b) for (a, b) in parts of range(n)]``: ``parts`` (default: the threads)
+        contiguous parts as equal as whole units of ``multiple`` allow (sizes differ by at most
+        one unit; the last part ends at ``n``), run on the threads (in the calling thread with
+        one); results in order, the first error raised."""
+        if n < 0 or multiple < 1:
+            raise ValueError(f"FramePool.split: n >= 0 and multiple >= 1 expected, got n={n}, multiple={multiple}")
+        units = -(-n // multiple)
+        parts = max(1, min(units, self.threads if parts is None else int(parts)))
+        size, extra = divmod(units, parts)
+        bounds, a = [], 0
+        for i in range(parts):
+            b = min(n, a + (size + (i < extra)) * multiple)
+            if b > a:
+                bounds.append((a, b))
+            a = b
+        if self._pool is None or len(bounds) < 2:
+            return [fn(a, b) for a, b in bounds]
+        futures = [self._pool.submit(fn, a, b) for a, b in bounds]
+        return [f.result() for f in futures]
 
     def close(self) -> None:
         if self._pool is not None:

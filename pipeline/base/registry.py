@@ -153,14 +153,18 @@ class Registry:
 #: - ``fills_markers``: the solver fills printed markers in itself (given the marker mask);
 #:   the others get frames filled in by :class:`~pipeline.normals.prepare.FramePrep`;
 #: - ``fast``: the builder of its live per-frame path (precomputed once per calibration,
-#:   :func:`pipeline.stages.fast_solvers.frame_solver`), absent when live use runs it eagerly.
+#:   :func:`pipeline.stages.fast_solvers.frame_solver`), absent when live use runs it eagerly;
+#: - ``batch``: that fast path also solves many frames in one call per thread
+#:   (:meth:`pipeline.normals.fast.NearFieldFast.solve_batch`), which the normals stage uses
+#:   with more than one thread.
 SOLVERS = Registry("solver", "--solver", [
     Entry("lstsq", "pipeline.normals.solve:stack_lstsq",
           "far field (Woodham): one light vector per observation, else the light field at the image centre",
-          {"needs": "vectors", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_lstsq"}),
+          {"needs": "vectors", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_lstsq", "batch": True}),
     Entry("nearfield", "pipeline.normals.solve:stack_nearfield",
           "per-pixel light vectors (an illumination model or a calibrated light field)",
-          {"needs": "field", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_nearfield"}),
+          {"needs": "field", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_nearfield",
+           "batch": True}),
     Entry("robust", "pipeline.normals.solve:stack_robust",
           "shadows and highlights modelled: attached shadows from the light matrix, highlights above and cast "
           "shadows below the Lambertian prediction rejected (Tukey IRLS); light field if present, else far field",

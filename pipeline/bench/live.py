@@ -93,7 +93,7 @@ def _row(solver, size, path, threads, sec, err, dev=None, extra=None):
 
 
 def measure_nearfield(width: int, height: int, repeats: int, patterns: int = 8, label: str = "nearfield",
-                      threads_all: int = 2, frame_rows: bool = False) -> list[dict]:
+                      threads_all: int = 2, frame_rows: bool | str = False) -> list[dict]:
     from pipeline.bench.live_scaling import frame_parallel_rows
     from pipeline.bench.recon_scene import render_sphere_scene
     from pipeline.depth.fast import FastDST
@@ -126,9 +126,9 @@ def measure_nearfield(width: int, height: int, repeats: int, patterns: int = 8, 
     rows += _fast_rows(label, size, lambda th: fast.solve(frames, threads=th), dst, repeats, threads_all,
                        s.normals, re_.normals, re_.mask,
                        {"eager_error_deg": e_eager, "prepare_seconds": prep, "observations": P * 3})
-    if frame_rows:  # throughput: whole frames in parallel, one per thread (pipeline.base.frame_pool)
-        rows += frame_parallel_rows(label, size, lambda f, th: fast.solve(f, threads=th), dst, frames, s.normals,
-                                    threads_all, repeats)
+    if frame_rows:  # throughput: frames in parallel (pipeline.normals.cpu_batch)
+        rows += frame_parallel_rows(label, size, fast, dst, frames, s.normals, threads_all, repeats,
+                                    per_frame=frame_rows == "compare")
     return rows
 
 

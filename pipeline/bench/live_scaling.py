@@ -1,9 +1,10 @@
 """``iristac bench live``'s throughput measurements: frames in parallel on the CPU, and the GPU pipeline.
 
-CPU (:func:`frame_parallel_rows`): ``K`` distinct copies of a frame set, each solved by the
-live fast path and integrated by :class:`pipeline.depth.fast.FastDST` on one thread, ``N``
-frames at a time (:class:`pipeline.base.frame_pool.FramePool`), for ``N`` = 1, 2, 4, 8, 16 up
-to the cores; frames per second of the whole batch.
+CPU (:func:`frame_parallel_rows`): ``K`` distinct copies of a frame set through
+:class:`pipeline.normals.cpu_batch.CPUFramePipeline` (normals by the batch kernel, each thread
+a run of pixel blocks of every frame; then heights, each thread a run of frames) on ``N`` =
+1, 2, 4, 8, 16 threads up to the cores; frames per second of the whole batch, the normals and
+the depth alone, and the Python time a frame (what holds the GIL).
 
 GPU (:func:`measure_device`): :class:`pipeline.normals.gpu_stream.GPUFramePipeline` with the
 fused kernel and with the torch einsum solver; the pinned upload alone, the solve alone on
@@ -44,44 +45,96 @@ def thread_counts(cores: int) -> list[int]:
     return out if cores in out else out + [cores]
 
 
-def frame_parallel_rows(label: str, size: str, solve, dst, frames: np.ndarray, truth: np.ndarray, cores: int,
-                        repeats: int, count: int = 128) -> list[dict]:
-    """Rows ``path = "frames"``: ``count`` frames, ``N`` at a time, each on one thread (``solve(f, 1)``
-    then ``dst.integrate``); ``seconds`` is per frame (the batch's time over ``count``)."""
-    from pipeline.base.frame_pool import FramePool
+def frame_parallel_rows(label: str, size: str, fast, dst, frames: np.ndarray, truth: np.ndarray, cores: int,
+                        repeats: int, count: int = 128, per_frame: bool = False) -> list[dict]:
+    """Rows ``path = "frames"``: ``count`` distinct frame sets through
+    :class:`pipeline.normals.cpu_batch.CPUFramePipeline` on ``N`` threads (the normals and the
+    depth also timed alone); ``seconds`` is per frame (the batch's time over ``count``).
+    ``serial_us``: the pipeline's Python time a frame (the same batch of 8 x 8 frames, whose
+    compute is nil: all of it holds the GIL), and ``gil_busy`` its share of the batch's wall
+    time (on one thread: of a frame's time; the lock is a bound once it nears 1). ``per_frame``: also rows ``path = "pool"``, one Python task per frame
+    on :class:`pipeline.base.frame_pool.FramePool` (``fast.solve`` then ``dst.integrate``: the
+    earlier design), for comparison."""
+    from pipeline.normals.cpu_batch import CPUFramePipeline
 
     batch = np.repeat(frames[None], count, axis=0)  # distinct memory per frame, as a recording has
+    r0 = fast.solve(frames, 1)
+    K, (H, W) = count, dst.shape
+    height, valid = np.empty((K, H, W), np.float32), np.empty((K, H, W), np.bool_)
+    runs = max(2, repeats // 10)
+    rows: list[dict] = []
+    base = None
+    for n in thread_counts(cores):
+        serial = _serial_seconds(count, runs, n)
+        with CPUFramePipeline(fast, dst, threads=n) as pipe:
+            pipe.run(batch[:n])  # warm: threads started, kernels loaded
+            sec, out = _best_of(lambda p=pipe: p.run(batch, out=height), runs)
+            planes = out["planes"]
+            sec_n, _ = _best_of(lambda p=pipe: p.normals(batch), runs)
+            sec_d, _ = _best_of(lambda p=pipe: dst.integrate_batch(planes.normals, planes.mask, p.pool,
+                                                                   out=(height, valid)), runs)
+        fps = count / sec
+        base = base or fps
+        last = planes.result(count - 1)
+        rows.append({"solver": label, "size": size, "path": "frames", "threads": n, "seconds": sec / count,
+                     "fps": fps, "error_deg": _err(last.normals, truth),
+                     "deviation_deg": _dev(last.normals, r0.normals, last.mask & r0.mask), "frames": count,
+                     "speedup": fps / base, "device": "cpu", "normals_fps": count / sec_n, "depth_fps": count / sec_d,
+                     "serial_us": serial * 1e6 / count, "gil_busy": serial / sec})
+    if per_frame:
+        rows += _pool_rows(label, size, fast, dst, batch, truth, cores, runs)
+    return rows
+
+
+def _best_of(fn, runs: int):
+    best, out = float("inf"), None
+    for _ in range(runs):
+        t = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t)
+    return best, out
+
+
+def _serial_seconds(count: int, runs: int, threads: int) -> float:
+    """The Python seconds of a batch of ``count`` frame sets on ``threads`` threads (what holds the
+    GIL): the pipeline's time on 8 x 8 frames (whose compute is nil; one normals part there),
+    plus handing out the other normals parts (one a thread) of a larger frame (no-op parts)."""
+    from pipeline.bench.recon_scene import render_sphere_scene
+    from pipeline.depth.fast import FastDST
+    from pipeline.normals.cpu_batch import CPUFramePipeline
+    from pipeline.normals.fast import NearFieldFast
+
+    s = render_sphere_scene((8, 8), 1.0, radius=3.0, depth=0.5, num_patterns=8, noise=1.0, bits=8, seed=0)
+    tiny = np.repeat(s.frames.astype(np.uint8)[None], count, axis=0)
+    fast = NearFieldFast(s.lights_flat(), groups=np.tile(np.arange(3), tiny.shape[1]))
+    with CPUFramePipeline(fast, FastDST((8, 8), 1.0), threads=threads) as pipe:
+        pipe.run(tiny)
+        sec = _best_of(lambda: pipe.run(tiny), 5 * runs)[0]
+        parts = threads - 1
+        return sec + (_best_of(lambda: pipe.pool.split(lambda a, b: None, parts, parts=parts), 5 * runs)[0]
+                      if parts else 0.0)
+
+
+def _pool_rows(label: str, size: str, fast, dst, batch: np.ndarray, truth: np.ndarray, cores: int,
+               runs: int) -> list[dict]:
+    """Rows ``path = "pool"``: one Python task per frame (see :func:`frame_parallel_rows`)."""
+    from pipeline.base.frame_pool import FramePool
 
     def one(f):
-        r = solve(f, 1)
+        r = fast.solve(f, 1)
         return r, dst.integrate(r.normals, r.mask, workers=1)
 
-    r0 = solve(frames, 1)
-
-    def best_of(pool, fn, items):
-        best = float("inf")
-        out = None
-        for _ in range(max(2, repeats // 10)):
-            t = time.perf_counter()
-            out = pool.map(fn, items)
-            best = min(best, time.perf_counter() - t)
-        return best, out
-
-    rows = []
-    base = None
+    count = len(batch)
+    rows, base = [], None
     for n in thread_counts(cores):
         with FramePool(n) as pool:
             pool.map(one, batch[:n])  # warm
-            sec, out = best_of(pool, one, batch)
-            # where the time goes at n threads: the normals alone, the depth alone (one frame's normals)
-            sec_n, _ = best_of(pool, lambda f: solve(f, 1), batch)
-            sec_d, _ = best_of(pool, lambda _: dst.integrate(r0.normals, r0.mask, workers=1), range(count))
+            sec, out = _best_of(lambda p=pool: p.map(one, batch), runs)
         fps = count / sec
         base = base or fps
-        rows.append({"solver": label, "size": size, "path": "frames", "threads": n, "seconds": sec / count,
-                     "fps": fps, "error_deg": _err(out[-1][0].normals, truth), "deviation_deg": None,
-                     "frames": count, "speedup": fps / base, "device": "cpu", "normals_fps": count / sec_n,
-                     "depth_fps": count / sec_d})
+        rows.append({"solver": label, "size": size, "path": "pool", "threads": n, "seconds": sec / count, "fps": fps,
+                     "error_deg": _err(out[-1][0].normals, truth), "deviation_deg": None, "frames": count,
+                     "speedup": fps / base, "device": "cpu"})
     return rows
 
 
@@ -111,8 +164,10 @@ def _copy_bandwidth(device) -> float:
     return 2 * x.numel() / (ms * 1e-3)
 
 
-def measure_device(width: int, height: int, device: str, batch: int, repeats: int, batches: int = 8) -> dict:
-    """The GPU pipeline at ``width x height`` (8 patterns, RGB, uint8): see the module docstring."""
+def measure_device(width: int, height: int, device: str, batch: int, repeats: int, batches: int = 8,
+                   files: bool = True) -> dict:
+    """The GPU pipeline at ``width x height`` (8 patterns, RGB, uint8): see the module docstring;
+    ``files``: also from HDF5 files read straight into its pinned buffers (:func:`_from_files`)."""
     import torch
 
     from pipeline.bench.recon_scene import render_sphere_scene
@@ -170,8 +225,61 @@ def measure_device(width: int, height: int, device: str, batch: int, repeats: in
         h_gpu = np.asarray(res["height"][0])
         h_cpu = _cpu_height(cpu, (height, width), mm)
         row["height_max_diff_mm"] = float(np.abs(h_gpu - h_cpu)[cpu.mask].max()) if cpu.mask.any() else 0.0
+        if name == "fused" and files:
+            try:
+                row.update(_from_files(pipe, host, repeats, upload_fps, h_cpu, cpu.mask))
+            except Exception as exc:  # noqa: BLE001 - the figures above still count; say why these are missing
+                row["files_error"] = f"{type(exc).__name__}: {exc}"
         pipe.close()
         out["solvers"].append(row)
+    return out
+
+
+def _from_files(pipe, host: np.ndarray, repeats: int, upload_fps: float, h_cpu: np.ndarray, mask: np.ndarray,
+                lzf_frames: int = 64, where: str | None = None) -> dict:
+    """The whole pipeline from HDF5 files read straight into its pinned buffers
+    (:class:`pipeline.base.h5frames.H5Frames`): an unfiltered file of every frame (as
+    ``iristac live --record`` writes; read by offsets on 8 threads), and ``lzf_frames`` of them
+    in the stage store's format (LZF, shuffle, Fletcher-32 chunks of one image: HDF5's
+    filters on one thread). Each with the read alone into pinned memory (its bound). Files in
+    a temporary folder under ``where`` (just written: in the page cache)."""
+    import tempfile
+    from pathlib import Path
+
+    import h5py
+    import torch
+
+    from pipeline.base.h5frames import H5Frames
+    from pipeline.base.store import Record, write_record
+
+    K, H, W = len(host), host.shape[2], host.shape[3]
+    out: dict = {}
+    with tempfile.TemporaryDirectory(prefix="iristac-h5-", dir=where) as d:
+        plain, store = Path(d) / "frames.h5", Path(d) / "capture.h5"
+        t = time.perf_counter()
+        with h5py.File(plain, "w") as f:
+            f.create_dataset("frames", data=host)
+        write_seconds = time.perf_counter() - t
+        P = host.shape[1]
+        write_record(store, Record("capture", {"frames": host[:lzf_frames], "reference": host[0],
+                                               "drive": np.zeros((P, 24, 3), np.float32),
+                                               "brightness": np.ones(P, np.float32)},
+                                   {"mm_per_px": 0.05, "pattern_names": [f"p{i}" for i in range(P)], "source": "bench"}))
+        for label, path in (("whole_h5", plain), ("whole_h5_store", store)):
+            with H5Frames(path, threads=8) as src:
+                n = len(src)
+                dest = torch.empty((n, H, W), dtype=torch.float32, pin_memory=True)
+                staging = torch.empty((min(n, pipe.batch),) + host.shape[1:], dtype=torch.uint8, pin_memory=True)
+                read, _ = _best_of(lambda s=src, b=staging: [s.read_into(b[:min(len(b), n - a)].numpy(), a,
+                                                                        min(n, a + len(b)))
+                                                             for a in range(0, n, len(b))], max(2, repeats // 5))
+                whole, _ = _best_of(lambda s=src, o=dest: pipe.run(s, out=o), max(2, repeats // 5))
+                fps = n / whole
+                out[label] = {"frames": n, "direct": src.direct, "seconds": whole, "frames_per_second": fps,
+                              "upload_fraction": fps / upload_fps, "read_alone_GBps": n * host[0].nbytes / read / 1e9,
+                              "read_alone_frames_per_second": n / read,
+                              "height_max_diff_mm": float(np.abs(dest.numpy() - h_cpu[None])[:, mask].max())}
+        out["whole_h5"]["write_GBps"] = K * host[0].nbytes / write_seconds / 1e9
     return out
 
 
@@ -210,4 +318,14 @@ def format_device(d: dict) -> list[str]:
                      f"({r['whole_numpy']['upload_fraction']:.0%}); error {r['error_deg']:.3f} deg (CPU "
                      f"{r['cpu_error_deg']:.3f}), vs CPU {r['deviation_from_cpu_deg']:.2e} deg, heights "
                      f"{r['height_max_diff_mm']:.1e} mm; first batch {r['first_batch_seconds']:.2f} s")
+        if r.get("files_error"):
+            lines.append(f"         from HDF5 files: failed: {r['files_error']}")
+        for key, what in (("whole_h5", "an unfiltered HDF5 file"), ("whole_h5_store", "a store capture (LZF)")):
+            h = r.get(key)
+            if h:
+                lines.append(f"         from {what}, {h['frames']} frames read into pinned buffers "
+                             f"({'by offsets, 8 threads' if h['direct'] else 'through HDF5 filters'}): "
+                             f"{h['frames_per_second']:8.0f} frames/s ({h['upload_fraction']:.0%} of the upload bound); "
+                             f"the read alone {h['read_alone_GBps']:.1f} GB/s = {h['read_alone_frames_per_second']:.0f} "
+                             f"frames/s; heights vs CPU {h['height_max_diff_mm']:.1e} mm")
     return lines

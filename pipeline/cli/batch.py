@@ -34,8 +34,9 @@ def register(sub, name, help_text):
     p.add_argument("--images", action="store_true", help="also write PNG/PLY pictures to --out")
     p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
-    p.add_argument("--threads", type=int, default=1, help="threads within each recording: torch's while solving, "
-                   "contact instances integrated at once (default 1; 0: every core)")
+    p.add_argument("--threads", type=int, default=1, help="threads within each recording: torch's while solving; "
+                   "with more than one, nearfield/lstsq on integer frames and dst depth take their batch fast paths, "
+                   "every contact instance at once (default 1; 0: every core)")
     add_heal_flag(p)
     add_json_flag(p)
     p.set_defaults(func=_run)

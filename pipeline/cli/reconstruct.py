@@ -29,6 +29,9 @@ def register(sub, name, help_text):
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
     p.add_argument("--compile", action="store_true",
                    help="lstsq: torch.compile the far-field solver (a few seconds once; ~4x faster per frame)")
+    p.add_argument("--threads", type=int, default=1, help="threads: torch's while solving; with more than one, "
+                   "nearfield/lstsq on integer frames and dst depth take their batch fast paths, every contact "
+                   "instance at once (default 1; 0: every core)")
     p.add_argument("--no-images", action="store_true", help="write only normals.h5 and depth.h5")
     p.add_argument("--force", action="store_true", help="recompute even if the store has the result")
     p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
@@ -41,11 +44,15 @@ def register(sub, name, help_text):
 def _run(args) -> int:
     from pipeline.reconstruct import reconstruct
 
+    if args.threads < 0:
+        from pipeline.base.errors import UserError
+
+        raise UserError(f"--threads must be 0 (every core) or more, got {args.threads}")
     res = reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
                       solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
                       images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
-                      markers=args.markers)
+                      markers=args.markers, threads=args.threads or None)
     s = res.summary
     if args.json:
         print_json(s)

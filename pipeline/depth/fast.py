@@ -81,6 +81,32 @@ def _divergence_planes(nx, ny, nz, mask, scale, max_slope, f, valid):  # pragma:
             fr[c] = (right - left) + (down - up)
 
 
+@njit(cache=True, nogil=True, error_model="numpy")
+def _divergence_batch(normals, last, mask, scale, max_slope, k0, k1, f, valid):  # pragma: no cover - compiled
+    """:func:`_divergence_planes` of frames ``k0:k1`` into ``f[k - k0]`` and ``valid[k]``: normal
+    planes ``(K, 3, H, W)``, or with ``last`` normals ``(K, H, W, 3)`` (read strided)."""
+    for k in range(k0, k1):
+        if last:
+            _divergence_planes(normals[k, :, :, 0], normals[k, :, :, 1], normals[k, :, :, 2], mask[k], scale,
+                               max_slope, f[k - k0], valid[k])
+        else:
+            _divergence_planes(normals[k, 0], normals[k, 1], normals[k, 2], mask[k], scale, max_slope, f[k - k0],
+                               valid[k])
+
+
+@njit(cache=True, nogil=True, error_model="numpy")
+def _divide(F, eig):  # pragma: no cover - compiled
+    """``F[k] /= eig`` for every frame of ``F (K, H, W)`` (numpy's broadcast division, without
+    its lock and its temporary)."""
+    for k in range(F.shape[0]):
+        Fk = F[k]
+        for r in range(F.shape[1]):
+            a = Fk[r]
+            e = eig[r]
+            for c in range(F.shape[2]):
+                a[c] = a[c] / e[c]
+
+
 def dst_divergence(normals, mask, mm_per_px: float, max_slope: float = 20.0):
     """``(f (H, W), valid (H, W))``: the right-hand side of ``poisson_dst``'s Poisson equation
     and its validity mask, from float32 unit normals ``(H, W, 3)`` and ``mask (H, W)``."""
@@ -138,6 +164,51 @@ class FastDST:
         w = self.workers if workers is None else int(workers)
         F = scipy.fft.dstn(f, type=2, workers=w)
         h = scipy.fft.idstn(F / self.eig, type=2, workers=w)
-        return DepthResult(height=h.astype(np.float32, copy=False), mask=valid,
-                           meta={"integrator": "dst", "method": "fast", "mm_per_px": self.mm_per_px,
-                                 "max_slope": self.max_slope})
+        return DepthResult(height=h.astype(np.float32, copy=False), mask=valid, meta=self.meta())
+
+    def meta(self) -> dict:
+        return {"integrator": "dst", "method": "fast", "mm_per_px": self.mm_per_px, "max_slope": self.max_slope}
+
+    def integrate_batch(self, normals, mask, pool=None, out=None, parts: int | None = None):
+        """``(height (K, H, W), valid (K, H, W))`` of float32 normal planes ``normals (K, 3, H, W)``
+        (:class:`pipeline.normals.fast.PlaneBatch`; or normals ``(K, H, W, 3)``, read strided)
+        and ``mask (K, H, W)``: the same numbers as :meth:`integrate` frame by frame.
+
+        ``pool``: a :class:`pipeline.base.frame_pool.FramePool` whose threads take ``parts``
+        (default one a thread) contiguous runs of frames, each run one divergence call, one
+        ``scipy.fft.dstn`` and one ``idstn`` over the run (transforms of one thread: the
+        threads are the pool's); None: this thread. ``out``: ``(height, valid)`` arrays to fill.
+        """
+        n = np.ascontiguousarray(normals, np.float32)
+        m = np.ascontiguousarray(mask, np.bool_)
+        K = n.shape[0]
+        H, W = self.shape
+        last = n.shape != (K, 3, H, W) and n.shape == (K, H, W, 3)
+        if n.shape != (K, 3, H, W) and not last:
+            raise ValueError(f"FastDST.integrate_batch: normals must be planes (K, 3, {H}, {W}) or (K, {H}, {W}, 3), "
+                             f"got {n.shape}")
+        if m.shape != (K, H, W):
+            raise ValueError(f"FastDST.integrate_batch: mask must be ({K}, {H}, {W}), got {m.shape}")
+        height, valid = out if out is not None else (np.empty((K, H, W), np.float32), np.empty((K, H, W), np.bool_))
+        if height.shape != (K, H, W) or valid.shape != (K, H, W) or valid.dtype != np.bool_:
+            raise ValueError(f"FastDST.integrate_batch: out must be float32 heights and a bool mask ({K}, {H}, {W}), "
+                             f"got {height.shape} {height.dtype}, {valid.shape} {valid.dtype}")
+        in_place = height.dtype == np.float32 and height.flags.c_contiguous
+
+        def run(k0: int, k1: int) -> None:
+            # The run's heights are its working memory: divergence, DST, division, inverse DST
+            # all in place (scipy.fft transforms a contiguous float32 array in place with
+            # overwrite_x), so the run's frames are read once and written once.
+            f = height[k0:k1] if in_place else np.empty((k1 - k0, H, W), np.float32)
+            _divergence_batch(n, last, m, np.float32(self.mm_per_px), np.float32(self.max_slope), k0, k1, f, valid)
+            F = scipy.fft.dstn(f, type=2, axes=(1, 2), workers=1, overwrite_x=True)
+            _divide(F, self.eig)
+            h = scipy.fft.idstn(F, type=2, axes=(1, 2), workers=1, overwrite_x=True)
+            if not (in_place and np.may_share_memory(h, f)):
+                height[k0:k1] = h
+
+        if pool is None:
+            run(0, K)
+        else:
+            pool.split(run, K, parts=parts)
+        return height, valid

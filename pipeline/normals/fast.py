@@ -12,11 +12,13 @@ normal equations, the same per-group albedo alternation when the channels see di
 lights, the same masks), which stays as the reference: ``tests/pipeline/normals/test_fast_paths.py``
 pins the two together to float32 rounding.
 
-The kernel is Numba, compiled once and cached on disk (``cache=True``; ``NUMBA_CACHE_DIR``
-moves the cache): a first use in a fresh process loads it in well under a second. It works
-on blocks of pixels with pixel-contiguous planes (observations de-interleaved once per frame
-by OpenCV's SIMD channel split, the light field stored ``(N, 3, M)``), so the inner loops run
-over pixels and vectorise.
+The kernels (:mod:`pipeline.normals.fast_kernels`) are Numba, compiled once and cached on disk
+(``cache=True``; ``NUMBA_CACHE_DIR`` moves the cache): a first use in a fresh process loads
+them in well under a second. They work on blocks of 512 pixels with pixel-contiguous planes
+(each block's observations de-interleaved from the camera's frames in the kernel, the light
+field stored in blocks), so the inner loops run over pixels and vectorise. One frame
+(:meth:`NearFieldFast.solve`, live) and a stack of frames (:meth:`NearFieldFast.solve_batch`,
+throughput: :mod:`pipeline.normals.cpu_batch`) go through the same kernel.
 
 Integer frames only (uint8/uint16: no NaN can reach the moments); float frames with NaN/Inf
 go to the eager solver. Lights that are not finite at a pixel make that pixel invalid here
@@ -25,12 +27,15 @@ go to the eager solver. Lights that are not finite at a pixel make that pixel in
 
 from __future__ import annotations
 
-import numpy as np
-from numba import njit
+from dataclasses import dataclass, field
+from typing import Any
 
+import numpy as np
+
+from pipeline.normals.fast_kernels import nearfield_batch, shared_batch, shared_factors
 from pipeline.normals.result import COND_CAP, NormalResult
 
-__all__ = ["NearFieldFast", "frame_planes_np", "split_into", "run_split", "BLOCK"]
+__all__ = ["NearFieldFast", "PlaneBatch", "frame_planes_np", "split_into", "run_split", "BLOCK"]
 
 #: Pixels per block: the block's accumulators (4 G planes) and light rows stay in L1/L2.
 BLOCK = 512
@@ -95,20 +100,6 @@ def split_into(frames: np.ndarray, planes: np.ndarray, start: int, stop: int) ->
         planes[:, start:stop] = frames.reshape(P, H * W, C)[:, start:stop].transpose(0, 2, 1).reshape(P * C, n)
 
 
-_TINY = np.float32(1.1754944e-38)
-# Every kernel is compiled with error_model="numpy": Numba's default (Python semantics) checks
-# each division for a zero divisor to raise ZeroDivisionError, and that branch keeps the loops
-# from vectorising (measured: SiLU on a block, 439 -> 14 ns per pixel). The kernels guard their
-# divisors themselves.
-
-
-@njit(cache=True, nogil=True, error_model="numpy")
-def _quad(Q, g, x, n0, n1, n2):  # pragma: no cover - compiled
-    """``n^T Q_g n`` with ``Q (G, 6, M)`` holding (xx, xy, xz, yy, yz, zz)."""
-    return (Q[g, 0, x] * n0 * n0 + Q[g, 3, x] * n1 * n1 + Q[g, 5, x] * n2 * n2
-            + np.float32(2.0) * (Q[g, 1, x] * n0 * n1 + Q[g, 2, x] * n0 * n2 + Q[g, 4, x] * n1 * n2))
-
-
 def blocked(a: np.ndarray) -> np.ndarray:
     """``(..., M)`` -> ``(ceil(M / BLOCK), ..., BLOCK)`` float32, zero-padded: each block's data is
     one contiguous run, read as one stream (the per-plane layout made ~100 streams per block,
@@ -120,197 +111,39 @@ def blocked(a: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(np.moveaxis(pad.reshape(a.shape[:-1] + (nb, BLOCK)), -2, 0))
 
 
-@njit(cache=True, nogil=True, error_model="numpy")
-def _nearfield_kernel(obs, dark, invflat, L, inv, Q, scale, groups, num_groups, valid0, iterations, start, stop,  # noqa: C901 - compiled: the loop body stays one function so Numba vectorises it
-                      normals, albedo, residual, mask):  # pragma: no cover - compiled
-    """Pixels ``start:stop`` of observation planes ``obs (N, M)``: moments, solve, outputs.
+@dataclass
+class PlaneBatch:
+    """Normals of ``K`` frames as whole-frame planes: what :meth:`NearFieldFast.solve_batch`
+    writes and :meth:`pipeline.depth.fast.FastDST.integrate_batch` reads.
 
-    Blocked layout (:func:`blocked`, block ``b`` = pixels ``512 b ...``): ``L (nb, N, 3, 512)``,
-    ``inv (nb, 6, 512)`` (symmetric: xx, xy, xz, yy, yz, zz), ``Q (nb, G, 6, 512)``, ``dark``/``invflat`` ``(nb, N, 512)`` or
-    ``(0, 0, 0)`` when absent, float32; ``valid0 (M,)`` bool; ``start`` a multiple of 512.
-    Channels sharing their lights (``scale (nb, G, 512)``, else ``(0, 0, 0)``): observation
-    ``k`` (pattern ``k // G``, channel ``g = k % G``) has the light ``scale_g L[k // G]``, so
-    ``L`` is ``(nb, P, 3, 512)`` and ``Q`` ``(nb, 1, 6, 512)`` (of the unscaled lights): a third
-    of the memory a frame reads.
-    Per block the moments are accumulated over pixel-contiguous slices (separate arrays: no
-    aliasing, so the loops vectorise), then every pixel is finished from them.
+    Attributes
+    ----------
+    normals : ndarray, shape (K, 3, H, W), float32
+    albedo : ndarray, shape (K, G, H, W), float32
+    residual : ndarray, shape (K, H, W), float32
+    mask : ndarray, shape (K, H, W), bool
+    condition : ndarray, shape (H, W), float32
+        The same for every frame (it depends on the lights only).
+    count : ndarray, shape (H, W), int32
+    meta : dict
     """
-    N = obs.shape[0]
-    G = num_groups
-    has_dark = dark.shape[0] > 0
-    has_flat = invflat.shape[0] > 0
-    r0 = np.empty((G, 512), np.float32)
-    r1 = np.empty((G, 512), np.float32)
-    r2 = np.empty((G, 512), np.float32)
-    S = np.empty((G, 512), np.float32)
-    Ib = np.empty(512, np.float32)
-    t0 = np.empty(512, np.float32)
-    t1 = np.empty(512, np.float32)
-    t2 = np.empty(512, np.float32)
-    bb0 = np.empty(512, np.float32)
-    bb1 = np.empty(512, np.float32)
-    bb2 = np.empty(512, np.float32)
-    n0b = np.empty(512, np.float32)
-    n1b = np.empty(512, np.float32)
-    n2b = np.empty(512, np.float32)
-    mn = np.empty(512, np.float32)
-    okb = np.empty(512, np.bool_)
-    rh = np.empty((G, 512), np.float32)
-    a00 = np.empty(512, np.float32)
-    a01 = np.empty(512, np.float32)
-    a02 = np.empty(512, np.float32)
-    a11 = np.empty(512, np.float32)
-    a12 = np.empty(512, np.float32)
-    a22 = np.empty(512, np.float32)
-    shared = scale.shape[0] > 0
-    Qs = np.empty((G, 6, 512), np.float32)
-    for j0 in range(start, stop, 512):
-        j1 = min(stop, j0 + 512)
-        B = j1 - j0
-        blk = j0 // 512
-        Lb = L[blk]
-        Qb = Q[blk]
-        ib = inv[blk]
-        r0[:, :B] = 0.0
-        r1[:, :B] = 0.0
-        r2[:, :B] = 0.0
-        S[:, :B] = 0.0
-        for k in range(N):
-            g = groups[k]
-            o = obs[k, j0:j1]
-            if has_dark or has_flat:
-                for j in range(B):
-                    v = np.float32(o[j])
-                    if has_dark:
-                        v = v - dark[blk, k, j]
-                    if has_flat:
-                        v = v * invflat[blk, k, j]
-                    Ib[j] = v
-            else:
-                for j in range(B):
-                    Ib[j] = np.float32(o[j])
-            lk = k // G if shared else k
-            l0 = Lb[lk, 0, :B]
-            l1 = Lb[lk, 1, :B]
-            l2 = Lb[lk, 2, :B]
-            a0 = r0[g, :B]
-            a1 = r1[g, :B]
-            a2 = r2[g, :B]
-            s = S[g, :B]
-            for j in range(B):
-                v = Ib[j]
-                a0[j] += v * l0[j]
-                a1[j] += v * l1[j]
-                a2[j] += v * l2[j]
-                s[j] += v * v
-        if shared:
-            sb = scale[blk]
-            for g in range(G):
-                for j in range(B):
-                    f = sb[g, j]
-                    r0[g, j] *= f
-                    r1[g, j] *= f
-                    r2[g, j] *= f
-                    for t in range(6):
-                        Qs[g, t, j] = f * f * Qb[0, t, j]
-            Qb = Qs
-        # Finish every pixel of the block from its moments, as loops over pixels (they
-        # vectorise; the group loops are outside them).
-        for j in range(B):
-            t0[j] = r0[0, j]
-            t1[j] = r1[0, j]
-            t2[j] = r2[0, j]
-        for g in range(1, G):
-            for j in range(B):
-                t0[j] += r0[g, j]
-                t1[j] += r1[g, j]
-                t2[j] += r2[g, j]
-        for j in range(B):
-            bb0[j] = ib[0, j] * t0[j] + ib[1, j] * t1[j] + ib[2, j] * t2[j]
-            bb1[j] = ib[1, j] * t0[j] + ib[3, j] * t1[j] + ib[4, j] * t2[j]
-            bb2[j] = ib[2, j] * t0[j] + ib[4, j] * t1[j] + ib[5, j] * t2[j]
-        if G > 1:
-            for _ in range(iterations):
-                # Per-group albedo alternation (pipeline.normals._lstsq.solve): rescale the
-                # model by each group's relative albedo and solve again.
-                for j in range(B):
-                    nrm = np.sqrt(bb0[j] * bb0[j] + bb1[j] * bb1[j] + bb2[j] * bb2[j])
-                    sc = np.float32(1.0) / max(nrm, _TINY)
-                    n0b[j] = bb0[j] * sc
-                    n1b[j] = bb1[j] * sc
-                    n2b[j] = bb2[j] * sc
-                    mn[j] = 0.0
-                for g in range(G):
-                    for j in range(B):
-                        p = n0b[j] * r0[g, j] + n1b[j] * r1[g, j] + n2b[j] * r2[g, j]
-                        rr = p / max(_quad(Qb, g, j, n0b[j], n1b[j], n2b[j]), _TINY)
-                        rh[g, j] = rr
-                        mn[j] += rr
-                for j in range(B):
-                    mn[j] = mn[j] / np.float32(G)
-                    a00[j] = 0.0
-                    a01[j] = 0.0
-                    a02[j] = 0.0
-                    a11[j] = 0.0
-                    a12[j] = 0.0
-                    a22[j] = 0.0
-                    t0[j] = 0.0
-                    t1[j] = 0.0
-                    t2[j] = 0.0
-                for g in range(G):
-                    for j in range(B):
-                        rel = rh[g, j] / mn[j] if (rh[g, j] > 0 and mn[j] > 0) else np.float32(1.0)
-                        w = rel * rel
-                        a00[j] += w * Qb[g, 0, j]
-                        a01[j] += w * Qb[g, 1, j]
-                        a02[j] += w * Qb[g, 2, j]
-                        a11[j] += w * Qb[g, 3, j]
-                        a12[j] += w * Qb[g, 4, j]
-                        a22[j] += w * Qb[g, 5, j]
-                        t0[j] += rel * r0[g, j]
-                        t1[j] += rel * r1[g, j]
-                        t2[j] += rel * r2[g, j]
-                for j in range(B):
-                    c00 = a11[j] * a22[j] - a12[j] * a12[j]
-                    c01 = a12[j] * a02[j] - a01[j] * a22[j]
-                    c02 = a01[j] * a12[j] - a11[j] * a02[j]
-                    c11 = a00[j] * a22[j] - a02[j] * a02[j]
-                    c12 = a02[j] * a01[j] - a00[j] * a12[j]
-                    c22 = a00[j] * a11[j] - a01[j] * a01[j]
-                    det = a00[j] * c00 + a01[j] * c01 + a02[j] * c02
-                    idet = np.float32(1.0) / det if det != 0 else np.float32(0.0)
-                    bb0[j] = (c00 * t0[j] + c01 * t1[j] + c02 * t2[j]) * idet
-                    bb1[j] = (c01 * t0[j] + c11 * t1[j] + c12 * t2[j]) * idet
-                    bb2[j] = (c02 * t0[j] + c12 * t1[j] + c22 * t2[j]) * idet
-        for j in range(B):
-            x = j0 + j
-            nrm = np.sqrt(bb0[j] * bb0[j] + bb1[j] * bb1[j] + bb2[j] * bb2[j])
-            sc = np.float32(1.0) / max(nrm, _TINY)
-            n2 = bb2[j] * sc
-            ok = valid0[x] and nrm > 0 and n2 > 0
-            okb[j] = ok
-            n0b[j] = bb0[j] * sc if ok else np.float32(0.0)
-            n1b[j] = bb1[j] * sc if ok else np.float32(0.0)
-            n2b[j] = n2 if ok else np.float32(1.0)
-            mn[j] = 0.0  # explained
-            t0[j] = 0.0  # total
-        for g in range(G):
-            for j in range(B):
-                p = n0b[j] * r0[g, j] + n1b[j] * r1[g, j] + n2b[j] * r2[g, j]
-                q = max(_quad(Qb, g, j, n0b[j], n1b[j], n2b[j]), _TINY)
-                rh[g, j] = p / q if okb[j] else np.float32(0.0)
-                mn[j] += p * p / q
-                t0[j] += S[g, j]
-        for j in range(B):
-            x = j0 + j
-            ok = okb[j]
-            residual[x] = np.sqrt(max(t0[j] - mn[j], np.float32(0.0)) / np.float32(N)) if ok else np.float32(0.0)
-            normals[x, 0] = n0b[j]
-            normals[x, 1] = n1b[j]
-            normals[x, 2] = n2b[j]
-            for g in range(G):
-                albedo[x, g] = rh[g, j]
-            mask[x] = ok
+
+    normals: np.ndarray
+    albedo: np.ndarray
+    residual: np.ndarray
+    mask: np.ndarray
+    condition: np.ndarray
+    count: np.ndarray
+    meta: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.normals.shape[0])
+
+    def result(self, k: int) -> NormalResult:
+        """Frame ``k`` as a :class:`~pipeline.normals.result.NormalResult` (views of the planes)."""
+        return NormalResult(normals=np.moveaxis(self.normals[k], 0, -1), albedo=np.moveaxis(self.albedo[k], 0, -1),
+                            residual=self.residual[k], condition=self.condition, mask=self.mask[k], count=self.count,
+                            meta=dict(self.meta))
 
 
 class NearFieldFast:
@@ -389,11 +222,9 @@ class NearFieldFast:
             albedo_iterations = 0 if shared or (counts < 3).any() else 3
         self.iterations = int(albedo_iterations) if self.num_groups > 1 else 0
         # White patterns (channels share their lights, no alternation): the pseudo-inverse
-        # kernel (pipeline.normals.fast_shared), which reads fewer bytes and vectorises.
+        # kernel (pipeline.normals.fast_kernels.shared_kernel), which reads fewer bytes and vectorises.
         self.pinv = scale is not None and self.iterations == 0
         if self.pinv:
-            from pipeline.normals.fast_shared import shared_factors
-
             L0 = Lm[::self.num_groups]  # (P, M, 3): the first channel's lights
             Q0 = np.einsum("kmi,kmj->mij", L0, L0)
             Pi = shared_factors(L0, Q0, invertible)
@@ -477,63 +308,89 @@ class NearFieldFast:
     def pixels(self) -> int:
         return int(len(self.index))
 
-    def solve_planes(self, planes: np.ndarray, threads: int = 1):
-        """The raw kernel on observation planes ``(N, M)`` (integer dtype) of the solved pixels:
-        ``(normals (M, 3), albedo (M, G), residual (M,), mask (M,))`` float32/bool.
-
-        ``threads`` > 1 splits the pixels between that many threads (the kernel releases the
-        GIL); a frame this small is memory-bound, so two threads gain what the second core's
-        share of the memory bandwidth gives.
-        """
-        M = len(self.index)
-        if planes.shape != (self.n_obs, M):
-            raise ValueError(f"NearFieldFast: observation planes must be ({self.n_obs}, {M}), got {planes.shape}")
-        residual = np.empty(M, np.float32)
-        mask = np.empty(M, np.bool_)
-        if self.pinv:
-            from pipeline.normals.fast_shared import shared_kernel
-
-            args = (planes, self.dark, self.invflat, self.Lt, self.Q, self.scale)
-            np_, ap = np.empty((3, M), np.float32), np.empty((self.num_groups, M), np.float32)
-            run_split(lambda a, b: shared_kernel(*args, a, b, np_, ap, residual, mask), M, threads)
-            # (M, 3) and (M, G) views of the planes, not copies: FastDST reads the planes back
-            # without a split, and interleaving both cost two more passes over the frame.
-            normals, albedo = np_.T, ap.T
-        else:
-            normals = np.empty((M, 3), np.float32)
-            albedo = np.empty((M, self.num_groups), np.float32)
-            outs = (normals, albedo, residual, mask)
-            args = (planes, self.dark, self.invflat, self.Lt, self.inv, self.Q, self.scale, self.groups,
-                    self.num_groups, self.valid0, self.iterations)
-            run_split(lambda a, b: _nearfield_kernel(*args, a, b, *outs), M, threads)
-        return normals, albedo, residual, mask
-
     def solve(self, frames, threads: int = 1) -> NormalResult:
-        """Normals of one frame set ``(P, H, W, C)`` (uint8 or uint16; ``P * C = N``) on
-        ``threads`` threads."""
-        f = np.asarray(frames)
-        if f.ndim != 4 or f.shape[1:3] != self.shape or f.shape[0] * f.shape[3] != self.n_obs:
-            raise ValueError(f"NearFieldFast.solve: frames must be (P, {self.shape[0]}, {self.shape[1]}, C) with "
-                             f"P * C = {self.n_obs}, got {f.shape}")
-        if f.dtype.kind not in "ui":
-            raise ValueError(f"NearFieldFast.solve: integer frames expected (uint8/uint16), got {f.dtype}; float "
-                             f"frames go to the eager NearFieldSolver")
-        planes = frame_planes_np(f, None if self.region is None else self.index)
-        n, rho, res, ok = self.solve_planes(planes, threads)
-        return self._result(n, rho, res, ok)
+        """Normals of one frame set ``(P, H, W, C)`` (uint8 or uint16; ``P * C = N``), its pixels
+        split between ``threads`` threads (the kernel releases the GIL; a frame this small is
+        memory-bound, so two threads gain what the second core's share of the memory bandwidth
+        gives). Normals and albedo are views of the kernel's planes, which
+        :class:`pipeline.depth.fast.FastDST` reads without a split."""
+        f = self._check(np.asarray(frames)[None], "solve")
+        out = self.batch_planes(1)
+        kernel, args, outs = self._call(f, out)
+        run_split(lambda a, b: kernel(*args, a, b, *outs), len(self.index), threads)
+        return out.result(0)
 
-    def _result(self, n, rho, res, ok) -> NormalResult:
+    def batch_planes(self, K: int) -> PlaneBatch:
+        """Output planes for :meth:`solve_batch` of ``K`` frames (pixels outside the region filled
+        here: the kernels write only the region's)."""
+        H, W = self.shape
+        G = self.num_groups
+        out = PlaneBatch(np.empty((K, 3, H, W), np.float32), np.empty((K, G, H, W), np.float32),
+                         np.empty((K, H, W), np.float32), np.empty((K, H, W), np.bool_),
+                         self._full(self.condition_m, COND_CAP), self._full(self._count, 0),
+                         {"solver": "nearfield", "method": "fast", "max_condition": self.max_condition})
+        if self.region is not None:
+            out.normals[:, :2] = 0.0
+            out.normals[:, 2] = 1.0
+            out.albedo[...] = 0.0
+            out.residual[...] = 0.0
+            out.mask[...] = False
+        return out
+
+    def solve_batch(self, frames, pool=None, out: PlaneBatch | None = None, parts: int | None = None) -> PlaneBatch:
+        """Normals of ``K`` frame sets ``frames (K, P, H, W, C)`` (uint8 or uint16, C-contiguous as a
+        camera or an HDF5 file gives them; ``P * C = N``) by one call of the kernel per part
+        (:func:`pipeline.normals.fast_kernels.shared_batch` / ``nearfield_batch``): each part is a
+        run of pixels of every frame, so a block's factors are read once a call.
+
+        ``pool``: a :class:`pipeline.base.frame_pool.FramePool` whose threads run the parts
+        (None: this thread); ``parts``: how many (default one a thread, in whole blocks as equal
+        as they come: 150 blocks of 320 x 240 on 16 threads are runs of 9 and 10);
+        ``out``: planes to fill (:meth:`batch_planes`), else new ones. The
+        same numbers as :meth:`solve` frame by frame, bit for bit.
+        """
+        f = self._check(np.asarray(frames), "solve_batch")
+        out = self.batch_planes(f.shape[0]) if out is None else out
+        kernel, args, outs = self._call(f, out)
+        M = len(self.index)
+        if pool is None:
+            kernel(*args, 0, M, *outs)
+        else:
+            pool.split(lambda a, b: kernel(*args, a, b, *outs), M, multiple=BLOCK, parts=parts)
+        return out
+
+    def _check(self, f: np.ndarray, name: str) -> np.ndarray:
+        """Frames ``(K, P, H, W, C)`` checked (C-contiguous)."""
+        if f.ndim != 5 or f.shape[2:4] != self.shape or f.shape[1] * f.shape[4] != self.n_obs:
+            got, want = (f.shape[1:], "(P, {}, {}, C)") if name == "solve" else (f.shape, "(K, P, {}, {}, C)")
+            raise ValueError(f"NearFieldFast.{name}: frames must be {want.format(*self.shape)} with P * C = "
+                             f"{self.n_obs}, got {got}")
+        if f.dtype.kind not in "ui":
+            raise ValueError(f"NearFieldFast.{name}: integer frames expected (uint8/uint16), got {f.dtype}; float "
+                             f"frames go to the eager NearFieldSolver")
+        return np.ascontiguousarray(f)
+
+    def _call(self, f: np.ndarray, out: PlaneBatch):
+        """``(kernel, arguments, outputs)`` of the kernel on frames ``f (K, P, H, W, C)``; the pixel
+        range goes between the arguments and the outputs."""
+        K, P, H, W, C = f.shape
+        if out.normals.shape != (K, 3, H, W) or out.albedo.shape[1] != self.num_groups:
+            raise ValueError(f"NearFieldFast: output planes are for {out.normals.shape}, frames {f.shape}")
+        flat = f.reshape(K, P, H * W * C)
+        index = self.index if self.region is not None else np.zeros(0, np.int64)
+        outs = (out.normals.reshape(K, 3, H * W), out.albedo.reshape(K, self.num_groups, H * W),
+                out.residual.reshape(K, H * W), out.mask.reshape(K, H * W))
+        if self.pinv:
+            return shared_batch, (flat, index, C, self.dark, self.invflat, self.Lt, self.Q, self.scale), outs
+        return nearfield_batch, (flat, index, C, self.dark, self.invflat, self.Lt, self.inv, self.Q, self.scale,
+                                 self.groups, self.num_groups, self.valid0, self.iterations), outs
+
+    def _full(self, a, fill):
+        """Per-pixel values of the solved pixels ``(M, ...)`` as an image ``(H, W, ...)``."""
         H, W = self.shape
         if self.region is None:
-            full = lambda a, fill: a.reshape((H, W) + a.shape[1:])  # noqa: E731
-        else:
-            def full(a, fill):
-                out = np.empty((H * W,) + a.shape[1:], a.dtype)
-                out[...] = fill
-                out[self.index] = a
-                return out.reshape((H, W) + a.shape[1:])
-        cond = self.condition_m
-        count = self._count
-        return NormalResult(normals=full(n, np.array([0, 0, 1], np.float32)), albedo=full(rho, 0), residual=full(res, 0),
-                            condition=full(cond, COND_CAP), mask=full(ok, False), count=full(count, 0),
-                            meta={"solver": "nearfield", "method": "fast", "max_condition": self.max_condition})
+            return a.reshape((H, W) + a.shape[1:])
+        out = np.empty((H * W,) + a.shape[1:], a.dtype)
+        out[...] = fill
+        out[self.index] = a
+        return out.reshape((H, W) + a.shape[1:])

@@ -6,7 +6,8 @@ keeps it busy: two pinned host buffers and two device buffers, a copy stream and
 stream. While batch ``k`` is solved (:class:`pipeline.normals.gpu_nearfield.NearFieldGPU`,
 one fused kernel; then :func:`~pipeline.normals.batched.dst_divergence_torch` and the batched
 FFT :func:`~pipeline.normals.batched.dst_heights`), batch ``k + 1`` is staged into pinned memory
-by host threads and uploaded on the copy stream, and batch ``k - 1``'s heights come back on
+by host threads (or read there straight from an HDF5 file: :class:`pipeline.base.h5frames.H5Frames`)
+and uploaded on the copy stream, and batch ``k - 1``'s heights come back on
 the compute stream (PCIe is full duplex). Events order the reuse of each buffer.
 
 ``iristac bench live --device cuda`` times the copy alone, the solve alone (frames already on
@@ -122,19 +123,30 @@ class GPUFramePipeline:
 
     def run(self, frames, normals: bool = False, out=None) -> dict:
         """Heights ``(K, H, W)`` float32 (and ``normals (K, H, W, 3)`` when asked) of host frames
-        ``(K, P, H, W, C)`` uint8/uint16 (numpy; already pinned torch tensors are not staged again).
+        ``(K, P, H, W, C)`` uint8/uint16.
+
+        ``frames``: numpy (staged into pinned memory by host threads), an already pinned torch
+        tensor (not staged again), or a frame source with ``read_into(dst, start, stop)``,
+        ``shape`` and ``dtype`` (:class:`pipeline.base.h5frames.H5Frames`: an HDF5 capture or
+        recording), which reads each batch straight into the pinned buffer.
 
         ``out``: where the heights go, a numpy array or a pinned torch tensor ``(K, H, W)`` float32
         (a pinned one receives them straight from the device, no host copy); None: a new array."""
         import torch
 
-        src = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(frames))
-        K = src.shape[0]
-        if tuple(src.shape[1:]) != (self.P,) + self.shape + (self.C,):
+        reader = frames if hasattr(frames, "read_into") else None
+        if reader is not None:
+            src = None
+            shape, dtype = tuple(reader.shape), torch.from_numpy(np.empty(0, reader.dtype)).dtype
+        else:
+            src = frames if isinstance(frames, torch.Tensor) else torch.from_numpy(np.ascontiguousarray(frames))
+            shape, dtype = tuple(src.shape), src.dtype
+        K = shape[0]
+        if shape[1:] != (self.P,) + self.shape + (self.C,):
             raise ValueError(f"GPUFramePipeline.run: frames must be (K, {self.P}, {self.shape[0]}, {self.shape[1]}, "
-                             f"{self.C}), got {tuple(src.shape)}")
-        staged = not (isinstance(frames, torch.Tensor) and frames.is_pinned())
-        bufs = self._alloc(src.dtype)
+                             f"{self.C}), got {shape}")
+        pinned = src is not None and src.is_pinned()
+        bufs = self._alloc(dtype)
         H, W = self.shape
         if out is None:
             out = np.empty((K, H, W), np.float32)
@@ -153,11 +165,14 @@ class GPUFramePipeline:
             if i >= 2:  # slot k's last batch: its upload has been read and its heights copied out
                 done[k].synchronize()
                 self._finish(pending.pop(0), out, out_n)
-            if staged:
-                parallel_copy(bufs["pinned"][k][:nb].numpy(), src[s:s + nb].numpy(), self._pool, self.host_threads)
-                host = bufs["pinned"][k][:nb]
-            else:
+            if pinned:
                 host = src[s:s + nb]
+            else:
+                host = bufs["pinned"][k][:nb]
+                if reader is not None:
+                    reader.read_into(host.numpy(), s, s + nb)
+                else:
+                    parallel_copy(host.numpy(), src[s:s + nb].numpy(), self._pool, self.host_threads)
             with torch.cuda.stream(copy_s):
                 dev = bufs["device"][k][:nb]
                 dev.copy_(host, non_blocking=True)

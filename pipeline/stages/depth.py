@@ -64,7 +64,10 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
         float rounding, so the device stays out of the key).
     threads : int, optional
         Instances integrated at once, one per thread (:class:`pipeline.base.frame_pool.FramePool`;
-        None: every core). The same heights whatever the count, so it stays out of the key.
+        None: every core). ``dst`` on the whole frame with float32 normals and other than one
+        thread: :meth:`pipeline.depth.fast.FastDST.integrate_batch` (each thread a run of
+        instances in one compiled call and one transform pair; equal to the DST to float32
+        rounding). The count stays out of the key.
 
     Returns
     -------
@@ -84,6 +87,8 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
     filled = n_rec.data.get("filled")
     if integrator == "dst" and region is None and str(device) != "cpu":
         return _compute_on_device(n_rec, pitch, filled, device)
+    if integrator == "dst" and region is None and threads != 1 and n_rec.data["normals"].dtype == np.float32:
+        return _compute_fast(n_rec, pitch, filled, threads)
     usable = [n_rec.data["mask"][k] if filled is None else (n_rec.data["mask"][k] | filled)
               for k in range(n_rec.data["normals"].shape[0])]
     from pipeline.base.frame_pool import FramePool
@@ -96,6 +101,22 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
     if integrator == "sparse":
         meta["converged"] = bool(all(o.meta["converged"] for o in outs))
     return Record("depth", data, meta)
+
+
+def _compute_fast(n_rec, pitch: float, filled, threads):
+    """``dst`` of every instance by :meth:`pipeline.depth.fast.FastDST.integrate_batch` on
+    ``threads`` threads (a run of instances each; see :func:`compute`)."""
+    from pipeline.base.frame_pool import FramePool
+    from pipeline.base.store import Record
+    from pipeline.depth.fast import FastDST
+
+    n = np.asarray(n_rec.data["normals"])
+    m = np.asarray(n_rec.data["mask"], bool)
+    if filled is not None:
+        m = m | np.asarray(filled, bool)
+    with FramePool(threads) as pool:
+        h, valid = FastDST(n.shape[1:3], pitch).integrate_batch(n, m, pool)
+    return Record("depth", {"height": h, "mask": valid}, {"integrator": "dst", "mm_per_px": pitch, "method": "fast"})
 
 
 def _compute_on_device(n_rec, pitch: float, filled, device):

@@ -296,7 +296,7 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         ``dark (H, W, C)`` and ``mask (H, W)``; attributes ``mm_per_px`` and ``bit_depth``.
     lights : LightSource
         From :func:`load_lights`.
-    solver, ratio, max_condition, device, dtype, threads, compile
+    solver, ratio, max_condition, device, dtype, compile
         As in :func:`pipeline.reconstruct.reconstruct`.
     mask : path or ndarray, shape (H, W), optional
         The pixels to solve, replacing the capture's ``mask`` (:func:`capture_region`). Only
@@ -305,6 +305,12 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         Printed gel markers (:func:`marker_mask`): filled in before the solve (the calibration
         models fill them in themselves, as ``eval calibration`` does), False in ``mask``, True
         in ``filled``.
+    threads : int, optional
+        Torch threads of the eager solvers (None: torch's setting). Other than 1, on the CPU:
+        solvers with a batch fast path (``nearfield``, ``lstsq``: registry fact ``batch``) on
+        integer frames (no ratio, no markers, float32) run it instead (:meth:`pipeline.normals.fast.NearFieldFast.solve_batch`, every
+        instance at once on that many threads, None: every core); equal to the eager solvers
+        to 2e-5 deg, so the count stays out of the key like the device.
     batched : bool, optional
         ``nearfield`` on the whole frame: solve all K instances as one batch on ``device``
         (:class:`pipeline.normals.batched.NearFieldBatched`, no host round trip inside the
@@ -326,6 +332,12 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
     if (batched and solver == "nearfield" and not ratio and region is None and markers is None
             and lights.field is not None and str(dtype) == "float32"):
         return _compute_batched(cap, lights, max_condition=max_condition, device=device)
+    if threads != 1 and str(device) == "cpu" and str(dtype) == "float32" and not ratio and markers is None:
+        res = _solve_fast_batch(cap, lights, solver=solver, max_condition=max_condition, region=region,
+                                threads=threads)
+        if res is not None:
+            return _record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, region=region,
+                           markers=None)
     prep = FrameSolver.prep_for(solver, raw.shape[2:4], raw_dtype=raw.dtype, bit_depth=cap.meta.get("bit_depth"),
                                 dark=cap.data.get("dark"), markers=markers, region=region,
                                 name=str(cap.path or "capture"))
@@ -356,6 +368,24 @@ def _record(res: list, cap, lights: LightSource, *, solver: str, ratio: bool, ma
         meta["markers"] = int(markers.sum())
     meta.update({k: v for k, v in res[0].meta.items() if k not in meta and isinstance(v, (str, int, float))})
     return Record("normals", data, meta)
+
+
+def _solve_fast_batch(cap, lights: LightSource, *, solver: str, max_condition: float, region, threads):
+    """Every instance of an integer capture through the solver's batch fast path (registry fact
+    ``batch``: :meth:`pipeline.normals.fast.NearFieldFast.solve_batch`) on ``threads`` threads,
+    as per-instance results; None when the solver has none or the frames are not integers."""
+    from pipeline.base.frame_pool import FramePool
+    from pipeline.stages.fast_solvers import frame_solver
+
+    raw = np.asarray(cap.data["frames"])
+    if raw.dtype.kind not in "ui" or not SOLVERS.get(solver).info.get("batch"):
+        return None
+    K, P, H, W, C = raw.shape
+    fs = frame_solver(solver, lights, shape=(H, W), channels=C, dark=cap.data.get("dark"), max_condition=max_condition,
+                      region=region)
+    with FramePool(threads) as pool:
+        planes = fs.solve_batch(raw, pool)
+    return [planes.result(k) for k in range(K)]
 
 
 def _compute_batched(cap, lights: LightSource, *, max_condition: float, device):

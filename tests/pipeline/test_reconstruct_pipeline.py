@@ -73,6 +73,22 @@ def test_cli_json(files, tmp_path, solver="robust", integrator="sparse"):
     assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["depth.h5", "normals.h5"]
 
 
+def test_threads_take_the_batch_fast_paths(files, tmp_path):
+    """``--threads 0`` (every core): nearfield by the batch kernel, dst by FastDST.integrate_batch;
+    the results of one thread to float32 rounding."""
+    from pipeline.cli import build_parser
+
+    assert build_parser().parse_args(["reconstruct", "c.h5", "--out", "o", "--threads", "0"]).threads == 0
+    one = reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield", store=tmp_path / "a")
+    every = reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield",
+                        store=tmp_path / "b", threads=None)
+    assert every.normals.meta["method"] == "fast" and every.depth.meta["method"] == "fast"
+    assert one.normals.meta.get("method") != "fast" and "method" not in one.depth.meta
+    np.testing.assert_array_equal(every.normals.data["mask"], one.normals.data["mask"])
+    np.testing.assert_allclose(every.normals.data["normals"], one.normals.data["normals"], atol=3e-5)
+    np.testing.assert_allclose(every.depth.data["height"], one.depth.data["height"], atol=1e-5)
+
+
 def test_cli_errors_are_one_line(files, tmp_path):
     r = run_cli("reconstruct", files["dir"] / "missing.h5", "--out", tmp_path)
     assert r.returncode == 2 and "missing.h5" in r.stderr and "Traceback" not in r.stderr

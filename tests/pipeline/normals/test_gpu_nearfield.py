@@ -142,3 +142,31 @@ def test_gpu_pipeline_heights_equal_the_cpu():
         assert np.abs(out["normals"] - cpu.normals[None])[:, cpu.mask].max() < 1e-4, solver
         assert np.abs(out["height"] - h_cpu[None]).max() < 1e-4, solver
         assert np.abs(pinned.numpy() - h_cpu[None]).max() < 1e-4, solver
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device")
+def test_gpu_pipeline_reads_hdf5_frames_into_pinned_buffers(tmp_path):
+    """Frames read from HDF5 straight into the pipeline's pinned buffers (by offsets from an
+    unfiltered file, through the filters from a compressed one) give the heights the same
+    frames give from numpy."""
+    import h5py
+
+    from pipeline.base.h5frames import H5Frames
+    from pipeline.bench.recon_scene import render_sphere_scene
+    from pipeline.normals.gpu_stream import GPUFramePipeline
+
+    s = render_sphere_scene((48, 64), 0.1, radius=1.5, depth=0.4, num_patterns=8, noise=1.0, bits=8, seed=0)
+    rng = np.random.default_rng(0)
+    frames = np.clip(s.frames[None] + rng.integers(-2, 3, size=(7,) + s.frames.shape), 0, 255).astype(np.uint8)
+    for name, kw in (("plain", {}), ("lzf", {"chunks": (1, 1, 48, 64, 3), "compression": "lzf"})):
+        with h5py.File(tmp_path / f"{name}.h5", "w") as f:
+            f.create_dataset("frames", data=frames, **kw)
+    pipe = GPUFramePipeline(s.lights, 0.1, batch=3)
+    want = pipe.run(frames)["height"]
+    for name, direct in (("plain", True), ("lzf", False)):
+        with H5Frames(tmp_path / f"{name}.h5") as src:
+            assert src.direct is direct
+            pinned = torch.full((7, 48, 64), float("nan")).pin_memory()
+            pipe.run(src, out=pinned)
+        np.testing.assert_allclose(pinned.numpy(), want, rtol=0, atol=1e-6)
+    pipe.close()

@@ -41,12 +41,31 @@ def test_batched_normals_and_device_depth_equal_the_stages(capture_and_lights):
     assert batch.meta["method"] == "batched" and eager.meta.get("method") != "batched"
     _compare(batch, eager)
     d_ref = depth.compute(eager, "dst", region=None)
-    d_par = depth.compute(eager, "dst", region=None, threads=3)  # instances in parallel: the same heights
-    np.testing.assert_array_equal(d_par.data["height"], d_ref.data["height"])
+    scale = np.abs(d_ref.data["height"]).max()
+    d_par = depth.compute(eager, "dst", region=None, threads=3)  # a run of instances per thread: FastDST
+    assert d_par.meta["method"] == "fast"
+    np.testing.assert_array_equal(d_par.data["mask"], d_ref.data["mask"])
+    np.testing.assert_allclose(d_par.data["height"], d_ref.data["height"], atol=1e-5 * scale)
+    d_seq = depth.compute(eager, "fc", region=None)
+    np.testing.assert_array_equal(depth.compute(eager, "fc", region=None, threads=3).data["height"],
+                                  d_seq.data["height"])  # the other integrators: instances in parallel, same heights
     d_dev = depth._compute_on_device(eager, float(eager.meta["mm_per_px"]), None, "cpu")
     np.testing.assert_array_equal(d_dev.data["mask"], d_ref.data["mask"])
-    scale = np.abs(d_ref.data["height"]).max()
     np.testing.assert_allclose(d_dev.data["height"], d_ref.data["height"], atol=2e-5 * scale)
+
+
+def test_threads_take_the_batch_fast_path(capture_and_lights):
+    """``--threads`` other than 1: nearfield on integer frames by NearFieldFast.solve_batch, every
+    instance at once (equal to the eager solver to float32 rounding); float64 stays eager."""
+    from pipeline.stages import normals
+
+    cap, lights = capture_and_lights
+    eager = normals.compute(cap, lights, solver="nearfield")
+    fast = normals.compute(cap, lights, solver="nearfield", threads=2)
+    assert fast.meta["method"] == "fast" and eager.meta.get("method") != "fast"
+    assert fast.data["normals"].shape == eager.data["normals"].shape and fast.data["count"].dtype == np.int32
+    _compare(fast, eager)
+    assert normals.compute(cap, lights, solver="nearfield", threads=2, dtype="float64").meta.get("method") != "fast"
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device: the CUDA-vs-CPU check needs a GPU")
