@@ -26,7 +26,8 @@ from dataclasses import asdict, dataclass
 import numpy as np
 from scipy import ndimage
 
-__all__ = ["Circle", "DetectOptions", "detect_press", "detect_contacts", "difference_image"]
+__all__ = ["Circle", "DetectOptions", "detect_contacts", "detect_press", "difference_image", "rim_inside", "shrink",
+           "work_scale"]
 
 
 @dataclass
@@ -92,6 +93,7 @@ class DetectOptions:
     ransac_iterations: int = 200
     ransac_tol_px: float = 1.0
     min_inlier_fraction: float = 0.5
+    soft_refit: bool = True
     faint_snr: float = 8.0
     border_margin_px: float = 1.0
     min_rim_inside: float = 0.75
@@ -150,24 +152,38 @@ def shrink(images: np.ndarray, scale: float) -> np.ndarray:
     if scale >= 1.0:
         return a
     h, w, c = a.shape[-3:]
-    size = (max(1, int(round(w * scale))), max(1, int(round(h * scale))))
+    size = (max(1, round(w * scale)), max(1, round(h * scale)))
     flat = a.reshape(-1, h, w, c)
     out = np.stack([cv2.resize(im, size, interpolation=cv2.INTER_AREA).reshape(size[1], size[0], c) for im in flat])
     return out.reshape(a.shape[:-3] + (size[1], size[0], c))
 
 
-def _fit_circle(x: np.ndarray, y: np.ndarray) -> tuple[float, float, float]:
+def _fit_circle(x: np.ndarray, y: np.ndarray, start=None, soft_scale: float | None = None
+                ) -> tuple[float, float, float]:
     """Algebraic fit (scikit-image ``CircleModel``) refined geometrically (``scipy.optimize.least_squares``
-    on the orthogonal distances: the algebraic fit is biased when the points cover part of the circle)."""
+    on the orthogonal distances: the algebraic fit is biased when the points cover part of the circle).
+
+    With ``start`` and ``soft_scale``: only the geometric fit, over every point with a Cauchy
+    loss of that scale (points beyond it count less and less), so that the circle does not jump
+    when a point crosses a hard inlier threshold.
+    """
     from scipy.optimize import least_squares
     from skimage.measure import CircleModel
 
     pts = np.stack([x, y], axis=1).astype(np.float64)
-    model = CircleModel.from_estimate(pts)
-    if not model:
-        raise np.linalg.LinAlgError(f"no circle through {len(pts)} points")
-    start = np.r_[model.center, model.radius]
-    fit = least_squares(lambda v: np.hypot(pts[:, 0] - v[0], pts[:, 1] - v[1]) - v[2], start, method="lm")
+    if start is None:
+        model = CircleModel.from_estimate(pts)
+        if not model:
+            raise np.linalg.LinAlgError(f"no circle through {len(pts)} points")
+        start = np.r_[model.center, model.radius]
+
+    def dist(v):
+        return np.hypot(pts[:, 0] - v[0], pts[:, 1] - v[1]) - v[2]
+
+    if soft_scale is None:
+        fit = least_squares(dist, np.asarray(start, np.float64), method="lm")
+    else:
+        fit = least_squares(dist, np.asarray(start, np.float64), loss="cauchy", f_scale=soft_scale)
     return float(fit.x[0]), float(fit.x[1]), float(abs(fit.x[2]))
 
 
@@ -263,7 +279,6 @@ def _coarse_blob(diff: np.ndarray, med: float, ball_px: float, opt: DetectOption
 
 def _search(diff: np.ndarray, ball_px: float, opt: DetectOptions) -> _Found:
     """Find the contact circle in a (working-scale, blurred) difference image."""
-    h, w = diff.shape
     med = float(np.median(diff))
     sigma = float(1.4826 * np.median(np.abs(diff - med))) + 1e-6
     peak_at = np.unravel_index(int(np.argmax(diff)), diff.shape)
@@ -287,7 +302,8 @@ def _search(diff: np.ndarray, ball_px: float, opt: DetectOptions) -> _Found:
         if inl.sum() < 3:
             return reject("no clear circle: RANSAC found no consensus", cx, cy, r, located=True)
         try:
-            cx, cy, r = _fit_circle(xs[inl], ys[inl])
+            start = _fit_circle(xs[inl], ys[inl])
+            cx, cy, r = _fit_circle(xs, ys, start, opt.ransac_tol_px) if opt.soft_refit else start
         except np.linalg.LinAlgError:
             return reject("no clear circle: the edge points do not determine a circle", cx, cy, r, located=True)
         res = float(np.sqrt(np.mean((np.hypot(xs[inl] - cx, ys[inl] - cy) - r) ** 2)))
@@ -316,7 +332,6 @@ def rim_inside(shape: tuple[int, int], center_xy, radius_px: float, margin_px: f
 
 def _verdict(c: _Found, shape: tuple[int, int], ball_radius_px: float, opt: DetectOptions) -> Circle:
     """The rules on a circle in original pixels: border, size; the clamp of the contact radius."""
-    h, w = shape
     cx, cy, r = c.cx, c.cy, c.r
 
     def circle(accepted, reason):
@@ -404,9 +419,9 @@ def detect_press(frames: np.ndarray, reference: np.ndarray, ball_radius_px: floa
 
 
 def detect_contacts(frames: np.ndarray, reference: np.ndarray, ball_radius_px: float,
-                    options: DetectOptions | None = None) -> list[Circle]:
+                    options: DetectOptions | None = None, *, exclude: np.ndarray | None = None) -> list[Circle]:
     """:func:`detect_press` for every press of ``frames (K, P, H, W, C)``."""
     frames = np.asarray(frames)
     if frames.ndim != 5:
         raise ValueError(f"detect_contacts: frames must be (K, P, H, W, C), got {frames.shape}")
-    return [detect_press(f, reference, ball_radius_px, options) for f in frames]
+    return [detect_press(f, reference, ball_radius_px, options, exclude=exclude) for f in frames]

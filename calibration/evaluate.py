@@ -119,7 +119,7 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
                          mm_per_px: float | None = None, models: list[str] | None = None, ball_level: float = 0.5,
                          refine_iterations: int | None = None, refine_model: str | None = None,
                          shrink_px: float | None = None, folds: int | None = None, circles=None,
-                         markers=None) -> dict[str, Any]:
+                         markers=None, detect_options=None) -> dict[str, Any]:
     """Every model of a calibration applied to presses it never saw.
 
     Parameters
@@ -148,6 +148,10 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         settings (reused instead of found again: benchmarks evaluate many calibrations).
     markers : None, "none", "auto", a mask image path or an (H, W) bool array
         Printed gel markers; None: the test capture's own, else the calibration's.
+    detect_options : DetectOptions, optional
+        How the test presses' circles are found and their drift removed
+        (:class:`calibration.detect.DetectOptions`; ``drift="none"`` keeps the frames as
+        recorded, as ``iristac reconstruct`` reads them).
 
     Returns
     -------
@@ -206,7 +210,7 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     folds = TEST_TRUTH["folds"] if folds is None else int(folds)
     found = circles if circles is not None else find_circles(
         cap, float(radius), mm, refine_iterations=refine_iterations, refine_model=refine_model, shrink_px=shrink_px,
-        folds=folds, markers=markers)
+        folds=folds, markers=markers, strict=False, detect_options=detect_options)
     det = evaluate_models(loaded, found.samples)
     refined = found.refine.get("iterations", 0) and found.refine.get("model")
     truth: dict[str, Any] = {"detected": {
