@@ -159,7 +159,9 @@ def read_labels_csv(path: str | Path, names: list[str]) -> dict[str, np.ndarray]
     """Hand labels ``name,x,y,radius_px`` for the presses ``names`` (in that order).
 
     ``name`` may be a frame's file name or its stem (with a template: the press id). Every
-    press needs exactly one row. Returns ``{"center_xy": (K, 2), "radius_px": (K,)}`` float32.
+    press needs exactly one row; ``name,,,`` (x, y and radius empty) marks a press a person
+    rejected (the labeller writes those). Returns ``{"center_xy": (K, 2), "radius_px": (K,)}``
+    float32 (NaN for rejected presses), plus ``"rejected": (K,)`` bool when any press is.
     """
     path = Path(path)
     if not path.is_file():
@@ -179,11 +181,15 @@ def read_labels_csv(path: str | Path, names: list[str]) -> dict[str, np.ndarray]
                 if len(row) != 4:
                     raise UserError(f"{path}:{line_no}: expected 4 fields name,x,y,radius_px, got {len(row)}: {row}")
                 name = row[0].strip()
-                try:
-                    x, y, r = (float(v) for v in row[1:])
-                except ValueError:
-                    raise UserError(f"{path}:{line_no}: x, y and radius_px must be numbers, got {row[1:]}") from None
-                if not (np.isfinite([x, y, r]).all() and r > 0):
+                if all(not v.strip() for v in row[1:]):  # "name,,,": a press a person rejected
+                    x = y = r = float("nan")
+                else:
+                    try:
+                        x, y, r = (float(v) for v in row[1:])
+                    except ValueError:
+                        raise UserError(f"{path}:{line_no}: x, y and radius_px must be numbers (or all three empty: "
+                                        f"rejected), got {row[1:]}") from None
+                if not np.isnan(r) and not (np.isfinite([x, y, r]).all() and r > 0):
                     raise UserError(f"{path}:{line_no}: x and y must be finite and radius_px positive, got {row[1:]}")
                 if name not in lookup:
                     raise UserError(f"{path}:{line_no}: no press named {name!r} (presses: "
@@ -199,7 +205,10 @@ def read_labels_csv(path: str | Path, names: list[str]) -> dict[str, np.ndarray]
         raise UserError(f"{path}: no label for press(es) {', '.join(missing[:5])}{' ...' if len(missing) > 5 else ''}"
                         f" (every press needs one row name,x,y,radius_px)")
     arr = np.array([rows[k] for k in range(len(names))], np.float32)
-    return {"center_xy": arr[:, :2], "radius_px": arr[:, 2]}
+    out = {"center_xy": arr[:, :2], "radius_px": arr[:, 2]}
+    if np.isnan(arr[:, 2]).any():
+        out["rejected"] = np.isnan(arr[:, 2])
+    return out
 
 
 def _check_same(items: list[tuple[str, np.ndarray]]) -> None:
@@ -249,7 +258,7 @@ def _folder_frames(folder: Path, template: str | None):
 
 def load_images(source: str | Path, *, reference: str | None = None, pattern: str | None = None,
                 mm_per_px: float | None = None, ball_radius_mm: float | None = None, labels: str | Path | None = None,
-                markers: str | Path | None = None) -> tuple[Capture, dict[str, Any]]:
+                markers: str | Path | None = None, profile=None) -> tuple[Capture, dict[str, Any]]:
     """Read a folder of images or a video into a :class:`Capture` (see the module docstring).
 
     Parameters
@@ -269,6 +278,11 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         CSV ``name,x,y,radius_px`` (:func:`read_labels_csv`).
     markers : "auto", "none", a mask image path, or None
         Printed gel markers (:func:`calibration.markers.resolve_markers`).
+    profile : str, path or SensorProfile, optional
+        A sensor profile (:func:`pipeline.capture.sensor_profiles.load_profile`): its pixel
+        pitch and ball radius where ``mm_per_px`` / ``ball_radius_mm`` are not given, and frames
+        of its camera stream cropped, rotated and resized to its resolution (frames already of
+        that resolution are kept; any other size is an error).
 
     Returns
     -------
@@ -281,6 +295,13 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         ``ball_radius_mm``.
     """
     src = Path(source)
+    prof = None
+    if profile is not None:
+        from pipeline.capture.sensor_profiles import load_profile
+
+        prof = load_profile(profile)
+        mm_per_px = prof.mm_per_px if mm_per_px is None else mm_per_px
+        ball_radius_mm = prof.ball_radius_mm if ball_radius_mm is None else ball_radius_mm
     if mm_per_px is None or not (np.isfinite(mm_per_px) and mm_per_px > 0):
         raise UserError(f"{src}: give the pixel pitch with --mm-per-px (a positive number of mm per pixel; got "
                         f"{mm_per_px})")
@@ -303,6 +324,8 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         raise UserError(f"{src}: no such folder or video file")
     if len(names) < 2:
         raise UserError(f"{src}: only {len(names)} frame(s); a capture needs a reference and at least one press")
+    if prof is not None:
+        frames = prof.fit_frames(frames, str(src))
     if reference is not None:
         matches = [i for i, n in enumerate(names) if reference in (n, Path(n).stem)]
         if not matches:
@@ -328,6 +351,8 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
     }
     if ball_radius_mm is not None:
         meta["ball_radius_mm"] = float(ball_radius_mm)
+    if prof is not None:
+        meta["sensor_profile"] = prof.name
     # The drive is not known from files: each pattern is taken as its own light (P = 1 with three
     # colour channels: three LED groups, red, green and blue, as the GelSight import does).
     drive = np.eye(3, dtype=np.float32)[None] if (p, c) == (1, 3) else np.repeat(
@@ -344,7 +369,8 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
               "reference_distance": None if dist is None else float(dist[ref_i]),
               "next_closest_distance": None if others is None or not len(others) else float(others[0]),
               "labels": lab is not None, "markers": 0 if mask is None else int(mask.sum()),
-              "mm_per_px": float(mm_per_px), "ball_radius_mm": ball_radius_mm}
+              "mm_per_px": float(mm_per_px), "ball_radius_mm": ball_radius_mm,
+              "profile": None if prof is None else prof.name}
     return cap, report
 
 

@@ -2,10 +2,12 @@
 
 A capture may carry hand labels ``labels/center_xy (K, 2)`` (x = column, y = row, pixels) and
 ``labels/radius_px (K,)`` (``iristac import images --labels``, the GelSight npz's
-``touch_center_xy`` / ``touch_radius_px``). Labels are drawn by eye, often on a coarse grid,
-and a labelled radius may exceed the ball's (a contact disc cannot: the shared real frames
-have 17 px labels on a 16.1 px ball), so the contact radius used for the truth is clamped to
-``clamp_fraction`` of the ball radius, as the detector clamps its own.
+``touch_center_xy`` / ``touch_radius_px``, the labeller ``iristac label``), NaN where a press
+has none, and ``labels/rejected (K,)``: presses a person rejected (rejected circles here).
+Labels are drawn by eye, often on a coarse grid, and a labelled radius may exceed the ball's
+(a contact disc cannot: the shared real frames have 17 px labels on a 16.1 px ball), so the
+contact radius used for the truth is clamped to ``clamp_fraction`` of the ball radius, as the
+detector clamps its own.
 """
 
 from __future__ import annotations
@@ -89,7 +91,13 @@ def capture_label_circles(capture, ball_radius_px: float, source: str = "capture
     if c.shape != (k, 2) or r.shape != (k,):
         raise UserError(f"{source}: labels/center_xy {c.shape} and labels/radius_px {r.shape} do not match {k} "
                         f"presses (expected ({k}, 2) and ({k},))")
-    return label_circles(c, r, ball_radius_px, clamp_fraction)
+    circles = label_circles(c, r, ball_radius_px, clamp_fraction)
+    rejected = capture.labels.get("rejected")
+    if rejected is not None:
+        for i in np.flatnonzero(np.asarray(rejected, bool).reshape(-1)[:k]):
+            circles[i].accepted = False
+            circles[i].reason = "rejected by hand (labels/rejected)"
+    return circles
 
 
 def label_errors(circles: Sequence[Circle], center_xy: np.ndarray, radius_px: np.ndarray) -> dict[str, Any]:

@@ -14,7 +14,8 @@ import numpy as np
 
 from pipeline.base.frames import pixel_to_recon
 
-__all__ = ["normal_map_rgb", "depth_colormap_rgb", "write_png", "write_normal_png", "write_depth_png", "write_ply"]
+__all__ = ["normal_map_rgb", "depth_colormap_rgb", "png_bytes", "write_png", "write_normal_png", "write_depth_png",
+           "write_ply"]
 
 
 def normal_map_rgb(normals, mask=None) -> np.ndarray:
@@ -60,6 +61,27 @@ def depth_colormap_rgb(height, mask=None, *, vmin: float | None = None, vmax: fl
     rgb = (matplotlib.colormaps[cmap](t)[..., :3] * 255 + 0.5).astype(np.uint8)
     rgb[~m] = 0
     return rgb
+
+
+def png_bytes(rgb) -> bytes:
+    """An RGB (H, W, 3) or grey (H, W) uint8/uint16 image as PNG file bytes (for a web page).
+
+    Examples
+    --------
+    >>> png_bytes(np.zeros((2, 3, 3), np.uint8))[:4]
+    b'\\x89PNG'
+    """
+    import cv2
+
+    img = np.asarray(rgb)
+    if img.ndim == 3 and img.shape[-1] == 3:
+        img = img[..., ::-1]  # OpenCV encodes BGR
+    elif img.ndim != 2:
+        raise ValueError(f"png_bytes: image must have shape (H, W, 3) or (H, W), got {img.shape}")
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(img))
+    if not ok:  # pragma: no cover - cv2 encodes any uint8/uint16 image
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
 
 
 def write_png(path, rgb) -> Path:

@@ -6,8 +6,10 @@ then runs the normals stage (:mod:`pipeline.stages.normals`, the solver picked f
 :data:`pipeline.base.registry.SOLVERS`) and the depth stage (:mod:`pipeline.stages.depth`)
 through the stage store: the same keys ``iristac run`` and ``iristac batch`` use, so a
 repeated call, or work ``run`` already did, is a cache hit. It copies both results to the
-output folder and writes a normal-map PNG, a colour-mapped depth PNG and a PLY point cloud
-per contact instance.
+output folder and writes a normal-map PNG, a colour-mapped depth PNG, a PLY point cloud and a
+contact-mask PNG per contact instance; the contact mask (:func:`pipeline.contact.contact_mask`:
+the colour change against the reference and the height) is also the ``contact`` dataset of
+the output ``depth.h5`` and :attr:`ReconstructResult.contact`.
 
 Where to solve: the capture's ``mask`` dataset (an object's silhouette, e.g. DiLiGenT's), or a
 user's ``mask=`` (a PNG/NPY file or an array), which replaces it
@@ -42,13 +44,16 @@ class ReconstructResult:
     ``summary`` has the CLI's JSON keys: ``solver``, ``integrator``, ``seconds``,
     ``valid_fraction`` and, when the capture has ground truth, ``normal_mean_error_deg`` and
     ``depth_rmse_mm`` (means over contact instances); plus ``cached``, ``markers`` (marker
-    pixels filled in) and ``outputs``.
+    pixels filled in), ``contact_fraction`` (the contact mask's share of the image, mean over
+    contact instances) and ``outputs``.
     """
 
     normals: Any
     depth: Any
     summary: dict[str, Any]
     files: list[Path] = field(default_factory=list)
+    #: Where the object touches the gel, ``(K, H, W)`` bool (:func:`pipeline.contact.contact_mask`).
+    contact: Any = None
 
 
 def _read(path_or_record, schema: str):
@@ -82,8 +87,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     integrator : str
         A name in :data:`pipeline.base.registry.INTEGRATORS` (``fc``, ``dct``, ``dst``, ``sparse``).
     out : path, optional
-        Folder for ``normals.h5``, ``depth.h5`` and, with ``images``, per contact instance
-        ``normals_kNNN.png``, ``depth_kNNN.png`` and ``depth_kNNN.ply``.
+        Folder for ``normals.h5``, ``depth.h5`` (with ``contact``) and, with ``images``, per
+        contact instance ``normals_kNNN.png``, ``depth_kNNN.png``, ``depth_kNNN.ply`` and
+        ``contact_kNNN.png``.
     store : StageStore or path, optional
         The stage store (default: ``$IRISTAC_CACHE`` or ``./iristac-cache``).
     ratio : bool
@@ -149,11 +155,15 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
                                "cached": bool(n_cached and d_cached),
                                "markers": 0 if marks is None else int(marks.sum())}
     summary.update(_truth_errors(cap, n_rec, d_rec, region))
+    from pipeline.contact import capture_contact_masks
+
+    contact = capture_contact_masks(cap.data, d_rec.data["height"], d_rec.data["mask"], region)
+    summary["contact_fraction"] = float(contact.mean()) if contact.size else 0.0
     files: list[Path] = []
     if out is not None:
-        files = _write_outputs(Path(out), n_rec, d_rec, mm_per_px, images)
+        files = _write_outputs(Path(out), n_rec, d_rec, mm_per_px, images, contact)
         summary["outputs"] = [str(f) for f in files]
-    return ReconstructResult(normals=n_rec, depth=d_rec, summary=summary, files=files)
+    return ReconstructResult(normals=n_rec, depth=d_rec, summary=summary, files=files, contact=contact)
 
 
 def _truth_errors(cap, n_rec, d_rec, region=None) -> dict:
@@ -179,13 +189,13 @@ def _truth_errors(cap, n_rec, d_rec, region=None) -> dict:
     return out
 
 
-def _write_outputs(out: Path, n_rec, d_rec, mm_per_px: float, images: bool) -> list[Path]:
-    from pipeline.outputs import normal_map_rgb, write_depth_png, write_normal_png, write_ply
+def _write_outputs(out: Path, n_rec, d_rec, mm_per_px: float, images: bool, contact) -> list[Path]:
+    from pipeline.outputs import normal_map_rgb, write_depth_png, write_normal_png, write_ply, write_png
     from pipeline.base.store import Record, write_record
 
     out.mkdir(parents=True, exist_ok=True)
     files = [write_record(out / "normals.h5", Record("normals", n_rec.data, n_rec.meta)),
-             write_record(out / "depth.h5", Record("depth", d_rec.data, d_rec.meta))]
+             write_record(out / "depth.h5", Record("depth", {**d_rec.data, "contact": contact}, d_rec.meta))]
     if images:
         for k in range(n_rec.data["normals"].shape[0]):
             n, nm = n_rec.data["normals"][k], n_rec.data["mask"][k]
@@ -193,4 +203,5 @@ def _write_outputs(out: Path, n_rec, d_rec, mm_per_px: float, images: bool) -> l
             files.append(write_normal_png(out / f"normals_k{k:03d}.png", n, nm))
             files.append(write_depth_png(out / f"depth_k{k:03d}.png", h, hm))
             files.append(write_ply(out / f"depth_k{k:03d}.ply", h, mm_per_px, hm, colors=normal_map_rgb(n, nm)))
+            files.append(write_png(out / f"contact_k{k:03d}.png", np.repeat(contact[k, ..., None] * np.uint8(255), 3, -1)))
     return files

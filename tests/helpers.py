@@ -26,3 +26,14 @@ def run_cli(*args, cwd=None, env=None, timeout=300, input=None) -> subprocess.Co
         timeout=timeout,
         input=input,
     )
+
+
+def chromium_path() -> str | None:
+    """A headless-capable Chromium on PATH (Debian's ``chromium`` package), or None."""
+    import shutil
+
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        path = shutil.which(name)
+        if path:
+            return path
+    return None

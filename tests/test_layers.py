@@ -25,7 +25,7 @@ LAYERS = [
     ("schemas", ["data_schemas"]),
     ("base", ["pipeline.base", "pipeline"]),
     ("physics and numerics", ["sim", "pipeline.normals", "pipeline.depth", "pipeline.evaluate", "pipeline.outputs",
-                              "pipeline.report", "pipeline.batch"]),
+                              "pipeline.report", "pipeline.batch", "pipeline.contact"]),
     ("calibration and capture", ["calibration", "pipeline.capture"]),
     ("stage registry", ["pipeline.stages"]),
     ("entry points", ["pipeline.run", "pipeline.reconstruct", "pipeline.batch_reconstruct", "pipeline.compare",

@@ -1,14 +1,15 @@
-"""The typed view of a ``capture`` record, and the one function that writes a capture file.
+"""The typed view of a ``capture`` record, and the functions that write a capture file.
 
 The on-disk layout is the ``capture`` stage of ``docs/developing.md`` (``frames (K, P, H, W, C)``,
 ``reference (P, H, W, C)``, optional ``dark (H, W, C)``, ``drive (P, L, 3)``,
-``brightness (P,)``, attribute ``mm_per_px`` ...). Hand labels of imported captures travel
-as optional datasets ``labels/center_xy (K, 2)`` and ``labels/radius_px (K,)``: they are kept
-for comparison only, calibration never reads them to fit anything.
+``brightness (P,)``, attribute ``mm_per_px`` ...). Hand labels travel as optional datasets
+``labels/center_xy (K, 2)`` and ``labels/radius_px (K,)`` (and ``labels/rejected (K,)``: presses
+a person rejected); calibration fits to them only when asked (``circles="labels"``).
 
 Every capture file, whoever makes it (the renderer, the importers, calibration's synthetic
 captures), is written by :func:`write_capture`, from a :class:`Capture` or a ``capture``
-:class:`~pipeline.base.store.Record`.
+:class:`~pipeline.base.store.Record`; :func:`write_capture_labels` replaces only its hand
+labels (the labeller, ``iristac label``).
 """
 
 from __future__ import annotations
@@ -21,7 +22,11 @@ import numpy as np
 
 from pipeline.base.errors import UserError
 
-__all__ = ["Capture", "read_capture", "capture_from_record", "write_capture"]
+__all__ = ["Capture", "read_capture", "capture_from_record", "write_capture", "write_capture_labels",
+           "CAPTURE_WIDE_TRUTH"]
+
+#: ``truth/*`` entries of the whole capture (not one per press): kept whole by :meth:`Capture.select`.
+CAPTURE_WIDE_TRUTH = frozenset({"albedo", "markers"})
 
 
 @dataclass
@@ -40,9 +45,13 @@ class Capture:
     mm_per_px : float or None
     dark : ndarray, shape (H, W, C), optional
     labels : dict, optional
-        ``{"center_xy": (K, 2), "radius_px": (K,)}`` hand labels (comparison only).
+        ``{"center_xy": (K, 2), "radius_px": (K,)}`` hand labels (NaN: not labelled), and
+        ``"rejected": (K,)`` bool where a person rejected the press (``iristac label``).
     truth : dict, optional
-        ``{"height": (K, H, W), "normals": (K, H, W, 3)}`` for rendered captures.
+        ``{"height": (K, H, W), "normals": (K, H, W, 3)}`` for rendered captures; virtual
+        sensors (:mod:`sim.virtual_sensor`) add ``contact (K, H, W)``, ``center_xy (K, 2)``,
+        ``radius_px (K,)``, ``drift_*`` per press and ``markers (H, W)``. Entries named in
+        :data:`CAPTURE_WIDE_TRUTH` belong to the whole capture, every other one to each press.
     markers : ndarray, shape (H, W), bool, optional
         Printed gel markers (:mod:`calibration.markers`): filled in before normals are solved,
         left out of calibration samples, False in validity masks.
@@ -97,7 +106,7 @@ class Capture:
         """
         idx = np.arange(self.frames.shape[0])[presses]
         sub = {k: np.asarray(v)[idx] for k, v in (self.labels or {}).items()} or None
-        truth = {k: (np.asarray(v)[idx] if np.asarray(v).ndim and k != "albedo" else v)
+        truth = {k: (np.asarray(v)[idx] if np.asarray(v).ndim and k not in CAPTURE_WIDE_TRUTH else v)
                  for k, v in (self.truth or {}).items()} or None
         meta = dict(self.meta)
         if isinstance(meta.get("frame_names"), list) and len(meta["frame_names"]) == self.frames.shape[0]:
@@ -158,6 +167,44 @@ def write_capture(path: str | Path, cap) -> Path:
     if cap.mm_per_px is not None:
         meta["mm_per_px"] = float(cap.mm_per_px)
     return write_record(path, Record(schema="capture", data=data, meta=meta))
+
+
+def write_capture_labels(path: str | Path, center_xy, radius_px, rejected=None) -> Path:
+    """Replace a capture file's hand labels, atomically, leaving everything else as it is.
+
+    Parameters
+    ----------
+    path : path-like
+        An existing capture file.
+    center_xy : array_like, shape (K, 2)
+        Labelled centres (x = column, y = row) in pixels; NaN for a press without a label.
+    radius_px : array_like, shape (K,)
+        Labelled radii in pixels; NaN for a press without a label.
+    rejected : array_like of bool, shape (K,), optional
+        Presses a person rejected (``labels/rejected``); None removes the dataset.
+
+    The file is copied, changed and renamed into place
+    (:func:`pipeline.base.store.replace_datasets`): a crash leaves the old file or the new one.
+    """
+    from pipeline.base.store import describe_file, replace_datasets
+
+    description, _ = describe_file(path)
+    frames = description["datasets"].get("frames")
+    if frames is None:
+        raise UserError(f"{path}: not a capture (no 'frames' dataset)")
+    k = int(frames["shape"][0])
+    c = np.asarray(center_xy, np.float32)
+    r = np.asarray(radius_px, np.float32)
+    if c.shape != (k, 2) or r.shape != (k,):
+        raise UserError(f"{path}: labels must be center_xy ({k}, 2) and radius_px ({k},) for its {k} presses, got "
+                        f"{c.shape} and {r.shape}")
+    updates: dict[str, Any] = {"labels/center_xy": c, "labels/radius_px": r, "labels/rejected": None}
+    if rejected is not None:
+        rej = np.asarray(rejected, bool)
+        if rej.shape != (k,):
+            raise UserError(f"{path}: labels/rejected must have shape ({k},), got {rej.shape}")
+        updates["labels/rejected"] = rej
+    return replace_datasets(path, updates)
 
 
 def read_capture(path: str | Path) -> Capture:

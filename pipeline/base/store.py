@@ -52,6 +52,7 @@ __all__ = [
     "read_record",
     "describe_file",
     "provenance_attrs",
+    "replace_datasets",
 ]
 
 _log = logging.getLogger("iristac")
@@ -177,22 +178,28 @@ def _chunks_for(shape: tuple[int, ...]) -> tuple[int, ...] | bool:
     return True
 
 
+def _create_dataset(f, name: str, value) -> None:
+    """One dataset as every store file holds it: strings as UTF-8, checksummed, large ones compressed."""
+    import h5py
+
+    arr = np.asarray(value)
+    if arr.dtype.kind == "U" or arr.dtype == object:
+        f.create_dataset(name, data=np.asarray(arr, dtype=object).astype(str).tolist(), dtype=h5py.string_dtype())
+        return
+    kwargs: dict[str, Any] = {}
+    if arr.ndim >= 1 and arr.size >= _COMPRESS_MIN_ELEMENTS:
+        kwargs.update(chunks=_chunks_for(arr.shape), compression="lzf", shuffle=True, fletcher32=True)
+    elif arr.ndim >= 1 and arr.size > 0:
+        kwargs.update(chunks=True, fletcher32=True)
+    f.create_dataset(name, data=arr, **kwargs)
+
+
 def _write_h5(path: Path, record: Record, provenance: Mapping[str, str | int]) -> None:
     import h5py
 
     with h5py.File(path, "w", libver="latest") as f:
         for name, value in record.data.items():
-            arr = np.asarray(value)
-            if arr.dtype.kind == "U" or arr.dtype == object:
-                f.create_dataset(name, data=np.asarray(arr, dtype=object).astype(str).tolist(),
-                                 dtype=h5py.string_dtype())
-                continue
-            kwargs: dict[str, Any] = {}
-            if arr.ndim >= 1 and arr.size >= _COMPRESS_MIN_ELEMENTS:
-                kwargs.update(chunks=_chunks_for(arr.shape), compression="lzf", shuffle=True, fletcher32=True)
-            elif arr.ndim >= 1 and arr.size > 0:
-                kwargs.update(chunks=True, fletcher32=True)
-            f.create_dataset(name, data=arr, **kwargs)
+            _create_dataset(f, name, value)
         json_keys = []
         for k, v in _jsonable(record.meta).items():
             if k.startswith(_PROV):
@@ -274,11 +281,21 @@ def write_record(path: str | os.PathLike, record: Record, key: StageKey | None =
     record.validate(str(final))
     final.parent.mkdir(parents=True, exist_ok=True)
     provenance = provenance_attrs(record.schema, key)
+    _write_atomically(final, lambda tmp: _write_h5(tmp, record, provenance))
+    record.path = final
+    record.provenance = dict(provenance)
+    return final
+
+
+def _write_atomically(final: Path, build: Callable[[Path], None]) -> None:
+    """``build(tmp)`` makes the file at a temporary name beside ``final``; then fsync and rename
+    it into place (atomic on POSIX; concurrent writers: last rename wins, both valid). On any
+    error the temporary file is removed and ``final`` is untouched."""
     tmp = _temp_name(final)
     try:
-        _write_h5(tmp, record, provenance)
+        build(tmp)
         _fsync_file(tmp)
-        os.replace(tmp, final)  # atomic on POSIX; concurrent writers: last rename wins, both valid
+        os.replace(tmp, final)
     except BaseException:
         try:
             tmp.unlink()
@@ -286,8 +303,53 @@ def write_record(path: str | os.PathLike, record: Record, key: StageKey | None =
             pass
         raise
     _fsync_dir(final.parent)
-    record.path = final
-    record.provenance = dict(provenance)
+
+
+def replace_datasets(path: str | os.PathLike, updates: Mapping[str, Any]) -> Path:
+    """Atomically replace, add or (value ``None``) remove some datasets of a store file.
+
+    For small changes to a large file (a capture's hand labels): the file is copied to a
+    temporary file beside it, changed there, validated against its schema, fsynced and renamed
+    into place, so the file under ``path`` is at every moment either the old one or the new
+    one, and a bad change (one its schema refuses) leaves it untouched.
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> p = os.path.join(tempfile.mkdtemp(), "d.h5")
+    >>> rec = Record("depth", {"height": np.zeros((1, 4, 5), np.float32), "mask": np.ones((1, 4, 5), bool)},
+    ...              {"integrator": "dst", "mm_per_px": 0.1})
+    >>> _ = write_record(p, rec)
+    >>> _ = replace_datasets(p, {"height": np.ones((1, 4, 5), np.float32)})
+    >>> float(read_record(p).data["height"].sum())
+    20.0
+    """
+    import shutil
+
+    import h5py
+
+    final = Path(path)
+    _, provenance = describe_file(final)
+    _check_provenance(final, provenance)
+    schema = provenance["iristac_schema"]
+
+    def build(tmp: Path) -> None:
+        shutil.copyfile(final, tmp)
+        with h5py.File(tmp, "r+") as f:
+            for name, value in updates.items():
+                if name in f:
+                    del f[name]
+                if value is not None:
+                    _create_dataset(f, name, value)
+            f.flush()
+        description, _ = describe_file(tmp)
+        try:
+            data_schemas.validate_description(schema, description, str(final))
+        except data_schemas.SchemaError as exc:
+            raise StoreError(final, f"change refused, file left as it was: {_strip_source(str(exc), str(final))}") \
+                from None
+
+    _write_atomically(final, build)
     return final
 
 

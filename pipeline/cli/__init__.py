@@ -24,6 +24,7 @@ COMMANDS = [
     ("capture", "pipeline.cli.capture", "capture frames for a lighting mode from the LED ring and a camera"),
     ("emulate-ring", "pipeline.cli.emulate_ring", "run the LED-ring MCU emulator behind a pseudo-terminal"),
     ("calibrate", "pipeline.cli.calibrate", "fit light models from a sphere-indentation capture"),
+    ("label", "pipeline.cli.label", "accept, move, resize or reject contact circles in a browser page"),
     ("reconstruct", "pipeline.cli.reconstruct", "normals and depth from a capture"),
     ("compare-modes", "pipeline.cli.compare_modes", "compare lighting modes by reconstruction error"),
     ("batch", "pipeline.cli.batch", "reconstruct many recorded captures with a shared calibration"),

@@ -14,6 +14,9 @@ def register(sub, name, help_text):
     p.add_argument("--ball-radius", type=float, default=None,
                    help="ball radius in mm (default: the capture's ball_radius_mm, from import images --ball-radius)")
     p.add_argument("--mm-per-px", type=float, default=None, help="pixel pitch (default: the capture's)")
+    p.add_argument("--profile", default=None, metavar="NAME|FILE",
+                   help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): its ball radius and pixel "
+                        "pitch where --ball-radius / --mm-per-px are not given")
     p.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
     p.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
     p.add_argument("--out", required=True, help="calibration.h5 to write")
@@ -47,7 +50,12 @@ def _run(args) -> int:
 
         raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
     opts = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else None
-    res = calibrate(args.capture, args.ball_radius, args.mm_per_px, args.model, folds=args.folds, illumination=ill,
+    ball, mm = args.ball_radius, args.mm_per_px
+    if args.profile:
+        from pipeline.capture.sensor_profiles import capture_defaults
+
+        ball, mm = capture_defaults(args.profile, args.capture, ball, mm)
+    res = calibrate(args.capture, ball, mm, args.model, folds=args.folds, illumination=ill,
                     model_options=opts, refine_iterations=0 if args.no_refine else 2,
                     refine_model=args.refine_model, markers=args.markers, circles=args.circles)
     res.save(args.out)

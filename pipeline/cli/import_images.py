@@ -10,7 +10,11 @@ def register(group):
                                      "Bit depth is kept (16-bit stays 16-bit); colour is stored RGB.")
     p.add_argument("source", help="folder of images, or a video file")
     p.add_argument("--out", required=True, help="capture.h5 to write")
-    p.add_argument("--mm-per-px", type=float, required=True, help="pixel pitch on the gel (mm per pixel)")
+    p.add_argument("--mm-per-px", type=float, default=None,
+                   help="pixel pitch on the gel (mm per pixel); required unless --profile gives it")
+    p.add_argument("--profile", default=None, metavar="NAME|FILE",
+                   help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): pixel pitch, ball radius, and "
+                        "the camera stream's crop/rotation/size")
     p.add_argument("--reference", default=None, metavar="NAME",
                    help="the no-contact frame: file name or stem (with --pattern: a press id; video: a frame index); "
                         "default: the frame closest to the median of all frames")
@@ -30,7 +34,7 @@ def _run(args) -> int:
 
     res = import_images(args.source, args.out, reference=args.reference, pattern=args.pattern,
                         mm_per_px=args.mm_per_px, ball_radius_mm=args.ball_radius, labels=args.labels,
-                        markers=args.markers)
+                        markers=args.markers, profile=args.profile)
     if args.json:
         print_json(res)
         return 0

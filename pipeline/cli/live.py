@@ -21,11 +21,15 @@ def _size(text: str) -> tuple[int, int]:
 
 def register(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text)
-    src = p.add_mutually_exclusive_group(required=True)
-    src.add_argument("--camera", metavar="SOURCE", help="OpenCV camera index, device, URL or video file")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--camera", metavar="SOURCE", help="OpenCV camera index, device, URL or video file, or a camera "
+                                                        "name (found in /dev/v4l/by-id, e.g. \"GelSight Mini\")")
     src.add_argument("--virtual", action="store_true",
                      help="the virtual sensor: rendered gel under the emulated ring, scripted ball presses")
-    p.add_argument("--mode", default="trichromatic", help=mode_help() + " (default trichromatic)")
+    p.add_argument("--profile", default=None, metavar="NAME|FILE",
+                   help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): its camera (when --camera is "
+                        "not given), crop, rotation, size, pixel pitch and lighting mode")
+    p.add_argument("--mode", default=None, help=mode_help() + " (default: the profile's, else trichromatic)")
     add_solver_flags(p, default_solver="lut")
     lights = p.add_mutually_exclusive_group()
     lights.add_argument("--calibration", metavar="CAL.h5", help="calibration.h5 (with --virtual: default, calibrate "
@@ -69,11 +73,20 @@ def _run(args) -> int:
             # Always on stderr (also with --json): the address to open.
             print(f"iristac live: view at {info['view']}", file=sys.stderr, flush=True)
 
-    res = run_live(mode=args.mode, solver=args.solver, camera=args.camera, virtual=args.virtual,
+    camera, mode, mm = args.camera, args.mode, args.mm_per_px
+    if args.profile or (camera is not None and not args.virtual):
+        from pipeline.capture.sensor_profiles import camera_source, load_profile
+
+        prof = load_profile(args.profile) if args.profile else None
+        if not args.virtual:
+            camera = camera_source(camera, prof)
+        if prof is not None:
+            mode, mm = mode or prof.mode, prof.mm_per_px
+    res = run_live(mode=mode or "trichromatic", solver=args.solver, camera=camera, virtual=args.virtual,
                    calibration=args.calibration, illumination=args.illumination, port=args.port,
                    emulate=args.emulate, ring_firmware=args.ring_firmware, frames=args.frames, seconds=args.seconds,
                    record=args.record, view=args.view, view_port=args.view_port, queue=args.queue,
-                   threads=args.threads, integrator=args.integrator, size=args.size, mm_per_px=args.mm_per_px,
+                   threads=args.threads, integrator=args.integrator, size=args.size, mm_per_px=mm,
                    fps=args.fps, cache=args.cache, reference=args.reference, markers=args.markers,
                    fast=not args.eager, on_ready=ready, log=log)
     s = res.summary

@@ -6,7 +6,7 @@ from pipeline.cli._common import (add_heal_flag, add_json_flag, add_markers_flag
                                   print_json)
 
 #: The stable key set of ``--json`` (truth errors only when the capture carries truth).
-JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "markers", "outputs")
+JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "markers", "contact_fraction", "outputs")
 
 
 def register(sub, name, help_text):
@@ -45,7 +45,7 @@ def _run(args) -> int:
         print_json(s)
         return 0
     line = (f"{s['solver']} + {s['integrator']}: {s['valid_fraction']:.1%} valid pixels, {s['seconds']:.3f} s"
-            + (" (cached)" if s["cached"] else ""))
+            + (" (cached)" if s["cached"] else "") + f"; contact {s['contact_fraction']:.1%} of the image")
     if "normal_mean_error_deg" in s:
         line += f"; normals {s['normal_mean_error_deg']:.3f} deg mean error"
     if "depth_rmse_mm" in s:

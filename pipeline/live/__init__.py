@@ -110,6 +110,8 @@ class LiveResult:
     end_of_file: bool = False
     last: Any = None
     latencies_ms: list[float] = field(default_factory=list)
+    #: The last result's contact mask ``(H, W)`` bool (with ``contact=True``).
+    last_contact: Any = None
 
 
 def _needed_models(solver: str, patterns) -> list[str]:
@@ -174,7 +176,7 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
              view: bool = False, view_port: int = 0, queue: int = 4, threads: int = 1, integrator: str = "dst",
              size: tuple[int, int] = (120, 160), mm_per_px: float = 0.15, fps: float | None = None, contacts: int = 4,
              press_s: float | None = None, cache=None, reference: str | None = None, markers=None, fast: bool = True,
-             max_condition: float = 1e3, on_ready=None, on_result=None, log=None) -> LiveResult:
+             max_condition: float = 1e3, contact: bool = False, on_ready=None, on_result=None, log=None) -> LiveResult:
     """Reconstruct a stream until ``frames`` results, ``seconds`` elapsed, or the source ends.
 
     Parameters
@@ -218,6 +220,12 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
         Printed gel markers (``auto``/``none``/mask file); with markers the eager solver runs.
     fast : bool
         False: the eager solver even where a fast path is registered (a reference).
+    contact : bool
+        Also compute each result's contact mask (:func:`pipeline.contact.contact_mask`: the
+        colour change against the no-contact frame and the height; the height alone when the
+        no-contact frame is the calibration's), passed to ``on_result`` as ``contact`` and kept
+        in :attr:`LiveResult.last_contact`; its time counts in the latency. The live page
+        shows the contact mask either way (computed when the page asks for it).
     on_ready : callable, optional
         ``on_ready(info)`` once the stream runs (``info``: ``view`` URL, ``method``, ``size``).
     on_result, log : callable, optional
@@ -412,6 +420,7 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
                 continue
             res = fs.solve(sample.frames, threads=threads)
             depth = integrate(res.normals, res.mask)
+            touch = live_contact(sample.frames, ref, depth) if contact else None
             t_done = time.monotonic()
             n += 1
             if t_first is None:
@@ -424,9 +433,11 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
                         timestamp=sample.timestamp, latency_ms=latency, index=sample.index, dropped=q.dropped)
             stats = _stats(n, q.dropped, t_first, t_done, lat)
             if lv is not None:
-                lv.publish(n, res.normals, depth.mask, depth.height, stats)
+                lv.publish(n, res.normals, depth.mask, depth.height, stats, contact=touch, frames=sample.frames,
+                           reference=ref)
             if on_result is not None:
-                on_result(n, {"latency_ms": latency, **stats})
+                on_result(n, {"latency_ms": latency, **stats, **({"contact": touch} if contact else {})})
+            result.last_contact = touch
         stop.set()
         q.close()
         producer.join(timeout=5.0)
@@ -462,6 +473,16 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
                 fn()
             except Exception:  # noqa: BLE001 - closing what is left; the first error is the one to see
                 pass
+
+
+def live_contact(frames, reference, depth) -> np.ndarray:
+    """A live result's contact mask (:func:`pipeline.contact.contact_mask`): colour and height
+    against ``reference`` (the no-contact sample), the height alone without one."""
+    from pipeline.contact import contact_mask
+
+    if reference is None:
+        return contact_mask(height=depth.height, valid=depth.mask)
+    return contact_mask(frames, reference, depth.height, valid=depth.mask)
 
 
 def _stats(n: int, dropped: int, t_first, t_now, lat: list[float]) -> dict:

@@ -93,14 +93,16 @@ class LiveView:
     ----------
     port : int
         TCP port on 127.0.0.1 (0: any free port; :attr:`url` says which).
-    contact_mm : float
-        Heights above this (and valid) are contact in ``/contact.png``.
+    contact_mm : float, optional
+        Heights above this are contact in ``/contact.png`` (default: the contact mask's own
+        threshold, :func:`pipeline.contact.contact_mask`).
     """
 
-    def __init__(self, port: int = 0, contact_mm: float = 0.02):
-        self.contact_mm = float(contact_mm)
+    def __init__(self, port: int = 0, contact_mm: float | None = None):
+        self.contact_mm = contact_mm
         self._lock = threading.Lock()
         self._latest = None  # (result number, normals, mask, height)
+        self._contact = (None, None, None)  # (contact mask, frames, no-contact reference) of the latest
         self._cache: dict[str, tuple[int, bytes]] = {}
         self._stats: dict = {"results": 0, "dropped": 0, "fps": 0.0, "latency_ms_p50": 0.0, "latency_ms_p99": 0.0,
                              "mode": "", "solver": "", "source": "", "running": True, "message": "", "size": None}
@@ -143,10 +145,14 @@ class LiveView:
         host, port = self.server.server_address[:2]
         return f"http://{host}:{port}/"
 
-    def publish(self, number: int, normals, mask, height, stats: dict) -> None:
-        """Show result ``number`` (normals ``(H, W, 3)``, mask ``(H, W)``, height ``(H, W)`` mm)."""
+    def publish(self, number: int, normals, mask, height, stats: dict, *, contact=None, frames=None,
+                reference=None) -> None:
+        """Show result ``number`` (normals ``(H, W, 3)``, mask ``(H, W)``, height ``(H, W)`` mm);
+        its contact mask ``(H, W)`` when computed, else from ``frames`` and ``reference`` (the
+        no-contact sample) and the height when the page asks for it."""
         with self._lock:
             self._latest = (int(number), normals, mask, height)
+            self._contact = (contact, frames, reference)
             self._stats.update(stats)
 
     def set_stats(self, **stats) -> None:
@@ -167,7 +173,10 @@ class LiveView:
         number, normals, mask, height = latest
         if cached is not None and cached[0] == number:
             return cached[1]
-        body = _png(self._render(kind, normals, mask, height))
+        if kind == "contact":
+            body = _png(self._contact_image(mask, height))
+        else:
+            body = _png(self._render(kind, normals, mask, height))
         with self._lock:
             self._cache[kind] = (number, body)
         return body
@@ -180,10 +189,18 @@ class LiveView:
         if kind == "normals":
             return cv2.cvtColor(normal_map_rgb(normals, mask), cv2.COLOR_RGB2BGR)
         h = np.where(mask, height, 0.0)
-        if kind == "contact":
-            return np.where(h > self.contact_mm, 255, 0).astype(np.uint8)
         top = max(float(np.abs(h).max()), 1e-6)
         return cv2.applyColorMap(np.clip(128 + 127 * h / top, 0, 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
+
+    def _contact_image(self, mask, height) -> np.ndarray:
+        from pipeline.contact import contact_mask
+
+        with self._lock:
+            contact, frames, reference = self._contact
+        if contact is None:
+            colour = (frames, reference) if reference is not None else (None, None)
+            contact = contact_mask(*colour, height, valid=mask, height_threshold_mm=self.contact_mm)
+        return np.where(contact, 255, 0).astype(np.uint8)
 
     def close(self) -> None:
         """Stop serving (idempotent)."""

@@ -1,0 +1,125 @@
+"""Sensor profiles (validated YAML) and finding a camera by name in a /dev/v4l/by-id folder of real
+symlinks; the profile in import images, calibrate and a camera's frames."""
+
+from __future__ import annotations
+
+import os
+
+import cv2
+import numpy as np
+import pytest
+
+from pipeline.base.errors import UserError
+from pipeline.capture.camera_names import find_camera, list_cameras, resolve_camera_source
+from pipeline.capture.sensor_profiles import ProfileCamera, capture_defaults, list_profiles, load_profile
+
+
+@pytest.fixture
+def by_id(tmp_path):
+    """A by-id folder as udev makes it: names -> ../../videoN, two nodes per camera."""
+    dev = tmp_path / "dev"
+    (dev / "v4l" / "by-id").mkdir(parents=True)
+    for n in range(6):
+        (dev / f"video{n}").touch()
+    links = {"usb-GelSight_Inc._GelSight_Mini_R0B_28J2-CWXU-video-index0": "video2",
+             "usb-GelSight_Inc._GelSight_Mini_R0B_28J2-CWXU-video-index1": "video3",
+             "usb-Facebook_DIGIT_D20025-video-index0": "video4",
+             "usb-Facebook_DIGIT_D20026-video-index0": "video0",
+             "usb-Generic_HD_Webcam_200901010001-video-index0": "video5"}
+    for name, target in links.items():
+        os.symlink(os.path.join("..", "..", target), dev / "v4l" / "by-id" / name)
+    return dev / "v4l" / "by-id"
+
+
+def test_find_camera_by_name(by_id):
+    m = find_camera("GelSight Mini", by_id)
+    assert m.index == 2 and m.device == os.path.realpath(by_id.parent.parent / "video2")  # index0, not metadata
+    assert find_camera("digit*26*", by_id).index == 0  # a glob picks one of two DIGITs
+    assert find_camera("d20025", by_id).index == 4
+    assert len(list_cameras(by_id)) == 4
+    with pytest.raises(UserError, match="matches 2 cameras.*D20025.*D20026"):
+        find_camera("DIGIT", by_id)
+    with pytest.raises(UserError, match="no camera of that name.*Generic_HD_Webcam"):
+        find_camera("RealSense", by_id)
+    with pytest.raises(UserError, match="no cameras named"):
+        find_camera("DIGIT", by_id / "missing")
+    assert resolve_camera_source("gelsight mini", by_id).endswith("video2")
+    assert resolve_camera_source("3", by_id) == 3 and resolve_camera_source("clip.mp4", by_id) == "clip.mp4"
+
+
+def test_shipped_profiles_are_valid_and_bad_ones_are_named(tmp_path):
+    assert list_profiles() == ["digit", "gelsight-mini", "iristac-ring"]
+    digit, mini = load_profile("digit"), load_profile("gelsight-mini")
+    assert digit.mm_per_px == 0.0266 and digit.ball_radius_mm == 3.0 and digit.resolution == (480, 640)
+    assert mini.to_image(np.zeros((2464, 3280, 3), np.uint8)).shape == (240, 320, 3)
+    assert load_profile("iristac-ring").mode == "point"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("name: x\nmake: y\nresolution: {width: 32, height: 24}\nmm_per_px: 0.1\nball_radius_mm: 1\n"
+                   "colour: red\n")
+    with pytest.raises(UserError, match="bad.yaml.*colour"):
+        load_profile(bad)
+    bad.write_text("name: x\nmake: y\nresolution: {width: 32, height: 24}\nmm_per_px: -1\nball_radius_mm: 1\n")
+    with pytest.raises(UserError, match="bad.yaml.*mm_per_px"):
+        load_profile(bad)
+
+
+def _profile_file(tmp_path):
+    p = tmp_path / "tiny.yaml"
+    p.write_text("name: tiny\nmake: test\ncamera: Tiny Cam\nstream: {width: 64, height: 48}\n"
+                 "crop: {x: 8, y: 4, width: 48, height: 36}\nrotate: 90\nresolution: {width: 18, height: 24}\n"
+                 "mm_per_px: 0.2\nball_radius_mm: 1.5\nmode: trichromatic\n")
+    return p
+
+
+def test_stream_frames_are_cropped_rotated_resized(tmp_path):
+    prof = load_profile(_profile_file(tmp_path))
+    frame = np.zeros((48, 64, 3), np.uint8)
+    frame[4:40, 8:56] = 100  # the crop
+    frame[4:40, 8:20, 0] = 250  # its left part red: after a counter-clockwise turn, the bottom
+    img = prof.to_image(frame)
+    assert img.shape == (24, 18, 3) and img[-1, :, 0].min() > 200 and img[0, :, 0].max() < 150
+    assert prof.fit_frames(np.zeros((2, 1, 24, 18, 3))).shape == (2, 1, 24, 18, 3)  # already the size: kept
+    with pytest.raises(UserError, match="50 x 40 px.*expects 18 x 24"):
+        prof.fit_frames(np.zeros((40, 50, 3)), "x")
+
+
+def test_profile_in_import_calibrate_and_a_camera(tmp_path):
+    """import images --profile converts stream-size frames and takes the pitch and ball from it;
+    calibrate's defaults come from it; a video of stream frames through ProfileCamera."""
+    from calibration.image_import import load_images
+    from pipeline.base.capture import write_capture
+    from pipeline.capture.camera import OpenCVCamera
+
+    prof_path = _profile_file(tmp_path)
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    stream = rng.integers(0, 200, (3, 48, 64, 3), dtype=np.uint8)
+    stream[1, 20:30, 25:35] = 255  # presses in different places; frame 0 is the reference
+    stream[2, 10:20, 30:40] = 255
+    stream[1:] = np.where(stream[1:] == 255, 255, stream[0])
+    for i, f in enumerate(stream):
+        cv2.imwrite(str(folder / f"f{i}.png"), f[..., ::-1])
+    cap, rep = load_images(folder, profile=prof_path, reference="f0")
+    assert cap.frames.shape == (2, 1, 24, 18, 3) and cap.mm_per_px == 0.2 and cap.meta["ball_radius_mm"] == 1.5
+    assert rep["profile"] == "tiny" and cap.meta["sensor_profile"] == "tiny"
+    np.testing.assert_array_equal(cap.reference[0], load_profile(prof_path).to_image(stream[0]))
+    write_capture(tmp_path / "c.h5", cap)
+    assert capture_defaults(prof_path, tmp_path / "c.h5") == (1.5, 0.2)
+    assert capture_defaults(prof_path, tmp_path / "c.h5", 2.0) == (2.0, 0.2)
+    with pytest.raises(UserError, match="18 x 24.*digit.*480 x 640"):
+        capture_defaults("digit", tmp_path / "c.h5")
+    video = tmp_path / "v.avi"
+    w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (64, 48))
+    for f in stream:
+        w.write(f[..., ::-1])
+    w.release()
+    with pytest.warns(Warning):  # a video file has no exposure controls to lock
+        cam = ProfileCamera(OpenCVCamera(str(video)), prof_path)
+        cam.open()
+    try:
+        got = cam.read()
+        assert cam.shape == (24, 18) and got.image.shape == (24, 18, 3) and cam.is_file and "tiny" in str(cam)
+        np.testing.assert_array_equal(got.image, load_profile(prof_path).to_image(stream[0]))
+    finally:
+        cam.close()
