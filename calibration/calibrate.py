@@ -527,7 +527,7 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
         from calibration.gate import judge
 
         verdict = judge(use, best_model=None, cv_deg=None, ball_radius_error=None, source_of_circles=source)
-        raise CalibrationRefused(verdict.message(src), verdict)
+        raise CalibrationRefused(verdict.message(src), verdict, use)
     samples = collect_samples(frames, ref, use, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
                               exclude=mask)
     explained = None

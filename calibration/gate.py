@@ -77,7 +77,8 @@ NEXT_SCALE = "check --ball-radius and --mm-per-px (the ball's radius in mm and t
 
 
 class CalibrationRefused(UserError):
-    """A calibration the quality gate refuses; ``verdict`` says why and what to do."""
+    """A calibration the quality gate refuses; ``verdict`` says why and what to do, ``circles`` (when
+    known) are the press circles, for an overlay."""
 
     def __init__(self, message: str, verdict: Verdict):
         super().__init__(message)
