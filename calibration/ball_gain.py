@@ -8,7 +8,8 @@ reconstructs some of its held-out presses (:class:`OutOfFoldBalls`, a
 :func:`calibration.validate.cross_validate` fold hook), a sphere is fitted to each
 (:func:`calibration.ballfit.ball_fit`), and the gain is the one that makes the median fitted
 radius the ball's (:meth:`OutOfFoldBalls.gain`: for small tilts the fitted radius is inversely
-proportional to the tilt scale; two fixed-point steps through the tilt clip).
+proportional to the tilt scale, so the first guess is the median radius over the ball's; one
+fixed-point step through the tilt clip refines it).
 
 No circle truth enters (the fit needs only normals), no press shapes the model that
 reconstructs it, and the test presses of ``iristac eval calibration`` stay an independent
@@ -85,8 +86,10 @@ class OutOfFoldBalls:
         """The tilt gain that makes the median fitted radius the ball's, with the figures behind it.
 
         Returns ``{"gain": float or None, "raw_radius_error", "radius_error", "presses", "note"}``:
-        ``gain`` None when fewer than :data:`MIN_BALL_FITS` presses gave a sphere or the gain
-        falls outside :data:`BALL_GAIN_RANGE` (then ``note`` says why).
+        ``raw_radius_error`` the median fitted radius over the ball's, minus 1, before any gain;
+        ``radius_error`` the same at the first guess of the gain (the last step removes most of
+        it); ``gain`` None when fewer than :data:`MIN_BALL_FITS` presses gave a sphere or the
+        gain falls outside :data:`BALL_GAIN_RANGE` (then ``note`` says why).
         """
         raw = self.radii()
         out: dict[str, Any] = {"gain": None, "presses": len(raw), "raw_radius_error": None, "radius_error": None,
@@ -95,13 +98,16 @@ class OutOfFoldBalls:
             out["note"] = f"only {len(raw)} held-out presses gave a sphere (< {MIN_BALL_FITS})"
             return out
         out["raw_radius_error"] = float(np.median(raw) / self.ball - 1.0)
-        g = 1.0
-        for _ in range(2):
-            g *= float(np.median(self.radii(g, max_tilt))) / self.ball
+        g = float(np.median(raw)) / self.ball
+        if BALL_GAIN_RANGE[0] <= g <= BALL_GAIN_RANGE[1]:
+            # One fixed-point step through the clip; what is left after it is reported.
+            step = float(np.median(self.radii(g, max_tilt))) / self.ball
+            out["radius_error"] = step - 1.0
+            g *= step
         if not BALL_GAIN_RANGE[0] <= g <= BALL_GAIN_RANGE[1]:
             out["note"] = (f"a tilt gain of {g:.2f} would be needed to make the reconstructions the ball's size "
                            f"(outside {BALL_GAIN_RANGE[0]}-{BALL_GAIN_RANGE[1]}): not applied")
+            out["radius_error"] = None
             return out
         out["gain"] = g
-        out["radius_error"] = float(np.median(self.radii(g, max_tilt)) / self.ball - 1.0)
         return out

@@ -34,7 +34,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DRIFT_MODELS", "GAIN_PIVOT", "Drift", "contact_exclusion", "drift_terms", "fit_drift", "remove_drift"]
+__all__ = ["DRIFT_MODELS", "GAIN_PIVOT", "Drift", "contact_exclusion", "drift_terms", "drifted_capture", "fit_drift",
+           "remove_drift"]
 
 #: The gain is trusted as far as the reference spans more than this fraction of its own level
 #: (a ridge toward 1 of that strength; see :func:`fit_drift`).
@@ -301,3 +302,34 @@ def remove_drift(frames: np.ndarray, reference: np.ndarray, circles, ball_radius
         out[k] = d.remove(frames[k])
         drifts.append(d)
     return out, drifts
+
+
+def drifted_capture(cap, seed: int = 0, max_gain: float = 0.15, max_offset_dn: float = 30.0):
+    """``cap`` (a :class:`pipeline.base.capture.Capture`) with every press drifted against its untouched
+    reference, for tests and benchmarks: per press, pattern and channel a gain in ``1 +- max_gain`` and an
+    offset in ``+-max_offset_dn`` (seeded, uniform), rounded and clipped to the frames' integer range.
+
+    Examples
+    --------
+    >>> from pipeline.base.capture import Capture
+    >>> cap = Capture(frames=np.full((2, 1, 4, 4, 3), 100, np.uint8), reference=np.full((1, 4, 4, 3), 100, np.uint8),
+    ...               drive=np.eye(3, dtype=np.float32)[None], brightness=np.ones(1, np.float32), mm_per_px=0.1)
+    >>> d = drifted_capture(cap)
+    >>> d.frames.dtype.name, bool((d.reference == cap.reference).all()), int(np.abs(d.frames.astype(int) - 100).max()) <= 45
+    ('uint8', True, True)
+    """
+    from pipeline.base.capture import Capture
+
+    frames = np.asarray(cap.frames)
+    rng = np.random.default_rng(seed)
+    k, p = frames.shape[:2]
+    c = frames.shape[-1]
+    gain = 1.0 + rng.uniform(-max_gain, max_gain, (k, p, 1, 1, c))
+    offset = rng.uniform(-max_offset_dn, max_offset_dn, (k, p, 1, 1, c))
+    out = np.round(frames.astype(np.float64) * gain + offset)
+    if frames.dtype.kind in "ui":
+        info = np.iinfo(frames.dtype)
+        out = np.clip(out, info.min, info.max)
+    return Capture(frames=out.astype(frames.dtype), reference=cap.reference, drive=cap.drive,
+                   brightness=cap.brightness, mm_per_px=cap.mm_per_px, dark=cap.dark, labels=cap.labels,
+                   meta=dict(cap.meta), markers=cap.markers)

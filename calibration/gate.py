@@ -80,9 +80,10 @@ class CalibrationRefused(UserError):
     """A calibration the quality gate refuses; ``verdict`` says why and what to do, ``circles`` (when
     known) are the press circles, for an overlay."""
 
-    def __init__(self, message: str, verdict: Verdict):
+    def __init__(self, message: str, verdict: Verdict, circles=None):
         super().__init__(message)
         self.verdict = verdict
+        self.circles = circles
 
 
 @dataclass
