@@ -20,6 +20,13 @@ do next:
 - **too few presses**: the detector accepted what it was given, there is just too little;
 - **contacts misplaced**: circles accepted, but the contact geometry they imply does not
   explain the colour changes (:func:`shading_explained`);
+- **shape**: models that agree with the circles (low CV) but reconstruct presses that are not
+  the ball's shape (circles wider or narrower than the contacts).
+
+A ball radius or pixel pitch that is wrong by a constant factor escapes every check here: the
+truth normals are then those of a consistent sphere of the stated radius, which the models
+learn and reconstruct (measured: a 3 mm ball declared for the 2 mm one of the shared GelSight
+frames calibrates with CV 4.1 deg and a ball fit 1.7 % off); only a known object shows it.
 - **degenerate lighting**: only when the circles do explain the shading and the light
   directions still span fewer than three dimensions.
 """
@@ -64,8 +71,10 @@ MAX_BALL_RADIUS_ERROR = 0.20
 #: the circles' sphere caps, the circles (or the reference), not the lights, are at fault.
 MIN_EXPLAINED = 0.7
 #: Above this ratio of the drift left after removal (RMS, non-contact pixels) to the contacts'
-#: own contrast, the reference does not match the presses.
-MAX_MISMATCH = 0.5
+#: own contrast, the reference does not match the presses. Measured: 0.14-0.19 on the shared
+#: GelSight and DIGIT frames (drift removed, also with 28 DN and 15 % added to every press), 0.41
+#: with 28 DN added and the drift left in.
+MAX_MISMATCH = 0.3
 
 NEXT_OVERLAY = "look at every press and its circle: iristac calibrate CAPTURE.h5 --out CAL.h5 --overlay overlay.png"
 NEXT_LABEL = ("draw the circles the detector missed in the browser: iristac label CAPTURE.h5, then iristac calibrate "
@@ -269,7 +278,7 @@ def judge(circles, *, best_model: str | None, cv_deg: float | None, ball_radius_
     rejected = k - accepted
     if mismatch is not None and mismatch > MAX_MISMATCH:
         cause = (f"reference mismatch: away from the contacts the presses still differ from the no-contact reference "
-                 f"by {mismatch:.0%} of the contacts' own contrast after the drift is removed")
+                 f"X
         steps = [NEXT_REFERENCE, NEXT_OVERLAY]
     elif accepted < st.min_accepted and rejected > 0 and rejected >= accepted:
         cause = (f"contacts not found: the detector rejected {rejected} of {k} presses ({_rejection_summary(circles)})"
@@ -284,9 +293,10 @@ def judge(circles, *, best_model: str | None, cv_deg: float | None, ball_radius_
                  "inside them")
         steps = [NEXT_OVERLAY, NEXT_LABEL, NEXT_REFERENCE]
     elif (ball_radius_error is not None and abs(ball_radius_error) > st.max_ball_radius_error
-          and (cv_deg is None or cv_deg <= st.max_cv_deg)):
-        cause = ("wrong scale: the models agree with the circles but the shape they reconstruct is not the ball's "
-                 "(a ball radius or pixel pitch that is off scales every tilt)")
+          and cv_deg is not None and cv_deg <= 0.5 * st.max_cv_deg
+          and (explained is None or explained >= MIN_EXPLAINED)):
+        cause = ("shape: the models agree with the circles, but what they reconstruct is not the ball's shape (circles "
+                 "drawn wider or narrower than the contacts, or a ball radius that is not the one pressed)")
         steps = [NEXT_SCALE, NEXT_OVERLAY]
     else:
         cause = "contacts misplaced or too few presses to pin the models (the circles and the shading disagree)"
