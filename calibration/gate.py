@@ -278,7 +278,7 @@ def judge(circles, *, best_model: str | None, cv_deg: float | None, ball_radius_
     rejected = k - accepted
     if mismatch is not None and mismatch > MAX_MISMATCH:
         cause = (f"reference mismatch: away from the contacts the presses still differ from the no-contact reference "
-                 f"X
+                 f"by {mismatch:.0%} of the contacts' own contrast after what the drift model removes")
         steps = [NEXT_REFERENCE, NEXT_OVERLAY]
     elif accepted < st.min_accepted and rejected > 0 and rejected >= accepted:
         cause = (f"contacts not found: the detector rejected {rejected} of {k} presses ({_rejection_summary(circles)})"
