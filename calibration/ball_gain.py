@@ -25,8 +25,9 @@ import numpy as np
 
 __all__ = ["BALL_GAIN_PRESSES", "BALL_GAIN_RANGE", "MIN_BALL_FITS", "OutOfFoldBalls"]
 
-#: Held-out presses reconstructed per calibration (spread over the folds).
-BALL_GAIN_PRESSES = 10
+#: Held-out presses reconstructed per calibration (spread over the folds): on the DIGIT frames the
+#: per-press fitted radius scatters by about 6 %, so ten presses left the median a few per cent off.
+BALL_GAIN_PRESSES = 20
 #: A ball-derived gain outside this range is not applied (the models and the ball disagree too
 #: much for a scale to mend; the quality gate says so).
 BALL_GAIN_RANGE = (0.67, 1.5)
