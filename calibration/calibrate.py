@@ -16,7 +16,9 @@ from typing import Any, Callable, Sequence
 
 import numpy as np
 
+from calibration.ball_gain import OutOfFoldBalls
 from calibration.detect import Circle, DetectOptions, detect_contacts
+from calibration.gate import CalibrationRefused, GateSettings, Verdict, judge, shading_explained
 from calibration.labels import capture_label_circles, has_labels, label_errors
 from calibration.models import (
     MODEL_NAMES,
@@ -75,6 +77,9 @@ class CalibrationResult:
     light_rank_ratio : float
     markers : ndarray, shape (H, W), bool, or None
         Printed gel markers the calibration filled in and left out (saved as ``markers``).
+    verdict : Verdict or None
+        The quality gate's (:mod:`calibration.gate`); :meth:`save` refuses a failed one
+        unless forced.
     """
 
     circles: list[Circle]
@@ -89,6 +94,7 @@ class CalibrationResult:
     light_rank_ratio: float
     meta: dict[str, Any] = field(default_factory=dict)
     markers: np.ndarray | None = None
+    verdict: Verdict | None = None
 
     @property
     def best_model(self) -> str | None:
@@ -148,11 +154,20 @@ class CalibrationResult:
                 out["models"][name]["note"] = "no valid predictions on the held-out presses"
         if self.labels is not None:
             out.update(self.labels)
+        for key in ("reference", "drift", "ball_fit"):
+            if key in self.meta:
+                out[key] = self.meta[key]
+        if self.verdict is not None:
+            out["quality_gate"] = self.verdict.to_dict()
         out["cv_note"] = CV_NOTE
         return out
 
-    def save(self, path: str | Path) -> Path:
+    def save(self, path: str | Path, *, force: bool = False) -> Path:
         """Write ``calibration.h5``: circles, every fitted model, the validation report.
+
+        A calibration the quality gate failed (:attr:`verdict`) raises
+        :class:`calibration.gate.CalibrationRefused` (nothing is written) unless ``force``;
+        forced, the file's ``quality_gate`` attribute keeps the verdict.
 
         Layout: ``circles (K, 8)`` (columns :data:`CIRCLE_COLUMNS`); ``light_field (P, C, H, W, 3)``
         and optional ``flat_field (P, C, H, W)`` of the best light-field model (attribute
@@ -163,6 +178,8 @@ class CalibrationResult:
         """
         from pipeline.base.store import Record, write_record
 
+        if self.verdict is not None and not self.verdict.passed and not force:
+            raise CalibrationRefused(self.verdict.message(str(path)), self.verdict)
         # One row per press (the stage schema's (K, *) ``circles``); columns in CIRCLE_COLUMNS.
         data: dict[str, np.ndarray] = {"circles": np.array(
             [[*c.center_xy, c.radius_px, c.contact_radius_px, c.quality, float(c.accepted), c.snr, c.residual_px,
@@ -195,6 +212,7 @@ class CalibrationResult:
             # How the circles were found, so that a test capture's truth is found the same way.
             "circle_settings": self.meta.get("circle_settings", {}),
             "summary": {k: v for k, v in self.summary().items() if k != "circles"},
+            "quality_gate": self.verdict.to_dict() if self.verdict is not None else {},
         }
         meta = json.loads(json.dumps(meta, default=float))
         return write_record(Path(path), Record(schema="calibration", data=data, meta=meta))
@@ -261,7 +279,8 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
               models: str | Sequence[str] = "all", *, illumination=None, folds: int = 5, shrink_px: float = 2.0,
               detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
               refine_iterations: int = 2, refine_model: str = "auto", seed: int = 0,
-              markers=None, tilt_correction: bool = True, circles="auto") -> CalibrationResult:
+              markers=None, tilt_correction: bool = True, circles="auto",
+              gate: GateSettings | None = None) -> CalibrationResult:
     """Calibrate light models from a sphere-indentation capture.
 
     Parameters
@@ -307,6 +326,9 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
     markers : None, "none", "auto", a mask image path or an (H, W) bool array
         Printed gel markers (:mod:`calibration.markers`): filled in before anything else and
         left out of the samples. None: the capture's own ``markers`` dataset, if any.
+    gate : GateSettings, optional
+        Thresholds of the quality gate (:mod:`calibration.gate`); the result's ``verdict``
+        says whether it passed, and :meth:`CalibrationResult.save` refuses a failed one.
     tilt_correction : bool
         Scale each model's predicted tilt by the gain that undoes its shrinkage toward flat on
         held-out presses, and clip it to the tilts the truth covered (:func:`_correct_output`).
@@ -328,8 +350,10 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
     Raises
     ------
     UserError
-        Missing scale, no usable press, or patterns with fewer than three independent
-        light directions.
+        Missing scale, fewer than two usable presses (:class:`calibration.gate.CalibrationRefused`,
+        with the diagnosis), or patterns with fewer than three independent light directions
+        (only when the circles do explain the shading; otherwise the error says the circles
+        or the reference are at fault).
     """
     from pipeline.base.threads import limit_threads
 
@@ -339,7 +363,7 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
         return _calibrate(capture, ball_radius_mm, mm_per_px, models, illumination=illumination, folds=folds,
                           shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
                           refine_iterations=refine_iterations, refine_model=refine_model, seed=seed,
-                          markers=markers, tilt_correction=tilt_correction, circles=circles)
+                          markers=markers, tilt_correction=tilt_correction, circles=circles, gate=gate)
 
 
 #: Models that can vote for contact centres (they predict normals from a few patterns).
@@ -387,6 +411,17 @@ class CircleFit:
         ``detected``, ``labels`` or ``given`` (see :func:`calibrate`'s ``circles``).
     detected : list of Circle
         The detector's circles (refined when ``circles`` are detected): what hand labels are compared with.
+    drifts : list of calibration.drift.Drift
+        Each press's drift against the reference (fitted outside its contact), already removed
+        from ``frames``.
+    mismatch : float or None
+        Median over presses of the drift left after removal (RMS, non-contact pixels) over the
+        press's contact contrast (RMS difference inside its circle): large when the reference
+        does not match the presses (:data:`calibration.gate.MAX_MISMATCH`).
+    explained : float or None
+        :func:`calibration.gate.shading_explained` of the samples (None when not checked).
+    reference_note : str
+        Where the reference came from (the capture's ``reference_source`` attribute).
     """
 
     capture: Capture
@@ -404,13 +439,17 @@ class CircleFit:
     ball_radius_mm: float = 0.0
     source_of_circles: str = "detected"
     detected: list[Circle] = field(default_factory=list)
+    drifts: list = field(default_factory=list)
+    mismatch: float | None = None
+    explained: float | None = None
+    reference_note: str = ""
 
 
 def find_circles(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: float | None = None, *,
                  illumination=None, folds: int = 5, shrink_px: float = 2.0,
                  detect_options: DetectOptions | None = None, model_options: dict[str, dict] | None = None,
                  refine_iterations: int = 2, refine_model: str = "auto", seed: int = 0, markers=None,
-                 circles="auto") -> CircleFit:
+                 circles="auto", strict: bool = True) -> CircleFit:
     """Detect and refine the contact circles of a sphere-indentation capture (the truth of calibration).
 
     The first half of :func:`calibrate` (same parameters): edge detection, the light-rank
@@ -419,10 +458,18 @@ def find_circles(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px
     :func:`calibration.evaluate.evaluate_calibration` uses it for the circles of a test
     capture (without refinement: no light model shapes that truth).
 
+    Each press's illumination drift against the reference is fitted outside its circle and
+    removed from the returned ``frames`` (:func:`calibration.drift.remove_drift`; the model is
+    ``detect_options.drift``), so samples, models and evaluation all see drift-free presses.
+
+    ``strict=False`` (what :func:`calibration.evaluate.evaluate_calibration` uses on a test
+    capture): no error for too few accepted presses and no light-rank check (nothing is fitted).
+
     Raises
     ------
     UserError
-        Missing scale, fewer than two accepted presses, or fewer than three light directions.
+        Missing scale, fewer than two accepted presses, or fewer than three light directions
+        (``strict`` only for the last two).
     """
     from pipeline.base.threads import limit_threads
 
@@ -430,7 +477,7 @@ def find_circles(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px
         return _find_circles(capture, ball_radius_mm, mm_per_px, illumination=illumination, folds=folds,
                              shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
                              refine_iterations=refine_iterations, refine_model=refine_model, seed=seed,
-                             markers=markers, circles=circles)
+                             markers=markers, circles=circles, strict=strict)
 
 
 def _circle_source(circles, k: int, src: str) -> str:
@@ -447,7 +494,8 @@ def _circle_source(circles, k: int, src: str) -> str:
 
 
 def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, shrink_px, detect_options,
-                  model_options, refine_iterations, refine_model, seed, markers=None, circles="auto") -> CircleFit:
+                  model_options, refine_iterations, refine_model, seed, markers=None, circles="auto",
+                  strict=True) -> CircleFit:
     src = str(capture) if not isinstance(capture, Capture) else "capture"
     cap = read_capture(capture) if not isinstance(capture, Capture) else capture
     mm = mm_per_px if mm_per_px is not None else cap.mm_per_px
@@ -463,8 +511,9 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
     if not ball_radius_mm > 0:
         raise UserError(f"calibrate: --ball-radius must be a positive radius in mm, got {ball_radius_mm}")
     source = _circle_source(circles, int(np.asarray(cap.frames).shape[0]), src)
+    ball_px = ball_radius_mm / mm
     if source == "labels":  # before any work: a clear error when the capture has none
-        labelled = capture_label_circles(cap, ball_radius_mm / mm, src)
+        labelled = capture_label_circles(cap, ball_px, src)
     frames, ref = cap.linear()
     sat = {np.dtype(np.uint8): 255.0, np.dtype(np.uint16): 65535.0}.get(np.asarray(cap.frames).dtype)
     if sat is not None and cap.dark is not None:
@@ -474,21 +523,28 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
         from pipeline.normals.prepare import fill_markers
 
         frames, ref = fill_markers(frames, mask), fill_markers(ref, mask)
+    opt = detect_options or DetectOptions()
     t0 = time.perf_counter()
     # The detector runs in every mode: with labels or given circles its circles are what
     # they are compared with (the report's centre offset), not what is fitted.
-    detected = detect_contacts(frames, ref, ball_radius_mm / mm, detect_options)
+    detected = detect_contacts(frames, ref, ball_px, opt, exclude=mask)
     t_detect = time.perf_counter() - t0
     use = {"detected": detected, "labels": labelled if source == "labels" else None,
            "given": None if isinstance(circles, str) else list(circles)}[source]
+    frames, drifts = _without_drift(frames, ref, use, detected, ball_px, opt, mask, sat)
     accepted = sum(c.accepted for c in use)
-    if accepted < 2:
-        reasons = "; ".join(f"press {k}: {c.reason}" for k, c in enumerate(use) if not c.accepted)
-        raise UserError(f"{src}: only {accepted} press(es) accepted, calibration needs at least 2 ({reasons})")
+    if accepted < 2 and strict:
+        from calibration.gate import judge
+
+        verdict = judge(use, best_model=None, cv_deg=None, ball_radius_error=None, source_of_circles=source)
+        raise CalibrationRefused(verdict.message(src), verdict, use)
     samples = collect_samples(frames, ref, use, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
                               exclude=mask)
-    # Before any light model is fitted: refinement fits one, which needs three directions.
-    rank = check_light_rank(samples.subset(samples.press >= 0), what=src)
+    explained = None
+    rank = float("nan")
+    if strict:
+        # Before any light model is fitted: refinement fits one, which needs three directions.
+        rank, explained = _light_rank(cap, samples.subset(samples.press >= 0), src)
     t0 = time.perf_counter()
     refine_name, make_refine = (None, None) if source != "detected" else \
         _refine_factory(refine_model, cap, illumination, sat, model_options)
@@ -510,7 +566,66 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
                                   exclude=mask)
     refine_report["seconds"] = time.perf_counter() - t0
     return CircleFit(cap, src, float(mm), frames, ref, sat, use, samples, rank, t_detect, refine_report, mask,
-                     ball_radius_mm, source, detected)
+                     ball_radius_mm, source, detected, drifts, _mismatch(frames, ref, use, drifts), explained,
+                     str(cap.meta.get("reference_source") or "the capture's no-contact frame"))
+
+
+#: A far-field fit of the samples whose ``sigma_3 / sigma_1`` is below this is looked into (see :func:`_light_rank`).
+MIN_LIGHT_RATIO = 0.05
+
+
+def _light_rank(cap: Capture, samples: Samples, src: str) -> tuple[float, float]:
+    """``(ratio, explained)`` of the far-field fit of the samples; raises only for lighting that is degenerate.
+
+    Degenerate by design (:func:`calibration.gate.drive_light_ratio` of the drive) or in the
+    data: a small ratio of a fit that *does* explain the shading (LEDs dark or on one line).
+    A small ratio of a fit that explains little says nothing about the lights (misplaced
+    circles, a reference that does not match, or a sensor whose lighting no far-field model
+    describes, as the DIGIT's: 30 % explained with its contacts found right): the quality gate
+    judges those calibrations by their models' errors instead.
+    """
+    from calibration.gate import DRIVE_MIN_RATIO, MIN_EXPLAINED, drive_light_ratio
+
+    m = samples.flat_observations.shape[1]
+    by_design = drive_light_ratio(cap.drive) if m >= 3 else 0.0
+    if by_design < DRIVE_MIN_RATIO:
+        lit = int((np.asarray(cap.drive) > 0).any(axis=2).any(axis=0).sum())
+        raise UserError(f"{src}: the lighting patterns span fewer than three independent light directions (the drive "
+                        f"lights {lit} LED(s) giving {m} pattern-channel(s); on the ring their directions' smallest/"
+                        f"largest singular value is {by_design:.2g} < {DRIVE_MIN_RATIO}); use LEDs around the ring, "
+                        "not only on one diameter")
+    ratio, explained = shading_explained(samples)
+    if ratio < MIN_LIGHT_RATIO and explained >= MIN_EXPLAINED:
+        check_light_rank(samples, MIN_LIGHT_RATIO, what=src)  # raises: the lights really are degenerate
+    return ratio, explained
+
+
+def _without_drift(frames, ref, use, detected, ball_px, opt: DetectOptions, mask, sat):
+    """Each press's drift fitted outside its circle (the used one, else the detector's) and removed;
+    saturated observations stay at the saturation level (so they are still left out)."""
+    from calibration.drift import remove_drift
+
+    where = [u if (u.accepted or not d.radius_px) else d for u, d in zip(use, detected)]
+    corrected, drifts = remove_drift(frames, ref, where, ball_px, model=opt.drift, degree=opt.drift_degree,
+                                     stripes=opt.stripes, exclude=mask)
+    if sat is not None:
+        corrected[frames >= sat] = sat
+    return corrected, drifts
+
+
+def _mismatch(frames, ref, circles, drifts) -> float | None:
+    """Median over accepted presses of the drift left after removal over the contact's own contrast."""
+    h, w = ref.shape[1:3]
+    yy, xx = np.mgrid[:h, :w]
+    ratios = []
+    for k, (c, d) in enumerate(zip(circles, drifts)):
+        if not c.accepted or c.contact_radius_px <= 0:
+            continue
+        inside = np.hypot(xx - c.center_xy[0], yy - c.center_xy[1]) < c.contact_radius_px
+        if inside.any():
+            contrast = float(np.sqrt(np.mean((frames[k][:, inside] - ref[:, inside]) ** 2)))
+            ratios.append(d.residual_dn / max(contrast, 1e-9))
+    return float(np.median(ratios)) if ratios else None
 
 
 def _marker_mask(markers, cap: Capture, reference: np.ndarray) -> np.ndarray | None:
@@ -523,20 +638,28 @@ def _marker_mask(markers, cap: Capture, reference: np.ndarray) -> np.ndarray | N
     return resolve_markers(markers, reference)
 
 
-def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: Samples) -> dict[str, Any]:
-    """Set the model's tilt gain (from its out-of-fold predictions) and tilt limit; CV report of the result.
+def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: Samples, balls=None,
+                    how: bool | str = True) -> dict[str, Any]:
+    """Set the model's tilt gain and tilt limit; CV report of the result.
 
-    The gain undoes the shrinkage toward flat that every model shows on presses it did not see
-    (:func:`calibration.models.base.fit_tilt_gain`); the limit keeps answers within the tilts the
-    truth covered (beyond them, at the rim and in the bulge, a model only extrapolates). The CV
-    report's errors become those of the corrected predictions (one number fitted on about ten
-    thousand out-of-fold pixels); the uncorrected mean is kept as ``cv_uncorrected_mean_angular_error_deg``.
+    The limit keeps answers within the tilts the truth covered (beyond them, at the rim and in
+    the bulge, a model only extrapolates). The gain (``how``): ``"ball"`` (default, ``True``):
+    the one that makes the model's reconstructions of held-out presses the ball's size
+    (:mod:`calibration.ball_gain`), falling back to ``"regression"`` when too few spheres were
+    fitted; ``"regression"``: the one that undoes the shrinkage toward flat of its out-of-fold
+    predictions (:func:`calibration.models.base.fit_tilt_gain`: a least-squares fit dominated by
+    the steep rim, where a blurred image shrinks the tilts most; on the DIGIT frames it made the
+    middle of every cap too steep, spheres 13 % too small). The CV report's errors become those of
+    the corrected predictions; the uncorrected mean is kept as
+    ``cv_uncorrected_mean_angular_error_deg``, the ball figures as ``ball_gain``.
     """
     pred, valid, evaluated = oof
     use = evaluated & valid
     truth_tilt = np.hypot(samples.normals[samples.contact, 0], samples.normals[samples.contact, 1])
     model.max_tilt = float(min(0.999, 1.05 * truth_tilt.max())) if truth_tilt.size else None
-    model.tilt_gain = fit_tilt_gain(pred[use, :2], samples.normals[use, :2]) if use.any() else 1.0
+    regression = fit_tilt_gain(pred[use, :2], samples.normals[use, :2]) if use.any() else 1.0
+    ball = balls.gain(model.max_tilt) if balls is not None and how in (True, "ball") else None
+    model.tilt_gain = ball["gain"] if ball is not None and ball["gain"] is not None else regression
     corrected, _ = scale_tilt(pred, model.tilt_gain, model.max_tilt)
     errors = np.full(len(samples), np.nan)
     e = angular_error_deg(corrected, samples.normals)
@@ -544,13 +667,17 @@ def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: S
     out = cv_report(errors, samples, cv["folds"])
     out["cv_uncorrected_mean_angular_error_deg"] = cv["cv_mean_angular_error_deg"]
     out["tilt_gain"] = model.tilt_gain
+    out["tilt_gain_source"] = "ball" if ball is not None and ball["gain"] is not None else "regression"
+    out["regression_tilt_gain"] = regression
     out["max_tilt"] = model.max_tilt
+    if ball is not None:
+        out["ball_gain"] = ball
     return out
 
 
 def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, folds, shrink_px, detect_options,
                model_options, refine_iterations, refine_model, seed, markers=None,
-               tilt_correction=True, circles="auto") -> CalibrationResult:
+               tilt_correction=True, circles="auto", gate=None) -> CalibrationResult:
     names = [models] if isinstance(models, str) else list(models)
     explicit = "all" not in names
     if not explicit:
@@ -573,11 +700,14 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
             reports[name] = {"skipped": make}
             continue
         t = time.perf_counter()
-        cv, oof = cross_validate(make, samples, ref, folds=folds, seed=seed, return_predictions=True)
+        balls = OutOfFoldBalls(frames, ref, [k for k, c in enumerate(circles) if c.accepted], mm, ball_radius_mm,
+                               folds, markers=found.markers) if tilt_correction else None
+        cv, oof = cross_validate(make, samples, ref, folds=folds, seed=seed, return_predictions=True,
+                                 fold_hook=balls)
         model = make()
         fit = model.fit(samples, ref)
         if tilt_correction:
-            cv = _correct_output(model, cv, oof, samples)
+            cv = _correct_output(model, cv, oof, samples, balls, tilt_correction)
         reports[name] = {"fit": fit, "cv": cv, "seconds": time.perf_counter() - t}
         fitted[name] = model
     labels = None
@@ -585,7 +715,15 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
         # The detector's circles against the labels (with labels as the truth, how far the
         # user's labels sit from what the detector sees).
         labels = label_errors(found.detected, cap.labels["center_xy"], cap.labels["radius_px"])
-    return CalibrationResult(circles=circles, models=fitted, reports=reports, labels=labels,
+    scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in reports.items()
+              if "cv" in r and r["cv"]["invalid_fraction"] < 1.0}
+    best = min(scored, key=scored.get) if scored else None
+    ball = _ball_summary(best, reports)
+    verdict = judge(circles, best_model=best, cv_deg=scored.get(best), explained=found.explained,
+                    ball_radius_error=None if ball is None else ball["raw_radius_error"],
+                    mismatch=found.mismatch, source_of_circles=found.source_of_circles, settings=gate)
+    drift = _drift_summary(found)
+    return CalibrationResult(circles=circles, models=fitted, reports=reports, labels=labels, verdict=verdict,
                              ball_radius_mm=float(ball_radius_mm), mm_per_px=float(mm), shape=cap.shape,
                              num_patterns=int(frames.shape[1]), num_channels=int(frames.shape[4]),
                              light_rank_ratio=rank,
@@ -594,5 +732,31 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
                                    "circle_settings": {"circles": found.source_of_circles,
                                                        "refine_model": refine_report["model"],
                                                        "refine_iterations": int(refine_report["iterations"]),
-                                                       "shrink_px": float(shrink_px), "folds": int(folds)}},
+                                                       "shrink_px": float(shrink_px), "folds": int(folds)},
+                                   "reference": found.reference_note, "drift": drift,
+                                   **({"ball_fit": ball} if ball is not None else {})},
                              markers=found.markers)
+
+
+def _ball_summary(best: str | None, reports: dict[str, dict[str, Any]]) -> dict[str, Any] | None:
+    """The best model's truth-free ball fit on held-out presses (:mod:`calibration.ball_gain`), or None."""
+    if best is None:
+        return None
+    ball = (reports[best].get("cv") or {}).get("ball_gain")
+    if not ball or ball.get("raw_radius_error") is None:
+        return None
+    return {"model": best, **ball}
+
+
+def _drift_summary(found: CircleFit) -> dict[str, Any]:
+    """How far the presses drifted from the reference and how much of it the drift model removed."""
+    ds = found.drifts
+    if not ds:
+        return {}
+    gains = np.array([d.gain[..., 0] for d in ds])
+    offsets = np.array([d.offset[..., 0] for d in ds])
+    return {"model": ds[0].model, "reference": found.reference_note,
+            "max_abs_offset_dn": float(np.abs(offsets).max()), "max_abs_gain_change": float(np.abs(gains - 1).max()),
+            "before_dn_median": float(np.median([d.before_dn for d in ds])),
+            "residual_dn_median": float(np.median([d.residual_dn for d in ds])),
+            "mismatch": found.mismatch, "per_press": [d.summary() for d in ds]}

@@ -78,6 +78,8 @@ def evaluate_models(models: dict[str, Any], samples: Samples) -> dict[str, dict[
     """Angular-error statistics (:func:`angular_stats`) of each model on the contact samples."""
     contact = samples.subset(samples.contact & (samples.press >= 0))
     out = {}
+    if len(contact) == 0:
+        return {name: angular_stats(np.array([]), np.array([])) for name in models}
     for name, model in models.items():
         n, ok = model.predict(contact)
         e = angular_error_deg(n, contact.normals)
@@ -123,7 +125,7 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
                          mm_per_px: float | None = None, models: list[str] | None = None, ball_level: float = 0.5,
                          refine_iterations: int | None = None, refine_model: str | None = None,
                          shrink_px: float | None = None, folds: int | None = None, circles=None,
-                         markers=None) -> dict[str, Any]:
+                         markers=None, detect_options=None) -> dict[str, Any]:
     """Every model of a calibration applied to presses it never saw.
 
     Parameters
@@ -152,6 +154,10 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         settings (reused instead of found again: benchmarks evaluate many calibrations).
     markers : None, "none", "auto", a mask image path or an (H, W) bool array
         Printed gel markers; None: the test capture's own, else the calibration's.
+    detect_options : DetectOptions, optional
+        How the test presses' circles are found and their drift removed
+        (:class:`calibration.detect.DetectOptions`; ``drift="none"`` keeps the frames as
+        recorded, as ``iristac reconstruct`` reads them).
 
     Returns
     -------
@@ -210,7 +216,10 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     folds = TEST_TRUTH["folds"] if folds is None else int(folds)
     found = circles if circles is not None else find_circles(
         cap, float(radius), mm, refine_iterations=refine_iterations, refine_model=refine_model, shrink_px=shrink_px,
-        folds=folds, markers=markers)
+        folds=folds, markers=markers, strict=False, detect_options=detect_options)
+    detected = int(sum(c.accepted for c in found.circles))
+    # With no test press detected the label truth (when there is one) and the ball fit, which
+    # needs no circle, still judge the calibration.
     det = evaluate_models(loaded, found.samples)
     refined = found.refine.get("iterations", 0) and found.refine.get("model")
     truth: dict[str, Any] = {"detected": {
@@ -219,6 +228,10 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
                    "edge detector alone (no light model votes for the centres)") +
                   f", contact radius minus a {shrink_px:g} px margin",
         "circles": [c.to_dict() for c in found.circles]}}
+    if not detected:
+        truth["detected"]["note"] = ("the detector accepted no test press: no detected truth; "
+                                     + ("the hand labels" if has_labels(cap) else "only the ball fit") + " judge the "
+                                     "calibration (iristac label TEST_CAPTURE.h5 draws labels)")
     if has_labels(cap):
         circles = capture_label_circles(cap, float(radius) / found.mm_per_px, src)
         lab_samples = collect_samples(found.frames, found.reference, circles, float(radius), found.mm_per_px,
@@ -249,7 +262,7 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     fits = _ball_fits(loaded, found, float(radius), depths, ball_level)
     for v in fits.values():
         v["depth_truth"] = depth_method
-    return {"presses": int(len(found.circles)), "accepted": int(sum(c.accepted for c in found.circles)),
+    return {"presses": int(len(found.circles)), "accepted": detected,
             "models": det, "truth": truth, "ball_fit": fits}
 
 
@@ -275,6 +288,8 @@ def format_report(result: dict[str, Any]) -> str:
     lab = (result["truth"].get("labels") or {}).get("models", {})
     cv_truth = next((m.get("cv_truth") for m in result["models"].values() if m.get("cv_truth")), None)
     lines = [f"{result['accepted']} of {result['presses']} test presses accepted"]
+    if result["truth"]["detected"].get("note"):
+        lines.append("  " + result["truth"]["detected"]["note"])
     if cv_truth == "labels":
         lines.append("  calibrated on hand labels: its CV was judged against labels, compare it with the labels column")
     lines += [

@@ -13,7 +13,10 @@ The reference is the frame (or, with a template, the press) named by ``reference
 not given it is found automatically (:func:`auto_reference`): the frame closest to the
 per-pixel median of all frames (which is the no-contact gel wherever the presses are spread
 over the image), by the largest local difference. The choice, its distance and the next
-closest frame's are reported.
+closest frame's are reported. When no frame stands out (all are presses: the closest is not
+:data:`CLEAN_RATIO` times closer than the next), or with ``reference="build"``, every frame is
+a press and the reference is built from them (:mod:`calibration.reference`), which the
+capture's ``reference_source`` attribute and every calibration report say.
 
 Pixel values are kept as the camera wrote them: a 16-bit PNG stays ``uint16`` (OpenCV's
 ``IMREAD_ANYDEPTH``), a float TIFF ``float32``; grey images have one channel. OpenCV
@@ -125,6 +128,23 @@ def template_regex(template: str) -> re.Pattern:
 
 def _natural_key(name: str):
     return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", name)]
+
+
+#: The automatically found reference must be this much closer to the median frame than the next
+#: closest frame to count as free of contact (measured: 0.24 on the DIGIT folder, 0.26 on the shared
+#: GelSight frames; a folder of presses only: about 0.9); otherwise the reference is built from the presses.
+CLEAN_RATIO = 0.5
+
+
+def _built_reference(frames: np.ndarray, ball_radius_px: float) -> tuple[np.ndarray, dict[str, Any]]:
+    """:func:`calibration.reference.build_reference` of every frame, in the frames' own dtype."""
+    from calibration.reference import build_reference
+
+    ref, report = build_reference(frames.astype(np.float32), ball_radius_px)
+    if frames.dtype.kind in "ui":
+        info = np.iinfo(frames.dtype)
+        ref = np.clip(np.round(ref), info.min, info.max)
+    return ref.astype(frames.dtype), report
 
 
 def auto_reference(frames: np.ndarray, blur_px: float = 2.0) -> tuple[int, np.ndarray]:
@@ -273,6 +293,24 @@ def _source_frames(src: Path, pattern: str | None):
     return [str(i) for i in range(len(vid))], np.stack(vid)[:, None], ["all"], "video"
 
 
+def _reference_index(src: Path, names: list[str], frames: np.ndarray, reference: str | None):
+    """``(index, distances)`` of the no-contact frame: the one named, the one found automatically
+    (:func:`auto_reference`), or ``None`` when it is to be built (``"build"``, or no frame stands
+    out as untouched)."""
+    if reference == "build":
+        return None, None
+    if reference is not None:
+        matches = [i for i, n in enumerate(names) if reference in (n, Path(n).stem)]
+        if not matches:
+            raise UserError(f"{src}: no frame named {reference!r} for --reference (frames: "
+                            f"{', '.join(names[:5])}{' ...' if len(names) > 5 else ''}, or 'build')")
+        return matches[0], None
+    ref_i, dist = auto_reference(frames)
+    if len(dist) > 2 and dist[ref_i] > CLEAN_RATIO * np.sort(dist)[1]:
+        return None, dist  # no frame stands out as untouched: every frame is a press
+    return ref_i, dist
+
+
 def load_images(source: str | Path, *, reference: str | None = None, pattern: str | None = None,
                 mm_per_px: float | None = None, ball_radius_mm: float | None = None, labels: str | Path | None = None,
                 markers: str | Path | None = None, profile=None) -> tuple[Capture, dict[str, Any]]:
@@ -284,7 +322,10 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         Folder or video file.
     reference : str, optional
         Name of the no-contact frame: a file name or its stem; with ``pattern``, a press id; for a
-        video, a frame index. Default: found automatically (:func:`auto_reference`).
+        video, a frame index; or ``"build"``: every frame is a press and the reference is built
+        from them (:func:`calibration.reference.build_reference`; needs ``ball_radius_mm``).
+        Default: found automatically (:func:`auto_reference`), and built when no frame is
+        clearly closer to the median frame than the others (:data:`CLEAN_RATIO`).
     pattern : str, optional
         File-name template with ``{press}`` and ``{pattern}`` (folders only).
     mm_per_px : float
@@ -329,17 +370,18 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         raise UserError(f"{src}: only {len(names)} frame(s); a capture needs a reference and at least one press")
     if prof is not None:
         frames = prof.fit_frames(frames, str(src))
-    if reference is not None:
-        matches = [i for i, n in enumerate(names) if reference in (n, Path(n).stem)]
-        if not matches:
-            raise UserError(f"{src}: no frame named {reference!r} for --reference (frames: "
-                            f"{', '.join(names[:5])}{' ...' if len(names) > 5 else ''})")
-        ref_i, dist = matches[0], None
-    else:
-        ref_i, dist = auto_reference(frames)
+    built = None
+    ref_i, dist = _reference_index(src, names, frames, reference)
+    if ref_i is None:
+        if ball_radius_mm is None:
+            raise UserError(f"{src}: no frame is clearly free of contact (closest to the median of all frames: "
+                            f"{'-' if dist is None else f'{np.min(dist):.1f}'}, next "
+                            f"{'-' if dist is None else f'{np.sort(dist)[1]:.1f}'}); name it with --reference NAME, "
+                            "or give --ball-radius to build a reference from the presses (--reference build)")
+        built = _built_reference(frames, ball_radius_mm / mm_per_px)
     keep = [i for i in range(len(names)) if i != ref_i]
     press_names = [names[i] for i in keep]
-    ref = frames[ref_i]
+    ref = frames[ref_i] if built is None else built[0]
     mask = None
     if markers is not None:
         from calibration.markers import resolve_markers
@@ -350,7 +392,9 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
     meta: dict[str, Any] = {
         "source": f"{kind}:{src.name}", "pattern_names": list(pattern_names),
         "mode": "trichromatic" if (p, c) == (1, 3) else "user-defined", "bit_depth": _BIT_DEPTH[frames.dtype],
-        "frame_names": press_names, "original_file": src.name, "reference_name": names[ref_i],
+        "frame_names": press_names, "original_file": src.name,
+        "reference_name": names[ref_i] if built is None else "built",
+        "reference_source": f"frame {names[ref_i]}" if built is None else built[1]["note"],
     }
     if ball_radius_mm is not None:
         meta["ball_radius_mm"] = float(ball_radius_mm)
@@ -364,12 +408,13 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         meta["markers_source"] = str(markers)
     cap = Capture(frames=np.ascontiguousarray(frames[keep]), reference=np.ascontiguousarray(ref), drive=drive,
                   brightness=np.ones(p, np.float32), mm_per_px=float(mm_per_px), labels=lab, meta=meta, markers=mask)
-    others = None if dist is None else np.sort(np.delete(dist, ref_i))
+    others = None if dist is None else np.sort(np.delete(dist, ref_i) if ref_i is not None else dist)
     report = {"source": str(src), "presses": len(keep), "patterns": int(p), "shape": [int(frames.shape[2]),
                                                                                         int(frames.shape[3])],
               "channels": int(c), "dtype": str(frames.dtype), "bit_depth": _BIT_DEPTH[frames.dtype],
-              "reference": names[ref_i], "reference_auto": reference is None,
-              "reference_distance": None if dist is None else float(dist[ref_i]),
+              "reference": names[ref_i] if built is None else "built", "reference_auto": reference is None,
+              "reference_built": None if built is None else built[1],
+              "reference_distance": None if dist is None or ref_i is None else float(dist[ref_i]),
               "next_closest_distance": None if others is None or not len(others) else float(others[0]),
               "labels": lab is not None, "markers": 0 if mask is None else int(mask.sum()),
               "mm_per_px": float(mm_per_px), "ball_radius_mm": ball_radius_mm,

@@ -20,7 +20,14 @@ if TYPE_CHECKING:  # an annotation only: calibration.detect imports scipy.ndimag
     # loading a calibration (every live start, via the models) does not need (docs/live.md)
     from calibration.detect import Circle
 
-__all__ = ["Samples", "collect_samples"]
+__all__ = ["RIM_FRACTION", "Samples", "collect_samples"]
+
+#: The margin inside each contact circle left out of the samples, as a fraction of its radius
+#: (at least ``shrink_px``). An edge found on a blurred image is uncertain by a few per cent of
+#: the radius (docs/calibration.md, "Contact detection"), and a truth disc that reaches past the
+#: real contact labels the gel's skirt, whose tilt falls away, as sphere: every model then
+#: learns tilts that are too steep.
+RIM_FRACTION = 0.1
 
 
 @dataclass
@@ -72,7 +79,8 @@ class Samples:
 
 
 def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Circle], ball_radius_mm: float,
-                    mm_per_px: float, *, shrink_px: float = 2.0, flat_outside: float = 2.0, flat_step: int = 4,
+                    mm_per_px: float, *, shrink_px: float = 2.0, rim_fraction: float = RIM_FRACTION,
+                    flat_outside: float = 2.0, flat_step: int = 4,
                     saturation: float | None = None, exclude: np.ndarray | None = None) -> Samples:
     """Gather samples from the accepted presses.
 
@@ -84,8 +92,11 @@ def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Cir
     circles : list of Circle, length K
     ball_radius_mm, mm_per_px : float
     shrink_px : float
-        Contact pixels lie within ``contact_radius - shrink_px`` (the rim is where the truth
-        is least certain).
+        Contact pixels lie within ``contact_radius - max(shrink_px, rim_fraction *
+        contact_radius)`` (the rim is where the truth is least certain).
+    rim_fraction : float
+        The margin as a fraction of the contact radius, for large contacts on blurred images
+        (:data:`RIM_FRACTION`).
     flat_outside : float
         Flat pixels of a press lie beyond ``flat_outside x`` the ball radius from its centre
         (the gel bulges around the contact).
@@ -129,7 +140,8 @@ def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Cir
         cx, cy = circ.center_xy
         cap = sphere_cap((h, w), (cy, cx), circ.contact_radius_px, ball_radius_mm, mm_per_px)
         dist = np.hypot(cols - cx, rows - cy)
-        add(dist < circ.contact_radius_px - shrink_px, cap.normals, k, True, img,
+        margin = max(shrink_px, rim_fraction * circ.contact_radius_px)
+        add(dist < circ.contact_radius_px - margin, cap.normals, k, True, img,
             dist / max(circ.contact_radius_px, 1e-9))
         add(grid & (dist > flat_outside * ball_px), flat_n, k, False, img)
     I, R, rr, cc, n, pr, ct, rad = (np.concatenate(x) for x in zip(*parts))

@@ -105,7 +105,7 @@ def test_truth(capture: Capture, ball_radius_mm: float, test=TEST_PRESSES, marke
     from calibration.calibrate import find_circles
     from calibration.evaluate import TEST_TRUTH
 
-    return find_circles(capture.select(test), ball_radius_mm, markers=markers, **TEST_TRUTH)
+    return find_circles(capture.select(test), ball_radius_mm, markers=markers, strict=False, **TEST_TRUTH)
 
 
 def four_way(capture: Capture, ball_radius_mm: float, models="all", *, train=TRAIN_PRESSES, test=TEST_PRESSES,

@@ -36,7 +36,8 @@ def fold_assignment(presses: np.ndarray, folds: int, seed: int = 0) -> dict[int,
 
 
 def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples, reference: np.ndarray,
-                   folds: int = 5, seed: int = 0, return_predictions: bool = False, judge: Samples | None = None):
+                   folds: int = 5, seed: int = 0, return_predictions: bool = False, judge: Samples | None = None,
+                   fold_hook: Callable[[CalibrationModel, list[int]], None] | None = None):
     """Cross-validated angular error of the model built by ``make_model``.
 
     Parameters
@@ -55,6 +56,9 @@ def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples,
         unrefined ones): each fold's model, fitted on ``samples``, is judged on ``judge``'s
         contact pixels of its held-out presses. Training choices that change the circles
         (refinement, labels) are comparable only against one fixed truth.
+    fold_hook : callable, optional
+        Called as ``fold_hook(model, held_out_presses)`` with each fold's fitted model (e.g. to
+        reconstruct the held-out presses: :func:`calibration.calibrate.calibrate`'s ball fit).
 
     Returns
     -------
@@ -69,7 +73,7 @@ def cross_validate(make_model: Callable[[], CalibrationModel], samples: Samples,
     from pipeline.base.threads import limit_threads
 
     with limit_threads(blas=1):  # why: see calibration.calibrate.calibrate
-        report, preds = _cross_validate(make_model, samples, reference, folds, seed, judge)
+        report, preds = _cross_validate(make_model, samples, reference, folds, seed, judge, fold_hook)
     return (report, preds) if return_predictions else report
 
 
@@ -87,7 +91,7 @@ def cv_report(errors: np.ndarray, samples: Samples, fold_log: list) -> dict[str,
 
 
 def _cross_validate(make_model, samples: Samples, reference: np.ndarray, folds: int, seed: int,
-                    judge: Samples | None = None):
+                    judge: Samples | None = None, fold_hook=None):
     presses = np.unique(samples.press[(samples.press >= 0) & samples.contact])
     if len(presses) < 2:
         raise ValueError(f"cross_validate: needs at least two accepted presses, got {len(presses)}")
@@ -110,6 +114,8 @@ def _cross_validate(make_model, samples: Samples, reference: np.ndarray, folds: 
         pred[test], valid[test] = n, ok
         e = angular_error_deg(n, judged.normals[test])
         errors[test] = np.where(ok & np.isfinite(e), e, INVALID_ERROR_DEG)
+        if fold_hook is not None:
+            fold_hook(model, test_p)
         fold_log.append({"test_presses": test_p,
                          "train_presses": sorted(int(p) for p in np.unique(samples.press[train]) if p >= 0)})
     return cv_report(errors, judged, fold_log), (pred, valid, np.isfinite(errors))

@@ -87,23 +87,23 @@ def check_light_rank(samples: Samples, min_ratio: float = 0.05, what: str = "cap
     singular values of the stacked ``L (M, 3)``: with fewer than three independent light
     directions (e.g. only LEDs on one diameter of the ring, or fewer than three
     pattern-channels) normals are not determined and no model may be fitted silently.
+    A small ratio means degenerate lighting only when the circles' sphere caps explain the
+    shading (:func:`calibration.gate.shading_explained`); otherwise the circles (or the
+    reference) are at fault and the error says that instead.
 
     Returns the ratio ``sigma_3 / sigma_1``.
     """
-    obs = samples.flat_observations.astype(np.float64)
-    m = obs.shape[1]
+    from calibration.gate import rank_message, shading_explained
+
+    m = samples.flat_observations.shape[1]
     if m < 3:
         raise UserError(f"{what}: {m} pattern-channel(s) give fewer than three light directions; photometric "
                         "calibration needs at least three independent lights")
-    A = np.concatenate([np.ones((len(samples), 1)), samples.normals], axis=1)
-    coef = np.linalg.lstsq(A, obs, rcond=None)[0]  # (4, M)
-    s = np.linalg.svd(coef[1:].T, compute_uv=False)
-    ratio = float(s[-1] / max(s[0], 1e-30))
+    ratio, explained = shading_explained(samples)
     if ratio < min_ratio:
-        raise UserError(
-            f"{what}: the lighting patterns span fewer than three independent light directions (singular values "
-            f"of the fitted light matrix {np.round(s / max(s[0], 1e-30), 4).tolist()}, smallest/largest "
-            f"{ratio:.4f} < {min_ratio}); use LEDs around the ring, not only on one diameter")
+        A = np.concatenate([np.ones((len(samples), 1)), samples.normals], axis=1)
+        coef = np.linalg.lstsq(A, samples.flat_observations.astype(np.float64), rcond=None)[0]
+        raise UserError(rank_message(what, np.linalg.svd(coef[1:].T, compute_uv=False), ratio, min_ratio, explained))
     return ratio
 
 

@@ -1,5 +1,7 @@
 """``iristac bench calibration``: time and cross-validated error of every calibration model.
 
+With ``--sensors``: every sensor on hand instead (:mod:`pipeline.bench._calibration_sensors`).
+
 Three cases: the shared real GelSight frames (30 presses, one RGB pattern; skipped when
 ``../shared/data`` is absent) with the hand-label comparison; the same frames split, presses
 0-19 calibrating and 20-29 testing (:mod:`pipeline.bench._calibration_split`: CV beside test
@@ -35,6 +37,10 @@ def _shared_data() -> Path | None:
 
 def add_arguments(parser) -> None:
     parser.add_argument("--npz", default=None, help="GelSight-style npz (default ../shared/data/...)")
+    parser.add_argument("--sensors", action="store_true",
+                        help="instead: every sensor on hand (shared GelSight, drifted GelSight, DIGIT, DIGIT without "
+                             "its no-contact frame, randomised virtual sensors) calibrated on some presses and judged "
+                             "on the others (pipeline/bench/_calibration_sensors.py)")
 
 
 def _rows(res, seconds_total):
@@ -71,8 +77,12 @@ def run(args) -> dict:
     from calibration.synthetic import synthetic_sphere_capture
     from pipeline.evaluate import angular_error_deg
 
-    out: dict = {"cases": [], "rows": []}
     quick = bool(getattr(args, "quick", False))
+    if getattr(args, "sensors", False):
+        from pipeline.bench._calibration_sensors import run_sensors
+
+        return run_sensors(quick)
+    out: dict = {"cases": [], "rows": []}
     npz = Path(args.npz) if getattr(args, "npz", None) else _shared_data()
     if npz is not None:
         cap = load_gelsight_npz(npz)
@@ -139,6 +149,10 @@ def run(args) -> dict:
 
 
 def format_table(result: dict) -> str:
+    if "sensors" in result:
+        from pipeline.bench._calibration_sensors import format_sensors
+
+        return "\n".join(format_sensors(result))
     lines = []
     for c in result["cases"]:
         lines.append(c["case"])

@@ -36,7 +36,11 @@ def register(sub, name, help_text):
     p.add_argument("--markers", default=None, metavar="auto|none|MASK.png",
                    help="printed gel markers: detect dark dots in the reference (auto), none, or a mask image "
                         "(default: the capture's own marker mask, if it has one)")
-    p.add_argument("--overlay", default=None, help="also write an overlay PNG of the circles")
+    p.add_argument("--overlay", default=None,
+                   help="also write an overlay PNG: every press with its circle and why it was accepted or rejected "
+                        "(written even when the calibration is refused)")
+    p.add_argument("--force", action="store_true",
+                   help="write the calibration even when the quality gate refuses it (its verdict is kept in the file)")
     add_json_flag(p)
     p.set_defaults(func=_run)
 
@@ -55,21 +59,43 @@ def _run(args) -> int:
         from pipeline.capture.sensor_profiles import capture_defaults
 
         ball, mm = capture_defaults(args.profile, args.capture, ball, mm)
-    res = calibrate(args.capture, ball, mm, args.model, folds=args.folds, illumination=ill,
-                    model_options=opts, refine_iterations=0 if args.no_refine else 2,
-                    refine_model=args.refine_model, markers=args.markers, circles=args.circles)
-    res.save(args.out)
-    if args.overlay:
-        from calibration.overlay import write_overlay
-        from pipeline.base.capture import read_capture
+    from calibration.gate import CalibrationRefused
 
-        cap = read_capture(args.capture)
-        write_overlay(args.overlay, cap, res.circles)
+    try:
+        res = calibrate(args.capture, ball, mm, args.model, folds=args.folds, illumination=ill,
+                        model_options=opts, refine_iterations=0 if args.no_refine else 2,
+                        refine_model=args.refine_model, markers=args.markers, circles=args.circles)
+    except CalibrationRefused as exc:
+        if args.overlay and exc.circles:
+            _overlay(args, exc.circles)
+        raise
+    if args.overlay:
+        _overlay(args, res.circles)
+    refused = res.verdict is not None and not res.verdict.passed
+    if not refused or args.force:
+        res.save(args.out, force=args.force)
     s = res.summary()
     if args.json:
         print_json(s)
-        return 0
-    print(f"{s['accepted']} of {s['presses']} presses accepted; wrote {args.out}")
+    else:
+        _print_summary(args, s, refused)
+    if refused and not args.force:
+        raise CalibrationRefused(res.verdict.message(f"{args.capture}") + f" Nothing written to {args.out}.",
+                                 res.verdict)
+    return 0
+
+
+def _overlay(args, circles) -> None:
+    from calibration.overlay import write_overlay
+    from pipeline.base.capture import read_capture
+
+    write_overlay(args.overlay, read_capture(args.capture), circles)
+
+
+def _print_summary(args, s, refused: bool) -> None:
+    wrote = ("REFUSED, not written (--force writes it)" if refused and not args.force else
+             f"wrote {args.out}" + (" (refused by the quality gate; written because of --force)" if refused else ""))
+    print(f"{s['accepted']} of {s['presses']} presses accepted; {wrote}")
     print(f"  circles: {s['circles_used']}")
     for name, m in s["models"].items():
         if m.get("skipped"):
@@ -83,5 +109,19 @@ def _run(args) -> int:
         off = s["center_offset_px_median"]
         print(f"  detected circles vs hand labels: centre {s['center_error_px_median']:.2f} px (median offset "
               f"{off[0]:+.2f}, {off[1]:+.2f} px), radius {s['radius_error_px_median']:.2f} px (medians)")
+    drift = s.get("drift") or {}
+    if drift:
+        print(f"  reference: {s.get('reference')}; drift ({drift['model']}) removed from every press: "
+              f"{drift['before_dn_median']:.1f} -> {drift['residual_dn_median']:.1f} DN RMS away from the contacts "
+              "(medians)")
+    ball = s.get("ball_fit")
+    if ball:
+        print(f"  ball fit ({ball['model']}, {ball['presses']} held-out presses, no circle needed): sphere radius "
+              f"{ball['raw_radius_error']:+.1%} off the ball before the tilt gain"
+              + (f", {ball['radius_error']:+.1%} after it" if ball.get("radius_error") is not None else
+                 f" ({ball['note']})"))
+    gate = s.get("quality_gate") or {}
+    if gate and not gate["passed"]:
+        print(f"  quality gate: {'; '.join(gate['problems'])}")
+        print(f"  likely cause: {gate['cause']}")
     print("  " + s["cv_note"].replace("CAL.h5", str(args.out)))
-    return 0

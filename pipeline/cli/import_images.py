@@ -16,8 +16,9 @@ def register(group):
                    help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): pixel pitch, ball radius, and "
                         "the camera stream's crop/rotation/size")
     p.add_argument("--reference", default=None, metavar="NAME",
-                   help="the no-contact frame: file name or stem (with --pattern: a press id; video: a frame index); "
-                        "default: the frame closest to the median of all frames")
+                   help="the no-contact frame: file name or stem (with --pattern: a press id; video: a frame index), "
+                        "or 'build' (no clean frame: build it from the presses, needs --ball-radius); default: the "
+                        "frame closest to the median of all frames, built when no frame stands out")
     p.add_argument("--pattern", default=None, metavar="TEMPLATE",
                    help='file-name template for several lighting patterns per press, e.g. "press{press}_led{pattern}.png"')
     p.add_argument("--ball-radius", type=float, default=None, metavar="MM",
@@ -39,7 +40,9 @@ def _run(args) -> int:
         print_json(res)
         return 0
     ref = f"reference {res['reference']!r}"
-    if res["reference_auto"]:
+    if res.get("reference_built"):
+        ref = f"reference {res['reference_built']['note']}"
+    elif res["reference_auto"]:
         ref += (f" (found automatically: largest local difference to the median frame {res['reference_distance']:.1f}, "
                 f"next closest frame {res['next_closest_distance']:.1f})")
     print(f"wrote {res['out']}: {res['presses']} presses x {res['patterns']} pattern(s) of {res['shape'][0]}x"

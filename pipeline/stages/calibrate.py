@@ -23,7 +23,9 @@ __all__ = ["SPEC", "RENDER_DEFAULTS", "params", "compute", "run", "rendered", "r
 
 # Version 2: every model's tilt gain and clip, the LUT's per-bin position correction, the MLP's
 # 400 steps at 2e-2 (issue 13): a calibration cached by version 1 holds other models.
-SPEC = StageSpec("calibrate", version=2, schema="calibration",
+# Version 3: the detector scaled from the ball, per-press drift removed, the tilt gain from the
+# out-of-fold ball fit, the quality gate (issue 22): other circles, other models.
+SPEC = StageSpec("calibrate", version=3, schema="calibration",
                  defaults={"ball_radius_mm": 4.0, "model": "far", "folds": 5})
 
 #: Defaults of a run config's ``calibrate.render`` (the rendered sphere capture).
@@ -73,9 +75,16 @@ def compute(p: Mapping[str, Any], illumination=None, *, device: str = "cpu"):
             src = p["capture"]
         models = p["model"]
         traced = models == "traced" or (not isinstance(models, str) and "traced" in models)
+        gate = None
+        if "render" in p:
+            from calibration.gate import MIN_ACCEPTED, GateSettings
+
+            # A rendered capture's press count is the config's choice (its CV and ball fit still
+            # gate it); the minimum of calibration.gate was measured on real frames.
+            gate = GateSettings(min_accepted=min(MIN_ACCEPTED, int(p["render"]["presses"])))
         try:
             res = calibrate(src, float(p["ball_radius_mm"]), p.get("mm_per_px"), models, folds=int(p["folds"]),
-                            illumination=illumination if traced else None)
+                            illumination=illumination if traced else None, gate=gate)
         except UserError as exc:
             if "render" not in p:
                 raise
