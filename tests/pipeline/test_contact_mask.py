@@ -81,7 +81,9 @@ def test_live_results_carry_the_contact_mask(tmp_path):
     s = random_sensor(6, shape=(60, 80), num_presses=6, effects=["read_noise"], border_fraction=0.0,
                       radius_range=(0.6, 0.9))
     out = render_sensor(s)
-    cal = calibrate(out.capture, s.ball_radius_mm, models=["lut"]).save(tmp_path / "cal.h5")
+    # six presses of a 60 x 80 sensor calibrate a coarse LUT (the gate refuses it: CV ~22 deg); the
+    # contact mask needs only a working solver, so it is written anyway
+    cal = calibrate(out.capture, s.ball_radius_mm, models=["lut"]).save(tmp_path / "cal.h5", force=True)
     video = tmp_path / "presses.avi"
     w = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 30.0, (80, 60))
     for img in [out.capture.reference[0], *out.capture.frames[:3, 0]]:
