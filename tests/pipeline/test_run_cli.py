@@ -207,7 +207,7 @@ def test_failing_calibration_names_the_config_fields_and_keeps_synthesize(tmp_pa
     with pytest.raises(StageFailed) as info:
         run_pipeline(config, progress=False)
     msg = str(info.value)
-    assert msg.startswith("stage 'calibrate' failed: the sphere capture rendered from calibrate.render: only")
+    assert msg.startswith("stage 'calibrate' failed: the sphere capture rendered from calibrate.render: calibration refused: only")
     assert "calibrate.render: presses, depth_mm" in msg and "iristac-calibrate-" not in msg
     assert [(r.name, r.error is None) for r in info.value.results] == [("synthesize", True), ("calibrate", False)]
     assert [p["cached"] for p in plan_pipeline(config)] == [True, False, False, False, False]
