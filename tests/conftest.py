@@ -2,7 +2,10 @@
 ``device`` and ``dtype`` from here, so each runs on the CPU (and on CUDA where one is present)
 and in float32 as well as float64, with tolerances that depend on the float type."""
 
+import os
+import subprocess
 import sys
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -63,6 +66,53 @@ def dtype(request) -> FloatType:
     return FloatType(request.param)
 
 
+# ---- the tracer's PTX, compiled beside the rest of the suite -----------------------------------
+
+#: The test that needs :func:`tracer_ptx` (about 25 s of one core: numba-cuda inlines every
+#: device function of the branch-free kernel before libNVVM compiles it).
+_PTX_TEST = "test_cuda_kernel_compiles_to_ptx"
+_PTX_JOB = pytest.StashKey[tuple]()
+_PTX_SCRIPT = r"""
+import sys
+from pathlib import Path
+from pipeline.cli.doctor import nvvm_status
+from sim.optics import kernel_cuda
+status, line = nvvm_status()
+out = Path(sys.argv[1])
+out.write_text("ok\n" + kernel_cuda.compile_ptx("float32") if status == "ok" else "skip\n" + line)
+"""
+
+
+def _compile_tracer_ptx(out: Path) -> subprocess.Popen:
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(_REPO), os.environ.get("PYTHONPATH", "")]))
+    return subprocess.Popen([sys.executable, "-c", _PTX_SCRIPT, str(out)], cwd=str(_REPO), env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+
+def pytest_collection_modifyitems(session, config, items):
+    """Start the tracer's PTX compile in a background process once the run is known to hold its
+    test among others, so the compile overlaps them; the test waits for it (its outcome does
+    not depend on when the compile ends, only the suite's wall time does)."""
+    if len(items) > 1 and any(item.name == _PTX_TEST for item in items):
+        out = Path(tempfile.mkdtemp(prefix="iristac-ptx-")) / "ptx.txt"
+        config.stash[_PTX_JOB] = (_compile_tracer_ptx(out), out)
+
+
+@pytest.fixture(scope="session")
+def tracer_ptx(request) -> tuple[str, str]:
+    """``("ok", ptx)`` of the tracer kernel in float32 by the real numba-cuda compiler, or
+    ``("skip", why)`` where libNVVM cannot compile."""
+    proc, out = request.config.stash.get(_PTX_JOB, (None, None))
+    if proc is None:
+        out = Path(tempfile.mkdtemp(prefix="iristac-ptx-")) / "ptx.txt"
+        proc = _compile_tracer_ptx(out)
+    _, err = proc.communicate(timeout=900)
+    if proc.returncode != 0:
+        raise AssertionError(f"the tracer's PTX compile failed (exit {proc.returncode}):\n{err[-3000:]}")
+    status, _, text = out.read_text().partition("\n")
+    return status, text
+
+
 def pytest_sessionfinish(session, exitstatus):
     """Fail the run if a module of the project was imported from outside this checkout.
 
@@ -76,6 +126,10 @@ def pytest_sessionfinish(session, exitstatus):
     if outside:
         print(f"\nmodules imported from outside {_REPO}: {', '.join(outside)}", file=sys.stderr)
         session.exitstatus = 1
+    proc, _ = session.config.stash.get(_PTX_JOB, (None, None))
+    if proc is not None and proc.poll() is None:  # its test did not run (deselected, -x stop)
+        proc.kill()
+        proc.wait()
 @pytest.fixture(scope="session")
 def ring_firmware_binary(tmp_path_factory):
     """The C ring firmware's host program (``make -C firmware host``), built once per session

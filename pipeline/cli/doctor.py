@@ -88,7 +88,9 @@ def _packages():
     return out, nc_v is not None
 
 
-def _nvvm():
+def nvvm_status() -> tuple[str, str]:
+    """``("ok", line)`` when libNVVM compiles a tiny kernel to PTX (no GPU or driver needed), else
+    ``("missing", line)`` saying what to install; ``line`` is what ``iristac doctor`` prints."""
     try:
         from numba import cuda
 
@@ -196,7 +198,7 @@ def check(cpu_only: bool = False, compile_kernels: bool = True) -> list[tuple[st
     lines, have_cuda = _packages()
     if not have_cuda:
         return lines
-    lines.append(_nvvm())
+    lines.append(nvvm_status())
     if compile_kernels and lines[-1][0] == "ok":
         lines += _ptx_lines()
     if not cpu_only:

@@ -23,9 +23,9 @@ from helpers import REPO
 
 
 def _have_nvvm() -> tuple[bool, str]:
-    from pipeline.cli.doctor import _nvvm
+    from pipeline.cli.doctor import nvvm_status
 
-    status, line = _nvvm()
+    status, line = nvvm_status()
     return status == "ok", line
 
 
