@@ -146,6 +146,7 @@ class CalibrationResult:
                 "cv_mean_angular_error_deg": None if none_valid else cv["cv_mean_angular_error_deg"],
                 "cv_median_angular_error_deg": None if none_valid else cv["cv_median_angular_error_deg"],
                 "cv_invalid_fraction": cv["invalid_fraction"],
+                "cv_answered_mean_angular_error_deg": cv.get("cv_answered_mean_angular_error_deg"),
                 "seconds": rep["seconds"],
                 "fit": rep["fit"],
                 "tilt_gain": cv.get("tilt_gain", 1.0),
@@ -719,7 +720,9 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
               if "cv" in r and r["cv"]["invalid_fraction"] < 1.0}
     best = min(scored, key=scored.get) if scored else None
     ball = _ball_summary(best, reports)
-    verdict = judge(circles, best_model=best, cv_deg=scored.get(best), explained=found.explained,
+    best_cv = reports[best]["cv"] if best is not None else {}
+    verdict = judge(circles, best_model=best, cv_deg=best_cv.get("cv_answered_mean_angular_error_deg"),
+                    cv_invalid=best_cv.get("invalid_fraction"), explained=found.explained,
                     ball_radius_error=None if ball is None else ball["raw_radius_error"],
                     mismatch=found.mismatch, source_of_circles=found.source_of_circles, settings=gate)
     drift = _drift_summary(found)

@@ -85,7 +85,10 @@ def cv_report(errors: np.ndarray, samples: Samples, fold_log: list) -> dict[str,
         e = errors[(samples.press == p) & evaluated]
         per_press[int(p)] = {"mean_deg": float(e.mean()), "median_deg": float(np.median(e)), "samples": int(e.size)}
     e = errors[evaluated]
+    answered = e[e < INVALID_ERROR_DEG]
     return {"cv_mean_angular_error_deg": float(e.mean()), "cv_median_angular_error_deg": float(np.median(e)),
+            # over the pixels the model answered (a lookup table leaves colours it never saw unanswered)
+            "cv_answered_mean_angular_error_deg": float(answered.mean()) if answered.size else None,
             "per_press": per_press, "folds": fold_log,
             "invalid_fraction": float(np.mean(e >= INVALID_ERROR_DEG))}
 
