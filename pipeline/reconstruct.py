@@ -21,6 +21,12 @@ Printed gel markers (``markers=``, ``--markers auto|none|MASK.png``; default the
 ``markers`` dataset, else the calibration's): filled in before the normals are solved, False
 in the normals' mask, integrated through by the depth stage
 (:func:`pipeline.stages.normals.marker_mask`).
+
+Illumination drift (``drift=``, ``--drift auto|none|offset|gain_offset|field``): each contact
+instance's drift against the no-contact reference (a per-channel gain and offset fitted on the
+pixels outside the contact, :mod:`pipeline.normals.drift`) is removed before the solve where
+the solver keys on that reference (``auto``, the default: the calibration's models and
+``--ratio``), and before the contact mask's colour change always (:mod:`pipeline.contact`).
 """
 
 from __future__ import annotations
@@ -44,8 +50,9 @@ class ReconstructResult:
     ``summary`` has the CLI's JSON keys: ``solver``, ``integrator``, ``seconds``,
     ``valid_fraction`` and, when the capture has ground truth, ``normal_mean_error_deg`` and
     ``depth_rmse_mm`` (means over contact instances); plus ``cached``, ``markers`` (marker
-    pixels filled in), ``contact_fraction`` (the contact mask's share of the image, mean over
-    contact instances) and ``outputs``.
+    pixels filled in), ``drift`` (the drift model removed before the solve, ``none`` if none),
+    ``contact_fraction`` (the contact mask's share of the image, mean over contact instances)
+    and ``outputs``.
     """
 
     normals: Any
@@ -72,7 +79,8 @@ def _read(path_or_record, schema: str):
 def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "lstsq", integrator: str = "dst",
                 out=None, store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu",
                 dtype="float32", threads: int | None = 1, images: bool = True, force: bool = False,
-                compile: bool = False, heal: bool = True, mask=None, markers=None) -> ReconstructResult:
+                compile: bool = False, heal: bool = True, mask=None, markers=None,
+                drift: str = "auto") -> ReconstructResult:
     """Normals and depth of a capture, through the stage store.
 
     Parameters
@@ -122,6 +130,11 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     markers : None, "auto", "none", path or ndarray (H, W), optional
         Printed gel markers to fill in (:func:`pipeline.stages.normals.marker_mask`); None: the
         capture's own ``markers``, else the calibration's.
+    drift : str
+        Illumination drift removed before the solve (:func:`pipeline.stages.normals.compute`):
+        ``auto`` (default: a per-channel gain and offset against the no-contact reference where
+        the solver keys on it: ``far``, ``near``, ``traced``, ``lut``, ``mlp`` and ``ratio``),
+        ``none``, ``offset``, ``gain_offset`` or ``field``. Part of the cache key.
 
     Returns
     -------
@@ -153,14 +166,15 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     n_rec, n_key, n_cached = normals_stage.run(
         store, cap, capture_stage.capture_key(store, cap), lights, solver=solver, ratio=ratio,
         max_condition=max_condition, device=device, dtype=dtype, threads=threads, compile=compile, force=force,
-        heal=heal, mask=user_region, markers=marks)
+        heal=heal, mask=user_region, markers=marks, drift=drift)
     d_rec, _, d_cached = depth_stage.run(store, n_rec, n_key, integrator=integrator, force=force, heal=heal,
                                          region=region, device=device, threads=threads)
     seconds = time.perf_counter() - t0
     summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": round(seconds, 4),
                                "valid_fraction": float(np.asarray(n_rec.data["mask"]).mean()),
                                "cached": bool(n_cached and d_cached),
-                               "markers": 0 if marks is None else int(marks.sum())}
+                               "markers": 0 if marks is None else int(marks.sum()),
+                               "drift": str(n_rec.meta.get("drift", "none"))}
     summary.update(truth_errors(cap, n_rec, d_rec, region))
     from pipeline.contact import capture_contact_masks
 

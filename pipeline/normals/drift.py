@@ -34,8 +34,8 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DRIFT_MODELS", "GAIN_PIVOT", "Drift", "contact_exclusion", "drift_terms", "drifted_capture", "fit_drift",
-           "remove_drift"]
+__all__ = ["DRIFT_MODELS", "DRIFT_CHOICES", "AUTO_DRIFT", "GAIN_PIVOT", "Drift", "DriftEstimator", "contact_exclusion",
+           "drift_terms", "drifted_capture", "fit_drift", "remove_drift", "resolve_drift"]
 
 #: The gain is trusted as far as the reference spans more than this fraction of its own level
 #: (a ridge toward 1 of that strength; see :func:`fit_drift`).
@@ -43,6 +43,45 @@ GAIN_PIVOT = 0.05
 
 #: What :func:`fit_drift` can fit (see the module docstring).
 DRIFT_MODELS = ("none", "offset", "gain_offset", "field")
+
+#: What a solve can be asked to remove (``--drift``): ``auto`` or one of :data:`DRIFT_MODELS`.
+DRIFT_CHOICES = ("auto", *DRIFT_MODELS)
+
+#: What ``auto`` removes where it applies (see :func:`resolve_drift`): on the shared GelSight test presses,
+#: reconstructed with a calibration of other presses, it took the drifted capture's error back to the
+#: undrifted one's and left the undrifted one's as it was (docs/reconstruction.md, "Illumination drift").
+AUTO_DRIFT = "gain_offset"
+
+
+def resolve_drift(drift: str | None, *, applies: bool, has_reference: bool, where: str = "frames") -> str:
+    """The drift model a solve removes: ``drift`` (one of :data:`DRIFT_CHOICES`; None is ``auto``).
+
+    ``auto`` is :data:`AUTO_DRIFT` where it ``applies`` (the solver keys on the no-contact
+    reference: a calibration's model, the ratio to the reference, the contact mask) and a reference
+    exists, else ``none``. A model asked for by name needs a reference (it is what the frames are
+    mapped onto).
+
+    Examples
+    --------
+    >>> resolve_drift("auto", applies=True, has_reference=True), resolve_drift(None, applies=False, has_reference=True)
+    ('gain_offset', 'none')
+    >>> resolve_drift("offset", applies=False, has_reference=False, where="cap.h5")
+    Traceback (most recent call last):
+    ...
+    pipeline.base.errors.UserError: cap.h5: --drift offset maps the frames onto the no-contact reference's lighting; \
+there is no reference (the capture has none, and the solver's model stores none): use --drift none
+    """
+    from pipeline.base.errors import UserError
+
+    d = "auto" if drift is None else str(drift)
+    if d not in DRIFT_CHOICES:
+        raise UserError(f"{where}: --drift must be one of {', '.join(DRIFT_CHOICES)}, got {d!r}")
+    if d == "auto":
+        return AUTO_DRIFT if applies and has_reference else "none"
+    if d != "none" and not has_reference:
+        raise UserError(f"{where}: --drift {d} maps the frames onto the no-contact reference's lighting; there is no "
+                        f"reference (the capture has none, and the solver's model stores none): use --drift none")
+    return d
 
 
 def drift_terms(shape: tuple[int, int], degree: int) -> np.ndarray:
@@ -108,6 +147,46 @@ class Drift:
             return press
         g, o = self.fields(press.shape[1:3])
         return ((press - o) / np.where(np.abs(g) > 1e-3, g, 1.0)).astype(np.float32)
+
+    @property
+    def constant(self) -> bool:
+        """Whether ``g`` and ``o`` are constants per pattern-channel (no field, no stripes)."""
+        return self.degree == 0 and self.stripes is None
+
+    def coefficients(self) -> tuple[np.ndarray, np.ndarray]:
+        """A constant drift's ``(g, o)`` per pattern-channel, ``(P * C,)`` float64 each (pattern-major,
+        channel-minor: the solvers' order), ``g`` already safe to divide by (as :meth:`remove`)."""
+        if not self.constant:
+            raise ValueError(f"Drift.coefficients: the {self.model!r} drift varies over the image (degree "
+                             f"{self.degree}{', stripes' if self.stripes is not None else ''})")
+        g = self.gain[..., 0].reshape(-1)
+        return np.where(np.abs(g) > 1e-3, g, 1.0), self.offset[..., 0].reshape(-1).astype(np.float64)
+
+    def remove_from(self, frames: np.ndarray, gather=None, shape: tuple[int, int] | None = None) -> np.ndarray:
+        """:meth:`remove` of frames ``(P, H, W, C)``, or of a region's pixels ``(P, 1, M, C)``:
+        ``gather`` maps a full ``(P, H, W, C)`` field of the image ``shape (H, W)`` onto them (a
+        varying drift needs both). The same arithmetic as :meth:`remove` (float64, then float32).
+
+        Examples
+        --------
+        >>> d = Drift("gain_offset", np.full((1, 3, 1), 2.0), np.full((1, 3, 1), 10.0))
+        >>> d.remove_from(np.full((1, 1, 4, 3), 30.0))[0, 0, 0].tolist(), d.coefficients()[0].tolist()
+        ([10.0, 10.0, 10.0], [2.0, 2.0, 2.0])
+        """
+        f = np.asarray(frames, np.float32)
+        if self.model == "none":
+            return f
+        if self.constant:
+            p, c = self.gain.shape[:2]
+            g, o = (a.reshape(p, 1, 1, c) for a in self.coefficients())
+        else:
+            if gather is not None and shape is None:
+                raise ValueError("Drift.remove_from: a gathered region needs the image shape for a varying drift")
+            g, o = self.fields(tuple(shape) if gather is not None else f.shape[1:3])
+            g = np.where(np.abs(g) > 1e-3, g, 1.0)
+            if gather is not None:
+                g, o = gather(g), gather(o)
+        return ((f - o) / g).astype(np.float32)
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: model, mean gain and offset per pattern-channel, residual before and after."""
@@ -192,61 +271,151 @@ def fit_drift(press: np.ndarray, reference: np.ndarray, exclude: np.ndarray | No
     >>> round(float(d.gain[0, 0, 0]), 2), round(float(d.offset[0, 0, 0]))
     (1.0, 12)
     """
-    press = np.asarray(press, np.float64)
-    reference = np.asarray(reference, np.float64)
-    if press.ndim != 4 or press.shape != reference.shape:
+    press = np.asarray(press)
+    if press.ndim != 4 or press.shape != np.shape(reference):
         raise ValueError(f"fit_drift: press and reference must both be (P, H, W, C), got {press.shape} and "
-                         f"{reference.shape}")
-    if model not in DRIFT_MODELS:
-        raise ValueError(f"fit_drift: model must be one of {', '.join(DRIFT_MODELS)}, got {model!r}")
-    p, h, w, c = press.shape
-    deg = degree if model == "field" else 0
-    nt = (deg + 1) * (deg + 2) // 2
-    ident = Drift(model, np.zeros((p, c, nt)), np.zeros((p, c, nt)), deg)
-    ident.gain[..., 0] = 1.0
-    allowed = np.ones((h, w), bool) if exclude is None else ~np.asarray(exclude, bool)
-    rr, cc = np.nonzero(allowed)
-    if len(rr) < 4 * nt + 8:
-        ident.meta["note"] = f"only {len(rr)} pixels outside the contacts: drift not fitted"
+                         f"{np.shape(reference)}")
+    est = DriftEstimator(reference, exclude, model=model, degree=degree, trim=trim, max_samples=max_samples, seed=seed)
+    return est.fit(press, stripes=stripes)
+
+
+class DriftEstimator:
+    """The drift of frame sets against one reference, fitted on a fixed sample of its pixels.
+
+    What :func:`fit_drift` does, split in two: what depends on the reference alone (the
+    allowed pixels, the seeded sample of them, the reference's values there, the design of the
+    linear model) is built once here; :meth:`fit` (linear frames) or :meth:`fit_raw` (integer
+    camera frames and a dark level: only the sampled pixels are converted) fits one frame set.
+    That is what the normals stage (:class:`pipeline.normals.prepare.FramePrep`) and the live
+    fast paths (:mod:`pipeline.normals.fast_models`) use per frame: with no contact known,
+    ``exclude`` holds only the pixels never to fit (markers, outside the solved region) and
+    the trimming keeps a contact out.
+
+    Parameters
+    ----------
+    reference : ndarray, shape (P, H, W, C)
+        The no-contact reference, linear (dark level removed).
+    exclude, model, degree, trim, max_samples, seed
+        As :func:`fit_drift`.
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(1)
+    >>> ref = rng.uniform(40, 200, (1, 30, 40, 3))
+    >>> est = DriftEstimator(ref)
+    >>> raw = np.clip(np.round(0.9 * ref + 12), 0, 255).astype(np.uint8); raw[0, 5:12, 5:12] = 255
+    >>> d = est.fit_raw(raw)
+    >>> np.round(d.gain[0, :, 0], 2).tolist(), np.round(d.offset[0, :, 0]).tolist()
+    ([0.9, 0.9, 0.9], [12.0, 12.0, 12.0])
+    """
+
+    def __init__(self, reference: np.ndarray, exclude: np.ndarray | None = None, *, model: str = "gain_offset",
+                 degree: int = 2, trim: float = 3.0, max_samples: int = 4000, seed: int = 0):
+        reference = np.asarray(reference)
+        if reference.ndim != 4:
+            raise ValueError(f"DriftEstimator: the reference must be (P, H, W, C), got {reference.shape}")
+        if model not in DRIFT_MODELS:
+            raise ValueError(f"fit_drift: model must be one of {', '.join(DRIFT_MODELS)}, got {model!r}")
+        p, h, w, c = reference.shape
+        self.reference, self.model, self.trim = reference, model, float(trim)
+        self.degree = degree if model == "field" else 0
+        self.terms_count = (self.degree + 1) * (self.degree + 2) // 2
+        if exclude is not None and np.shape(exclude) != (h, w):
+            raise ValueError(f"DriftEstimator: exclude must be (H, W) = {(h, w)} like the reference, got "
+                             f"{np.shape(exclude)}")
+        self.allowed = np.ones((h, w), bool) if exclude is None else ~np.asarray(exclude, bool)
+        rr, cc = np.nonzero(self.allowed)
+        self.available = len(rr)
+        if len(rr) > max_samples:
+            pick = np.random.default_rng(seed).choice(len(rr), max_samples, replace=False)
+            rr, cc = rr[pick], cc[pick]
+        self.rows, self.cols = rr, cc
+        self.x = self.samples(reference)  # (M, N)
+        nt = self.terms_count
+        self.A = None if model == "none" else _design(model, self.x, drift_terms((h, w), self.degree)[:, rr, cc])
+        self.prior = None if model in ("none", "offset") else np.r_[1.0, np.zeros(nt - 1), np.full(nt, np.nan)]
+
+    @property
+    def enough(self) -> bool:
+        """Whether enough pixels are allowed to fit the model at all."""
+        return self.available >= 4 * self.terms_count + 8
+
+    def samples(self, frames: np.ndarray, dark: np.ndarray | None = None) -> np.ndarray:
+        """The sampled pixels of ``frames (P, H, W, C)`` as float64 ``(P * C, N)`` (minus ``dark (H, W, C)``
+        in float32 first, as :class:`pipeline.normals.prepare.FramePrep` subtracts it)."""
+        f = np.asarray(frames)
+        p, c = f.shape[0], f.shape[-1]
+        v = f[:, self.rows, self.cols, :]
+        if dark is not None:
+            v = v.astype(np.float32) - np.asarray(dark)[self.rows, self.cols, :].astype(np.float32)
+        return v.astype(np.float64).transpose(0, 2, 1).reshape(p * c, -1)
+
+    def _identity(self) -> Drift:
+        p, c = self.reference.shape[0], self.reference.shape[3]
+        nt = self.terms_count
+        ident = Drift(self.model, np.zeros((p, c, nt)), np.zeros((p, c, nt)), self.degree)
+        ident.gain[..., 0] = 1.0
         return ident
-    if len(rr) > max_samples:
-        pick = np.random.default_rng(seed).choice(len(rr), max_samples, replace=False)
-        rr, cc = rr[pick], cc[pick]
-    y = press[:, rr, cc, :].transpose(0, 2, 1).reshape(p * c, -1)  # (M, N)
-    x = reference[:, rr, cc, :].transpose(0, 2, 1).reshape(p * c, -1)
-    ident.before_dn = float(np.sqrt(np.mean((y - x) ** 2)))
-    if model == "none":
-        ident.residual_dn, ident.pixels = ident.before_dn, y.shape[1]
-        return ident
-    terms = drift_terms((h, w), deg)[:, rr, cc]
-    A = _design(model, x, terms)
-    keep = np.ones(y.shape, bool)
-    target = y - x if model == "offset" else y
-    # The gain is pulled toward 1 as far as the reference lacks spread: a gain is told from an
-    # offset only by how the drift changes with the reference's level, and on a reference of
-    # nearly one level (a far-field lit gel) it would be a guess that the contacts' colours,
-    # far from that level, would pay for.
-    prior = None if model == "offset" else np.r_[1.0, np.zeros(nt - 1), np.full(nt, np.nan)]
-    for _ in range(3):
-        ridge = None if prior is None else \
-            keep.sum(axis=1) * (GAIN_PIVOT * np.abs((x * keep).sum(axis=1)) / np.maximum(keep.sum(axis=1), 1)) ** 2
-        coef = _lstsq_batched(A, target, keep.astype(np.float64), ridge, prior)
-        res = target - np.einsum("mnk,mk->mn", A, coef)
-        dev = np.abs(res - np.median(res, axis=1, keepdims=True))
-        sig = 1.4826 * np.median(dev, axis=1, keepdims=True)
+
+    def fit(self, press: np.ndarray, *, stripes: bool = False) -> Drift:
+        """The drift of one linear frame set ``press (P, H, W, C)`` (see :func:`fit_drift`)."""
+        press = np.asarray(press)
+        if press.shape != self.reference.shape:
+            raise ValueError(f"fit_drift: press and reference must both be (P, H, W, C), got {press.shape} and "
+                             f"{self.reference.shape}")
+        if not self.enough:
+            return self._fit_samples(None)
+        out = self._fit_samples(self.samples(press))
+        if stripes and out.model != "none":
+            out.stripes = _column_offsets(np.asarray(press, np.float64), np.asarray(self.reference, np.float64), out,
+                                          self.allowed)
+        return out
+
+    def fit_raw(self, raw: np.ndarray, dark: np.ndarray | None = None) -> Drift:
+        """The drift of one camera frame set ``raw (P, H, W, C)`` (any dtype) minus ``dark``; only
+        the sampled pixels are read."""
+        raw = np.asarray(raw)
+        if raw.shape != self.reference.shape:
+            raise ValueError(f"DriftEstimator: frames must be {self.reference.shape} like the reference, got "
+                             f"{raw.shape}")
+        return self._fit_samples(self.samples(raw, dark) if self.enough else None)
+
+    def _fit_samples(self, y: np.ndarray | None) -> Drift:
+        """The drift from the frame set's sampled values ``y (M, N)``."""
+        ident = self._identity()
+        if y is None:
+            ident.meta["note"] = f"only {self.available} pixels outside the contacts: drift not fitted"
+            return ident
+        x, A, model, nt = self.x, self.A, self.model, self.terms_count
+        p, c = self.reference.shape[0], self.reference.shape[3]
+        ident.before_dn = float(np.sqrt(np.mean((y - x) ** 2)))
+        if model == "none" or A is None:
+            ident.residual_dn, ident.pixels = ident.before_dn, y.shape[1]
+            return ident
+        keep = np.ones(y.shape, bool)
+        target = y - x if model == "offset" else y
+        # The gain is pulled toward 1 as far as the reference lacks spread: a gain is told from an
+        # offset only by how the drift changes with the reference's level, and on a reference of
+        # nearly one level (a far-field lit gel) it would be a guess that the contacts' colours,
+        # far from that level, would pay for.
+        prior = self.prior
         floor = 1e-3 * np.median(np.abs(target), axis=1, keepdims=True) + 1e-9  # noise-free frames
-        keep = dev <= trim * np.maximum(sig, floor)
-        keep[keep.sum(axis=1) < 2 * A.shape[2] + 2] = True
-    if model == "offset":
-        gain, offset = np.ones((p * c, 1)), coef
-    else:
-        gain, offset = coef[:, :nt], coef[:, nt:]
-    out = Drift(model, gain.reshape(p, c, nt), offset.reshape(p, c, nt), deg,
-                residual_dn=float(np.sqrt(np.mean(res[keep] ** 2))), before_dn=ident.before_dn,
-                pixels=int(keep.all(axis=0).sum()))
-    if stripes:
-        out.stripes = _column_offsets(press, reference, out, allowed)
-    return out
+        for _ in range(3):
+            ridge = None if prior is None else \
+                keep.sum(axis=1) * (GAIN_PIVOT * np.abs((x * keep).sum(axis=1)) / np.maximum(keep.sum(axis=1), 1)) ** 2
+            coef = _lstsq_batched(A, target, keep.astype(np.float64), ridge, prior)
+            res = target - np.einsum("mnk,mk->mn", A, coef)
+            dev = np.abs(res - np.median(res, axis=1, keepdims=True))
+            sig = 1.4826 * np.median(dev, axis=1, keepdims=True)
+            keep = dev <= self.trim * np.maximum(sig, floor)
+            keep[keep.sum(axis=1) < 2 * A.shape[2] + 2] = True
+        if model == "offset":
+            gain, offset = np.ones((p * c, 1)), coef
+        else:
+            gain, offset = coef[:, :nt], coef[:, nt:]
+        return Drift(model, gain.reshape(p, c, nt), offset.reshape(p, c, nt), self.degree,
+                     residual_dn=float(np.sqrt(np.mean(res[keep] ** 2))), before_dn=ident.before_dn,
+                     pixels=int(keep.all(axis=0).sum()))
 
 
 def _column_offsets(press, reference, drift: Drift, allowed: np.ndarray) -> np.ndarray:
