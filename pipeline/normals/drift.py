@@ -30,6 +30,7 @@ Which model: ``iristac bench calibration --sensors`` measures it (docs/calibrati
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -85,7 +86,8 @@ there is no reference (the capture has none, and the solver's model stores none)
 
 
 def drift_terms(shape: tuple[int, int], degree: int) -> np.ndarray:
-    """Monomials ``u^i v^j`` (``i + j <= degree``) of the image coordinates scaled to [-1, 1]: ``(T, H, W)``.
+    """Monomials ``u^i v^j`` (``i + j <= degree``) of the image coordinates scaled to [-1, 1]: ``(T, H, W)``
+    (read-only: computed once per shape and degree).
 
     Examples
     --------
@@ -94,8 +96,21 @@ def drift_terms(shape: tuple[int, int], degree: int) -> np.ndarray:
     >>> drift_terms((3, 5), 0)[0].tolist() == np.ones((3, 5)).tolist()
     True
     """
-    h, w = int(shape[0]), int(shape[1])
+    return _terms(int(shape[0]), int(shape[1]), int(degree))
+
+
+@lru_cache(maxsize=16)
+def _terms(h: int, w: int, degree: int) -> np.ndarray:
     v, u = np.meshgrid(np.linspace(-1.0, 1.0, h), np.linspace(-1.0, 1.0, w), indexing="ij")
+    out = np.stack([u ** i * v ** j for i in range(degree + 1) for j in range(degree + 1 - i)])
+    out.flags.writeable = False
+    return out
+
+
+def _terms_at(shape: tuple[int, int], degree: int, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """:func:`drift_terms` at the pixels ``(rows, cols)`` only: ``(T, N)``, the same values."""
+    h, w = int(shape[0]), int(shape[1])
+    v, u = np.linspace(-1.0, 1.0, h)[rows], np.linspace(-1.0, 1.0, w)[cols]
     return np.stack([u ** i * v ** j for i in range(degree + 1) for j in range(degree + 1 - i)])
 
 
@@ -332,7 +347,7 @@ class DriftEstimator:
         self.rows, self.cols = rr, cc
         self.x = self.samples(reference)  # (M, N)
         nt = self.terms_count
-        self.A = None if model == "none" else _design(model, self.x, drift_terms((h, w), self.degree)[:, rr, cc])
+        self.A = None if model == "none" else _design(model, self.x, _terms_at((h, w), self.degree, rr, cc))
         self.prior = None if model in ("none", "offset") else np.r_[1.0, np.zeros(nt - 1), np.full(nt, np.nan)]
 
     @property
