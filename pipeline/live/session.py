@@ -233,6 +233,9 @@ patterns (use a single-frame mode such as trichromatic)
             # kernels from the disk cache takes ~0.5 s, and the camera's frames of that time
             # would otherwise be dropped (and counted as if processing fell behind).
             self.process(np.zeros((len(self.patterns.frames), H, W, 3), np.uint8))
+        reset = getattr(self.solve_frames, "reset_drift", None)
+        if reset is not None:
+            reset()  # the drift of the first real frame, not of the warm-up frame
         self.say(f"solver {self.solver} ({self.solve_frames.method}) ready in {time.monotonic() - t0:.2f} s"
                  + (f", drift removed ({self.drift_model})" if self.drift_model != "none" else ""))
 

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DRIFT_MODELS", "DRIFT_CHOICES", "AUTO_DRIFT", "GAIN_PIVOT", "Drift", "DriftEstimator", "contact_exclusion",
+__all__ = ["DRIFT_MODELS", "DRIFT_CHOICES", "AUTO_DRIFT", "GAIN_PIVOT", "SAMPLES", "LIVE_SAMPLES", "LIVE_REFIT_EVERY", "Drift", "DriftEstimator", "contact_exclusion",
            "drift_terms", "drifted_capture", "fit_drift", "remove_drift", "resolve_drift"]
 
 #: The gain is trusted as far as the reference spans more than this fraction of its own level
@@ -44,6 +44,21 @@ GAIN_PIVOT = 0.05
 
 #: What :func:`fit_drift` can fit (see the module docstring).
 DRIFT_MODELS = ("none", "offset", "gain_offset", "field")
+
+#: Pixels a drift is fitted on by default (seeded sample): calibration's per-press fits and the
+#: normals stage's per-frame fits.
+SAMPLES = 4000
+
+#: Pixels the live per-frame fits use (:func:`pipeline.stages.fast_solvers.frame_solver`): the fit's
+#: cost grows with them (320 x 240, one loaded core: 4.7 ms for 4000, 1.3 ms for 1000, 0.8 ms for 500)
+#: and a gain and an offset per channel need few (1000 moved them by 0.0002 and 0.03 DN).
+LIVE_SAMPLES = 1000
+
+#: Live use fits the drift on every N-th frame and reuses it in between: the light drifts over
+#: seconds, one fit costs about a millisecond (see :data:`LIVE_SAMPLES`) and a LUT frame at 320 x 240
+#: three; so refitted, drift removal added 0.45 ms a frame to the LUT's 3.2 ms and 0.23 ms to the MLP's
+#: 8.3 ms (320 x 240, one thread, load 2.1; every frame: 1.9 and 1.8 ms).
+LIVE_REFIT_EVERY = 8
 
 #: What a solve can be asked to remove (``--drift``): ``auto`` or one of :data:`DRIFT_MODELS`.
 DRIFT_CHOICES = ("auto", *DRIFT_MODELS)
@@ -237,7 +252,7 @@ def _lstsq_batched(A: np.ndarray, y: np.ndarray, w: np.ndarray, ridge: np.ndarra
 
 def fit_drift(press: np.ndarray, reference: np.ndarray, exclude: np.ndarray | None = None, *,
               model: str = "gain_offset", degree: int = 2, stripes: bool = False, trim: float = 3.0,
-              max_samples: int = 4000, seed: int = 0) -> Drift:
+              max_samples: int = SAMPLES, seed: int = 0) -> Drift:
     """Fit the drift of one press against the reference on its non-contact pixels.
 
     Parameters
@@ -312,6 +327,9 @@ class DriftEstimator:
         The no-contact reference, linear (dark level removed).
     exclude, model, degree, trim, max_samples, seed
         As :func:`fit_drift`.
+    refit_every : int
+        :meth:`fit_raw` fits on every N-th call, returning the last fit in between (live use:
+        :data:`LIVE_REFIT_EVERY`).
 
     Examples
     --------
@@ -325,8 +343,10 @@ class DriftEstimator:
     """
 
     def __init__(self, reference: np.ndarray, exclude: np.ndarray | None = None, *, model: str = "gain_offset",
-                 degree: int = 2, trim: float = 3.0, max_samples: int = 4000, seed: int = 0):
+                 degree: int = 2, trim: float = 3.0, max_samples: int = SAMPLES, seed: int = 0, refit_every: int = 1):
         reference = np.asarray(reference)
+        self.refit_every = max(1, int(refit_every))
+        self.calls, self.last = 0, None
         if reference.ndim != 4:
             raise ValueError(f"DriftEstimator: the reference must be (P, H, W, C), got {reference.shape}")
         if model not in DRIFT_MODELS:
@@ -388,12 +408,22 @@ class DriftEstimator:
 
     def fit_raw(self, raw: np.ndarray, dark: np.ndarray | None = None) -> Drift:
         """The drift of one camera frame set ``raw (P, H, W, C)`` (any dtype) minus ``dark``; only
-        the sampled pixels are read."""
+        the sampled pixels are read. With ``refit_every`` N > 1 (a stream: the light drifts over
+        seconds), fitted on every N-th call and the last fit returned in between (:meth:`reset`
+        starts over)."""
         raw = np.asarray(raw)
         if raw.shape != self.reference.shape:
             raise ValueError(f"DriftEstimator: frames must be {self.reference.shape} like the reference, got "
                              f"{raw.shape}")
-        return self._fit_samples(self.samples(raw, dark) if self.enough else None)
+        due = self.last is None or self.calls % self.refit_every == 0
+        self.calls += 1
+        if due:
+            self.last = self._fit_samples(self.samples(raw, dark) if self.enough else None)
+        return self.last
+
+    def reset(self) -> None:
+        """Forget the last fit: the next :meth:`fit_raw` fits (after a warm-up frame, a new stream)."""
+        self.calls, self.last = 0, None
 
     def _fit_samples(self, y: np.ndarray | None) -> Drift:
         """The drift from the frame set's sampled values ``y (M, N)``."""

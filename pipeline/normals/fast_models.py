@@ -23,7 +23,8 @@ Both remove the frame's illumination drift against the reference when given a
 :meth:`pipeline.normals.prepare.FramePrep.use_drift` built): the drift is fitted on the
 estimator's sampled pixels of the integer frame (a few thousand of them: the same values the
 eager path fits, so the same drift), and its per-channel gain and offset are applied inside the
-kernel, ``v' = (v - o) / g`` in float64 as :meth:`~pipeline.normals.drift.Drift.remove` does.
+kernel, ``v' = (v - o) / g`` in float64 as :meth:`~pipeline.normals.drift.Drift.remove` does (as a
+product with ``1 / g``: the same float32 result but in one case in a billion).
 A drift that varies over the image (``field``) is the eager path's.
 
 Numba, compiled once and cached on disk (``cache=True``).
@@ -65,8 +66,8 @@ def _finish_one(a, b, c, ok, apply, gain, limit):  # pragma: no cover - compiled
 def _lut_kernel(obs, dark, ref, lo, width, bins, filled, support, table, coef, phi, apply, gain, limit, drift_g,
                 drift_o, start, stop, normals, mask, conf):  # pragma: no cover - compiled
     """Pixels ``start:stop``: colour change ``d = (I - dark) - ref`` (float32, as the model's
-    samples; with a drift, ``I - dark`` is first mapped to ``((I - dark) - drift_o) / drift_g``
-    per channel in float64 when ``drift_g`` is not empty), bin ``floor((d - lo) / width * bins)`` in float64, gradient from the table (or
+    samples; with a drift, ``I - dark`` is first mapped to ``((I - dark) - drift_o) * drift_g``
+    per channel in float64 when ``drift_g``, the drift's inverse gain, is not empty), bin ``floor((d - lo) / width * bins)`` in float64, gradient from the table (or
     the bin's position polynomial ``coef`` when ``coef`` is not empty), the normal
     ``(-g_x, -g_y, 1) / |.|`` (``pipeline.base.frames.gradients_to_normals``), the output
     correction (:func:`_finish_one`), confidence ``support / (support + 1)``; all in float64
@@ -85,7 +86,7 @@ def _lut_kernel(obs, dark, ref, lo, width, bins, filled, support, table, coef, p
             if has_dark:
                 v = v - dark[c, x]
             if has_drift:
-                v = np.float32((np.float64(v) - drift_o[c]) / drift_g[c])
+                v = np.float32((np.float64(v) - drift_o[c]) * drift_g[c])
             d = np.float64(v - ref[c, x])
             t = (d - lo[c]) / width[c] * bins
             i = int(np.floor(t))
@@ -162,6 +163,11 @@ class _Base:
             raise ValueError(f"{type(self).__name__}: the fast path removes a constant drift per channel; "
                              f"{drift.model!r} varies over the image (the eager solver removes it)")
 
+    def reset_drift(self) -> None:
+        """The next frame's drift is fitted afresh (after a warm-up frame)."""
+        if self.drift is not None:
+            self.drift.reset()
+
     def _drift_planes(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The frame's drift (gain, offset) per pattern-channel for the kernel, fitted by the
         estimator on its sampled pixels; empty arrays without an estimator (the kernel skips it)."""
@@ -170,7 +176,9 @@ class _Base:
         d = self.drift.fit_raw(frames, self.dark_hwc)
         self.last_drift = d
         g, o = d.coefficients()
-        return np.ascontiguousarray(g, np.float64), np.ascontiguousarray(o, np.float64)
+        # The kernels multiply by 1 / g: within an ulp of float64 of dividing (as Drift.remove does),
+        # which the float32 result absorbs, and a division per value cost 40 % of the LUT's time.
+        return np.ascontiguousarray(1.0 / g, np.float64), np.ascontiguousarray(o, np.float64)
 
     def _meta(self, solver: str) -> dict:
         meta = {"solver": solver, "method": "fast"}
@@ -300,8 +308,8 @@ def _mlp_kernel(obs, dark, ref, inv_scale, fixed, Wd, Wh, bh, Wo, bo, drift_g, d
     ``fixed (nb, K, 512)``: the first layer without the colour change; ``Wd (K, N)``: its
     colour-change columns (the feature scaling folded in); ``Wh (L, K, K)``, ``bh (L, K)``:
     the hidden layers; ``Wo (2, K)``, ``bo (2,)``: the output layer; ``out (2, M)`` float32;
-    ``drift_g``, ``drift_o (N,)``: the frame's drift per pattern-channel (empty: none), as in
-    :func:`_lut_kernel`.
+    ``drift_g``, ``drift_o (N,)``: the frame's drift per pattern-channel (inverse gain, offset;
+    empty: none), as in :func:`_lut_kernel`.
     """
     N = obs.shape[0]
     K = Wd.shape[0]
@@ -324,7 +332,7 @@ def _mlp_kernel(obs, dark, ref, inv_scale, fixed, Wd, Wh, bh, Wo, bo, drift_g, d
                 if has_dark:
                     v = v - dark[k, j0 + j]
                 if has_drift:
-                    v = np.float32((np.float64(v) - drift_o[k]) / drift_g[k])
+                    v = np.float32((np.float64(v) - drift_o[k]) * drift_g[k])
                 d[k, j] = (v - rk[j]) * inv_scale
         for i in range(K):
             # Whole 512 columns (a fixed trip count vectorises; a short block's extra columns

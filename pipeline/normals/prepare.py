@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.base.errors import UserError
+from pipeline.normals.drift import SAMPLES, DriftEstimator, resolve_drift
 
 __all__ = ["FramePrep", "fill_markers", "check_marker_mask", "full_scale"]
 
@@ -154,6 +155,12 @@ class FramePrep:
         The illumination drift to remove: ``auto`` (where the solver keys on the reference),
         ``none`` or a model of :data:`pipeline.normals.drift.DRIFT_MODELS`; resolved, against a
         reference, by :meth:`use_drift`.
+    drift_samples : int
+        Pixels each frame set's drift is fitted on (:data:`pipeline.normals.drift.SAMPLES`; live
+        uses fewer, :data:`~pipeline.normals.drift.LIVE_SAMPLES`).
+    drift_every : int
+        Fit the drift on every N-th frame set, reuse it in between (1: every one; live:
+        :data:`~pipeline.normals.drift.LIVE_REFIT_EVERY`).
 
     Examples
     --------
@@ -172,6 +179,8 @@ class FramePrep:
     saturation: float | None = None
     name: str = "frames"
     drift: str = "none"
+    drift_samples: int = SAMPLES
+    drift_every: int = 1
     pixels: object = field(init=False, default=None)
     #: The drift estimator against the reference (:meth:`use_drift`), None: no drift removed.
     estimator: object = field(init=False, default=None)
@@ -215,8 +224,6 @@ class FramePrep:
         >>> round(float(prep.drifts[0].gain[0, 0, 0]), 2), float(np.abs(frames[0] - ref).max()) < 0.5
         (0.8, True)
         """
-        from pipeline.normals.drift import DriftEstimator, resolve_drift
-
         model = resolve_drift(self.drift, applies=applies, has_reference=reference is not None, where=self.name)
         self.estimator = None
         if model == "none":
@@ -231,8 +238,14 @@ class FramePrep:
         if self.region is not None:
             outside = ~np.asarray(self.region, bool)
             exclude = outside if exclude is None else exclude | outside
-        self.estimator = DriftEstimator(ref, exclude, model=model)
+        self.estimator = DriftEstimator(ref, exclude, model=model, max_samples=self.drift_samples,
+                                        refit_every=self.drift_every)
         return model
+
+    def reset_drift(self) -> None:
+        """Start the drift fits over (the next frame set is fitted): after a warm-up frame."""
+        if self.estimator is not None:
+            self.estimator.reset()
 
     @property
     def fills_here(self) -> bool:

@@ -107,6 +107,10 @@ class FrameSolver:
         return FramePrep(shape, fills_markers=bool(info.get("fills_markers")), whole_frame=bool(info.get("whole_frame")),
                          saturation=saturation, **kw)
 
+    def reset_drift(self) -> None:
+        """The next frame's drift is fitted afresh (:meth:`~pipeline.normals.prepare.FramePrep.reset_drift`)."""
+        self.prep.reset_drift()
+
     def solve_stack(self, raw, threads: int | None = 1) -> list:
         """Raw frames ``(K, P, H, W, C)`` -> one :class:`~pipeline.normals.result.NormalResult`
         per contact instance, with ``threads`` torch threads (None: torch's setting)."""

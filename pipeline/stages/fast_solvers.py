@@ -71,11 +71,17 @@ def _model(lights, name: str):
     return model
 
 
-def _reference(model, reference):
-    ref = reference if reference is not None else model.stored_reference()
-    if ref is None:
-        raise UserError(f"the '{model.name}' model needs a no-contact reference frame")
-    return np.asarray(ref, np.float32)
+def _reference(model, reference, prep):
+    """The linear no-contact frames the model keys on: the raw ``reference`` minus the dark level
+    (as :meth:`pipeline.normals.prepare.FramePrep.reference` prepares it for the eager path), else
+    the model's own."""
+    if reference is None:
+        ref = model.stored_reference()
+        if ref is None:
+            raise UserError(f"the '{model.name}' model needs a no-contact reference frame")
+        return np.asarray(ref, np.float32)
+    ref = np.asarray(reference).astype(np.float32)
+    return ref if prep.dark is None else ref - np.asarray(prep.dark).astype(np.float32)
 
 
 def _drift(prep, solver: str, ref: np.ndarray):
@@ -97,7 +103,7 @@ def fast_lut(lights, prep, *, reference=None, **_):
     if model.position_coef is not None:
         rows, cols = (a.ravel() for a in np.mgrid[:H, :W])
         coef, phi = model.position_coef, poly_terms(rows, cols, (H, W), model.position_degree)
-    ref = _reference(model, reference)
+    ref = _reference(model, reference, prep)
     return FastLUT(t.lo, t.hi, t.table, t.filled, t.support, ref, coef=coef, phi=phi, tilt_gain=model.tilt_gain,
                    max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers, drift=_drift(prep, "lut", ref))
 
@@ -117,7 +123,7 @@ def fast_mlp(lights, prep, *, reference=None, **_):
     if model.position:
         rows, cols = (a.ravel() for a in np.mgrid[:H, :W])
         uv = poly_terms(rows, cols, (H, W), model.position_degree)[:, 1:]
-    ref = _reference(model, reference)
+    ref = _reference(model, reference, prep)
     return FastMLP(members, ref, uv, input_scale=model.input_scale, features=model.features,
                    tilt_gain=model.tilt_gain, max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers,
                    drift=_drift(prep, "mlp", ref))
@@ -136,7 +142,8 @@ def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=Non
     shape : (H, W)
     channels : int
     reference : ndarray, shape (P, H, W, C), optional
-        No-contact frames (the calibration models key on the change against them).
+        Raw no-contact frames, the dark level not removed (the calibration models key on the
+        change against them); None: the model's own.
     dark : ndarray, shape (H, W, C), optional
     markers : ndarray, shape (H, W), bool, optional
         Printed gel markers. Filling them in is the eager path's (the fast paths do not):
@@ -149,15 +156,20 @@ def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=Non
         False: always the eager solver.
     drift : str
         The illumination drift removed from each frame (``auto``: against the reference the
-        solver keys on, for the LUT and the MLP; :meth:`pipeline.normals.prepare.FramePrep.use_drift`).
+        solver keys on, for the LUT and the MLP; :meth:`pipeline.normals.prepare.FramePrep.use_drift`),
+        fitted on :data:`pipeline.normals.drift.LIVE_SAMPLES` pixels of every
+        :data:`~pipeline.normals.drift.LIVE_REFIT_EVERY`-th frame (fast and eager alike;
+        ``reset_drift()`` fits the next frame).
 
     Returns
     -------
     object with ``solve(frames, threads=1) -> NormalResult`` and ``method`` (``fast``/``eager``).
     """
+    from pipeline.normals.drift import LIVE_REFIT_EVERY, LIVE_SAMPLES
     from pipeline.normals.solve import FrameSolver
 
-    prep = FrameSolver.prep_for(solver, shape, dark=dark, markers=markers, region=region, name="live", drift=drift)
+    prep = FrameSolver.prep_for(solver, shape, dark=dark, markers=markers, region=region, name="live", drift=drift,
+                                drift_samples=LIVE_SAMPLES, drift_every=LIVE_REFIT_EVERY)
     keys = bool(SOLVERS.get(solver).info.get("keys_on_reference"))
     fast_drift = drift in ("auto", "none") or (keys and drift in ("offset", "gain_offset"))
     build = SOLVERS.fast(solver) if fast and markers is None and fast_drift else None
