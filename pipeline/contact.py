@@ -27,25 +27,36 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["contact_mask", "color_change", "capture_contact_masks", "CONTACT_DRIFT"]
+__all__ = ["contact_mask", "color_change", "capture_contact_masks", "drift_estimator", "CONTACT_DRIFT"]
 
-#: The drift model the colour change removes (:mod:`pipeline.normals.drift`): a gain and an
-#: offset that vary smoothly over the image (degree 2), as vignetting and a moved light do. On
-#: the virtual sensor (4 seeds x 6 presses, 120 x 160, true heights) its masks matched the
-#: true contact as well as a per-channel gain and offset did, and better with stripes and JPEG
-#: noise (smallest IoU 0.46 against 0.40 for the earlier offset-only quadratic); the figures are
-#: in docs/reconstruction.md ("Contact mask").
+#: The drift model the colour change removes (:mod:`pipeline.normals.drift`): a gain and an offset
+#: that vary smoothly over the image (degree 2), as vignetting and a moved light do. On the virtual
+#: sensor (4 seeds x 6 presses, 120 x 160, true heights) the masks matched the true contact as well as
+#: the earlier offset-only quadratic did and as a per-channel gain and offset did, better with stripes
+#: and JPEG noise; on one sensor with every flaw (seed 3) a per-channel gain and offset lost a press
+#: cut by the border that this keeps. Figures in docs/reconstruction.md ("Contact mask").
 CONTACT_DRIFT = "field"
 
 #: Pixels the drift is fitted on (seeded sample; every pixel when fewer).
 DRIFT_SAMPLES = 2000
 
 
-def color_change(frames, reference, *, drift: str = CONTACT_DRIFT) -> np.ndarray:
+def drift_estimator(reference, drift: str = CONTACT_DRIFT):
+    """The drift estimator :func:`color_change` fits against ``reference`` ((P, H, W, C) or
+    (H, W, C), linear): built once, it serves every press of one reference (None for ``none``)."""
+    from pipeline.normals.drift import DriftEstimator
+
+    if drift == "none":
+        return None
+    r = np.asarray(reference, np.float32)
+    return DriftEstimator(r[None] if r.ndim == 3 else r, model=drift, max_samples=DRIFT_SAMPLES)
+
+
+def color_change(frames, reference, *, drift: str = CONTACT_DRIFT, estimator=None) -> np.ndarray:
     """Per-pixel colour change ``(H, W)`` of a press against the reference, drift removed.
 
-    The press's illumination drift against the reference (``drift``: by default a smooth gain
-    and offset field per pattern and channel, :class:`pipeline.normals.drift.DriftEstimator`,
+    The press's illumination drift against the reference (``drift``: by default a gain and an
+    offset per pattern and channel, :class:`pipeline.normals.drift.DriftEstimator`,
     fitted on a sample of the pixels and trimmed so that the contact drops out: a drift of the
     light between the reference and the press, not a touch) is removed first.
 
@@ -55,6 +66,9 @@ def color_change(frames, reference, *, drift: str = CONTACT_DRIFT) -> np.ndarray
         Linear values (dark level removed where known).
     drift : str
         A model of :data:`pipeline.normals.drift.DRIFT_MODELS` (``none``: the plain difference).
+    estimator : DriftEstimator, optional
+        :func:`drift_estimator` of this reference, built once for many presses (then ``drift``
+        is its model).
 
     Returns
     -------
@@ -66,13 +80,11 @@ def color_change(frames, reference, *, drift: str = CONTACT_DRIFT) -> np.ndarray
     >>> ref = np.tile(np.linspace(60, 180, 16)[None, :, None], (12, 1, 3))
     >>> f = 1.1 * ref + 7.0                              # a global gain and offset: no change
     >>> f[5, 8] += [3.0, 4.0, 0.0]                       # one pixel changed by |(3, 4, 0)| = 5
-    >>> color_change(f, ref)[5, 6:11].round(2).tolist()
+    >>> color_change(f, ref)[5, 6:11].round().tolist()
     [0.0, 0.0, 5.0, 0.0, 0.0]
     >>> color_change(f, ref, drift="none")[5, 6:11].round().tolist()   # the drift, not removed
     [31.0, 32.0, 38.0, 35.0, 36.0]
     """
-    from pipeline.normals.drift import DriftEstimator
-
     f = np.asarray(frames, np.float32)
     r = np.asarray(reference, np.float32)
     if f.shape != r.shape or f.ndim not in (3, 4):
@@ -80,8 +92,9 @@ def color_change(frames, reference, *, drift: str = CONTACT_DRIFT) -> np.ndarray
                          f"{f.shape} and {r.shape}")
     if f.ndim == 3:
         f, r = f[None], r[None]
-    if drift != "none":
-        f = DriftEstimator(r, model=drift, max_samples=DRIFT_SAMPLES).fit(f).remove(f)
+    est = estimator if estimator is not None else drift_estimator(r, drift)
+    if est is not None:
+        f = est.fit(f).remove_from(f)
     d = f - r
     return np.sqrt(np.einsum("phwc,phwc->hw", d, d))
 
@@ -108,8 +121,8 @@ def _close_and_fill(mask: np.ndarray, radius: int) -> np.ndarray:
 def contact_mask(frames=None, reference=None, height=None, *, color_threshold: float | None = None,
                  noise_sigmas: float = 6.0, height_threshold_mm: float | None = None, height_fraction: float = 0.05,
                  min_change: float = 0.02, peak_fraction: float = 0.3, valid=None, blur_px: float = 1.0,
-                 close_px: int = 3, grow_px: int = 3,
-                 min_area_px: int = 9) -> np.ndarray:
+                 close_px: int = 3, grow_px: int = 3, min_area_px: int = 9, drift: str = CONTACT_DRIFT,
+                 estimator=None) -> np.ndarray:
     """Where the object touches the gel: ``(H, W)`` bool.
 
     Parameters
@@ -133,6 +146,8 @@ def contact_mask(frames=None, reference=None, height=None, *, color_threshold: f
     blur_px, close_px, grow_px, min_area_px
         Gaussian blur of the colour change; closing radius of the colour mask; how far from a
         raised region its colour outline may reach; smallest region kept (pixels).
+    drift, estimator
+        The illumination drift removed from the colour change (:func:`color_change`).
 
     Returns
     -------
@@ -163,7 +178,7 @@ def contact_mask(frames=None, reference=None, height=None, *, color_threshold: f
         raise ValueError("contact_mask: needs frames and a reference, a height map, or both")
     color = None
     if frames is not None:
-        change = color_change(frames, reference)
+        change = color_change(frames, reference, drift=drift, estimator=estimator)
         if blur_px > 0:
             change = ndimage.gaussian_filter(change, blur_px, mode="nearest")
         sample = change[::2, ::2]  # noise statistics from every other pixel: as good, 4x cheaper
@@ -241,10 +256,12 @@ def capture_contact_masks(data, heights, valid=None, region=None, **options) -> 
     heights = np.asarray(heights)
     k = heights.shape[0]
     out = np.zeros(heights.shape, bool)
+    est = None if ref is None else drift_estimator(ref, options.pop("drift", CONTACT_DRIFT))
     for i in range(k):
         v = None if valid is None else np.asarray(valid[i], bool)
         if ref is not None:
-            out[i] = contact_mask(frames[i], ref, heights[i], valid=v, **options)
+            out[i] = contact_mask(frames[i], ref, heights[i], valid=v, drift="none" if est is None else est.model,
+                                  estimator=est, **options)
         else:
             out[i] = contact_mask(height=heights[i], valid=v, **options)
     if region is not None:

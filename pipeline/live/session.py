@@ -116,6 +116,7 @@ patterns (use a single-frame mode such as trichromatic)
         self.reference = self.solve_frames = self.depth = None
         #: The no-contact frames the solver's model stores (the LUT's and the MLP's), or None.
         self.model_reference: np.ndarray | None = None
+        self._contact_drift: tuple | None = None
         self.pitch = float(mm_per_px)
         self._cleanup: list = []
 
@@ -283,7 +284,11 @@ patterns (use a single-frame mode such as trichromatic)
         ref = self.contact_reference()
         if ref is None or np.shape(ref) != np.shape(frames):
             return contact_mask(height=depth.height, valid=depth.mask)
-        return contact_mask(frames, ref, depth.height, valid=depth.mask)
+        if self._contact_drift is None or self._contact_drift[0] is not ref:
+            from pipeline.contact import drift_estimator
+
+            self._contact_drift = (ref, drift_estimator(ref))  # built once per reference
+        return contact_mask(frames, ref, depth.height, valid=depth.mask, estimator=self._contact_drift[1])
 
     def run(self, *, frames: int | None = None, seconds: float | None = None, record=None, view: bool = False,
             view_port: int = 0, queue: int = 4, contact: bool = False, on_ready=None, on_result=None) -> LiveResult:
