@@ -26,7 +26,8 @@ Illumination drift (``drift=``, ``--drift auto|none|offset|gain_offset|field``):
 instance's drift against the no-contact reference (a per-channel gain and offset fitted on the
 pixels outside the contact, :mod:`pipeline.normals.drift`) is removed before the solve where
 the solver keys on that reference (``auto``, the default: the calibration's models and
-``--ratio``), and before the contact mask's colour change always (:mod:`pipeline.contact`).
+``--ratio``), and before the contact mask's colour change always (:mod:`pipeline.contact`; its
+no-contact frame is the capture's, else the one the solver's model stores).
 """
 
 from __future__ import annotations
@@ -177,8 +178,17 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
                                "drift": str(n_rec.meta.get("drift", "none"))}
     summary.update(truth_errors(cap, n_rec, d_rec, region))
     from pipeline.contact import capture_contact_masks
+    from pipeline.normals.solve import stored_reference
 
-    contact = capture_contact_masks(cap.data, d_rec.data["height"], d_rec.data["mask"], region)
+    # The colour change against the capture's reference, else the one the solver's model stores
+    # (its drift against the frames, a dark level included, is removed before the change is taken).
+    ref = normals_stage.reference_frames(cap)
+    if ref is None:
+        ref = stored_reference(lights, solver)
+    frames = cap.data["frames"]
+    ref = ref if ref is not None and np.shape(ref) == frames.shape[1:] else None
+    contact = capture_contact_masks({"frames": frames, "reference": ref}, d_rec.data["height"], d_rec.data["mask"],
+                                    region)
     summary["contact_fraction"] = float(contact.mean()) if contact.size else 0.0
     files: list[Path] = []
     if out is not None:
