@@ -412,7 +412,7 @@ class CircleFit:
         ``detected``, ``labels`` or ``given`` (see :func:`calibrate`'s ``circles``).
     detected : list of Circle
         The detector's circles (refined when ``circles`` are detected): what hand labels are compared with.
-    drifts : list of calibration.drift.Drift
+    drifts : list of pipeline.normals.drift.Drift
         Each press's drift against the reference (fitted outside its contact), already removed
         from ``frames``.
     mismatch : float or None
@@ -460,7 +460,7 @@ def find_circles(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px
     capture (without refinement: no light model shapes that truth).
 
     Each press's illumination drift against the reference is fitted outside its circle and
-    removed from the returned ``frames`` (:func:`calibration.drift.remove_drift`; the model is
+    removed from the returned ``frames`` (:func:`pipeline.normals.drift.remove_drift`; the model is
     ``detect_options.drift``), so samples, models and evaluation all see drift-free presses.
 
     ``strict=False`` (what :func:`calibration.evaluate.evaluate_calibration` uses on a test
@@ -604,7 +604,7 @@ def _light_rank(cap: Capture, samples: Samples, src: str) -> tuple[float, float]
 def _without_drift(frames, ref, use, detected, ball_px, opt: DetectOptions, mask, sat):
     """Each press's drift fitted outside its circle (the used one, else the detector's) and removed;
     saturated observations stay at the saturation level (so they are still left out)."""
-    from calibration.drift import remove_drift
+    from pipeline.normals.drift import remove_drift
 
     where = [u if (u.accepted or not d.radius_px) else d for u, d in zip(use, detected)]
     corrected, drifts = remove_drift(frames, ref, where, ball_px, model=opt.drift, degree=opt.drift_degree,

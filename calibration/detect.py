@@ -388,7 +388,7 @@ def detect_press(frames: np.ndarray, reference: np.ndarray, ball_radius_px: floa
     >>> c.accepted, abs(c.center_xy[0] - 24.0) < 1, abs(c.center_xy[1] - 20.0) < 1
     (True, True, True)
     """
-    from calibration.drift import contact_exclusion, fit_drift
+    from pipeline.normals.drift import contact_exclusion, fit_drift
 
     opt = options or DetectOptions()
     frames = np.asarray(frames, dtype=np.float32)

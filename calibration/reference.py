@@ -7,9 +7,9 @@ press's contact masked out (:func:`build_reference`):
 1. a first guess: the plain per-pixel median of every press (a contact is outvoted wherever
    fewer than half the presses touch that pixel);
 2. each press's contact is found against it (:func:`calibration.detect.detect_press`) and
-   masked (:func:`calibration.drift.contact_exclusion`: the contact, the gel bulge around it);
+   masked (:func:`pipeline.normals.drift.contact_exclusion`: the contact, the gel bulge around it);
 3. each press's drift against the guess is fitted outside its mask and removed
-   (:func:`calibration.drift.fit_drift`), so every press speaks for the same lighting;
+   (:func:`pipeline.normals.drift.fit_drift`), so every press speaks for the same lighting;
 4. the reference is the median of the corrected presses over the unmasked ones, per pixel;
    pixels every press masks keep the first guess. Steps 2-4 run twice.
 
@@ -63,7 +63,7 @@ def build_reference(frames: np.ndarray, ball_radius_px: float, *, iterations: in
     (True, 8)
     """
     from calibration.detect import detect_press
-    from calibration.drift import contact_exclusion, fit_drift
+    from pipeline.normals.drift import contact_exclusion, fit_drift
 
     f = np.asarray(frames, np.float32)
     if f.ndim != 5 or len(f) < 3:

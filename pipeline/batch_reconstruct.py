@@ -56,7 +56,7 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
                           solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
                           store: str | None = None, images: bool = False, device: str = "cpu",
                           heal: bool = True, mask: str | None = None, markers: str | None = None,
-                          threads: int | None = 1) -> dict[str, Any]:
+                          threads: int | None = 1, drift: str = "auto") -> dict[str, Any]:
     """Reconstruct one recording (the batch task; picklable as a :func:`functools.partial`).
 
     Parameters
@@ -85,6 +85,8 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
     markers : str, optional
         ``auto``, ``none`` or a marker mask image, for every recording (default: each
         capture's own markers, else the calibration's; :func:`pipeline.stages.normals.marker_mask`).
+    drift : str
+        Illumination drift removed before the solve (:func:`pipeline.reconstruct.reconstruct`'s).
 
     Returns
     -------
@@ -99,7 +101,7 @@ def reconstruct_recording(recording: str, *, calibration: str | None = None, ill
     dest = None if out is None else str(Path(out) / Path(recording).stem)
     res = reconstruct(recording, calibration=calibration, illumination=illumination, solver=solver,
                       integrator=integrator, out=dest, store=store, images=images, device=device, heal=heal,
-                      mask=mask, markers=markers, threads=threads)
+                      mask=mask, markers=markers, threads=threads, drift=drift)
     n, d = res.normals, res.depth
     result = {"normals_key": n.provenance.get("iristac_key") or "", "depth_key": d.provenance.get("iristac_key") or "",
               "normals_sha256": _sha(n.data["normals"]), "depth_sha256": _sha(d.data["height"]),
@@ -137,7 +139,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
                       store: str | None = None, images: bool = False, device: str = "cpu", workers: int = 1,
                       scheduler: str | None = None, progress: bool = False, connect_timeout: float = 10.0,
                       heal: bool = True, mask: str | None = None, markers: str | None = None,
-                      threads: int | None = 1):
+                      threads: int | None = 1, drift: str = "auto"):
     """Reconstruct every recording with a shared calibration or illumination model.
 
     Parameters
@@ -154,7 +156,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     threads : int, optional
         Threads within each recording (:func:`reconstruct_recording`): frame-level parallelism
         for one process; ``workers`` adds processes, one recording each.
-    solver, integrator, out, store, images, device, heal, progress, connect_timeout, mask, markers
+    solver, integrator, out, store, images, device, heal, progress, connect_timeout, mask, markers, drift
         See :func:`reconstruct_recording` and :func:`pipeline.batch.run_batch`.
 
     Returns
@@ -183,6 +185,6 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     task = partial(reconstruct_recording, calibration=absolute(calibration), illumination=absolute(illumination),
                    solver=solver, integrator=integrator, out=absolute(out), store=absolute(store), images=images,
                    device=device, heal=heal, mask=absolute(mask),
-                   markers=absolute(marker_file) if marker_file else markers, threads=threads)
+                   markers=absolute(marker_file) if marker_file else markers, threads=threads, drift=drift)
     return run_batch(recs, task, workers=workers, scheduler=scheduler, progress=progress,
                      connect_timeout=connect_timeout)

@@ -21,6 +21,13 @@ Printed gel markers (``markers=``, ``--markers auto|none|MASK.png``; default the
 ``markers`` dataset, else the calibration's): filled in before the normals are solved, False
 in the normals' mask, integrated through by the depth stage
 (:func:`pipeline.stages.normals.marker_mask`).
+
+Illumination drift (``drift=``, ``--drift auto|none|offset|gain_offset|field``): each contact
+instance's drift against the no-contact reference (a per-channel gain and offset fitted on the
+pixels outside the contact, :mod:`pipeline.normals.drift`) is removed before the solve where
+the solver keys on that reference (``auto``, the default: the calibration's models and
+``--ratio``), and before the contact mask's colour change always (:mod:`pipeline.contact`; its
+no-contact frame is the capture's, else the one the solver's model stores).
 """
 
 from __future__ import annotations
@@ -44,8 +51,9 @@ class ReconstructResult:
     ``summary`` has the CLI's JSON keys: ``solver``, ``integrator``, ``seconds``,
     ``valid_fraction`` and, when the capture has ground truth, ``normal_mean_error_deg`` and
     ``depth_rmse_mm`` (means over contact instances); plus ``cached``, ``markers`` (marker
-    pixels filled in), ``contact_fraction`` (the contact mask's share of the image, mean over
-    contact instances) and ``outputs``.
+    pixels filled in), ``drift`` (the drift model removed before the solve, ``none`` if none),
+    ``contact_fraction`` (the contact mask's share of the image, mean over contact instances)
+    and ``outputs``.
     """
 
     normals: Any
@@ -72,7 +80,8 @@ def _read(path_or_record, schema: str):
 def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "lstsq", integrator: str = "dst",
                 out=None, store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu",
                 dtype="float32", threads: int | None = 1, images: bool = True, force: bool = False,
-                compile: bool = False, heal: bool = True, mask=None, markers=None) -> ReconstructResult:
+                compile: bool = False, heal: bool = True, mask=None, markers=None,
+                drift: str = "auto") -> ReconstructResult:
     """Normals and depth of a capture, through the stage store.
 
     Parameters
@@ -122,6 +131,11 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     markers : None, "auto", "none", path or ndarray (H, W), optional
         Printed gel markers to fill in (:func:`pipeline.stages.normals.marker_mask`); None: the
         capture's own ``markers``, else the calibration's.
+    drift : str
+        Illumination drift removed before the solve (:func:`pipeline.stages.normals.compute`):
+        ``auto`` (default: a per-channel gain and offset against the no-contact reference where
+        the solver keys on it: ``far``, ``near``, ``traced``, ``lut``, ``mlp`` and ``ratio``),
+        ``none``, ``offset``, ``gain_offset`` or ``field``. Part of the cache key.
 
     Returns
     -------
@@ -153,18 +167,28 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     n_rec, n_key, n_cached = normals_stage.run(
         store, cap, capture_stage.capture_key(store, cap), lights, solver=solver, ratio=ratio,
         max_condition=max_condition, device=device, dtype=dtype, threads=threads, compile=compile, force=force,
-        heal=heal, mask=user_region, markers=marks)
+        heal=heal, mask=user_region, markers=marks, drift=drift)
     d_rec, _, d_cached = depth_stage.run(store, n_rec, n_key, integrator=integrator, force=force, heal=heal,
                                          region=region, device=device, threads=threads)
     seconds = time.perf_counter() - t0
     summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": round(seconds, 4),
                                "valid_fraction": float(np.asarray(n_rec.data["mask"]).mean()),
                                "cached": bool(n_cached and d_cached),
-                               "markers": 0 if marks is None else int(marks.sum())}
+                               "markers": 0 if marks is None else int(marks.sum()),
+                               "drift": str(n_rec.meta.get("drift", "none"))}
     summary.update(truth_errors(cap, n_rec, d_rec, region))
     from pipeline.contact import capture_contact_masks
+    from pipeline.normals.solve import stored_reference
 
-    contact = capture_contact_masks(cap.data, d_rec.data["height"], d_rec.data["mask"], region)
+    # The colour change against the capture's reference, else the one the solver's model stores
+    # (its drift against the frames, a dark level included, is removed before the change is taken).
+    ref = normals_stage.reference_frames(cap)
+    if ref is None:
+        ref = stored_reference(lights, solver)
+    frames = cap.data["frames"]
+    ref = ref if ref is not None and np.shape(ref) == frames.shape[1:] else None
+    contact = capture_contact_masks({"frames": frames, "reference": ref}, d_rec.data["height"], d_rec.data["mask"],
+                                    region)
     summary["contact_fraction"] = float(contact.mean()) if contact.size else 0.0
     files: list[Path] = []
     if out is not None:

@@ -152,6 +152,10 @@ class Registry:
 #:   after, not gathered (:class:`pipeline.normals.prepare.FramePrep`);
 #: - ``fills_markers``: the solver fills printed markers in itself (given the marker mask);
 #:   the others get frames filled in by :class:`~pipeline.normals.prepare.FramePrep`;
+#: - ``keys_on_reference``: the solver keys on the no-contact reference, or was calibrated on
+#:   presses mapped onto its lighting (a calibration's models): each frame set's illumination
+#:   drift against it is removed first by default (``--drift auto``,
+#:   :meth:`pipeline.normals.prepare.FramePrep.use_drift`);
 #: - ``fast``: the builder of its live per-frame path (precomputed once per calibration,
 #:   :func:`pipeline.stages.fast_solvers.frame_solver`), absent when live use runs it eagerly;
 #: - ``batch``: that fast path also solves many frames in one call per thread
@@ -175,21 +179,24 @@ SOLVERS = Registry("solver", "--solver", [
     Entry("far", "pipeline.stages.model_solvers:stack_far",
           "the calibration's far-field model (one light vector per pattern-channel, flat field from the reference), "
           "as eval calibration applies it",
-          {"needs": "model:far", "patterns": "any", "whole_frame": True, "fills_markers": True}),
+          {"needs": "model:far", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
+           "fills_markers": True}),
     Entry("near", "pipeline.stages.model_solvers:stack_near",
           "the calibration's polynomial near-field model, as eval calibration applies it",
-          {"needs": "model:near", "patterns": "any", "whole_frame": True, "fills_markers": True}),
+          {"needs": "model:near", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
+           "fills_markers": True}),
     Entry("traced", "pipeline.stages.model_solvers:stack_traced",
           "the calibration's traced model (ray-traced LED fields with fitted gains), as eval calibration applies it",
-          {"needs": "model:traced", "patterns": "any", "whole_frame": True, "fills_markers": True}),
+          {"needs": "model:traced", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
+           "fills_markers": True}),
     Entry("lut", "pipeline.stages.model_solvers:stack_lut",
           "the calibration's colour lookup table with its per-bin position correction (one RGB pattern)",
-          {"needs": "model:lut", "patterns": "one-rgb", "whole_frame": True, "fills_markers": True,
-           "fast": "pipeline.stages.fast_solvers:fast_lut"}),
+          {"needs": "model:lut", "keys_on_reference": True, "patterns": "one-rgb", "whole_frame": True,
+           "fills_markers": True, "fast": "pipeline.stages.fast_solvers:fast_lut"}),
     Entry("mlp", "pipeline.stages.model_solvers:stack_mlp",
           "the calibration's MLP (colour change, reference and position -> normal)",
-          {"needs": "model:mlp", "patterns": "any", "whole_frame": True, "fills_markers": True,
-           "fast": "pipeline.stages.fast_solvers:fast_mlp"}),
+          {"needs": "model:mlp", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
+           "fills_markers": True, "fast": "pipeline.stages.fast_solvers:fast_mlp"}),
 ])
 
 #: Depth integrators: ``target(normals (H, W, 3), mm_per_px, mask, **kwargs) -> DepthResult``

@@ -19,7 +19,7 @@ frames, a convention of their own, docs/calibration.md; the exact circles of the
 sensors), the best model by CV, its CV, its error on the test presses against their
 detected circles (and against the exact truth, virtual sensors), its truth-free ball fit on
 the test presses, whether the quality gate passed, and seconds. The drift-model table compares
-the drift models of :mod:`calibration.drift` on the real sensors (best model's test error and
+the drift models of :mod:`pipeline.normals.drift` on the real sensors (best model's test error and
 ball fit).
 """
 
@@ -125,8 +125,8 @@ def _drift_model_rows(cases, model: str) -> list[dict[str, Any]]:
     """Test error and ball fit of ``model`` on each real case with each drift model."""
     from calibration.calibrate import calibrate, find_circles
     from calibration.detect import DetectOptions
-    from calibration.drift import DRIFT_MODELS
     from calibration.evaluate import TEST_TRUTH, evaluate_calibration
+    from pipeline.normals.drift import DRIFT_MODELS
 
     rows = []
     for name, cap, ball_mm in cases:
@@ -148,9 +148,9 @@ def _drift_model_rows(cases, model: str) -> list[dict[str, Any]]:
 
 def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
     """Every sensor on hand through calibrate (train presses) and eval calibration (test presses)."""
-    from calibration.drift import drifted_capture
     from calibration.image_import import load_images
     from calibration.importers import load_gelsight_npz
+    from pipeline.normals.drift import drifted_capture
 
     data = _shared()
     out: dict[str, Any] = {"sensors": [], "drift_models": [], "quick": bool(quick)}

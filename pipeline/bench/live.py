@@ -11,7 +11,11 @@ on one thread and on every core:
   the first size;
 - **LUT** and **MLP**: the virtual sensor in trichromatic mode, calibrated as ``iristac live
   --virtual`` does (rendered ball presses through the calibrate stage, cached in the store:
-  only the first run pays), on rendered test presses the calibration never saw.
+  only the first run pays), on rendered test presses the calibration never saw; as ``live``
+  runs them by default, each frame's illumination drift against the reference removed
+  (``--drift auto``: a gain and an offset per channel fitted on
+  :data:`pipeline.normals.drift.LIVE_SAMPLES` pixels), and again with ``--drift none``
+  (rows ``lut (--drift none)``): the difference is what drift removal costs per frame.
 
 Errors: mean angular error of the normals against the rendered truth (every pixel), and the
 largest deviation of the fast path from the eager one (deg). Targets (issue 14, this 2-core
@@ -183,20 +187,27 @@ def measure_model(solver: str, width: int, height: int, repeats: int, store, thr
     truth = cap.data["truth/normals"][0]
     size = f"{width}x{height}"
 
-    def eager_pipe():
-        maps = m.normal_maps(raw.astype(np.float32)[None] - dark, ref)
-        return maps, poisson_dst(maps.normals[0], mm, maps.mask[0])
+    src = LightSource(models=models, source="bench")
+    raw_ref = cap.data["reference"]
+    eager = frame_solver(solver, src, shape=(height, width), reference=raw_ref, dark=dark, fast=False)
 
-    times, (maps, _) = _runs(eager_pipe, max(2, repeats // 10))
-    e_eager = _err(maps.normals[0], truth)
+    def eager_pipe():  # the model's normal_maps, after the same drift removal
+        r = eager.solve(raw)
+        return r, poisson_dst(r.normals, mm, r.mask)
+
+    times, (er, _) = _runs(eager_pipe, max(2, repeats // 10))
+    e_eager = _err(er.normals, truth)
     rows = [_row(solver, size, "eager", 1, min(times), e_eager, extra={"seconds_runs": times})]
-    t = time.perf_counter()
-    fs = frame_solver(solver, LightSource(models=models, source="bench"), shape=(height, width), reference=ref,
-                      dark=dark)
     dst = FastDST((height, width), mm)
-    prep = time.perf_counter() - t
-    return rows + _fast_rows(solver, size, lambda th: fs.solve(raw, threads=th), dst, repeats, threads_all, truth,
-                             maps.normals[0], maps.mask[0], {"eager_error_deg": e_eager, "prepare_seconds": prep})
+    for drift, label in (("auto", solver), ("none", f"{solver} (--drift none)")):
+        t = time.perf_counter()
+        fs = frame_solver(solver, src, shape=(height, width), reference=raw_ref, dark=dark, drift=drift)
+        prep = time.perf_counter() - t
+        base = er if drift == "auto" else m.normal_maps(raw.astype(np.float32)[None] - dark, ref)
+        normals, mask = (base.normals, base.mask) if drift == "auto" else (base.normals[0], base.mask[0])
+        rows += _fast_rows(label, size, lambda th, fs=fs: fs.solve(raw, threads=th), dst, repeats, threads_all,
+                           truth, normals, mask, {"eager_error_deg": e_eager, "prepare_seconds": prep})
+    return rows
 
 
 def measure_device(width: int, height: int, device: str, batch: int, repeats: int) -> dict:

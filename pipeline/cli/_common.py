@@ -40,6 +40,18 @@ def add_markers_flag(parser) -> None:
                              "the calibration's)")
 
 
+def add_drift_flag(parser) -> None:
+    """``--drift auto|none|offset|gain_offset|field``: the illumination drift removed before the
+    solve (``reconstruct``, ``batch``, ``live``; :mod:`pipeline.normals.drift`)."""
+    from pipeline.normals.drift import DRIFT_CHOICES
+
+    parser.add_argument("--drift", choices=DRIFT_CHOICES, default="auto",
+                        help="illumination drift against the no-contact reference, fitted on the pixels outside the "
+                             "contact and removed before the solve (default auto: a per-channel gain and offset "
+                             "where the solver keys on the reference: the calibration's models and --ratio; none: "
+                             "off)")
+
+
 def mode_help(what: str = "lighting mode") -> str:
     """Help text naming the built-in lighting modes (:func:`pipeline.base.registry.list_modes`)."""
     from pipeline.base.registry import list_modes

@@ -7,6 +7,7 @@ Calls :func:`pipeline.batch_reconstruct.batch_reconstruct` and prints
 from __future__ import annotations
 
 from pipeline.cli._common import (
+    add_drift_flag,
     add_heal_flag,
     add_json_flag,
     add_markers_flag,
@@ -25,6 +26,7 @@ def register(sub, name, help_text):
     add_solver_flags(p)
     add_mask_flag(p)
     add_markers_flag(p)
+    add_drift_flag(p)
     where = p.add_mutually_exclusive_group()
     where.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
     where.add_argument("--scheduler", metavar="ADDRESS",
@@ -55,7 +57,7 @@ def _run(args) -> int:
                               images=args.images, device=args.device, workers=args.workers,
                               scheduler=args.scheduler, progress=not args.json,
                               connect_timeout=args.connect_timeout, heal=not args.no_heal, mask=args.mask,
-                              markers=args.markers, threads=args.threads or None)
+                              markers=args.markers, threads=args.threads or None, drift=args.drift)
     failed = sum(not i.ok for i in items)
     if args.json:
         print_json({"items": [i.to_json() for i in items], "processed": len(items) - failed, "failed": failed})

@@ -4,7 +4,14 @@ from __future__ import annotations
 
 import sys
 
-from pipeline.cli._common import add_json_flag, add_markers_flag, add_solver_flags, mode_help, print_json
+from pipeline.cli._common import (
+    add_drift_flag,
+    add_json_flag,
+    add_markers_flag,
+    add_solver_flags,
+    mode_help,
+    print_json,
+)
 
 
 def _size(text: str) -> tuple[int, int]:
@@ -56,7 +63,12 @@ def register(sub, name, help_text):
                    help="no-contact frame of the LUT/MLP: the first one (start with no contact; default with "
                         "--virtual) or the calibration's (default with --camera)")
     p.add_argument("--eager", action="store_true", help="the eager solver even where a fast path exists")
+    p.add_argument("--contact", action="store_true",
+                   help="also compute each result's contact mask (colour change against the no-contact frame, drift "
+                        "removed, and height): recorded with --record, its mean share of the image in --json "
+                        "(contact_fraction)")
     add_markers_flag(p)
+    add_drift_flag(p)
     p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
     add_json_flag(p)
     p.set_defaults(func=_run)
@@ -88,7 +100,7 @@ def _run(args) -> int:
                    record=args.record, view=args.view, view_port=args.view_port, queue=args.queue,
                    threads=args.threads, integrator=args.integrator, size=args.size, mm_per_px=mm,
                    fps=args.fps, cache=args.cache, reference=args.reference, markers=args.markers,
-                   fast=not args.eager, on_ready=ready, log=log)
+                   fast=not args.eager, contact=args.contact, drift=args.drift, on_ready=ready, log=log)
     s = res.summary
     if res.error:
         print(f"iristac live: stopped: {res.error}"
@@ -99,7 +111,9 @@ def _run(args) -> int:
     else:
         print(f"{s['results']} results ({s['mode']}, {s['solver']} {s['method']}) at {s['fps']:.1f} /s, latency "
               f"p50 {s['latency_ms_p50']:.1f} ms, p99 {s['latency_ms_p99']:.1f} ms; dropped {s['dropped']}, "
-              f"stale {s['stale']}, torn cycles {s['torn']}")
+              f"stale {s['stale']}, torn cycles {s['torn']}"
+              + (f"; contact {s['contact_fraction']:.1%} of the image" if s.get("contact_fraction") is not None
+                 else ""))
     if args.frames is not None and s["results"] < args.frames:
         return 1  # asked for more results than the source gave
     if res.error and not res.end_of_file:

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pipeline.cli._common import (
+    add_drift_flag,
     add_heal_flag,
     add_json_flag,
     add_markers_flag,
@@ -12,7 +13,8 @@ from pipeline.cli._common import (
 )
 
 #: The stable key set of ``--json`` (truth errors only when the capture carries truth).
-JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "markers", "contact_fraction", "outputs")
+JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "markers", "drift", "contact_fraction",
+             "outputs")
 
 
 def register(sub, name, help_text):
@@ -24,6 +26,7 @@ def register(sub, name, help_text):
     add_solver_flags(p)
     add_mask_flag(p)
     add_markers_flag(p)
+    add_drift_flag(p)
     p.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
     p.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
@@ -52,13 +55,14 @@ def _run(args) -> int:
                       solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
                       images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
-                      markers=args.markers, threads=args.threads or None)
+                      markers=args.markers, threads=args.threads or None, drift=args.drift)
     s = res.summary
     if args.json:
         print_json(s)
         return 0
     line = (f"{s['solver']} + {s['integrator']}: {s['valid_fraction']:.1%} valid pixels, {s['seconds']:.3f} s"
-            + (" (cached)" if s["cached"] else "") + f"; contact {s['contact_fraction']:.1%} of the image")
+            + (" (cached)" if s["cached"] else "") + f"; contact {s['contact_fraction']:.1%} of the image"
+            + (f"; drift removed ({s['drift']})" if s["drift"] != "none" else ""))
     if "normal_mean_error_deg" in s:
         line += f"; normals {s['normal_mean_error_deg']:.3f} deg mean error"
     if "depth_rmse_mm" in s:

@@ -36,7 +36,7 @@ from pipeline.base.store import fsync_dir, fsync_file  # the store's own durable
 
 __all__ = ["LiveRecorder", "read_recording"]
 
-#: Datasets of one result: name -> (dtype or None = the frames' dtype, shape after the result axis).
+#: Datasets of one result (``contact``, the contact mask, with ``contact=True``).
 FIELDS = ("frames", "normals", "mask", "height", "timestamp", "wall", "latency_ms", "index", "dropped")
 
 
@@ -51,9 +51,12 @@ class LiveRecorder:
         Attributes (``mode``, ``solver``, ``source``, ``mm_per_px`` ...).
     segment_results, segment_seconds : int, float
         A segment is written when either is reached (what a kill can lose at most).
+    contact : bool
+        Also record each result's contact mask (``contact (K, H, W)`` bool).
     """
 
-    def __init__(self, path, meta: dict, *, segment_results: int = 16, segment_seconds: float = 0.5):
+    def __init__(self, path, meta: dict, *, segment_results: int = 16, segment_seconds: float = 0.5,
+                 contact: bool = False):
         self.path = Path(path)
         self.parts = self.path.with_name(self.path.name + ".parts")
         if self.parts.exists():
@@ -62,7 +65,8 @@ class LiveRecorder:
         self.meta = dict(meta)
         self.segment_results = int(segment_results)
         self.segment_seconds = float(segment_seconds)
-        self._buf: dict[str, list] = {k: [] for k in FIELDS}
+        self.fields = FIELDS + (("contact",) if contact else ())
+        self._buf: dict[str, list] = {k: [] for k in self.fields}
         self._segments: list[tuple[str, int]] = []  # (file name, results)
         self._shapes: dict[str, tuple] = {}
         self._dtypes: dict[str, np.dtype] = {}
@@ -74,12 +78,17 @@ class LiveRecorder:
         self._write_index()
 
     def add(self, *, frames, normals, mask, height, timestamp: float, latency_ms: float, index: int,
-            dropped: int, wall: float | None = None) -> None:
-        """Buffer one result; write a segment when one is due."""
+            dropped: int, wall: float | None = None, contact=None) -> None:
+        """Buffer one result (with ``contact``, its contact mask ``(H, W)``, when recording them);
+        write a segment when one is due."""
         row = {"frames": np.asarray(frames), "normals": np.asarray(normals, np.float32),
                "mask": np.asarray(mask, bool), "height": np.asarray(height, np.float32),
                "timestamp": np.float64(timestamp), "wall": np.float64(time.time() if wall is None else wall),
                "latency_ms": np.float32(latency_ms), "index": np.int64(index), "dropped": np.int64(dropped)}
+        if "contact" in self.fields:
+            if contact is None:
+                raise ValueError(f"{self.path}: this recording records contact masks; add(contact=...) is missing")
+            row["contact"] = np.asarray(contact, bool)
         with self._lock:
             if self.closed:
                 raise RuntimeError(f"{self.path}: the recording is closed")
@@ -112,7 +121,7 @@ class LiveRecorder:
         os.replace(tmp, final)
         self._segments.append((name, n))
         self.results += n
-        self._buf = {k: [] for k in FIELDS}
+        self._buf = {k: [] for k in self.fields}
         self._write_index()
 
     def _attrs(self, complete: bool) -> dict:
@@ -127,10 +136,10 @@ class LiveRecorder:
 
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp.h5")
         with h5py.File(tmp, "w", libver="latest") as f:
-            for k in FIELDS:
+            for k in self.fields:
                 if not self._segments:  # nothing recorded yet: empty datasets of unknown frame size
                     shape, dt = {"frames": (0, 0, 0, 0), "normals": (0, 0, 3), "mask": (0, 0),
-                                 "height": (0, 0)}.get(k, ()), _EMPTY_DTYPES[k]
+                                 "height": (0, 0), "contact": (0, 0)}.get(k, ()), _EMPTY_DTYPES[k]
                     f.create_dataset(k, shape=(0,) + shape, dtype=dt)
                     continue
                 shape, dt = self._shapes[k], self._dtypes[k]
@@ -178,7 +187,7 @@ class LiveRecorder:
 
 _EMPTY_DTYPES = {"frames": np.uint8, "normals": np.float32, "mask": np.bool_, "height": np.float32,
                  "timestamp": np.float64, "wall": np.float64, "latency_ms": np.float32, "index": np.int64,
-                 "dropped": np.int64}
+                 "dropped": np.int64, "contact": np.bool_}
 
 
 def read_recording(path):

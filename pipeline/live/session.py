@@ -46,7 +46,8 @@ __all__ = ["LiveSession", "LiveResult", "run_live", "JSON_KEYS"]
 
 #: The stable key set of ``iristac live --json``.
 JSON_KEYS = ("results", "dropped", "fps", "latency_ms_p50", "latency_ms_p99", "mode", "solver", "method", "source",
-             "size", "first_result_s", "stale", "torn", "mislabeled", "stopped", "record", "view")
+             "size", "first_result_s", "stale", "torn", "mislabeled", "stopped", "record", "view", "drift",
+             "contact_fraction")
 
 
 @dataclass
@@ -81,7 +82,7 @@ patterns (use a single-frame mode such as trichromatic)
                  ring_firmware=None, integrator: str = "dst", size: tuple[int, int] = (120, 160),
                  mm_per_px: float = 0.15, fps: float | None = None, contacts: int = 4, press_s: float | None = None,
                  cache=None, reference: str | None = None, markers=None, fast: bool = True,
-                 max_condition: float = 1e3, threads: int = 1, log=None):
+                 max_condition: float = 1e3, threads: int = 1, drift: str = "auto", log=None):
         from pipeline.base.modes import load_mode
         from pipeline.base.registry import INTEGRATORS, SOLVERS
 
@@ -106,10 +107,16 @@ patterns (use a single-frame mode such as trichromatic)
         self.size, self.mm_per_px, self.fps, self.contacts, self.press_s = size, mm_per_px, fps, contacts, press_s
         self.cache, self.reference_kind, self.markers_spec = cache, reference, markers
         self.fast, self.max_condition, self.threads = bool(fast), float(max_condition), int(threads)
+        from pipeline.stages.normals import check_drift
+
+        self.drift = check_drift(drift)
         self.say = log or (lambda m: None)
         self.source_name = "virtual" if virtual else str(camera)
         self.emulator = self.ring = self.spec = self.cam = self.lights = self.source = None
         self.reference = self.solve_frames = self.depth = None
+        #: The no-contact frames the solver's model stores (the LUT's and the MLP's), or None.
+        self.model_reference: np.ndarray | None = None
+        self._contact_drift: tuple | None = None
         self.pitch = float(mm_per_px)
         self._cleanup: list = []
 
@@ -156,6 +163,7 @@ patterns (use a single-frame mode such as trichromatic)
 
     def _load_lights(self) -> None:
         from pipeline.normals.lights import check_lights
+        from pipeline.normals.solve import stored_reference
         from pipeline.stages.normals import load_lights
 
         cal = None if self.calibration is None else _read(self.calibration, "calibration")
@@ -165,6 +173,7 @@ patterns (use a single-frame mode such as trichromatic)
         H, W = self.cam.shape
         self.lights = load_lights(cal, ill, mode=self.patterns, shape=(H, W), channels=3)
         check_lights(self.solver, self.lights, len(self.patterns.frames), 3)
+        self.model_reference = stored_reference(self.lights, self.solver)
         if self.spec is not None:
             self.pitch = float(self.spec.model().mm_per_px)
         elif cal is not None and cal.meta.get("mm_per_px"):
@@ -218,14 +227,32 @@ patterns (use a single-frame mode such as trichromatic)
         t0 = time.monotonic()
         self.solve_frames = frame_solver(self.solver, self.lights, shape=(H, W), channels=3,
                                          reference=self.reference, markers=self._markers((H, W)),
-                                         max_condition=self.max_condition, fast=self.fast)
+                                         max_condition=self.max_condition, fast=self.fast, drift=self.drift)
         self.depth = frame_integrator(self.integrator, (H, W), self.pitch, workers=self.threads)
         if self.solve_frames.method == "fast":
             # Warm up on a dark frame before the capture thread starts: loading the compiled
             # kernels from the disk cache takes ~0.5 s, and the camera's frames of that time
             # would otherwise be dropped (and counted as if processing fell behind).
             self.process(np.zeros((len(self.patterns.frames), H, W, 3), np.uint8))
-        self.say(f"solver {self.solver} ({self.solve_frames.method}) ready in {time.monotonic() - t0:.2f} s")
+        reset = getattr(self.solve_frames, "reset_drift", None)
+        if reset is not None:
+            reset()  # the drift of the first real frame, not of the warm-up frame
+        self.say(f"solver {self.solver} ({self.solve_frames.method}) ready in {time.monotonic() - t0:.2f} s"
+                 + (f", drift removed ({self.drift_model})" if self.drift_model != "none" else ""))
+
+    @property
+    def drift_model(self) -> str:
+        """The drift model the per-frame solver removes (``none`` if none)."""
+        fs = self.solve_frames
+        est = getattr(fs, "drift", None) if fs is not None and fs.method == "fast" else \
+            getattr(getattr(fs, "prep", None), "estimator", None)
+        return "none" if est is None else str(est.model)
+
+    def contact_reference(self) -> np.ndarray | None:
+        """The no-contact frames the contact mask's colour change is taken against: the session's
+        (``reference="start"``), else the one the solver's model stores (the calibration's, whose
+        drift against the frames the contact mask removes), else None (the height alone)."""
+        return self.reference if self.reference is not None else self.model_reference
 
     def process(self, frames):
         """``(NormalResult, DepthResult)`` of one sample's frames ``(P, H, W, C)``."""
@@ -250,13 +277,18 @@ patterns (use a single-frame mode such as trichromatic)
     # ---- the loop ---------------------------------------------------------------------------
 
     def contact(self, frames, depth) -> np.ndarray:
-        """A result's contact mask ``(H, W)`` (:func:`pipeline.contact.contact_mask`): colour and
-        height against the no-contact sample, the height alone without one."""
+        """A result's contact mask ``(H, W)`` (:func:`pipeline.contact.contact_mask`): colour (drift
+        removed) and height against :meth:`contact_reference`, the height alone without one."""
         from pipeline.contact import contact_mask
 
-        if self.reference is None:
+        ref = self.contact_reference()
+        if ref is None or np.shape(ref) != np.shape(frames):
             return contact_mask(height=depth.height, valid=depth.mask)
-        return contact_mask(frames, self.reference, depth.height, valid=depth.mask)
+        if self._contact_drift is None or self._contact_drift[0] is not ref:
+            from pipeline.contact import drift_estimator
+
+            self._contact_drift = (ref, drift_estimator(ref))  # built once per reference
+        return contact_mask(frames, ref, depth.height, valid=depth.mask, estimator=self._contact_drift[1])
 
     def run(self, *, frames: int | None = None, seconds: float | None = None, record=None, view: bool = False,
             view_port: int = 0, queue: int = 4, contact: bool = False, on_ready=None, on_result=None) -> LiveResult:
@@ -278,6 +310,7 @@ class _Loop:
                  contact: bool = False):
         self.s, self.q, self.record, self.want_contact = session, q, record, bool(contact)
         self.last_contact = None
+        self.contact_sum = 0.0
         self.error: list[str] = []
         self.stop = threading.Event()
         self.lat: list[float] = []
@@ -287,7 +320,8 @@ class _Loop:
             from pipeline.live.recorder import LiveRecorder
 
             self.rec = LiveRecorder(record, {"mode": session.patterns.name, "solver": session.solver,
-                                             "mm_per_px": session.pitch, "source": session.source_name})
+                                             "mm_per_px": session.pitch, "source": session.source_name,
+                                             "drift": session.drift_model}, contact=self.want_contact)
         if view:
             from pipeline.live.view import LiveView
 
@@ -348,14 +382,16 @@ class _Loop:
             latency = 1e3 * (t_done - sample.timestamp)
             self.lat.append(latency)
             last = (sample, res, depth)
+            if touch is not None:
+                self.contact_sum += float(np.mean(touch))
             if self.rec is not None:
                 self.rec.add(frames=sample.frames, normals=res.normals, mask=res.mask, height=depth.height,
                              timestamp=sample.timestamp, latency_ms=latency, index=sample.index,
-                             dropped=self.q.dropped)
+                             dropped=self.q.dropped, contact=touch)
             stats = _stats(n, self.q.dropped, t_first, t_done, self.lat)
             if self.lv is not None:
                 self.lv.publish(n, res.normals, depth.mask, depth.height, stats, contact=touch,
-                                frames=sample.frames, reference=self.s.reference)
+                                frames=sample.frames, reference=self.s.contact_reference())
             if on_result is not None:
                 on_result(n, {"latency_ms": latency, **stats, **({"contact": touch} if self.want_contact else {})})
             self.last_contact = touch
@@ -386,7 +422,8 @@ class _Loop:
                    "stale": int(counters.get("stale", 0)), "torn": int(counters.get("torn", 0)),
                    "mislabeled": int(counters.get("mislabeled", 0)), "stopped": stopped,
                    "record": None if self.record is None else str(Path(self.record)),
-                   "view": None if self.lv is None else self.lv.url}
+                   "view": None if self.lv is None else self.lv.url, "drift": s.drift_model,
+                   "contact_fraction": round(self.contact_sum / n, 5) if self.want_contact and n else None}
         if self.lv is not None:
             self.lv.set_stats(running=False, message=stopped)
         return LiveResult(summary=summary, error=self.error[0] if self.error else None,
@@ -400,7 +437,7 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
              view: bool = False, view_port: int = 0, queue: int = 4, threads: int = 1, integrator: str = "dst",
              size: tuple[int, int] = (120, 160), mm_per_px: float = 0.15, fps: float | None = None, contacts: int = 4,
              press_s: float | None = None, cache=None, reference: str | None = None, markers=None, fast: bool = True,
-             max_condition: float = 1e3, contact: bool = False, on_ready=None, on_result=None,
+             max_condition: float = 1e3, contact: bool = False, drift: str = "auto", on_ready=None, on_result=None,
              log=None) -> LiveResult:
     """Reconstruct a stream until ``frames`` results, ``seconds`` elapsed, or the source ends.
 
@@ -448,10 +485,17 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
         False: the eager solver even where a fast path is registered (a reference).
     contact : bool
         Also compute each result's contact mask (:func:`pipeline.contact.contact_mask`: the
-        colour change against the no-contact frame and the height; the height alone when the
-        no-contact frame is the calibration's), passed to ``on_result`` as ``contact`` and kept
-        in :attr:`LiveResult.last_contact`; its time counts in the latency. The live page
-        shows the contact mask either way (computed when the page asks for it).
+        colour change, drift removed, against the no-contact frame, the session's or else the
+        calibration model's, and the height), passed to ``on_result`` as ``contact``, kept in
+        :attr:`LiveResult.last_contact`, recorded (``contact`` in the recording) and summarised
+        (``contact_fraction``: the mean share of the image in contact); its time counts in the
+        latency. The live page shows the contact mask either way (computed when the page asks
+        for it).
+    drift : str
+        Illumination drift removed from each frame before the solve
+        (:func:`pipeline.stages.fast_solvers.frame_solver`): ``auto`` (default: a per-channel
+        gain and offset against the reference the LUT and the MLP key on, in their fast paths
+        too), ``none``, or a model of :data:`pipeline.normals.drift.DRIFT_MODELS`.
     on_ready : callable, optional
         ``on_ready(info)`` once the stream runs (``info``: ``view`` URL, ``method``, ``size``).
     on_result, log : callable, optional
@@ -467,7 +511,7 @@ def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, vi
                      illumination=illumination, port=port, emulate=emulate, ring_firmware=ring_firmware,
                      integrator=integrator, size=size, mm_per_px=mm_per_px, fps=fps, contacts=contacts,
                      press_s=press_s, cache=cache, reference=reference, markers=markers, fast=fast,
-                     max_condition=max_condition, threads=threads, log=log) as session:
+                     max_condition=max_condition, threads=threads, drift=drift, log=log) as session:
         return session.open().run(frames=frames, seconds=seconds, record=record, view=view, view_port=view_port,
                                   queue=queue, contact=contact, on_ready=on_ready, on_result=on_result)
 

@@ -18,6 +18,15 @@ agreement:
   SiLU uses a vectorisable rational tanh (Eigen's, within 4e-7), so the result agrees with
   torch's to about 1e-6.
 
+Both remove the frame's illumination drift against the reference when given a
+:class:`~pipeline.normals.drift.DriftEstimator` (``drift=``, what
+:meth:`pipeline.normals.prepare.FramePrep.use_drift` built): the drift is fitted on the
+estimator's sampled pixels of the integer frame (a few thousand of them: the same values the
+eager path fits, so the same drift), and its per-channel gain and offset are applied inside the
+kernel, ``v' = (v - o) / g`` in float64 as :meth:`~pipeline.normals.drift.Drift.remove` does (as a
+product with ``1 / g``: the same float32 result but in one case in a billion).
+A drift that varies over the image (``field``) is the eager path's.
+
 Numba, compiled once and cached on disk (``cache=True``).
 """
 
@@ -54,16 +63,18 @@ def _finish_one(a, b, c, ok, apply, gain, limit):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, error_model="numpy")
-def _lut_kernel(obs, dark, ref, lo, width, bins, filled, support, table, coef, phi, apply, gain, limit, start, stop,
-                normals, mask, conf):  # pragma: no cover - compiled
+def _lut_kernel(obs, dark, ref, lo, width, bins, filled, support, table, coef, phi, apply, gain, limit, drift_g,
+                drift_o, start, stop, normals, mask, conf):  # pragma: no cover - compiled
     """Pixels ``start:stop``: colour change ``d = (I - dark) - ref`` (float32, as the model's
-    samples), bin ``floor((d - lo) / width * bins)`` in float64, gradient from the table (or
+    samples; with a drift, ``I - dark`` is first mapped to ``((I - dark) - drift_o) * drift_g``
+    per channel in float64 when ``drift_g``, the drift's inverse gain, is not empty), bin ``floor((d - lo) / width * bins)`` in float64, gradient from the table (or
     the bin's position polynomial ``coef`` when ``coef`` is not empty), the normal
     ``(-g_x, -g_y, 1) / |.|`` (``pipeline.base.frames.gradients_to_normals``), the output
     correction (:func:`_finish_one`), confidence ``support / (support + 1)``; all in float64
     like the model, written as float32."""
     T = phi.shape[1]
     has_dark = dark.shape[0] > 0
+    has_drift = drift_g.shape[0] > 0
     use_coef = coef.shape[0] > 0
     for x in range(start, stop):
         inside = True
@@ -74,6 +85,8 @@ def _lut_kernel(obs, dark, ref, lo, width, bins, filled, support, table, coef, p
             v = np.float32(obs[c, x])
             if has_dark:
                 v = v - dark[c, x]
+            if has_drift:
+                v = np.float32((np.float64(v) - drift_o[c]) * drift_g[c])
             d = np.float64(v - ref[c, x])
             t = (d - lo[c]) / width[c] * bins
             i = int(np.floor(t))
@@ -127,8 +140,10 @@ def finish_normals(nx, ny, nz, ok, apply, gain, limit, normals, mask):  # pragma
 class _Base:
     """What both models share: the frame size, the marker mask, the tilt correction."""
 
-    def __init__(self, shape, reference, tilt_gain: float, max_tilt, markers):
+    def __init__(self, shape, reference, tilt_gain: float, max_tilt, markers, drift=None, dark=None):
         self.shape = (int(shape[0]), int(shape[1]))
+        self.drift, self.dark_hwc = drift, None if dark is None else np.asarray(dark, np.float32)
+        self.last_drift = None
         self.gain = float(tilt_gain)
         self.limit = 0.999 if max_tilt is None else min(float(max_tilt), 0.999)
         self.apply_tilt = self.gain != 1.0 or max_tilt is not None  # as CalibrationModel.predict_with_confidence
@@ -144,6 +159,34 @@ class _Base:
             # Filling markers in (OpenCV inpainting) costs more than the model; the live path
             # does not do it: the eager solver does.
             raise UserError("the fast path does not fill in printed markers; use the eager solver (markers given)")
+        if drift is not None and drift.model not in ("none", "offset", "gain_offset"):
+            raise ValueError(f"{type(self).__name__}: the fast path removes a constant drift per channel; "
+                             f"{drift.model!r} varies over the image (the eager solver removes it)")
+
+    def reset_drift(self) -> None:
+        """The next frame's drift is fitted afresh (after a warm-up frame)."""
+        if self.drift is not None:
+            self.drift.reset()
+
+    def _drift_planes(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The frame's drift (gain, offset) per pattern-channel for the kernel, fitted by the
+        estimator on its sampled pixels; empty arrays without an estimator (the kernel skips it)."""
+        if self.drift is None or self.drift.model == "none":
+            return np.zeros(0), np.zeros(0)
+        d = self.drift.fit_raw(frames, self.dark_hwc)
+        self.last_drift = d
+        g, o = d.coefficients()
+        # The kernels multiply by 1 / g: within an ulp of float64 of dividing (as Drift.remove does),
+        # which the float32 result absorbs, and a division per value cost 40 % of the LUT's time.
+        return np.ascontiguousarray(1.0 / g, np.float64), np.ascontiguousarray(o, np.float64)
+
+    def _meta(self, solver: str) -> dict:
+        meta = {"solver": solver, "method": "fast"}
+        if self.last_drift is not None and self.drift is not None and self.drift.model != "none":
+            d = self.last_drift
+            meta.update({"drift": d.model, "drift_before_dn": round(d.before_dn, 3),
+                         "drift_residual_dn": round(d.residual_dn, 3)})
+        return meta
 
     def _check(self, frames) -> np.ndarray:
         f = np.asarray(frames)
@@ -188,11 +231,13 @@ class FastLUT(_Base):
         The model's output correction.
     dark : ndarray, shape (H, W, 3), optional
         Subtracted from every frame first.
+    drift : DriftEstimator, optional
+        Against ``reference``: each frame's drift removed (see the module docstring).
     """
 
     def __init__(self, lo, hi, table, filled, support, reference, *, coef=None, phi=None, tilt_gain: float = 1.0,
-                 max_tilt=None, dark=None, markers=None):
-        super().__init__(np.asarray(reference).shape[1:3], reference, tilt_gain, max_tilt, markers)
+                 max_tilt=None, dark=None, markers=None, drift=None):
+        super().__init__(np.asarray(reference).shape[1:3], reference, tilt_gain, max_tilt, markers, drift, dark)
         if (self.num_patterns, self.channels) != (1, 3):
             raise ValueError(f"FastLUT: one RGB pattern expected, the reference is {np.asarray(reference).shape}")
         H, W = self.shape
@@ -218,6 +263,7 @@ class FastLUT(_Base):
         """Normals, mask and confidence of one RGB frame ``(H, W, 3)`` or ``(1, H, W, 3)`` (integer)."""
         f = self._check(frames)
         planes = frame_planes_np(f)
+        dg, do = self._drift_planes(f)
         H, W = self.shape
         M = H * W
         normals = np.empty((M, 3), np.float32)
@@ -225,8 +271,8 @@ class FastLUT(_Base):
         conf = np.empty(M, np.float32)
         run_split(lambda a, b: _lut_kernel(planes, self.dark, self.ref, self.lo, self.width, self.bins, self.filled,
                                            self.support, self.table, self.coef, self.phi, self.apply_tilt, self.gain,
-                                           self.limit, a, b, normals, mask, conf), M, threads)
-        return self._result(normals, mask, conf, {"solver": "lut", "method": "fast"})
+                                           self.limit, dg, do, a, b, normals, mask, conf), M, threads)
+        return self._result(normals, mask, conf, self._meta("lut"))
 
 
 # Eigen's float tanh (generic_fast_tanh_float): a (13, 6) rational approximation on [-7.9, 7.9],
@@ -256,16 +302,19 @@ def _silu(v):  # pragma: no cover - compiled
 
 
 @njit(cache=True, nogil=True, error_model="numpy", fastmath=True)
-def _mlp_kernel(obs, dark, ref, inv_scale, fixed, Wd, Wh, bh, Wo, bo, start, stop, out):  # pragma: no cover  # noqa: C901 - compiled
+def _mlp_kernel(obs, dark, ref, inv_scale, fixed, Wd, Wh, bh, Wo, bo, drift_g, drift_o, start, stop, out):  # pragma: no cover  # noqa: C901 - compiled
     """Pixels ``start:stop`` (a multiple of 512) through the network, a block at a time.
 
     ``fixed (nb, K, 512)``: the first layer without the colour change; ``Wd (K, N)``: its
     colour-change columns (the feature scaling folded in); ``Wh (L, K, K)``, ``bh (L, K)``:
-    the hidden layers; ``Wo (2, K)``, ``bo (2,)``: the output layer; ``out (2, M)`` float32.
+    the hidden layers; ``Wo (2, K)``, ``bo (2,)``: the output layer; ``out (2, M)`` float32;
+    ``drift_g``, ``drift_o (N,)``: the frame's drift per pattern-channel (inverse gain, offset;
+    empty: none), as in :func:`_lut_kernel`.
     """
     N = obs.shape[0]
     K = Wd.shape[0]
     has_dark = dark.shape[0] > 0
+    has_drift = drift_g.shape[0] > 0
     h = np.zeros((K, 512), np.float32)  # columns past a short last block stay finite
     h2 = np.zeros((K, 512), np.float32)
     o2 = np.empty((2, 512), np.float32)
@@ -282,6 +331,8 @@ def _mlp_kernel(obs, dark, ref, inv_scale, fixed, Wd, Wh, bh, Wo, bo, start, sto
                 v = np.float32(o[j])
                 if has_dark:
                     v = v - dark[k, j0 + j]
+                if has_drift:
+                    v = np.float32((np.float64(v) - drift_o[k]) * drift_g[k])
                 d[k, j] = (v - rk[j]) * inv_scale
         for i in range(K):
             # Whole 512 columns (a fixed trip count vectorises; a short block's extra columns
@@ -434,12 +485,14 @@ class FastMLP(_Base):
         at degree 1, T = 2), or None without position input.
     input_scale : float
     features : str
-    tilt_gain, max_tilt, dark : as :class:`FastLUT`.
+    tilt_gain, max_tilt, dark, drift : as :class:`FastLUT`.
     """
 
     def __init__(self, members, reference, uv, *, input_scale: float = 255.0, features: str = "change+reference",
-                 tilt_gain: float = 1.0, max_tilt=None, dark=None, markers=None):
-        super().__init__(np.asarray(reference).shape[1:3], reference, tilt_gain, max_tilt, markers)
+                 tilt_gain: float = 1.0, max_tilt=None, dark=None, markers=None, drift=None):
+        super().__init__(np.asarray(reference).shape[1:3], reference, tilt_gain, max_tilt, markers, drift,
+                         None if dark is None else np.broadcast_to(np.asarray(dark, np.float32),
+                                                                   np.asarray(reference).shape[1:]))
         H, W = self.shape
         M = H * W
         N = self.num_patterns * self.channels
@@ -477,12 +530,13 @@ class FastMLP(_Base):
         """Raw network outputs ``(members, H * W, 2)`` float32 of one frame set ``(P, H, W, C)``."""
         f = self._check(frames)
         planes = frame_planes_np(f)
+        dg, do = self._drift_planes(f)
         M = self.shape[0] * self.shape[1]
         outs = np.empty((len(self.members), 2, M), np.float32)  # planes: contiguous stores
         for m, (fixed, Wd, Wh, bh, Wo, bo) in enumerate(self.members):
             o = outs[m]
             run_split(lambda a, b: _mlp_kernel(planes, self.dark, self.ref, self.inv_scale, fixed, Wd, Wh, bh, Wo, bo,
-                                               a, b, o), M, threads)
+                                               dg, do, a, b, o), M, threads)
         return outs.transpose(0, 2, 1)
 
     def solve(self, frames, threads: int = 1):
@@ -497,4 +551,4 @@ class FastMLP(_Base):
         run_split(lambda a, b: _mlp_finish(outs, self.apply_tilt, self.gain, self.limit, a, b, planes, mask, conf),
                   M, threads)
         # (M, 3) view of the planes (FastDST reads them back without a split).
-        return self._result(planes.T, mask, conf, {"solver": "mlp", "method": "fast"})
+        return self._result(planes.T, mask, conf, self._meta("mlp"))

@@ -8,7 +8,19 @@ through its per-frame solver, eager or fast) prepares frames in one way, held by
                                                                      (unless the solver        (gathered once;
                                                                       fills them itself)        whole-frame solvers:
                                                                                                  restricted after)
+               ─► illumination drift removed (each frame set's, against the no-contact reference)
     solver ─► results ─► scattered back to the frame ─► marker pixels invalid (a filled-in value is a guess)
+
+Illumination drift (``drift``, :mod:`pipeline.normals.drift`): LEDs warm up, exposure wanders,
+and a no-contact reference taken minutes (or a calibration taken days) before the frames no
+longer matches their lighting. Where the solver keys on that reference (a calibration's model:
+the LUT and the MLP take the colour change against it; the ratio to the reference), each frame
+set's drift against it (per pattern-channel gain and offset, :data:`~pipeline.normals.drift.AUTO_DRIFT`)
+is fitted on a fixed sample of the pixels, trimmed so that the contact drops out, and removed
+(:meth:`FramePrep.use_drift`, called by :class:`pipeline.normals.solve.FrameSolver` once the
+reference is known; ``drift="none"`` turns it off, a model name asks for it anywhere a reference
+exists). The live fast paths fit the same drift from the same pixels and apply it inside their
+kernels.
 
 Whether a solver fills markers itself, or reads whole frames, is a fact of its registry entry
 (``info["fills_markers"]``, ``info["whole_frame"]`` in :data:`pipeline.base.registry.SOLVERS`).
@@ -27,6 +39,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from pipeline.base.errors import UserError
+from pipeline.normals.drift import SAMPLES, DriftEstimator, resolve_drift
 
 __all__ = ["FramePrep", "fill_markers", "check_marker_mask", "full_scale"]
 
@@ -138,6 +151,16 @@ class FramePrep:
         Raw value at full scale (:func:`full_scale`); such observations are flagged.
     name : str
         Who the frames are (a capture file): errors start with it.
+    drift : str
+        The illumination drift to remove: ``auto`` (where the solver keys on the reference),
+        ``none`` or a model of :data:`pipeline.normals.drift.DRIFT_MODELS`; resolved, against a
+        reference, by :meth:`use_drift`.
+    drift_samples : int
+        Pixels each frame set's drift is fitted on (:data:`pipeline.normals.drift.SAMPLES`; live
+        uses fewer, :data:`~pipeline.normals.drift.LIVE_SAMPLES`).
+    drift_every : int
+        Fit the drift on every N-th frame set, reuse it in between (1: every one; live:
+        :data:`~pipeline.normals.drift.LIVE_REFIT_EVERY`).
 
     Examples
     --------
@@ -155,7 +178,14 @@ class FramePrep:
     whole_frame: bool = False
     saturation: float | None = None
     name: str = "frames"
+    drift: str = "none"
+    drift_samples: int = SAMPLES
+    drift_every: int = 1
     pixels: object = field(init=False, default=None)
+    #: The drift estimator against the reference (:meth:`use_drift`), None: no drift removed.
+    estimator: object = field(init=False, default=None)
+    #: The drifts fitted by the last :meth:`frames` call, one per frame set.
+    drifts: list = field(init=False, default_factory=list)
 
     def __post_init__(self):
         self.shape = (int(self.shape[0]), int(self.shape[1]))
@@ -171,6 +201,51 @@ class FramePrep:
             from pipeline.normals.masking import PixelMask
 
             self.pixels = PixelMask(self.region, self.shape, f"{self.name}: mask")
+
+    @property
+    def drift_model(self) -> str:
+        """The drift model removed (``none`` until :meth:`use_drift` resolved one)."""
+        return "none" if self.estimator is None else self.estimator.model
+
+    def use_drift(self, reference, *, applies: bool, linear: bool = False) -> str:
+        """Resolve :attr:`drift` against ``reference (P, H, W, C)`` (raw, or ``linear``: dark level
+        already removed; None: none exists) and, unless that is ``none``, fit each later frame
+        set's drift against it and remove it (:class:`pipeline.normals.drift.DriftEstimator`; the
+        pixels never fitted: markers, and those outside the region). ``applies``: the solver keys
+        on the reference (what ``auto`` asks). Returns the model.
+
+        Examples
+        --------
+        >>> prep = FramePrep((20, 30), drift="auto")
+        >>> ref = np.tile(np.linspace(40, 200, 30, dtype=np.float32)[None, None, :, None], (1, 20, 1, 3))
+        >>> prep.use_drift(ref, applies=True)
+        'gain_offset'
+        >>> frames, _ = prep.frames((0.8 * ref + 9)[None])   # 20 % darker, 9 DN up
+        >>> round(float(prep.drifts[0].gain[0, 0, 0]), 2), float(np.abs(frames[0] - ref).max()) < 0.5
+        (0.8, True)
+        """
+        model = resolve_drift(self.drift, applies=applies, has_reference=reference is not None, where=self.name)
+        self.estimator = None
+        if model == "none":
+            return model
+        ref = np.asarray(reference).astype(np.float32)
+        if ref.ndim != 4 or ref.shape[1:3] != self.shape:
+            raise UserError(f"{self.name}: the no-contact reference has shape {ref.shape}, expected (P, H, W, C) with "
+                            f"(H, W) = {self.shape} like the frames")
+        if not linear and self.dark is not None:
+            ref = ref - np.asarray(self.dark).astype(np.float32)
+        exclude = None if self.markers is None else self.markers.copy()
+        if self.region is not None:
+            outside = ~np.asarray(self.region, bool)
+            exclude = outside if exclude is None else exclude | outside
+        self.estimator = DriftEstimator(ref, exclude, model=model, max_samples=self.drift_samples,
+                                        refit_every=self.drift_every)
+        return model
+
+    def reset_drift(self) -> None:
+        """Start the drift fits over (the next frame set is fitted): after a warm-up frame."""
+        if self.estimator is not None:
+            self.estimator.reset()
 
     @property
     def fills_here(self) -> bool:
@@ -190,13 +265,31 @@ class FramePrep:
         observations (bool, same shape) or None). Gathered frames have ``(1, M)`` for ``(H, W)``."""
         early = self.pixels is not None and not self.fills_here
         dark = self.dark
+        full_raw = raw
         if early:
             raw, dark = self._gather(raw), self._gather(dark)
         saturated = (raw >= self.saturation) if self.saturation is not None else None
         out = self._linear(raw, dark)
         if self.pixels is not None and not early:
             out, saturated = self._gather(out), self._gather(saturated)
+        if self.estimator is not None:
+            out = self._without_drift(np.asarray(full_raw), out)
         return out, saturated
+
+    def _without_drift(self, raw: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """Each frame set's drift fitted on the raw frames' sampled pixels and removed from the
+        prepared ``out`` (full or gathered)."""
+        lead = raw.shape[:-4]
+        rf = raw.reshape((-1,) + raw.shape[-4:])
+        of = out.reshape((-1,) + out.shape[-4:])
+        gather = None if self.pixels is None else self._gather
+        res = np.empty(of.shape, np.float32)
+        self.drifts = []
+        for k in range(len(rf)):
+            d = self.estimator.fit_raw(rf[k], self.dark)
+            res[k] = d.remove_from(of[k], gather, self.shape)
+            self.drifts.append(d)
+        return res.reshape(lead + out.shape[-4:]) if lead else res[0]
 
     def reference(self, ref) -> np.ndarray | None:
         """A no-contact reference ``(P, H, W, C)`` prepared like the frames (None stays None)."""
@@ -231,6 +324,10 @@ class FramePrep:
 
             pm = PixelMask(self.region, self.shape, f"{self.name}: mask")
             results = [pm.restrict(r) for r in results]
+        if self.estimator is not None:
+            for r, d in zip(results, self.drifts):
+                r.meta.update({"drift": d.model, "drift_before_dn": round(d.before_dn, 3),
+                               "drift_residual_dn": round(d.residual_dn, 3)})
         if self.markers is not None:
             for r in results:  # a filled-in value is a guess, not a measurement
                 r.mask = r.mask & ~self.markers

@@ -42,7 +42,8 @@ from pipeline.base.registry import SOLVERS
 from pipeline.normals.lights import LightSource, check_lights
 from pipeline.normals.prepare import FramePrep, full_scale
 
-__all__ = ["FrameSolver", "solve_capture", "stack_lstsq", "stack_nearfield", "stack_robust", "stack_cauchy"]
+__all__ = ["FrameSolver", "solve_capture", "stored_reference", "stack_lstsq", "stack_nearfield", "stack_robust",
+           "stack_cauchy"]
 
 
 class FrameSolver:
@@ -63,6 +64,11 @@ class FrameSolver:
     ratio, max_condition, device, dtype, compile
         As in :func:`solve_capture`.
 
+    The frames' illumination drift (``prep.drift``, :meth:`~pipeline.normals.prepare.FramePrep.use_drift`)
+    is taken against ``reference``, else against the one the solver's model stores (the LUT and
+    the MLP keep their calibration's); ``auto`` removes it where the solver keys on the reference
+    (registry fact ``info["keys_on_reference"]``, or ``ratio``).
+
     Examples
     --------
     >>> L = np.array([[[0, 0, 1.0]], [[0.6, 0, 0.8]], [[0, 0.6, 0.8]]])  # (P, C, 3)
@@ -79,6 +85,11 @@ class FrameSolver:
         self.prep = prep
         self.lights = prep.lights(lights)
         self.reference = prep.reference(reference)
+        applies = bool(SOLVERS.get(self.solver).info.get("keys_on_reference")) or bool(ratio)
+        if reference is not None:
+            prep.use_drift(reference, applies=applies)
+        else:
+            prep.use_drift(stored_reference(lights, self.solver), applies=applies, linear=True)
         self.options = dict(ratio=bool(ratio), max_condition=float(max_condition), device=device, dtype=dtype,
                             compile=bool(compile),
                             dark_threshold=0.01 * prep.saturation if prep.saturation is not None else 0.0)
@@ -96,6 +107,10 @@ class FrameSolver:
         return FramePrep(shape, fills_markers=bool(info.get("fills_markers")), whole_frame=bool(info.get("whole_frame")),
                          saturation=saturation, **kw)
 
+    def reset_drift(self) -> None:
+        """The next frame's drift is fitted afresh (:meth:`~pipeline.normals.prepare.FramePrep.reset_drift`)."""
+        self.prep.reset_drift()
+
     def solve_stack(self, raw, threads: int | None = 1) -> list:
         """Raw frames ``(K, P, H, W, C)`` -> one :class:`~pipeline.normals.result.NormalResult`
         per contact instance, with ``threads`` torch threads (None: torch's setting)."""
@@ -111,6 +126,14 @@ class FrameSolver:
         """One frame set ``(P, H, W, C)`` (or ``(H, W, C)``) -> its NormalResult."""
         f = np.asarray(frames)
         return self.solve_stack(f[None] if f.ndim == 4 else f[None, None], threads)[0]
+
+
+def stored_reference(lights: LightSource, solver: str) -> np.ndarray | None:
+    """The no-contact reference ``(P, H, W, C)`` (linear) the solver's calibration model stores
+    (the LUT's and the MLP's: what they key on without a capture's own), else None."""
+    model = (lights.models or {}).get(solver)
+    ref = model.stored_reference() if model is not None and hasattr(model, "stored_reference") else None
+    return None if ref is None else np.asarray(ref, np.float32)
 
 
 def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", reference=None, saturated=None,

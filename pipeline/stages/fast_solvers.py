@@ -17,6 +17,12 @@ references, ``tests/pipeline/normals/test_fast_paths.py``):
   per-bin position correction and tilt gain;
 - ``mlp``: :class:`pipeline.normals.fast_models.FastMLP` from the calibration's network.
 
+The LUT's and the MLP's fast paths also remove each frame's illumination drift against the
+reference they key on (``drift``, :meth:`pipeline.normals.prepare.FramePrep.use_drift`: the
+same estimator, the same sampled pixels as the eager path, applied inside the kernel). A drift
+that varies over the image (``field``), or one asked for by name of a solver that does not key
+on the reference, runs the eager path.
+
 They live in the stage layer because the table and the network are calibration objects.
 """
 
@@ -65,11 +71,24 @@ def _model(lights, name: str):
     return model
 
 
-def _reference(model, reference):
-    ref = reference if reference is not None else model.stored_reference()
-    if ref is None:
-        raise UserError(f"the '{model.name}' model needs a no-contact reference frame")
-    return np.asarray(ref, np.float32)
+def _reference(model, reference, prep):
+    """The linear no-contact frames the model keys on: the raw ``reference`` minus the dark level
+    (as :meth:`pipeline.normals.prepare.FramePrep.reference` prepares it for the eager path), else
+    the model's own."""
+    if reference is None:
+        ref = model.stored_reference()
+        if ref is None:
+            raise UserError(f"the '{model.name}' model needs a no-contact reference frame")
+        return np.asarray(ref, np.float32)
+    ref = np.asarray(reference).astype(np.float32)
+    return ref if prep.dark is None else ref - np.asarray(prep.dark).astype(np.float32)
+
+
+def _drift(prep, solver: str, ref: np.ndarray):
+    """The drift estimator against ``ref`` (the reference the kernel keys on) that ``prep.drift``
+    resolves to for ``solver`` (:meth:`~pipeline.normals.prepare.FramePrep.use_drift`), or None."""
+    prep.use_drift(ref, applies=bool(SOLVERS.get(solver).info.get("keys_on_reference")), linear=True)
+    return prep.estimator
 
 
 def fast_lut(lights, prep, *, reference=None, **_):
@@ -84,8 +103,9 @@ def fast_lut(lights, prep, *, reference=None, **_):
     if model.position_coef is not None:
         rows, cols = (a.ravel() for a in np.mgrid[:H, :W])
         coef, phi = model.position_coef, poly_terms(rows, cols, (H, W), model.position_degree)
-    return FastLUT(t.lo, t.hi, t.table, t.filled, t.support, _reference(model, reference), coef=coef, phi=phi,
-                   tilt_gain=model.tilt_gain, max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers)
+    ref = _reference(model, reference, prep)
+    return FastLUT(t.lo, t.hi, t.table, t.filled, t.support, ref, coef=coef, phi=phi, tilt_gain=model.tilt_gain,
+                   max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers, drift=_drift(prep, "lut", ref))
 
 
 def fast_mlp(lights, prep, *, reference=None, **_):
@@ -103,12 +123,14 @@ def fast_mlp(lights, prep, *, reference=None, **_):
     if model.position:
         rows, cols = (a.ravel() for a in np.mgrid[:H, :W])
         uv = poly_terms(rows, cols, (H, W), model.position_degree)[:, 1:]
-    return FastMLP(members, _reference(model, reference), uv, input_scale=model.input_scale, features=model.features,
-                   tilt_gain=model.tilt_gain, max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers)
+    ref = _reference(model, reference, prep)
+    return FastMLP(members, ref, uv, input_scale=model.input_scale, features=model.features,
+                   tilt_gain=model.tilt_gain, max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers,
+                   drift=_drift(prep, "mlp", ref))
 
 
 def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=None, dark=None, markers=None,
-                 max_condition: float = 1e3, region=None, fast: bool = True) -> Any:
+                 max_condition: float = 1e3, region=None, fast: bool = True, drift: str = "auto") -> Any:
     """The per-frame solver of ``solver`` for frames of ``shape`` (H, W).
 
     Parameters
@@ -120,7 +142,8 @@ def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=Non
     shape : (H, W)
     channels : int
     reference : ndarray, shape (P, H, W, C), optional
-        No-contact frames (the calibration models key on the change against them).
+        Raw no-contact frames, the dark level not removed (the calibration models key on the
+        change against them); None: the model's own.
     dark : ndarray, shape (H, W, C), optional
     markers : ndarray, shape (H, W), bool, optional
         Printed gel markers. Filling them in is the eager path's (the fast paths do not):
@@ -131,15 +154,25 @@ def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=Non
         pixel and mark the rest invalid).
     fast : bool
         False: always the eager solver.
+    drift : str
+        The illumination drift removed from each frame (``auto``: against the reference the
+        solver keys on, for the LUT and the MLP; :meth:`pipeline.normals.prepare.FramePrep.use_drift`),
+        fitted on :data:`pipeline.normals.drift.LIVE_SAMPLES` pixels of every
+        :data:`~pipeline.normals.drift.LIVE_REFIT_EVERY`-th frame (fast and eager alike;
+        ``reset_drift()`` fits the next frame).
 
     Returns
     -------
     object with ``solve(frames, threads=1) -> NormalResult`` and ``method`` (``fast``/``eager``).
     """
+    from pipeline.normals.drift import LIVE_REFIT_EVERY, LIVE_SAMPLES
     from pipeline.normals.solve import FrameSolver
 
-    prep = FrameSolver.prep_for(solver, shape, dark=dark, markers=markers, region=region, name="live")
-    build = SOLVERS.fast(solver) if fast and markers is None else None
+    prep = FrameSolver.prep_for(solver, shape, dark=dark, markers=markers, region=region, name="live", drift=drift,
+                                drift_samples=LIVE_SAMPLES, drift_every=LIVE_REFIT_EVERY)
+    keys = bool(SOLVERS.get(solver).info.get("keys_on_reference"))
+    fast_drift = drift in ("auto", "none") or (keys and drift in ("offset", "gain_offset"))
+    build = SOLVERS.fast(solver) if fast and markers is None and fast_drift else None
     if build is not None:
         out = build(lights, prep, channels=channels, reference=reference, max_condition=max_condition)
         out.method = "fast"

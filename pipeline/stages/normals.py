@@ -1,8 +1,11 @@
 """Stage 4, normals: per-pixel normals, albedo, residual, condition and mask of every contact instance.
 
 Parameters that change the result, and so enter the key: the solver
-(:data:`pipeline.base.registry.SOLVERS`), ``ratio``, ``max_condition``, the float type and
-where the lights come from (``calibration``, ``illumination`` or the ``capture`` itself).
+(:data:`pipeline.base.registry.SOLVERS`), ``ratio``, ``max_condition``, the float type,
+where the lights come from (``calibration``, ``illumination`` or the ``capture`` itself) and
+``drift``, the illumination drift removed before the solve (``auto``: a per-channel gain and
+offset against the no-contact reference where the solver keys on it, :mod:`pipeline.normals.drift`;
+what ``auto`` resolves to follows from the solver and the inputs, so the setting itself is keyed).
 Inputs: the capture's identity and the light file's
 (:func:`pipeline.stages.base.record_key`). The device, the thread count and ``compile`` do
 not change the result and stay out of the key.
@@ -50,12 +53,14 @@ from pipeline.normals.lights import LightSource
 from pipeline.stages.base import StageSpec, record_key
 
 __all__ = ["SPEC", "load_lights", "capture_lights", "capture_region", "reference_frames", "marker_mask", "params",
-           "resolve", "compute", "run", "node"]
+           "check_drift", "resolve", "compute", "run", "node"]
 
 # 2: only the capture's (or user's) mask is solved; 3: the lut solver applies the calibrated model
-# (per-bin position correction, tilt gain), markers are filled in, confidence and filled are written.
-SPEC = StageSpec("normals", version=3, schema="normals",
-                 defaults={"solver": "lstsq", "ratio": False, "max_condition": 1e3, "dtype": "float32"})
+# (per-bin position correction, tilt gain), markers are filled in, confidence and filled are written;
+# 4: illumination drift against the reference removed first (``drift``, default ``auto``).
+SPEC = StageSpec("normals", version=4, schema="normals",
+                 defaults={"solver": "lstsq", "ratio": False, "max_condition": 1e3, "dtype": "float32",
+                           "drift": "auto"})
 
 
 def _check_shape(arr, want: tuple, path, name: str) -> np.ndarray:
@@ -253,7 +258,7 @@ def reference_frames(cap) -> np.ndarray | None:
 
 def params(section: Mapping[str, Any]) -> dict:
     """The key parameters of a normals section: ``solver``, ``ratio``, ``max_condition``,
-    ``dtype`` (defaults :data:`SPEC`'s) and ``lights`` (``calibration``, ``illumination`` or
+    ``dtype``, ``drift`` (defaults :data:`SPEC`'s) and ``lights`` (``calibration``, ``illumination`` or
     ``capture``); ``mask``, a user's region (the capture's own is part of the capture's
     identity), enters as its digest, and so does the marker mask filled in (``markers``,
     :func:`marker_mask`).
@@ -265,13 +270,24 @@ def params(section: Mapping[str, Any]) -> dict:
     """
     s = {**SPEC.defaults, **section}
     p = {"solver": SOLVERS.check(s["solver"]), "ratio": bool(s["ratio"]), "max_condition": float(s["max_condition"]),
-         "dtype": str(s["dtype"]), "lights": str(s["lights"])}
+         "dtype": str(s["dtype"]), "lights": str(s["lights"]), "drift": check_drift(s["drift"])}
     for name in ("mask", "markers"):
         if s.get(name) is not None:
             from pipeline.base.hashing import digest
 
             p[name] = digest(np.asarray(s[name], bool))
     return p
+
+
+def check_drift(drift) -> str:
+    """``drift`` if it is one of :data:`pipeline.normals.drift.DRIFT_CHOICES`, else a UserError
+    naming the choices (None is ``auto``)."""
+    from pipeline.normals.drift import DRIFT_CHOICES
+
+    d = "auto" if drift is None else str(drift)
+    if d not in DRIFT_CHOICES:
+        raise UserError(f"--drift must be one of {', '.join(DRIFT_CHOICES)}, got {d!r}")
+    return d
 
 
 def resolve(section: dict, config: Mapping[str, Any], base: Path, source: str) -> None:
@@ -286,7 +302,7 @@ def _stack(results, name: str) -> np.ndarray:
 
 def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3,
             device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False, mask=None, markers=None,
-            batched: bool | None = None):
+            batched: bool | None = None, drift: str = "auto"):
     """The ``normals`` :class:`~pipeline.base.store.Record` of a capture (no caching).
 
     Parameters
@@ -316,6 +332,13 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         (:class:`pipeline.normals.batched.NearFieldBatched`, no host round trip inside the
         batch). None: when ``device`` is not the CPU. Equal to the per-instance solver to float
         rounding, so it stays out of the key like the device.
+    drift : str
+        The illumination drift removed before the solve (:meth:`pipeline.normals.prepare.FramePrep.use_drift`):
+        ``auto`` (default: :data:`pipeline.normals.drift.AUTO_DRIFT` where the solver keys on the
+        no-contact reference, which the calibration models and ``ratio`` do, and one exists:
+        the capture's, else the model's), ``none``, or a model of
+        :data:`pipeline.normals.drift.DRIFT_MODELS`. The batch and GPU paths take no drift: with
+        one asked for by name the eager path runs.
 
     Returns
     -------
@@ -327,12 +350,15 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
     from pipeline.normals.solve import FrameSolver
 
     raw, region, reference = cap.data["frames"], capture_region(cap, mask), reference_frames(cap)
+    drift = check_drift(drift)
+    plain = drift == "none" or (drift == "auto" and not SOLVERS.get(solver).info.get("keys_on_reference"))
     if batched is None:
         batched = str(device) != "cpu"
     if (batched and solver == "nearfield" and not ratio and region is None and markers is None
-            and lights.field is not None and str(dtype) == "float32"):
+            and lights.field is not None and str(dtype) == "float32" and plain):
         return _compute_batched(cap, lights, max_condition=max_condition, device=device)
-    if threads != 1 and str(device) == "cpu" and str(dtype) == "float32" and not ratio and markers is None:
+    if (threads != 1 and str(device) == "cpu" and str(dtype) == "float32" and not ratio and markers is None
+            and plain):
         res = _solve_fast_batch(cap, lights, solver=solver, max_condition=max_condition, region=region,
                                 threads=threads)
         if res is not None:
@@ -340,7 +366,7 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
                            markers=None)
     prep = FrameSolver.prep_for(solver, raw.shape[2:4], raw_dtype=raw.dtype, bit_depth=cap.meta.get("bit_depth"),
                                 dark=cap.data.get("dark"), markers=markers, region=region,
-                                name=str(cap.path or "capture"))
+                                name=str(cap.path or "capture"), drift=drift)
     res = FrameSolver(solver, lights, prep, reference=reference, ratio=ratio, max_condition=max_condition,
                       device=device, dtype=dtype, compile=compile).solve_stack(raw, threads)
     return _record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, region=region,
@@ -366,8 +392,19 @@ def _record(res: list, cap, lights: LightSource, *, solver: str, ratio: bool, ma
         meta["region_pixels"] = int(region.sum())
     if markers is not None:
         meta["markers"] = int(markers.sum())
+    meta.update(_drift_meta(res))
     meta.update({k: v for k, v in res[0].meta.items() if k not in meta and isinstance(v, (str, int, float))})
     return Record("normals", data, meta)
+
+
+def _drift_meta(res: list) -> dict:
+    """``drift`` (the model removed, ``none`` if none) and, when one was, the median over the
+    instances of the drift before and after removal (RMS DN of the fitted pixels)."""
+    if not res or any("drift" not in r.meta for r in res):
+        return {"drift": "none"}
+    return {"drift": str(res[0].meta["drift"]),
+            "drift_before_dn": float(np.median([r.meta["drift_before_dn"] for r in res])),
+            "drift_residual_dn": float(np.median([r.meta["drift_residual_dn"] for r in res]))}
 
 
 def _solve_fast_batch(cap, lights: LightSource, *, solver: str, max_condition: float, region, threads):
@@ -410,16 +447,16 @@ def _compute_batched(cap, lights: LightSource, *, max_condition: float, device):
 
 def run(store, cap, cap_key, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False,
         max_condition: float = 1e3, device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False,
-        force: bool = False, heal: bool = True, mask=None, markers=None):
+        force: bool = False, heal: bool = True, mask=None, markers=None, drift: str = "auto"):
     """``(record, key, cached)`` of the normals of ``cap`` (identified by ``cap_key``) through
     ``store``; ``mask``: a user's region (an array, see :func:`capture_region`) instead of the
-    capture's; ``markers``: the marker mask to fill in (:func:`marker_mask`)."""
+    capture's; ``markers``: the marker mask to fill in (:func:`marker_mask`); ``drift``: as :func:`compute`."""
     p = params({"solver": solver, "ratio": ratio, "max_condition": max_condition, "dtype": dtype,
-                "lights": lights.source.split(":")[0], "mask": mask, "markers": markers})
+                "lights": lights.source.split(":")[0], "mask": mask, "markers": markers, "drift": drift})
     return SPEC.get_or_compute(
         store, p, [cap_key, lights.key],
         lambda: compute(cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, device=device,
-                        dtype=dtype, threads=threads, compile=compile, mask=mask, markers=markers),
+                        dtype=dtype, threads=threads, compile=compile, mask=mask, markers=markers, drift=drift),
         force=force, heal=heal)
 
 
@@ -438,8 +475,9 @@ def node(config: Mapping[str, Any], ctx):
         ill = inputs.get("synthesize") if p["lights"] == "illumination" else None
         lights = capture_lights(inputs["capture"], cal, ill)
         return compute(inputs["capture"], lights, solver=p["solver"], ratio=bool(p["ratio"]),
-                       max_condition=float(p["max_condition"]), device=ctx.device, dtype=p["dtype"])
+                       max_condition=float(p["max_condition"]), device=ctx.device, dtype=p["dtype"],
+                       drift=p.get("drift", "auto"))
 
     return Stage(SPEC.name, SPEC.version, params({k: p[k] for k in ("solver", "ratio", "max_condition", "dtype",
-                                                                     "lights")}),
+                                                                     "lights", "drift") if k in p}),
                  ["capture", light_stage], compute_node, schema=SPEC.schema)

@@ -117,8 +117,8 @@ def test_a_reference_built_from_the_presses():
     """No clean frame: the reference built from the presses (contacts masked) is the true one up to a
     per-channel gain and offset (the presses' typical drift, which every press's own drift removal
     takes out again) within a few DN."""
-    from calibration.drift import fit_drift
     from calibration.reference import build_reference
+    from pipeline.normals.drift import fit_drift
 
     sensor = random_sensor(2, shape=(120, 160), num_presses=10, effects=["read_noise", "drift_offset"],
                            border_fraction=0.0)

@@ -164,8 +164,8 @@ def test_drifted_presses_calibrate_as_well_as_the_originals(capture, split):
     gain up to +-15 %, offset up to +-30 DN. Drift removal leaves the accepted presses and the error on
     presses the calibration never saw within 1 deg of the undrifted run (the near-field model: cheap;
     the MLP's figures are in iristac bench calibration --sensors)."""
-    from calibration.drift import drifted_capture
     from calibration.split import split_evaluation
+    from pipeline.normals.drift import drifted_capture
 
     drifted = drifted_capture(capture, seed=0)
     assert np.abs(drifted.frames.astype(float) - capture.frames).mean() > 10

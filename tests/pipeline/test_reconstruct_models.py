@@ -64,7 +64,7 @@ def test_every_model_reconstructs_real_frames_as_the_model_predicts(real_split, 
     from pipeline.base.capture import read_capture
 
     cal, test_path, *_ = real_split
-    summary, n_rec, d_rec = _reconstruct(test_path, cal, solver, tmp_path)
+    summary, n_rec, d_rec = _reconstruct(test_path, cal, solver, tmp_path, "--drift", "none")
     cap = read_capture(test_path)
     frames, ref = cap.linear()
     maps = load_models(cal)[solver].normal_maps(frames, ref)
@@ -75,13 +75,25 @@ def test_every_model_reconstructs_real_frames_as_the_model_predicts(real_split, 
     assert 0.5 < summary["valid_fraction"] <= 1.0
     # Presses are bumps toward the camera: the depth at each press's peak is positive.
     assert (d_rec.data["height"].reshape(3, -1).max(axis=1) > 0.05).all()
+    # By default each press's drift against the reference (fitted on the whole frame, trimmed) is
+    # removed first: the model's prediction for the frames so corrected.
+    from pipeline.normals.drift import fit_drift
+    from pipeline.reconstruct import reconstruct
+
+    res = reconstruct(test_path, calibration=cal, solver=solver, store=tmp_path / "auto", images=False)
+    fixed = np.stack([fit_drift(f, ref).remove(f) for f in frames])
+    maps = load_models(cal)[solver].normal_maps(fixed, ref)
+    assert res.summary["drift"] == res.normals.meta["drift"] == "gain_offset"
+    np.testing.assert_array_equal(res.normals.data["mask"], maps.mask)
+    np.testing.assert_allclose(res.normals.data["normals"], maps.normals, atol=1e-6)
 
 
 @needs_data
 def test_lut_reconstruct_equals_eval_calibration_ball_fit(real_split, tmp_path):
     """One code path: the heights ``eval calibration`` fits a ball to come from the same normals
     ``reconstruct --solver lut`` writes (the calibrated table with its position correction).
-    ``eval`` removes each press's illumination drift first; without that step the frames are the same."""
+    ``eval`` removes each press's illumination drift first (fitted outside its circle), ``reconstruct`` too
+    (fitted on the whole frame, trimmed); with both off the frames are the same."""
     from calibration.ballfit import ball_fit
     from calibration.detect import DetectOptions
     from calibration.evaluate import evaluate_calibration
@@ -89,7 +101,7 @@ def test_lut_reconstruct_equals_eval_calibration_ball_fit(real_split, tmp_path):
     from pipeline.base.capture import read_capture
 
     cal, test_path, *_ = real_split
-    _, n_rec, _ = _reconstruct(test_path, cal, "lut", tmp_path)
+    _, n_rec, _ = _reconstruct(test_path, cal, "lut", tmp_path, "--drift", "none")
     ev = evaluate_calibration(cal, test_path, 2.0, models=["lut"], refine_iterations=0, folds=2,
                               detect_options=DetectOptions(drift="none"))
     cap = read_capture(test_path)
@@ -117,7 +129,7 @@ def test_markers_are_filled_masked_and_integrated_through(real_split, tmp_path):
     from pipeline.base.capture import read_capture
 
     cal, _, marked_path, png, mask = real_split
-    s, n_rec, d_rec = _reconstruct(marked_path, cal, "mlp", tmp_path / "png", "--markers", png)
+    s, n_rec, d_rec = _reconstruct(marked_path, cal, "mlp", tmp_path / "png", "--markers", png, "--drift", "none")
     assert s["markers"] == int(mask.sum()) > 50
     np.testing.assert_array_equal(n_rec.data["filled"], mask)
     assert not n_rec.data["mask"][:, mask].any()

@@ -151,13 +151,14 @@ def video_and_calibration(tmp_path_factory, store):
 
 def test_live_video_file_ends_recording_closed_and_valid(video_and_calibration, tmp_path):
     """The camera runs out mid-stream (a video file ends): one clear message, the recording is
-    closed, consolidated and valid, and holds every frame."""
+    closed, consolidated and valid, and holds every frame and (``--contact``) its contact mask,
+    taken against the calibration's no-contact frame with the drift removed."""
     from pipeline.live.recorder import read_recording
 
     video, cal, frames = video_and_calibration
     rec = tmp_path / "rec.h5"
     r = run_cli("live", "--camera", video, "--calibration", cal, "--solver", "lut", "--record", rec, "--json",
-                "--queue", "64")
+                "--queue", "64", "--contact")
     assert r.returncode == 0, r.stderr  # no --frames asked: the end of the file is the end of the run
     assert "end of the video file" in r.stderr and "Traceback" not in r.stderr
     s = json.loads(r.stdout)
@@ -168,6 +169,10 @@ def test_live_video_file_ends_recording_closed_and_valid(video_and_calibration, 
     assert got.data["normals"].shape == (len(frames), 60, 80, 3) and np.isfinite(got.data["height"]).all()
     assert (np.diff(got.data["timestamp"]) > 0).all()
     assert not Path(str(rec) + ".parts").exists()
+    contact = got.data["contact"]
+    assert contact.shape == (len(frames), 60, 80) and contact.dtype == bool and got.meta["drift"] == s["drift"]
+    assert s["drift"] == "gain_offset" and s["contact_fraction"] == pytest.approx(contact.mean(), abs=1e-4)
+    assert 0.005 < s["contact_fraction"] < 0.3 and all(m.any() for m in contact)
     # Asking for more results than the file has: the same message, exit status 1.
     r = run_cli("live", "--camera", video, "--calibration", cal, "--solver", "lut", "--frames", "50")
     assert r.returncode == 1 and "end of the video file" in r.stderr

@@ -130,7 +130,7 @@ KEY_CASES = {
                      noise_dn=2.0, target_dn=150.0, seed=4)),
     "normals": (dict(solver="lstsq", ratio=False, max_condition=1e3, dtype="float32", lights="illumination"),
                 dict(solver="robust", ratio=True, max_condition=100.0, dtype="float64", lights="calibration",
-                     mask=np.eye(3, dtype=bool), markers=np.eye(3, dtype=bool))),
+                     mask=np.eye(3, dtype=bool), markers=np.eye(3, dtype=bool), drift="none")),
     "depth": (dict(integrator="dst", mm_per_px=0.1), dict(integrator="sparse", mm_per_px=0.2)),
 }
 
