@@ -238,9 +238,11 @@ def _lstsq_batched(A: np.ndarray, y: np.ndarray, w: np.ndarray, ridge: np.ndarra
                    prior: np.ndarray | None = None) -> np.ndarray:
     """Per system m: least squares of ``A[m] (N, K) x = y[m]`` over the rows where ``w[m]``, plus
     ``ridge[m] * |x - prior|^2`` on the coefficients where ``prior`` is not NaN."""
-    Aw = A * w[..., None]
-    G = np.einsum("mnk,mnl->mkl", Aw, A)
-    b = np.einsum("mnk,mn->mk", Aw, y)
+    # Batched matmuls, not einsum: BLAS per system, about 10x faster at these sizes (einsum
+    # without a contraction path loops in C); the same sums to rounding (1e-15 relative).
+    Awt = (A * w[..., None]).transpose(0, 2, 1)
+    G = Awt @ A
+    b = (Awt @ y[..., None])[..., 0]
     k = A.shape[2]
     if ridge is not None and prior is not None:
         on = np.isfinite(prior).astype(np.float64)
@@ -449,7 +451,7 @@ class DriftEstimator:
             ridge = None if prior is None else \
                 keep.sum(axis=1) * (GAIN_PIVOT * np.abs((x * keep).sum(axis=1)) / np.maximum(keep.sum(axis=1), 1)) ** 2
             coef = _lstsq_batched(A, target, keep.astype(np.float64), ridge, prior)
-            res = target - np.einsum("mnk,mk->mn", A, coef)
+            res = target - (A @ coef[..., None])[..., 0]
             dev = np.abs(res - np.median(res, axis=1, keepdims=True))
             sig = 1.4826 * np.median(dev, axis=1, keepdims=True)
             keep = dev <= self.trim * np.maximum(sig, floor)
