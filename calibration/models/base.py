@@ -61,15 +61,16 @@ def solve_normals(obs: np.ndarray, lights: np.ndarray, shadow_iterations: int = 
     ok = np.zeros(len(obs), dtype=bool)
     for it in range(shadow_iterations + 1):
         Lw = lights * use[..., None]
-        A = np.einsum("nmi,nmj->nij", Lw, Lw)
-        rhs = np.einsum("nmi,nm->ni", Lw, obs)
+        Lwt = Lw.transpose(0, 2, 1)  # batched matmuls: BLAS per pixel system, far faster than einsum here
+        A = Lwt @ Lw
+        rhs = (Lwt @ obs[..., None])[..., 0]
         ev = np.linalg.eigvalsh(A)
         ok = (use.sum(1) >= 3) & (ev[:, 0] > (min_cond ** 2) * np.maximum(ev[:, 2], 1e-30))
         A[~ok] = np.eye(3)
         b = np.where(ok[:, None], np.linalg.solve(A, rhs[..., None])[..., 0], 0.0)
         if it == shadow_iterations:
             break
-        lit = np.einsum("nmi,ni->nm", lights, b) > 0
+        lit = (lights @ b[..., None])[..., 0] > 0
         new_use = lit & (lit.sum(1, keepdims=True) >= 3) | ~(lit.sum(1, keepdims=True) >= 3)
         if np.array_equal(new_use, use):
             break
