@@ -57,6 +57,15 @@ def _reconstruct(capture, cal, solver, out, *extra):
     return json.loads(r.stdout), read_record(out / "normals.h5", "normals"), read_record(out / "depth.h5", "depth")
 
 
+def _reconstruct_api(capture, cal, solver, out, **options):
+    """:func:`pipeline.reconstruct.reconstruct` in this process (what the CLI runs, without its
+    start-up): ``(summary, normals record, depth record)``."""
+    from pipeline.reconstruct import reconstruct
+
+    res = reconstruct(capture, calibration=cal, solver=solver, out=out, store=out / "cache", images=False, **options)
+    return res.summary, res.normals, res.depth
+
+
 @needs_data
 @pytest.mark.parametrize("solver", ["far", "near", "lut", "mlp"])
 def test_every_model_reconstructs_real_frames_as_the_model_predicts(real_split, tmp_path, solver):
@@ -129,7 +138,7 @@ def test_markers_are_filled_masked_and_integrated_through(real_split, tmp_path):
     from pipeline.base.capture import read_capture
 
     cal, _, marked_path, png, mask = real_split
-    s, n_rec, d_rec = _reconstruct(marked_path, cal, "mlp", tmp_path / "png", "--markers", png, "--drift", "none")
+    s, n_rec, d_rec = _reconstruct_api(marked_path, cal, "mlp", tmp_path / "png", markers=png, drift="none")
     assert s["markers"] == int(mask.sum()) > 50
     np.testing.assert_array_equal(n_rec.data["filled"], mask)
     assert not n_rec.data["mask"][:, mask].any()
@@ -140,11 +149,11 @@ def test_markers_are_filled_masked_and_integrated_through(real_split, tmp_path):
     # The depth stage integrated through the filled pixels: they carry heights.
     assert d_rec.data["mask"][:, mask].all()
     # A light-field solver fills the frames before solving: the filled normals are not flat.
-    s2, n2, _ = _reconstruct(marked_path, cal, "nearfield", tmp_path / "nf", "--markers", png)
+    s2, n2, _ = _reconstruct_api(marked_path, cal, "nearfield", tmp_path / "nf", markers=png)
     assert not n2.data["mask"][:, mask].any() and n2.meta["markers"] == int(mask.sum())
     assert np.abs(n2.data["normals"][:, mask, 2] - 1).max() > 0.01
     # --markers none: the same capture, markers unfilled and valid (dark dots solved as-is).
-    s3, n3, _ = _reconstruct(marked_path, cal, "mlp", tmp_path / "none", "--markers", "none")
+    s3, n3, _ = _reconstruct_api(marked_path, cal, "mlp", tmp_path / "none", markers="none")
     assert s3["markers"] == 0 and "filled" not in n3.data
     # A mask of the wrong size is one clear error naming the file.
     import cv2
@@ -157,7 +166,7 @@ def test_markers_are_filled_masked_and_integrated_through(real_split, tmp_path):
 
 
 def test_models_reconstruct_a_rendered_sphere(tmp_path):
-    """A rendered sphere with truth: the near-field and MLP models through the CLI, the error
+    """A rendered sphere with truth: the near-field and MLP models (the CLI's function), the error
     against the rendered normals small, and a model the calibration lacks one clear error."""
     from calibration.calibrate import calibrate
     from calibration.synthetic import synthetic_sphere_capture
@@ -173,7 +182,7 @@ def test_models_reconstruct_a_rendered_sphere(tmp_path):
     path = write_capture(tmp_path / "test.h5", test)
     errors = {}
     for solver in ("near", "mlp"):
-        s, n_rec, _ = _reconstruct(path, cal, solver, tmp_path / solver)
+        s, n_rec, _ = _reconstruct_api(path, cal, solver, tmp_path / solver)
         errors[solver] = s["normal_mean_error_deg"]
         assert n_rec.data["confidence"].shape == n_rec.data["mask"].shape
     assert errors["near"] < 3.0 and errors["mlp"] < 8.0, errors
