@@ -17,6 +17,7 @@ def test_bench_live_smoke(tmp_path):
     # The fast paths reproduce the eager solvers (the tests pin this; here: through the benchmark).
     assert all(m["deviation_deg"] < 1e-3 for m in fast), fast
     assert res["rows"] and all({"knob", "setting", "error", "error_unit", "seconds"} <= set(row) for row in res["rows"])
-    r = run_cli("bench", "live", "--sizes", "64x48", "--repeats", "1", "--no-startup", "--cache", tmp_path / "c",
-                timeout=600)
-    assert r.returncode == 0 and "vs eager" in r.stdout
+    # The text the command prints without --json is this table of the same result.
+    from pipeline.bench.live import format_table
+
+    assert "vs eager" in format_table(res)
