@@ -106,7 +106,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     max_condition : float
         Pixels with a worse-conditioned light matrix are masked.
     device, dtype, threads
-        Torch device and dtype of the solvers; torch intra-op threads while solving, and the
+        Torch device and dtype of the solvers (``lstsq`` on the CPU computes with numpy and does
+        not import torch); torch intra-op threads while solving (BLAS threads for that numpy
+        solve: :meth:`pipeline.normals.solve.FrameSolver.thread_limits`), and the
         contact instances the depth stage integrates at once, one per thread (default 1:
         fastest on a small shared CPU; None leaves torch's setting and uses every core). With
         other than one thread on the CPU, ``nearfield``/``lstsq`` on integer frames and ``dst``

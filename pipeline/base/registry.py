@@ -160,11 +160,15 @@ class Registry:
 #:   :func:`pipeline.stages.fast_solvers.frame_solver`), absent when live use runs it eagerly;
 #: - ``batch``: that fast path also solves many frames in one call per thread
 #:   (:meth:`pipeline.normals.fast.NearFieldFast.solve_batch`), which the normals stage uses
-#:   with more than one thread.
+#:   with more than one thread;
+#: - ``numpy_on_cpu``: the solver computes with numpy on the CPU (torch only on another device
+#:   or with ``compile``): torch is not imported, and the solve's thread limit is on BLAS
+#:   (:class:`pipeline.normals.solve.FrameSolver`).
 SOLVERS = Registry("solver", "--solver", [
     Entry("lstsq", "pipeline.normals.solve:stack_lstsq",
           "far field (Woodham): one light vector per observation, else the light field at the image centre",
-          {"needs": "vectors", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_lstsq", "batch": True}),
+          {"needs": "vectors", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_lstsq", "batch": True,
+           "numpy_on_cpu": True}),
     Entry("nearfield", "pipeline.normals.solve:stack_nearfield",
           "per-pixel light vectors (an illumination model or a calibrated light field)",
           {"needs": "field", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_nearfield",

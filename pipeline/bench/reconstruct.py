@@ -6,7 +6,8 @@ near-field light, :mod:`pipeline.bench.recon_scene`), rendered with per-channel 
 Gaussian noise sigma = 1 DN and 8-bit quantisation. The solvers see uint8 frames
 ``(P, H, W, 3)`` and the exact light model (per-pixel for near-field, the centre pixel's
 vectors for far-field); timings are per frame with the light model prepared once, the best of
-``--repeats`` runs (the CPU is shared), torch on ``--threads`` threads.
+``--repeats`` runs (the CPU is shared), torch and BLAS (the numpy far-field solver's products)
+on ``--threads`` threads.
 
 The real-time pipelines (far-field least squares + DST or FC, uint8 frames to heights) are
 timed with the eager solver and with the ``torch.compile``-d one
@@ -41,7 +42,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--sizes", nargs="*", default=None, metavar="WxH",
                         help="image sizes (default 320x240 640x480; --quick: 160x120)")
     parser.add_argument("--repeats", type=int, default=None, help="timing repeats (best is kept)")
-    parser.add_argument("--threads", type=int, default=1, help="torch intra-op threads")
+    parser.add_argument("--threads", type=int, default=1, help="torch intra-op and BLAS threads")
     parser.add_argument("--device", default="cpu")
     parser.add_argument("--no-compile", action="store_true",
                         help="skip the torch.compile-d far-field solver (no C++ compiler, or to save its warm-up)")
@@ -192,7 +193,8 @@ def run(args) -> dict:
     sections = getattr(args, "sections", None) or ["tactile", "ps"]
     quick = getattr(args, "quick", False)
     per_size, ps = [], None
-    with limit_threads(torch=getattr(args, "threads", 1)):
+    threads = getattr(args, "threads", 1)
+    with limit_threads(torch=threads, blas=threads):
         for spec in (sizes if "tactile" in sections else []):
             w, h = (int(v) for v in spec.lower().split("x"))
             per_size.append(measure_size(w, h, repeats, device, getattr(args, "no_compile", False)))
@@ -246,7 +248,7 @@ def _reconstruct_defaults() -> tuple[str, str]:
 
 def format_table(result: dict) -> str:
     lines = [f"reconstruct: sphere R={RADIUS} mm pressed {DEPTH} mm, {PATTERNS} sector patterns x RGB, 8-bit, "
-             f"sigma 1 DN; best of {result['repeats']} runs, {result['threads']} torch thread(s), {result['device']}"]
+             f"sigma 1 DN; best of {result['repeats']} runs, {result['threads']} torch/BLAS thread(s), {result['device']}"]
     for r in result["sizes"]:
         lines.append(f"\n== {r['size']} ({r['mm_per_px']:.4f} mm/px)")
         lines.append(f"{'solver':<30}{'wall ms':>9}{'fps':>9}{'cpu ms':>9}{'mean err deg':>14}{'valid':>8}")

@@ -29,10 +29,11 @@ def register(sub, name, help_text):
     add_drift_flag(p)
     p.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
     p.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
+    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda); lstsq on the cpu computes with numpy "
+                   "and does not import torch")
     p.add_argument("--compile", action="store_true",
                    help="lstsq: torch.compile the far-field solver (a few seconds once; ~4x faster per frame)")
-    p.add_argument("--threads", type=int, default=1, help="threads: torch's while solving; with more than one, "
+    p.add_argument("--threads", type=int, default=1, help="threads: torch's while solving (BLAS's for lstsq on the cpu); with more than one, "
                    "nearfield/lstsq on integer frames and dst depth take their batch fast paths, every contact "
                    "instance at once (default 1; 0: every core)")
     p.add_argument("--no-images", action="store_true", help="write only normals.h5 and depth.h5")

@@ -1,6 +1,8 @@
 """Photometric stereo solvers: per-pixel normals, albedo, residual, condition and mask.
 
-One module per solver, all batched over pixels in torch (``device=`` picks CPU or CUDA):
+One module per solver, all batched over pixels in torch (``device=`` picks CPU or CUDA), except
+that the far-field solve computes with numpy on the CPU (the same code,
+:mod:`pipeline.normals._xp`: a one-shot ``reconstruct --solver lstsq`` does not import torch):
 
 - :class:`FarFieldSolver` / :func:`solve_farfield` (``lstsq``): Woodham, one light vector
   per observation, precomputed pseudo-inverse;

@@ -14,8 +14,8 @@ import math
 import numpy as np  # noqa: F401 - the examples (doctests) use it
 import torch
 
-from pipeline.normals import _inputs, _lstsq
-from pipeline.normals import _torch as T
+from pipeline.normals import _inputs, _lstsq, _xp
+from pipeline.normals._linalg3 import inverse3, project
 from pipeline.normals._lstsq import finalize
 from pipeline.normals.masking import solves_in_mask
 from pipeline.normals.result import NormalResult
@@ -101,7 +101,7 @@ def solve_cauchy(observations, lights, *, dark_threshold: float = 0.0, saturatio
     # Per-pixel weights differ between channels here, so a joint albedo would be biased even
     # under white patterns: refine for per-group albedo (see _lstsq.solve).
     iters_albedo = 2 if _inputs.group_counts_ok(g, num_groups) else 0
-    raw = T.to_tensor(observations, dt, dev).reshape(N, -1)
+    raw = _xp.asarray(observations, dt, dev).reshape(N, -1)
     L, light_ok = _inputs.flatten_lights(lights, dt, dev)
     light_ok = light_ok[:, None].expand(N, H * W) if L.dim() == 2 else light_ok
     usable = usable_observations(raw, dark_threshold, saturation) & light_ok
@@ -115,7 +115,7 @@ def solve_cauchy(observations, lights, *, dark_threshold: float = 0.0, saturatio
     m = _lstsq.moments(I, L, w, selectors)
     # Conditioning is judged on the usable set (IRLS weights only down-weight within it).
     cond = _lstsq.condition(L, usable.to(dt))
-    inv, _ = T.inverse3(m.Q.sum(0))
+    inv, _ = inverse3(m.Q.sum(0))
     b = _lstsq.solve(m, inv, iters_albedo)
     w = usable.to(dt)
     if method == "irls" and iterations > 0:
@@ -129,12 +129,12 @@ def solve_cauchy(observations, lights, *, dark_threshold: float = 0.0, saturatio
             # gel would leave channel-dependent residuals that inflate the scale estimate.
             n, _ = _lstsq.unit(b)
             rho, _, _ = _lstsq.group_albedo(m, n)
-            r = I - rho[gid] * T.project(L, n)
+            r = I - rho[gid] * project(L, n)
             sigma = 1.4826 * torch.nanmedian(torch.where(usable, r.abs(), nan), dim=0).values
             sigma = torch.maximum(torch.where(torch.isfinite(sigma), sigma, floor), floor)
             w = usable.to(dt) / (1.0 + (r / (_CAUCHY_C * sigma)) ** 2)
             m = _lstsq.moments(I, L, w, selectors)
-            inv, _ = T.inverse3(m.Q.sum(0))
+            inv, _ = inverse3(m.Q.sum(0))
             b = _lstsq.solve(m, inv, iters_albedo)
     return finalize(b, m, cond, (H, W), max_condition=max_condition,
                     meta={"solver": "robust", "method": method, "dark_threshold": float(dark_threshold),

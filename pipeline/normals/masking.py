@@ -17,23 +17,16 @@ temporaries (``N x batch`` floats each).
 from __future__ import annotations
 
 import functools
-import sys
 
 import numpy as np
 
+from pipeline.normals._xp import is_tensor
 from pipeline.normals.result import COND_CAP, NormalResult
 
 __all__ = ["PixelMask", "masked_solve", "solves_in_mask", "pixel_batches", "BATCH_ELEMENTS"]
 
 #: Elements (observations x pixels) of one batch: 8 M floats = 32 MB per float32 temporary.
 BATCH_ELEMENTS = 1 << 23
-
-
-def _is_tensor(a) -> bool:
-    """Whether ``a`` is a torch tensor, without importing torch for numpy callers (a tensor
-    exists only once torch is imported)."""
-    torch = sys.modules.get("torch")
-    return torch is not None and isinstance(a, torch.Tensor)
 
 
 class PixelMask:
@@ -65,7 +58,7 @@ class PixelMask:
     """
 
     def __init__(self, mask, shape: tuple[int, int], name: str = "mask"):
-        m = mask.detach().cpu().numpy() if _is_tensor(mask) else np.asarray(mask)
+        m = mask.detach().cpu().numpy() if is_tensor(mask) else np.asarray(mask)
         shape = tuple(int(s) for s in shape)
         if m.shape != shape:
             raise ValueError(f"{name}: mask must have shape {shape} (the image's H, W), got {m.shape}")
@@ -98,7 +91,7 @@ class PixelMask:
         if shape[ax:ax + 2] != self.shape:
             raise ValueError(f"PixelMask.gather: axes {ax}, {ax + 1} of shape {shape} must be {self.shape}")
         flat_shape = shape[:ax] + (self.shape[0] * self.shape[1],) + shape[ax + 2:]
-        if _is_tensor(a):
+        if is_tensor(a):
             idx = self._index_t.get(a.device)
             if idx is None:
                 import torch
@@ -125,7 +118,7 @@ class PixelMask:
         the full frames)."""
         P, H, W, C = tuple(frames.shape)
         g = self.gather(frames, axis=1)[:, 0]  # (P, M, C)
-        if _is_tensor(g):
+        if is_tensor(g):
             return g.permute(0, 2, 1).reshape(P * C, 1, self.count)
         return np.ascontiguousarray(g.transpose(0, 2, 1)).reshape(P * C, 1, self.count)
 

@@ -11,8 +11,8 @@ from __future__ import annotations
 import numpy as np  # noqa: F401 - the examples (doctests) use it
 import torch
 
-from pipeline.normals import _inputs, _lstsq
-from pipeline.normals import _torch as T
+from pipeline.normals import _inputs, _lstsq, _xp
+from pipeline.normals._linalg3 import inverse3
 from pipeline.normals._lstsq import finalize
 from pipeline.normals.masking import PixelMask
 from pipeline.normals.result import NormalResult
@@ -68,7 +68,7 @@ class NearFieldSolver:
         if self.pixels is not None:
             lights = self.pixels.gather(lights, axis=1)
         self.device = torch.device(device)
-        self.dtype = T.torch_dtype(dtype)
+        self.dtype = _xp.float_dtype(dtype, self.device)
         self.n_obs, self.H, self.W = (int(s) for s in lights.shape[:3])
         self.method = method
         self.groups, self.num_groups = _inputs.check_groups(groups, self.n_obs, "NearFieldSolver", self.device)
@@ -81,7 +81,7 @@ class NearFieldSolver:
         # The light field is fixed: per-pixel moments, inverse and condition once per model.
         self.Q = torch.stack([_lstsq.gram_pixel(self.L[sel], None if self.w0 is None else self.w0[sel])
                               for sel in self.selectors])
-        self.inv, _ = T.inverse3(self.Q.sum(0))
+        self.inv, _ = inverse3(self.Q.sum(0))
         self.cond = _lstsq.condition(self.L, self.w0)
 
     def solve(self, observations) -> NormalResult:
@@ -105,7 +105,7 @@ class NearFieldSolver:
         else:
             w = finite.to(self.dtype) if self.w0 is None else finite.to(self.dtype) * self.w0
             m = _lstsq.moments(I, self.L, w, self.selectors)
-            inv, _ = T.inverse3(m.Q.sum(0))
+            inv, _ = inverse3(m.Q.sum(0))
             cond = _lstsq.condition(self.L, w)
         if self.method == "qr":
             b = _qr_solve(I, self.L, torch.ones_like(I) if w is None else w)

@@ -51,8 +51,8 @@ import math
 import numpy as np
 import torch
 
-from pipeline.normals import _inputs, _lstsq
-from pipeline.normals import _torch as T
+from pipeline.normals import _inputs, _lstsq, _xp
+from pipeline.normals._linalg3 import inverse3, project
 from pipeline.normals._lstsq import concat, finalize_tensors, to_result
 from pipeline.normals.masking import pixel_batches, solves_in_mask
 from pipeline.normals.result import NormalResult
@@ -139,7 +139,7 @@ def _mad(r: torch.Tensor, cand: torch.Tensor) -> torch.Tensor:
 def _predict(L: torch.Tensor, n: torch.Tensor, rho: torch.Tensor, selectors: list) -> torch.Tensor:
     """Lambertian prediction ``rho_g n . L_k`` ``(N, M)`` (unclipped; its sign is ``n . L_k``'s)."""
     if L.dim() == 3:
-        out = T.project(L, n)
+        out = project(L, n)
         for g, sel in enumerate(selectors):
             out[sel] *= rho[g]
         return out
@@ -173,7 +173,7 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
     Lnorm = Lnorm[:, None] if Lnorm.dim() == 1 else Lnorm
     w = _start(I, Lnorm, u, selectors, trim_low, trim_high)
     m = _lstsq.moments(I, L, w, selectors)
-    b = _lstsq.solve(m, T.inverse3(m.Q.sum(0))[0], albedo_iters)
+    b = _lstsq.solve(m, inverse3(m.Q.sum(0))[0], albedo_iters)
     kept = w
     ones = torch.ones(I.shape[0], dtype=dt, device=I.device)
     rms = torch.sqrt((ones @ (u * I * I)) / (ones @ u).clamp_min(1.0))
@@ -214,7 +214,7 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
             w = w + e * (w_new - w)
             kept = kept + e * (keep - kept)
         m = _lstsq.moments(I, L, w, selectors, count=ones @ kept)
-        b = _lstsq.solve(m, T.inverse3(m.Q.sum(0))[0], 1)
+        b = _lstsq.solve(m, inverse3(m.Q.sum(0))[0], 1)
         if it == iterations - 1:
             break
         # Converged pixels are finalised now (their result is then their own, whatever the
@@ -245,7 +245,7 @@ def _solve_batch(I: torch.Tensor, L: torch.Tensor, usable: torch.Tensor, selecto
                        wsum=cat([x.wsum for x in ms], 0), count=cat([x.count for x in ms], 0))
     kept = cat([d[2] for d in done_parts], 1)
     L = L if L.dim() == 2 else cat([d[3] for d in done_parts], -1)
-    b = _lstsq.solve(m, T.inverse3(m.Q.sum(0))[0], final_albedo_iters)
+    b = _lstsq.solve(m, inverse3(m.Q.sum(0))[0], final_albedo_iters)
     return finalize_tensors(b, m, _lstsq.condition(L, kept), max_condition=max_condition)
 
 
@@ -323,8 +323,8 @@ def solve_robust_irls(observations, lights, *, groups=None, dark_threshold: floa
     selectors = _lstsq.group_selectors(g, num_groups, N)
     # Per-pixel weights differ between channels, so refine for per-group albedo.
     albedo_iters = 2 if _inputs.group_counts_ok(g, num_groups) else 0
-    X = (_inputs.integer_tensor(observations, dev) if _inputs.is_integer(observations)
-         else T.to_tensor(observations, dt, dev)).reshape(N, H * W)
+    X = (_xp.integers(observations, dev) if _inputs.is_integer(observations)
+         else _xp.asarray(observations, dt, dev)).reshape(N, H * W)
     L_all, light_ok = _inputs.flatten_lights(lights, dt, dev)
     if order is not None:
         X, L_all, light_ok = X[order], L_all[order], light_ok[order]

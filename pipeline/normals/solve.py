@@ -113,14 +113,26 @@ class FrameSolver:
 
     def solve_stack(self, raw, threads: int | None = 1) -> list:
         """Raw frames ``(K, P, H, W, C)`` -> one :class:`~pipeline.normals.result.NormalResult`
-        per contact instance, with ``threads`` torch threads (None: torch's setting)."""
+        per contact instance, with ``threads`` torch threads, or BLAS threads where the solve
+        runs on numpy (:meth:`thread_limits`; None: the library's setting)."""
         from pipeline.base.threads import limit_threads
 
         frames, saturated = self.prep.frames(raw)
-        with limit_threads(torch=threads):
+        with limit_threads(**self.thread_limits(threads)):
             res = solve_capture(frames, self.lights, solver=self.solver, reference=self.reference,
                                 saturated=saturated, markers=self.prep.solver_markers, **self.options)
         return self.prep.finish(res)
+
+    def thread_limits(self, threads: int | None) -> dict:
+        """:func:`~pipeline.base.threads.limit_threads`'s arguments for a solve on ``threads``
+        threads: BLAS's where the solver computes with numpy (registry fact
+        ``info["numpy_on_cpu"]``, on the CPU without ``compile``: torch stays unimported),
+        else torch's."""
+        from pipeline.normals._xp import solve_device
+
+        numpy_here = (bool(SOLVERS.get(self.solver).info.get("numpy_on_cpu"))
+                      and solve_device(self.options["device"], self.options["compile"]) is None)
+        return {"blas": threads} if numpy_here else {"torch": threads}
 
     def solve(self, frames, threads: int | None = 1):
         """One frame set ``(P, H, W, C)`` (or ``(H, W, C)``) -> its NormalResult."""

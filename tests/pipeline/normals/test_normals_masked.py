@@ -17,8 +17,8 @@ from pipeline.normals import (
     solve_nearfield,
     solve_robust_irls,
 )
-from pipeline.normals._torch import COND_CAP
 from pipeline.normals.masking import pixel_batches
+from pipeline.normals.result import COND_CAP
 from support_recon import NearestColourTable, _one_torch_thread, channel_groups, render_sphere_scene  # noqa: F401
 
 FIELDS = ("normals", "albedo", "residual", "condition", "mask", "count")
