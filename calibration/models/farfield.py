@@ -66,7 +66,9 @@ class FarFieldModel(LightFieldModel):
             shade = n[:, :2] @ ab.T + n[:, 2:3]  # (N, M) = n . (a, b, 1)
             use = (shade > 0.02) & lit
         self.lights = (np.concatenate([ab, np.ones((len(ab), 1))], axis=1) * scale[:, None]).reshape(p, c, 3)
-        self.flat = (flat_ref / np.maximum(scale[:, None, None], 1e-12)).reshape(p, c, *samples.shape).astype(np.float32)
+        flat = flat_ref / np.maximum(scale[:, None, None], 1e-12)
+        # 0 where the reference is dark: no shading there (the solvers of pipeline.normals leave flat <= 0 out).
+        self.flat = np.where(flat >= MIN_FLAT, flat, 0.0).reshape(p, c, *samples.shape).astype(np.float32)
         self.num_patterns, self.num_channels = p, c
         return self._fit_report(samples)
 

@@ -69,12 +69,17 @@ def test_near_field_model_reads_vignetting_from_the_reference():
     assert cv["vignetted", True] < 0.7 * cv["vignetted", False], cv
 
 
-def test_flat_normalised_near_model_round_trips_its_flat_field(far_capture):
+def test_flat_normalised_near_model_stores_its_flat_field(far_capture):
+    """What reconstruct reads back (calibration.stored) predicts as the fitted model does."""
+    from calibration.stored import StoredLightField
+
     s, ref = _samples(*far_capture)
     m = NearFieldModel()
     m.fit(s, ref)
     arrays = m.to_arrays()
-    assert arrays["flat_field"].shape == (1, 3) + s.shape or arrays["flat_field"].shape[2:] == s.shape
+    assert arrays["flat_field"].shape == (ref.shape[0], ref.shape[3]) + s.shape
+    stored = StoredLightField("near", m.light_field(s.shape), arrays["flat_field"])
+    np.testing.assert_allclose(stored.predict(s)[0], m.predict(s)[0], atol=1e-5)
     with pytest.raises(ValueError, match="reference"):
         NearFieldModel().fit(s)
 
