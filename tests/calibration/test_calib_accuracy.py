@@ -113,7 +113,7 @@ def test_useless_models_say_so_and_are_not_chosen():
                        "ball_gain": {"raw_radius_error": 1.5, "presses": 10, "attempted": 10}}}
     no_bump = {"cv": {"cv_mean_angular_error_deg": 5.5, "invalid_fraction": 0.0,
                       "ball_gain": {"raw_radius_error": None, "presses": 0, "attempted": 10,
-                                    "note": "only 0 held-out presses gave a sphere (< 3)"}}}
+                                    "note": "only 0 of 10 held-out presses reconstruct as a round cap"}}}
     for r in (good, off_ball, no_bump):
         r["problems"] = model_problems(r["cv"])
     assert good["problems"] == [] and "150% off the ball" in off_ball["problems"][0]
