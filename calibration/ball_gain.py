@@ -88,17 +88,19 @@ class OutOfFoldBalls:
     def gain(self, max_tilt: float | None = None) -> dict[str, Any]:
         """The tilt gain that makes the median fitted radius the ball's, with the figures behind it.
 
-        Returns ``{"gain": float or None, "raw_radius_error", "radius_error", "presses", "note"}``:
+        Returns ``{"gain": float or None, "raw_radius_error", "radius_error", "presses", "attempted",
+        "note"}`` (``presses``: reconstructions that gave a round cap's sphere, of ``attempted``):
         ``raw_radius_error`` the median fitted radius over the ball's, minus 1, before any gain;
         ``radius_error`` the same at the first guess of the gain (the last step removes most of
-        it); ``gain`` None when fewer than :data:`MIN_BALL_FITS` presses gave a sphere or the
+        it); ``gain`` None when fewer than :data:`MIN_BALL_FITS` presses reconstruct as a round cap or the
         gain falls outside :data:`BALL_GAIN_RANGE` (then ``note`` says why).
         """
         raw = self.radii()
-        out: dict[str, Any] = {"gain": None, "presses": len(raw), "raw_radius_error": None, "radius_error": None,
-                               "note": ""}
+        out: dict[str, Any] = {"gain": None, "presses": len(raw), "attempted": len(self.maps), "raw_radius_error": None,
+                               "radius_error": None, "note": ""}
         if len(raw) < MIN_BALL_FITS:
-            out["note"] = f"only {len(raw)} held-out presses gave a sphere (< {MIN_BALL_FITS})"
+            out["note"] = (f"only {len(raw)} of {len(self.maps)} held-out presses reconstruct as a round cap "
+                           f"(< {MIN_BALL_FITS}; calibration.ballfit.MIN_ROUNDNESS)")
             return out
         out["raw_radius_error"] = float(np.median(raw) / self.ball - 1.0)
         g = float(np.median(raw)) / self.ball

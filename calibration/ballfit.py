@@ -14,6 +14,16 @@ solve spreads its error; the top of the cap carries the curvature.
 The fit: algebraic (linear in the centre, ``z0`` and ``R^2 - |c|^2``) then geometric
 (:func:`scipy.optimize.least_squares` on the distances to the sphere). The press depth is the
 fitted sphere's apex height above the flat gel, ``z0 + R``.
+
+**Round caps only.** A ball leaves a round cap whatever the scale of a model's tilts; a
+reconstruction whose two principal curvatures (of its normals over the same pixels,
+:func:`roundness`) differ by more than a factor two (:data:`MIN_ROUNDNESS`) has one tilt
+direction that was not measured, and no single tilt gain makes it a ball: its "radius" is an
+average of two wrong curvatures. Such a press gets no radius (``reason`` says so) and stays out
+of the medians and of the ball-derived tilt gain (:mod:`calibration.ball_gain`). Measured with
+the MLP on DIGIT presses it did not see (30 presses, 5 folds): 0.66-0.98, except three in the
+DIGIT's lowest rows, where only the red and the blue light reach the gel, from opposite sides:
+0.17, 0.35 and 0.56 (fitted radii 180, 70 and 60 % too large); the first two are left out.
 """
 
 from __future__ import annotations
@@ -23,7 +33,12 @@ from typing import Any
 import numpy as np
 from scipy import ndimage, optimize
 
-__all__ = ["fit_sphere", "cap_region", "ball_fit"]
+__all__ = ["MIN_ROUNDNESS", "fit_sphere", "cap_region", "ball_fit", "roundness"]
+
+#: Smallest ratio of the reconstructed cap's principal curvatures (smaller over larger) for which
+#: its fitted sphere measures the model's scale: one direction's tilts at less than half the
+#: other's are no scale error a gain could mend (module docstring).
+MIN_ROUNDNESS = 0.5
 
 
 def fit_sphere(x: np.ndarray, y: np.ndarray, z: np.ndarray) -> dict[str, float]:
@@ -78,6 +93,39 @@ def cap_region(height: np.ndarray, level: float = 0.5, smooth_px: float = 1.0) -
     return lab == lab[peak]
 
 
+def roundness(normals: np.ndarray, region: np.ndarray) -> float:
+    """Smaller over larger principal curvature of the normals over a cap's pixels (1 for a sphere).
+
+    The gradients ``(dh/dx, dh/dy)`` over ``region (H, W)`` are fitted as affine functions of the
+    pixel position; the eigenvalues of the symmetric part of that Jacobian (sign: a bump's are
+    positive) are the cap's two curvatures. Measured on the normals, not on integrated heights:
+    the Poisson solve spreads a direction's missing tilt over both (x-tilts scaled by 0.4 gave a
+    height map whose curvatures were 0.67 apart).
+
+    Examples
+    --------
+    >>> from pipeline.base.frames import gradients_to_normals
+    >>> rows, cols = np.mgrid[-5:6, -5:6] * 0.1   # a bump: dh/dx = -x, dh/dy = -y = +row
+    >>> round(roundness(gradients_to_normals(-cols, rows), np.ones(cols.shape, bool)), 6)
+    1.0
+    >>> round(roundness(gradients_to_normals(-0.25 * cols, rows), np.ones(cols.shape, bool)), 6)
+    0.25
+    """
+    from pipeline.base.frames import normals_to_gradients
+
+    gx, gy = normals_to_gradients(np.asarray(normals, np.float64))
+    rows, cols = np.nonzero(region)
+    if len(rows) < 6:
+        return 0.0
+    # Pixel (row, col) -> (x, y) with y up, as the gradients are in the reconstruction frame.
+    A = np.stack([np.ones(len(rows)), cols - cols.mean(), -(rows - rows.mean())], axis=1).astype(np.float64)
+    jx = np.linalg.lstsq(A, gx[rows, cols], rcond=None)[0][1:]
+    jy = np.linalg.lstsq(A, gy[rows, cols], rcond=None)[0][1:]
+    J = -np.array([jx, jy])
+    k = np.linalg.eigvalsh(0.5 * (J + J.T))  # curvatures (per pixel), ascending
+    return float(max(k[0], 0.0) / k[1]) if k[1] > 0 else 0.0
+
+
 def ball_fit(normals: np.ndarray, mm_per_px: float, ball_radius_mm: float, *, mask: np.ndarray | None = None,
              level: float = 0.5, true_depth_mm: float | None = None, min_pixels: int = 12) -> dict[str, Any]:
     """Integrate one press's normals (DST Poisson) and fit a sphere to the top of the bump.
@@ -101,7 +149,8 @@ def ball_fit(normals: np.ndarray, mm_per_px: float, ball_radius_mm: float, *, ma
     dict
         ``radius_mm``, ``depth_mm`` (apex height of the fitted sphere above the flat gel),
         ``radius_error`` (relative, signed), ``depth_error`` (relative, signed; None without
-        ``true_depth_mm``), ``rms_mm``, ``pixels``, ``peak_height_mm``, ``reason``.
+        ``true_depth_mm``), ``rms_mm``, ``pixels``, ``peak_height_mm``, ``roundness``
+        (:func:`roundness`; below :data:`MIN_ROUNDNESS` the radius is None) and ``reason``.
     """
     from pipeline.depth import poisson_dst
 
@@ -109,11 +158,16 @@ def ball_fit(normals: np.ndarray, mm_per_px: float, ball_radius_mm: float, *, ma
     region = cap_region(height, level)
     out: dict[str, Any] = {"radius_mm": None, "depth_mm": None, "radius_error": None, "depth_error": None,
                            "rms_mm": None, "pixels": int(region.sum()), "peak_height_mm": float(height.max()),
-                           "reason": "ok"}
+                           "roundness": None, "reason": "ok"}
     if region.sum() < min_pixels:
         out["reason"] = f"no bump: {int(region.sum())} pixels above {level:.0%} of the peak (< {min_pixels})"
         return out
     rows, cols = np.nonzero(region)
+    out["roundness"] = roundness(normals, region)
+    if out["roundness"] < MIN_ROUNDNESS:
+        out["reason"] = (f"not round: principal curvatures {out['roundness']:.2f} apart (< {MIN_ROUNDNESS:.2f}); one "
+                         "tilt direction is not measured here")
+        return out
     s = fit_sphere(cols * mm_per_px, rows * mm_per_px, height[rows, cols])
     depth = s["z0"] + s["radius"]
     out.update(radius_mm=s["radius"], depth_mm=float(depth), rms_mm=s["rms"],

@@ -18,7 +18,7 @@ import numpy as np
 
 from calibration.ball_gain import OutOfFoldBalls
 from calibration.detect import Circle, DetectOptions, detect_contacts
-from calibration.gate import CalibrationRefused, GateSettings, Verdict, judge, shading_explained
+from calibration.gate import CalibrationRefused, GateSettings, Verdict, judge, model_problems, shading_explained
 from calibration.labels import capture_label_circles, has_labels, label_errors
 from calibration.models import (
     MODEL_NAMES,
@@ -98,9 +98,9 @@ class CalibrationResult:
 
     @property
     def best_model(self) -> str | None:
-        """The fitted model with the lowest cross-validated mean angular error."""
-        scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in self.reports.items() if "cv" in r}
-        return min(scored, key=scored.get) if scored else None
+        """The fitted model with the lowest cross-validated mean angular error among the usable ones
+        (:func:`calibration.gate.model_problems`; among all when none is usable)."""
+        return _best(self.reports)
 
     @property
     def circles_used(self) -> str:
@@ -118,10 +118,8 @@ class CalibrationResult:
 
     @property
     def best_light_field_model(self) -> str | None:
-        """The best-validated model that exports a light field (far, near, traced)."""
-        scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in self.reports.items()
-                  if "cv" in r and isinstance(self.models.get(k), LightFieldModel)}
-        return min(scored, key=scored.get) if scored else None
+        """The best-validated model that exports a light field (far, near, traced), usable ones first."""
+        return _best({k: r for k, r in self.reports.items() if isinstance(self.models.get(k), LightFieldModel)})
 
     def summary(self) -> dict[str, Any]:
         """The stable JSON summary printed by ``iristac calibrate --json``."""
@@ -153,6 +151,9 @@ class CalibrationResult:
             }
             if none_valid:
                 out["models"][name]["note"] = "no valid predictions on the held-out presses"
+            # A model the gate's thresholds find useless says so (calibration.gate.model_problems).
+            out["models"][name]["usable"] = not rep.get("problems")
+            out["models"][name]["problems"] = list(rep.get("problems") or [])
         if self.labels is not None:
             out.update(self.labels)
         for key in ("reference", "drift", "ball_fit"):
@@ -217,6 +218,15 @@ class CalibrationResult:
         }
         meta = json.loads(json.dumps(meta, default=float))
         return write_record(Path(path), Record(schema="calibration", data=data, meta=meta))
+
+
+def _best(reports: dict[str, dict[str, Any]]) -> str | None:
+    """Lowest CV among the usable models with a valid CV (``problems`` empty), else among all with one."""
+    scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in reports.items()
+              if "cv" in r and r["cv"]["invalid_fraction"] < 1.0}
+    usable = {k: v for k, v in scored.items() if not reports[k].get("problems")}
+    pool = usable or scored
+    return min(pool, key=pool.get) if pool else None
 
 
 def read_illumination(path: str | Path) -> IlluminationModel:
@@ -709,16 +719,15 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
         fit = model.fit(samples, ref)
         if tilt_correction:
             cv = _correct_output(model, cv, oof, samples, balls, tilt_correction)
-        reports[name] = {"fit": fit, "cv": cv, "seconds": time.perf_counter() - t}
+        reports[name] = {"fit": fit, "cv": cv, "seconds": time.perf_counter() - t,
+                         "problems": model_problems(cv, gate)}
         fitted[name] = model
     labels = None
     if has_labels(cap):
         # The detector's circles against the labels (with labels as the truth, how far the
         # user's labels sit from what the detector sees).
         labels = label_errors(found.detected, cap.labels["center_xy"], cap.labels["radius_px"])
-    scored = {k: r["cv"]["cv_mean_angular_error_deg"] for k, r in reports.items()
-              if "cv" in r and r["cv"]["invalid_fraction"] < 1.0}
-    best = min(scored, key=scored.get) if scored else None
+    best = _best(reports)
     ball = _ball_summary(best, reports)
     best_cv = reports[best]["cv"] if best is not None else {}
     verdict = judge(circles, best_model=best, cv_deg=best_cv.get("cv_answered_mean_angular_error_deg"),

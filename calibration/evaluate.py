@@ -84,6 +84,9 @@ def evaluate_models(models: dict[str, Any], samples: Samples) -> dict[str, dict[
         n, ok = model.predict(contact)
         e = angular_error_deg(n, contact.normals)
         out[name] = angular_stats(np.where(ok & np.isfinite(e), e, INVALID_ERROR_DEG), contact.press)
+        if not ok.any():
+            # Every prediction invalid: 90 deg would read as a result; there is none.
+            out[name].update(mean_deg=None, median_deg=None, p90_deg=None, note="no valid prediction")
     return out
 
 
@@ -167,7 +170,12 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         ``cv_mean_deg`` from the calibration, ``cv_truth`` (what the calibration was fitted and
         cross-validated on: ``detected``, ``labels`` or ``given`` circles), ``cv_gap_deg`` = test
         minus CV on the same kind of truth (the labels' for a calibration on labels) and
-        ``note``, set when the gap exceeds :data:`CV_GAP_WARN_DEG`), ``truth`` (``detected``: how the circles were
+        ``note``, set when the gap exceeds :data:`CV_GAP_WARN_DEG`; ``mean_deg`` etc. None when no
+        prediction is valid; ``problems``: why the model's figures are not results, from its
+        calibration's verdict (:func:`calibration.gate.model_problems`) and from the test presses
+        (no valid prediction, a ball fit more than
+        :data:`calibration.gate.MAX_BALL_RADIUS_ERROR` off or no round bump), and ``usable`` = no
+        problems), ``truth`` (``detected``: how the circles were
         found and the circles; ``labels`` when the capture has hand labels: the same statistics
         per model against them) and ``ball_fit`` (name -> ``radius_error_median`` and
         ``depth_error_median`` (median relative errors), ``radius_mm_median``, ``per_press``).
@@ -262,8 +270,27 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     fits = _ball_fits(loaded, found, float(radius), depths, ball_level)
     for v in fits.values():
         v["depth_truth"] = depth_method
+    for name, stats in det.items():
+        stats["problems"] = _model_problems((meta.get("validation") or {}).get(name), stats, fits[name])
+        stats["usable"] = not stats["problems"]
     return {"presses": int(len(found.circles)), "accepted": detected,
             "models": det, "truth": truth, "ball_fit": fits}
+
+
+def _model_problems(report: dict[str, Any] | None, stats: dict[str, Any], ball: dict[str, Any]) -> list[str]:
+    """Why a model's figures here are not results: its calibration's verdict
+    (:func:`calibration.gate.model_problems`) and what the test presses show."""
+    from calibration.gate import MAX_BALL_RADIUS_ERROR
+
+    out = [f"calibration: {p}" for p in ((report or {}).get("problems") or [])]
+    if stats.get("invalid_fraction") is not None and stats["invalid_fraction"] >= 1.0:
+        out.append("no valid prediction on the test presses")
+    rad = ball.get("radius_error_median")
+    if rad is not None and rad > MAX_BALL_RADIUS_ERROR:
+        out.append(f"the test presses reconstruct as spheres {rad:.0%} off the ball (> {MAX_BALL_RADIUS_ERROR:.0%})")
+    elif rad is None and any(p.get("reason", "ok") != "ok" for p in ball.get("per_press", [])):
+        out.append("no test press reconstructs as a round bump")
+    return out
 
 
 def _check_compatible(models: dict[str, Any], cap: Capture, src: str) -> None:
@@ -301,12 +328,15 @@ def format_report(result: dict[str, Any]) -> str:
         dep = None if b.get("depth_error_median") is None else 100 * b["depth_error_median"]
         lines.append(f"  {name:6s} {f(m['mean_deg']):>9s} {f(m['median_deg']):>7s} {f(m['p90_deg']):>6s} "
                      f"{f(m['invalid_fraction'], '.1%'):>7s} {f(m.get('cv_mean_deg')):>8s} "
-                     f"{f(lab.get(name, {}).get('mean_deg')):>7s} {f(rad, '.1f', ' %'):>11s} {f(dep, '.1f', ' %'):>7s}")
+                     f"{f(lab.get(name, {}).get('mean_deg')):>7s} {f(rad, '.1f', ' %'):>11s} {f(dep, '.1f', ' %'):>7s}"
+                     + ("" if m.get("usable", True) else "  UNUSABLE"))
     lines.append("  (degrees; test = against the test capture's own circles from the edge detector; labels = against "
                  "its hand labels; CV = the calibration's own, against the "
                  f"{'hand labels' if cv_truth == 'labels' else 'circles it was fitted to'}; ball radius/depth = median "
                  "relative error of a sphere fitted to each reconstructed press)")
     for name, m in result["models"].items():
+        if m.get("problems"):
+            lines.append(f"  UNUSABLE: {name}: {'; '.join(m['problems'])} (its figures above are not results)")
         if m.get("note"):
             lines.append(f"  note: {name}: {m['note']}")
     return "\n".join(lines)

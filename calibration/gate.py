@@ -29,6 +29,12 @@ learn and reconstruct (measured: a 3 mm ball declared for the 2 mm one of the sh
 frames calibrates with CV 4.1 deg and a ball fit 1.7 % off); only a known object shows it.
 - **degenerate lighting**: only when the circles do explain the shading and the light
   directions still span fewer than three dimensions.
+
+Every model is also judged on its own (:func:`model_problems`): a model with no valid
+prediction on held-out presses, a CV error beyond :data:`MAX_CV_DEG`, or reconstructions of
+held-out presses that are no ball (the sphere fit more than :data:`MAX_BALL_RADIUS_ERROR` off,
+or no bump to fit) is marked unusable in the calibration's report, the calibrate and eval
+tables and the benchmarks, and is not chosen as the best model; its figures are not results.
 """
 
 from __future__ import annotations
@@ -57,6 +63,7 @@ __all__ = [
     "Verdict",
     "drive_light_ratio",
     "judge",
+    "model_problems",
     "rank_message",
     "shading_explained",
 ]
@@ -219,6 +226,49 @@ def rank_message(what: str, singular: np.ndarray, ratio: float, min_ratio: float
             f"largest singular value {ratio:.4f}, says nothing about the lights). Likely cause: contacts misplaced "
             "or a reference that does not match the presses, not the lighting. Next: (1) "
             f"{NEXT_OVERLAY}; (2) {NEXT_LABEL}; (3) {NEXT_REFERENCE}")
+
+
+def model_problems(cv: dict[str, Any] | None, settings: GateSettings | None = None) -> list[str]:
+    """Why one fitted model's depth maps are not to be used (empty: usable), from its CV report.
+
+    ``cv`` is the model's cross-validation report (``cv_mean_angular_error_deg``,
+    ``invalid_fraction`` and, with the tilt correction, ``ball_gain``: the truth-free ball fit of
+    its reconstructions of held-out presses, :mod:`calibration.ball_gain`). The thresholds are
+    the quality gate's (:class:`GateSettings`).
+
+    Examples
+    --------
+    >>> model_problems({"cv_mean_angular_error_deg": 6.0, "invalid_fraction": 0.0,
+    ...                 "ball_gain": {"raw_radius_error": 0.03, "presses": 10}})
+    []
+    >>> model_problems({"cv_mean_angular_error_deg": 90.0, "invalid_fraction": 1.0})
+    ['no valid prediction on the held-out presses']
+    >>> model_problems({"cv_mean_angular_error_deg": 19.0, "invalid_fraction": 0.0,
+    ...                 "ball_gain": {"raw_radius_error": 1.5, "presses": 10}})
+    ['its reconstructions of held-out presses are spheres 150% off the ball (> 20%)']
+    """
+    st = settings or GateSettings()
+    if not cv:
+        return ["not cross-validated"]
+    if (cv.get("invalid_fraction") or 0.0) >= 1.0:
+        return ["no valid prediction on the held-out presses"]
+    out = []
+    # Judged like the gate judges the best model: the error over the pixels it answers, and the
+    # share it leaves unanswered on its own (a LUT with empty bins is not 90 deg wrong there).
+    deg = cv.get("cv_answered_mean_angular_error_deg", cv.get("cv_mean_angular_error_deg"))
+    if deg is not None and deg > st.max_cv_deg:
+        out.append(f"CV error {deg:.1f} deg (> {st.max_cv_deg:g})")
+    invalid = cv.get("invalid_fraction")
+    if invalid is not None and invalid > st.max_cv_invalid:
+        out.append(f"leaves {invalid:.0%} of the held-out presses' contact pixels unanswered (> {st.max_cv_invalid:.0%})")
+    ball = cv.get("ball_gain") or {}
+    raw = ball.get("raw_radius_error")
+    if raw is not None and abs(raw) > st.max_ball_radius_error:
+        out.append(f"its reconstructions of held-out presses are spheres {abs(raw):.0%} off the ball "
+                   f"(> {st.max_ball_radius_error:.0%})")
+    elif raw is None and ball.get("attempted", 0) >= 3:
+        out.append(f"its reconstructions of held-out presses show no ball ({ball.get('note') or 'no sphere fitted'})")
+    return out
 
 
 def _rejection_summary(circles) -> str:

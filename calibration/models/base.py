@@ -18,7 +18,13 @@ from calibration.samples import Samples
 from pipeline.base.errors import UserError
 from pipeline.evaluate import angular_error_deg
 
-__all__ = ["CalibrationModel", "LightFieldModel", "solve_normals", "check_light_rank", "fit_tilt_gain", "scale_tilt"]
+__all__ = ["CalibrationModel", "LightFieldModel", "MIN_FLAT", "solve_normals", "check_light_rank", "fit_tilt_gain",
+           "scale_tilt"]
+
+#: A flat field (the no-contact reference over its channel's median level) below this carries no
+#: shading to divide by: a printed marker, a corner the vignetting blacks out. Light-field models
+#: with a flat field leave such samples out of their fit and give no normal there (invalid).
+MIN_FLAT = 0.1
 
 
 def solve_normals(obs: np.ndarray, lights: np.ndarray, shadow_iterations: int = 2,
@@ -245,5 +251,9 @@ class LightFieldModel(CalibrationModel):
     def _predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         L = self.lights_at(samples.rows, samples.cols, samples.shape)
         n, _, ok = solve_normals(self._observations(samples), L)
+        if self.flat is not None:  # no shading to read where the reference is dark (MIN_FLAT)
+            dark = (self.flat.reshape(-1, *samples.shape)[:, samples.rows, samples.cols] < MIN_FLAT).any(axis=0)
+            n = np.where(dark[:, None], np.array([0.0, 0.0, 1.0]), n)
+            ok = ok & ~dark
         sv = np.linalg.svd(np.asarray(L, np.float64), compute_uv=False)  # (N, 3)
         return n, ok, np.where(ok, sv[:, -1] / np.maximum(sv[:, 0], 1e-30), 0.0)

@@ -6,6 +6,14 @@ unknowns ``L_m,x / L_m,z`` and ``L_m,y / L_m,z``: ``I_m / I_ref,m - n_z = a_m n_
 The scale ``s_m`` (median reference) makes ``L_m = s_m (a_m, b_m, 1)`` and the flat field
 ``I_ref,m(x) / s_m``, so that ``I_m / flat_m = n . L_m``. Samples in attached shadow under
 the current fit (``n . L_m <= 0``) are dropped and the fit repeated.
+
+Where the reference is dark (a printed marker, a corner the vignetting blacks out, a channel
+whose light does not reach) the ratio is undefined: a reference of 0 DN made one sample's ratio
+~1e7, the least-squares light vectors came out ~1e6 times too long and every prediction of the
+randomised virtual sensors was invalid (``iristac bench calibration --sensors``: "far 90 deg").
+So samples whose reference is below :data:`calibration.models.base.MIN_FLAT` of the channel's
+median level are left out of the fit, and pixels whose flat field is below it have no normal
+(invalid; :class:`calibration.models.base.LightFieldModel`).
 """
 
 from __future__ import annotations
@@ -14,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.models.base import LightFieldModel
+from calibration.models.base import MIN_FLAT, LightFieldModel
 from calibration.samples import Samples
 
 __all__ = ["FarFieldModel"]
@@ -37,27 +45,30 @@ class FarFieldModel(LightFieldModel):
         self.flat = None
 
     def fit(self, samples: Samples, reference: np.ndarray | None = None) -> dict[str, Any]:
-        """Fit on ``samples``; ``reference (P, H, W, C)`` gives the flat field (else the samples' own)."""
+        """Fit on ``samples``; ``reference (P, H, W, C)`` gives the flat field."""
+        if reference is None:
+            raise ValueError("FarFieldModel.fit: the reference frames (P, H, W, C) are needed for the flat field")
         _, p, c = samples.intensities.shape
+        reference = np.asarray(reference, dtype=np.float64)
+        flat_ref = reference.transpose(0, 3, 1, 2).reshape(p * c, *samples.shape)  # (M, H, W)
+        scale = np.median(flat_ref.reshape(p * c, -1), axis=1)
         obs = samples.flat_observations.astype(np.float64)
         ref = samples.reference.reshape(len(samples), -1).astype(np.float64)
         ratio = obs / np.maximum(ref, 1e-6)
         n = samples.normals
-        use = np.ones(obs.shape, dtype=bool)
+        lit = ref >= MIN_FLAT * scale  # a dark reference leaves the ratio undefined (module docstring)
+        use = lit.copy()
         ab = np.zeros((obs.shape[1], 2))
         for _ in range(self.shadow_passes + 1):
             for m in range(obs.shape[1]):
                 u = use[:, m]
                 ab[m] = np.linalg.lstsq(n[u, :2], ratio[u, m] - n[u, 2], rcond=None)[0]
             shade = n[:, :2] @ ab.T + n[:, 2:3]  # (N, M) = n . (a, b, 1)
-            use = shade > 0.02
-        if reference is None:
-            raise ValueError("FarFieldModel.fit: the reference frames (P, H, W, C) are needed for the flat field")
-        reference = np.asarray(reference, dtype=np.float64)
-        flat_ref = reference.transpose(0, 3, 1, 2).reshape(p * c, *samples.shape)  # (M, H, W)
-        scale = np.median(flat_ref.reshape(p * c, -1), axis=1)
+            use = (shade > 0.02) & lit
         self.lights = (np.concatenate([ab, np.ones((len(ab), 1))], axis=1) * scale[:, None]).reshape(p, c, 3)
-        self.flat = (flat_ref / np.maximum(scale[:, None, None], 1e-12)).reshape(p, c, *samples.shape).astype(np.float32)
+        flat = flat_ref / np.maximum(scale[:, None, None], 1e-12)
+        # 0 where the reference is dark: no shading there (the solvers of pipeline.normals leave flat <= 0 out).
+        self.flat = np.where(flat >= MIN_FLAT, flat, 0.0).reshape(p, c, *samples.shape).astype(np.float32)
         self.num_patterns, self.num_channels = p, c
         return self._fit_report(samples)
 

@@ -83,9 +83,13 @@ def _split_row(name: str, cap, ball_mm: float, models, train, test, truth=None, 
            "gate": s.get("quality_gate", {}).get("passed"), "gate_cause": s.get("quality_gate", {}).get("cause"),
            "calibrate_seconds": cal_s, "seconds": seconds, "reference": reference_note or s.get("reference"),
            "drift_residual_dn": (s.get("drift") or {}).get("residual_dn_median"),
+           "ball_presses": None if best is None else
+           [sum(p["radius_error"] is not None for p in ev["ball_fit"][best]["per_press"]),
+            len(ev["ball_fit"][best]["per_press"])],
            "models": {m: {"cv_deg": s["models"][m].get("cv_mean_angular_error_deg"),
                           "test_deg": ev["models"][m]["mean_deg"],
-                          "ball_radius_error": ev["ball_fit"][m]["radius_error_median"]}
+                          "ball_radius_error": ev["ball_fit"][m]["radius_error_median"],
+                          "usable": ev["models"][m]["usable"], "problems": ev["models"][m]["problems"]}
                       for m in ev["models"]}}
     if truth is not None:
         from calibration.detect import Circle
@@ -210,12 +214,24 @@ def format_sensors(result: dict[str, Any]) -> list[str]:
                      f"{r['best_model'] or '-':>5s} {_f(r['cv_deg']):>6s} {_f(r['test_deg']):>6s} "
                      f"{_f(r.get('test_deg_truth')):>6s} {_f(None if r['ball_radius_error'] is None else 100 * r['ball_radius_error'], '.1f', ' %'):>7s} "
                      f"{'pass' if r['gate'] else 'FAIL':>5s} {r['seconds']:6.1f}")
-    lines.append("  every model (CV / test / ball radius):")
+    lines.append("  every model (CV / test / ball radius; UNUSABLE: the model's own verdict, its figures are no results):")
+    unusable = []
     for r in result["sensors"]:
         parts = [f"{m} {_f(v['cv_deg'], '.1f')}/{_f(v['test_deg'], '.1f')}/"
                  f"{_f(None if v['ball_radius_error'] is None else 100 * v['ball_radius_error'], '.1f', '%')}"
+                 + ("" if v.get("usable", True) else " UNUSABLE")
                  for m, v in r["models"].items()]
         lines.append(f"    {r['sensor'][:40]:40s} " + "  ".join(parts))
+        unusable += [f"    {r['sensor'][:40]}: {m}: {'; '.join(v['problems'])}"
+                     for m, v in r["models"].items() if not v.get("usable", True)]
+    if unusable:
+        lines.append("  why unusable:")
+        lines += unusable
+    balls = [f"{r['sensor'][:24]} {r['ball_presses'][0]}/{r['ball_presses'][1]}" for r in result["sensors"]
+             if r.get("ball_presses")]
+    if balls:
+        lines.append("  test presses with a round reconstructed cap (the ball column's median is over these): "
+                     + ", ".join(balls))
     if result.get("drift_models"):
         lines.append("  drift models (mlp; CV / test / ball radius / drift left after removal, RMS DN):")
         for r in result["drift_models"]:

@@ -104,7 +104,8 @@ def _print_summary(args, s, refused: bool) -> None:
             print(f"  {name:7s} {m['note']}  {m['seconds']:6.2f} s")
         else:
             print(f"  {name:7s} CV mean {m['cv_mean_angular_error_deg']:6.2f} deg  median "
-                  f"{m['cv_median_angular_error_deg']:6.2f} deg  {m['seconds']:6.2f} s")
+                  f"{m['cv_median_angular_error_deg']:6.2f} deg  {m['seconds']:6.2f} s"
+                  + ("" if m.get("usable", True) else "  UNUSABLE: " + "; ".join(m["problems"])))
     if "center_error_px_median" in s:
         off = s["center_offset_px_median"]
         print(f"  detected circles vs hand labels: centre {s['center_error_px_median']:.2f} px (median offset "

@@ -25,7 +25,10 @@ __all__ = ["SPEC", "RENDER_DEFAULTS", "params", "compute", "run", "rendered", "r
 # 400 steps at 2e-2 (issue 13): a calibration cached by version 1 holds other models.
 # Version 3: the detector scaled from the ball, per-press drift removed, the tilt gain from the
 # out-of-fold ball fit, the quality gate (issue 22): other circles, other models.
-SPEC = StageSpec("calibrate", version=3, schema="calibration",
+# Version 4: the near-field model divides by the reference's flat field, light-field models leave
+# dark reference pixels out, the ball fit skips caps that are not round, every model carries its
+# own verdict and the best model is a usable one (issue 22, accuracy): other models, other choice.
+SPEC = StageSpec("calibrate", version=4, schema="calibration",
                  defaults={"ball_radius_mm": 4.0, "model": "far", "folds": 5})
 
 #: Defaults of a run config's ``calibrate.render`` (the rendered sphere capture).

@@ -67,6 +67,7 @@ def test_cli_calibrate_json_keys(tmp_path):
     s = json.loads(r.stdout)
     assert {"presses", "accepted", "models", "center_error_px_median", "radius_error_px_median"} <= set(s)
     assert {"cv_mean_angular_error_deg", "cv_median_angular_error_deg", "seconds"} <= set(s["models"]["near"])
+    assert s["models"]["near"]["usable"] is True and s["models"]["near"]["problems"] == []
     assert (tmp_path / "o.png").stat().st_size > 1000
 
 
