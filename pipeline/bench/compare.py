@@ -34,7 +34,7 @@ import statistics
 from dataclasses import asdict, dataclass
 
 from pipeline.charts.model import format_seconds, format_value
-from pipeline.charts.rows import load_results, result_rows, row_key
+from pipeline.charts.rows import load_results, result_rows, row_key, time_noise
 
 __all__ = ["add_arguments", "run", "format_table", "compare_runs", "Change", "time_noise"]
 
@@ -68,21 +68,6 @@ class Change:
 
     def regression(self) -> bool:
         return self.kind in ("slower", "less accurate")
-
-
-def time_noise(row: dict) -> float | None:
-    """Relative spread of a row's timed repeats, ``(median - best) / best`` (None: none recorded).
-
-    Examples
-    --------
-    >>> round(time_noise({"seconds_runs": [1.0, 1.1, 1.3]}), 3), time_noise({"seconds": 1.0})
-    (0.1, None)
-    """
-    runs = [float(t) for t in row.get("seconds_runs") or [] if t is not None and t > 0]
-    if len(runs) < 2:
-        return None
-    best = min(runs)
-    return (statistics.median(runs) - best) / best
 
 
 def _time_change(old: dict, new: dict, opts: dict) -> Change | None:

@@ -31,7 +31,7 @@ from typing import Callable
 
 from pipeline.charts import sentences as say
 from pipeline.charts.model import Chart, Point, format_seconds
-from pipeline.charts.rows import is_default, row_device, row_path, row_size, row_threads
+from pipeline.charts.rows import is_default, row_device, row_path, row_size, row_threads, time_noise
 
 __all__ = ["View", "VIEWS", "build_charts", "tables", "summary_charts", "row_point", "SUMMARY"]
 
@@ -247,7 +247,8 @@ def row_point(r: Row, x_field: str, label: str, series: str) -> Point:
         hover[k.replace("_", " ")] = _fmt_exact(v)
     hover["stage"] = str(r.get("bench", ""))
     hover["machine"] = str(r.get("machine", ""))
-    return Point(x, float(r["error"]), label, series, is_default(r), hover)
+    noise = time_noise(r) if x_field == "seconds" else None
+    return Point(x, float(r["error"]), label, series, is_default(r), hover, x_noise=noise)
 
 
 def _plottable(r: Row, x_field: str) -> bool:

@@ -35,7 +35,9 @@ class Point:
     """One measured setting: ``x`` seconds (or another cost), ``y`` error, a short label.
 
     ``hover`` holds the exact figures (name -> text) the interactive page shows on hover;
-    ``name`` how a sentence names the point (default: series and label).
+    ``name`` how a sentence names the point (default: series and label); ``x_noise`` the
+    relative spread of ``x``'s timed repeats (:func:`pipeline.charts.rows.time_noise`; None:
+    not recorded), so a sentence does not call a point faster within the timing noise.
     """
 
     x: float
@@ -45,6 +47,7 @@ class Point:
     default: bool = False
     hover: dict[str, str] = field(default_factory=dict)
     name: str = ""
+    x_noise: float | None = None
 
     def title(self) -> str:
         """How a sentence names the point: ``name``, else series and label."""

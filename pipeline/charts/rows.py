@@ -25,13 +25,14 @@ from __future__ import annotations
 
 import json
 import re
+import statistics
 from pathlib import Path
 from typing import Any
 
 from pipeline.base.errors import UserError
 
 __all__ = ["load_results", "result_rows", "row_threads", "row_size", "row_path", "row_device", "is_default",
-           "row_key"]
+           "row_key", "time_noise"]
 
 _SIZE = re.compile(r"@ ?(\d+x\d+)")
 _THREADS = re.compile(r"(\d+) thread")
@@ -125,3 +126,21 @@ def is_default(row: dict) -> bool:
     if "default" in row:
         return bool(row["default"])
     return bool(_DEFAULT.search(str(row.get("setting", ""))))
+
+
+def time_noise(row: dict) -> float | None:
+    """Relative spread of a row's timed repeats, ``(median - best) / best`` (None: none recorded).
+
+    The noise of a best-of-repeats time: how far the timings wander while the row runs. The
+    sentences under the charts and ``iristac bench compare`` both read it.
+
+    Examples
+    --------
+    >>> round(time_noise({"seconds_runs": [1.0, 1.1, 1.3]}), 3), time_noise({"seconds": 1.0})
+    (0.1, None)
+    """
+    runs = [float(t) for t in row.get("seconds_runs") or [] if t is not None and t > 0]
+    if len(runs) < 2:
+        return None
+    best = min(runs)
+    return (statistics.median(runs) - best) / best

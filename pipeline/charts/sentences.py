@@ -61,7 +61,33 @@ def default_status(chart: Chart) -> str:
         return f" The shipped default ({_name(p)}) is on the front." if on_front else ""
     better = [q for q in chart.points if q.x <= p.x and q.y <= p.y and q is not p]
     q = min(better, key=lambda q: (q.y, q.x))
-    return (f" The shipped default ({_name(p)}) is dominated: {describe(chart, q)} is faster and more accurate.")
+    if _within_noise(p, q):
+        if q.y >= (1.0 - ERROR_FLOOR) * p.y:
+            return f" The shipped default ({_name(p)}) ties with {describe(chart, q)} within the timing noise."
+        return (f" The shipped default ({describe(chart, p)}) is as fast as {describe(chart, q)} within the timing "
+                f"noise, and {_name(q)} is more accurate.")
+    how = "as accurate" if q.y >= (1.0 - ERROR_FLOOR) * p.y else "more accurate"
+    return f" The shipped default ({_name(p)}) is dominated: {describe(chart, q)} is faster and {how}."
+
+
+# Two times closer than this are not called faster or slower: the floor ``iristac bench compare``
+# uses between runs, or twice the larger spread of the two points' repeats.
+TIME_NOISE_FLOOR = 0.10
+# Errors closer than this (relative) are called equal: ``iristac bench compare``'s error floor.
+ERROR_FLOOR = 0.01
+
+
+def _within_noise(p: Point, q: Point) -> bool:
+    """Whether ``q``'s time is below ``p``'s by less than the timing noise.
+
+    >>> _within_noise(Point(0.0100, 1, "a", x_noise=0.02), Point(0.0095, 1, "b", x_noise=0.01))
+    True
+    >>> _within_noise(Point(0.0100, 1, "a", x_noise=0.02), Point(0.0050, 1, "b"))
+    False
+    """
+    spreads = [n for n in (p.x_noise, q.x_noise) if n is not None]
+    tol = max([TIME_NOISE_FLOOR] + [2.0 * n for n in spreads])
+    return q.x > 0 and p.x / q.x - 1.0 <= tol
 
 
 def front(chart: Chart) -> str:

@@ -126,3 +126,19 @@ def test_a_bad_results_file_is_refused_naming_it(tmp_path):
     p.write_text('{"sections": [{"bench": "sim", "rows": [{"setting": "x"}]}]}')
     with pytest.raises(UserError, match=r"sections\[0\] \(sim\) rows\[0\] has no 'knob' field"):
         load_results(p)
+
+
+def test_the_default_is_not_called_slower_within_the_timing_noise():
+    """A point faster than the default by less than the repeats' noise (or 10 %) is "as fast";
+    beyond it, "faster"; equal errors (within 1 %) are "as accurate", never "more accurate"."""
+    from pipeline.charts.sentences import default_status
+
+    def status(q_x, q_y, noise):
+        d = Point(0.0100, 1.0, "default", default=True, x_noise=noise)
+        return default_status(Chart("k", "t", "seconds", "error (deg)", [d, Point(q_x, q_y, "other", x_noise=noise)]))
+
+    assert "as fast as other" in status(0.0095, 0.5, 0.01) and "more accurate" in status(0.0095, 0.5, 0.01)
+    assert "is faster and more accurate" in status(0.0080, 0.5, 0.01)
+    assert "as fast as other" in status(0.0080, 0.5, 0.15)  # 25 % faster, but the repeats wander 15 %
+    assert "faster and as accurate" in status(0.0050, 0.999, 0.01)
+    assert "ties with other" in status(0.0095, 0.999, 0.01)
