@@ -26,6 +26,10 @@ __all__ = ["ModeRun", "Comparison", "compare_captures", "compare_modes", "render
 #: The knob of the benchmark rows a comparison makes (:func:`comparison_rows`).
 MODE_KNOB = "lighting mode x solver"
 
+#: Rendered ball presses a lookup table of :func:`compare_modes` is calibrated from (the full
+#: demo's count; at least the quality gate's ``calibration.gate.MIN_ACCEPTED``).
+LUT_PRESSES = 10
+
 
 @dataclass
 class ModeRun:
@@ -363,7 +367,7 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
     from pipeline.stages import synthesize as synthesize_stage
     from pipeline.stages.base import record_key
     from pipeline.stages.synthesize import illumination_model
-    from sim.rendered_capture import sphere_presses
+    from sim.rendered_capture import press_ring, sphere_presses
 
     say = log or (lambda m: None)
     out = Path(out)
@@ -399,11 +403,10 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
                                              camera_fps=camera_fps, emulate=emulate, faults=faults)
         if lut:
             say("calibrating lookup tables for the single-frame modes")
-            h, w = model.shape
-            half = 0.5 * min(h, w) * model.mm_per_px
-            centres = [(0.0, 0.0), (0.4 * half, 0.3 * half), (-0.4 * half, 0.3 * half),
-                       (0.3 * half, -0.4 * half), (-0.3 * half, -0.4 * half)]
-            presses = sphere_presses(model.shape, model.mm_per_px, 2.0, [0.7, 0.6, 0.8, 0.65, 0.75], centres)
+            # The demo's layout and count: the calibrate stage's quality gate refuses fewer
+            # accepted presses than calibration.gate.MIN_ACCEPTED (5 lost every table).
+            depths, centres = press_ring(model.shape, model.mm_per_px, LUT_PRESSES)
+            presses = sphere_presses(model.shape, model.mm_per_px, 2.0, depths, centres)
             for m, p in lut_calibrations(store, model, modes, out, presses=presses, noise_dn=noise_dn,
                                          skipped=lut_skipped).items():
                 cals.setdefault(m, p)

@@ -26,8 +26,6 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
-
 __all__ = ["run_demo", "DemoSettings"]
 
 
@@ -61,21 +59,6 @@ def builtin_modes() -> tuple[str, ...]:
     from pipeline.base.registry import list_modes
 
     return tuple(sorted(list_modes(), key=lambda m: (-len(load_mode(m).frames), m)))
-
-
-def _press_layout(settings: DemoSettings) -> tuple[list[float], list[tuple[float, float]]]:
-    """Depths and centres (mm, reconstruction frame) of the calibration presses: a ring of
-    presses plus one in the middle, all well inside the image."""
-    h, w = settings.shape
-    half_w, half_h = (w - 1) / 2 * settings.mm_per_px, (h - 1) / 2 * settings.mm_per_px
-    n = settings.presses
-    rng = np.random.default_rng(7)
-    centres = [(0.0, 0.0)]
-    for k in range(n - 1):
-        a = 2 * np.pi * k / (n - 1)
-        centres.append((0.55 * half_w * np.cos(a), 0.55 * half_h * np.sin(a)))
-    depths = list(rng.uniform(0.5, 0.9, size=n))
-    return depths, centres
 
 
 def _or(value, fallback):
@@ -126,7 +109,7 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     from pipeline.report import Report
     from pipeline.stages import calibrate as calibrate_stage
     from pipeline.stages import synthesize as synthesize_stage
-    from sim.rendered_capture import render_capture, sphere_presses
+    from sim.rendered_capture import press_ring, render_capture, sphere_presses
     from sim.uniformity import uniformity_report
 
     t_start = time.perf_counter()
@@ -151,7 +134,7 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
 
     # 2. calibrate --------------------------------------------------------------------------
     t0 = time.perf_counter()
-    depths, centres = _press_layout(settings)
+    depths, centres = press_ring(settings.shape, settings.mm_per_px, settings.presses)
     presses = sphere_presses(settings.shape, settings.mm_per_px, settings.ball_radius_mm, depths, centres)
     say(f"calibrate: {len(presses)} rendered ball presses under every LED in turn")
     cal_cap = render_capture(model, "point", presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,

@@ -27,7 +27,30 @@ from sim.geometry import HeightField, sphere
 from sim.illumination_model import IlluminationModel
 from sim.render import Renderer, RenderSettings, auto_exposure
 
-__all__ = ["render_capture", "sphere_presses", "save_png", "render_scene_files"]
+__all__ = ["render_capture", "sphere_presses", "press_ring", "save_png", "render_scene_files"]
+
+
+def press_ring(shape: tuple[int, int], mm_per_px: float, n: int, *, seed: int = 7
+               ) -> tuple[list[float], list[tuple[float, float]]]:
+    """Depths (mm) and centres (mm, reconstruction frame) of ``n`` calibration presses: one in
+    the middle and a ring of ``n - 1`` at 0.55 of the half-image, all well inside it; depths
+    drawn uniformly from 0.5-0.9 mm (seeded). The demo's and ``compare-modes``'s layout.
+
+    Examples
+    --------
+    >>> depths, centres = press_ring((120, 160), 0.15, 6)
+    >>> len(depths), centres[0], all(0.5 <= d <= 0.9 for d in depths)
+    (6, (0.0, 0.0), True)
+    """
+    h, w = shape
+    half_w, half_h = (w - 1) / 2 * mm_per_px, (h - 1) / 2 * mm_per_px
+    rng = np.random.default_rng(seed)
+    centres = [(0.0, 0.0)]
+    for k in range(n - 1):
+        a = 2 * np.pi * k / (n - 1)
+        centres.append((0.55 * half_w * np.cos(a), 0.55 * half_h * np.sin(a)))
+    depths = [float(d) for d in rng.uniform(0.5, 0.9, size=n)]
+    return depths, centres
 
 
 def sphere_presses(shape: tuple[int, int], mm_per_px: float, radius: float, depths: Sequence[float],

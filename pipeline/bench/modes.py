@@ -17,7 +17,7 @@ import os
 import tempfile
 from pathlib import Path
 
-__all__ = ["add_arguments", "run", "format_table"]
+__all__ = ["add_arguments", "run", "format_table", "live_defaults"]
 
 
 def add_arguments(parser) -> None:
@@ -25,12 +25,13 @@ def add_arguments(parser) -> None:
     parser.add_argument("--rays", type=int, default=None, help="rays per LED of the trace (default: the demo's)")
 
 
-def _defaults() -> tuple[str, str]:
+def live_defaults() -> tuple[str, str]:
     """``iristac live``'s default mode and solver, read from its command line."""
     from pipeline.cli import build_parser
+    from pipeline.live.session import DEFAULT_MODE
 
     a = build_parser().parse_args(["live", "--virtual"])
-    return a.mode, a.solver
+    return a.mode or DEFAULT_MODE, a.solver
 
 
 def run(args) -> dict:
@@ -56,7 +57,7 @@ def run(args) -> dict:
                 times.setdefault((r.mode, r.solver), []).append(r.reconstruct_seconds)
     for k, r in runs.items():
         r["reconstruct_seconds"] = min(times[k])
-    rows = comparison_rows(list(runs.values()), default=_defaults())
+    rows = comparison_rows(list(runs.values()), default=live_defaults())
     for row in rows:
         row["seconds_runs"] = times[(row["mode"], row["solver"])]
     return {"rows": rows, "repeats": repeats, "rays": rays, "shape": list(st.shape), "camera_fps": st.camera_fps,

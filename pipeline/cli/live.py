@@ -75,7 +75,7 @@ def register(sub, name, help_text):
 
 
 def _run(args) -> int:
-    from pipeline.live import run_live
+    from pipeline.live import DEFAULT_MODE, run_live
 
     quiet = args.json
     log = (lambda m: None) if quiet else (lambda m: print(f"iristac live: {m}", file=sys.stderr, flush=True))
@@ -94,7 +94,7 @@ def _run(args) -> int:
             camera = camera_source(camera, prof)
         if prof is not None:
             mode, mm = mode or prof.mode, prof.mm_per_px
-    res = run_live(mode=mode or "trichromatic", solver=args.solver, camera=camera, virtual=args.virtual,
+    res = run_live(mode=mode or DEFAULT_MODE, solver=args.solver, camera=camera, virtual=args.virtual,
                    calibration=args.calibration, illumination=args.illumination, port=args.port,
                    emulate=args.emulate, ring_firmware=args.ring_firmware, frames=args.frames, seconds=args.seconds,
                    record=args.record, view=args.view, view_port=args.view_port, queue=args.queue,

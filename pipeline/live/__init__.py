@@ -17,8 +17,8 @@ multi-pattern mode (point, monochromatic) drives the ring through its patterns o
 """
 
 from pipeline.live.queue import DropQueue
-from pipeline.live.session import JSON_KEYS, LiveResult, LiveSession, run_live
+from pipeline.live.session import DEFAULT_MODE, JSON_KEYS, LiveResult, LiveSession, run_live
 from pipeline.live.virtual import virtual_calibration, virtual_calibration_key
 
-__all__ = ["run_live", "LiveSession", "LiveResult", "DropQueue", "JSON_KEYS", "virtual_calibration",
+__all__ = ["DEFAULT_MODE", "run_live", "LiveSession", "LiveResult", "DropQueue", "JSON_KEYS", "virtual_calibration",
            "virtual_calibration_key"]

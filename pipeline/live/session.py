@@ -42,7 +42,10 @@ import numpy as np
 from pipeline.base.errors import UserError
 from pipeline.live.queue import DropQueue
 
-__all__ = ["LiveSession", "LiveResult", "run_live", "JSON_KEYS"]
+__all__ = ["LiveSession", "LiveResult", "run_live", "JSON_KEYS", "DEFAULT_MODE"]
+
+#: The lighting mode ``iristac live`` runs when neither ``--mode`` nor a sensor profile names one.
+DEFAULT_MODE = "trichromatic"
 
 #: The stable key set of ``iristac live --json``.
 JSON_KEYS = ("results", "dropped", "fps", "latency_ms_p50", "latency_ms_p99", "mode", "solver", "method", "source",
@@ -431,7 +434,7 @@ class _Loop:
                           latencies_ms=self.lat, last_contact=self.last_contact)
 
 
-def run_live(*, mode: str = "trichromatic", solver: str = "lut", camera=None, virtual: bool = False,
+def run_live(*, mode: str = DEFAULT_MODE, solver: str = "lut", camera=None, virtual: bool = False,
              calibration=None, illumination=None, port: str | None = None, emulate: bool = False,
              ring_firmware=None, frames: int | None = None, seconds: float | None = None, record=None,
              view: bool = False, view_port: int = 0, queue: int = 4, threads: int = 1, integrator: str = "dst",
