@@ -30,8 +30,9 @@ BENCHES = ["sim", "render", "capture", "reconstruct", "calibration", "live", "mo
 
 def add_arguments(parser) -> None:
     parser.add_argument("--out", default="docs/benchmarks.md", help="markdown report to write")
-    parser.add_argument("--plot", default="docs/benchmarks.png",
-                        help="summary figure to write (six error-against-time panels, 900 px wide)")
+    parser.add_argument("--plot", default=None,
+                        help="summary figure to write (six error-against-time panels, 900 px wide; default: "
+                             "beside --out, same name, .png)")
     parser.add_argument("--only", nargs="*", choices=BENCHES, help="run only these benchmarks")
 
 
@@ -94,7 +95,9 @@ def run(args) -> dict:
     out = {"machine": machine, "quick": bool(getattr(args, "quick", False)),
            "load_average": load + list(os.getloadavg()), "sections": sections}
     if args.out:
-        _write_outputs(out, Path(args.out), args.plot)
+        # The figure goes beside the report unless asked elsewhere: a report written to a
+        # scratch folder must not overwrite docs/benchmarks.png.
+        _write_outputs(out, Path(args.out), args.plot or str(Path(args.out).with_suffix(".png")))
     elif args.plot:
         from pipeline.bench.report import write_summary
         from pipeline.charts.decisions import overview

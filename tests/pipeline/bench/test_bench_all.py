@@ -8,8 +8,8 @@ from pipeline.bench.report import format_markdown
 
 
 def test_bench_all_writes_markdown_json_and_plot(tmp_path):
-    md, png = tmp_path / "b.md", tmp_path / "b.png"
-    r = run_cli("bench", "all", "--quick", "--only", "render", "--out", md, "--plot", png, "--json", timeout=300)
+    md, png = tmp_path / "b.md", tmp_path / "b.png"  # no --plot: the figure goes beside the report
+    r = run_cli("bench", "all", "--quick", "--only", "render", "--out", md, "--json", timeout=300)
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
     rows = res["sections"][0]["rows"]
