@@ -39,6 +39,8 @@ import time
 
 import numpy as np
 
+from pipeline.bench.live_scaling import max_deviation_deg, mean_error_deg
+
 __all__ = ["add_arguments", "run", "format_table", "TARGETS"]
 
 #: (solver, size) -> frames per second to reach.
@@ -75,18 +77,6 @@ def _best(fn, repeats: int):
     return min(times), out
 
 
-def _err(normals, truth, mask=None) -> float:
-    from pipeline.evaluate import angular_error_deg
-
-    e = angular_error_deg(np.asarray(normals, np.float64), truth)
-    return float(e.mean() if mask is None else e[mask].mean())
-
-
-def _dev(a, b, mask) -> float:
-    from pipeline.evaluate import angular_error_deg
-
-    m = np.asarray(mask, bool)
-    return float(angular_error_deg(np.asarray(a, np.float64)[m], np.asarray(b, np.float64)[m]).max()) if m.any() else 0.0
 
 
 def _row(solver, size, path, threads, sec, err, dev=None, extra=None):
@@ -121,7 +111,7 @@ def measure_nearfield(width: int, height: int, repeats: int, patterns: int = 8, 
         return r, poisson_dst(r.normals, mm, r.mask)
 
     times, (re_, _) = _runs(eager_pipe, max(3, repeats // 5))
-    e_eager = _err(re_.normals, s.normals)
+    e_eager = mean_error_deg(re_.normals, s.normals)
     rows = [_row(label, size, "eager", 1, min(times), e_eager, extra={"seconds_runs": times})]
     t = time.perf_counter()
     fast = NearFieldFast(s.lights_flat(), groups=groups)
@@ -148,8 +138,8 @@ def _fast_rows(label: str, size: str, solve, dst, repeats: int, threads_all: int
 
         fast_pipe()
         times, (rf, _) = _runs(fast_pipe, repeats)
-        rows.append(_row(label, size, "fast", th, min(times), _err(rf.normals, truth),
-                         _dev(rf.normals, eager_normals, rf.mask & eager_mask), dict(extra, seconds_runs=times)))
+        rows.append(_row(label, size, "fast", th, min(times), mean_error_deg(rf.normals, truth),
+                         max_deviation_deg(rf.normals, eager_normals, rf.mask & eager_mask), dict(extra, seconds_runs=times)))
     return rows
 
 
@@ -196,7 +186,7 @@ def measure_model(solver: str, width: int, height: int, repeats: int, store, thr
         return r, poisson_dst(r.normals, mm, r.mask)
 
     times, (er, _) = _runs(eager_pipe, max(2, repeats // 10))
-    e_eager = _err(er.normals, truth)
+    e_eager = mean_error_deg(er.normals, truth)
     rows = [_row(solver, size, "eager", 1, min(times), e_eager, extra={"seconds_runs": times})]
     dst = FastDST((height, width), mm)
     for drift, label in (("auto", solver), ("none", f"{solver} (--drift none)")):

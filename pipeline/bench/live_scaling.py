@@ -19,20 +19,23 @@ import time
 
 import numpy as np
 
-__all__ = ["format_device", "frame_parallel_rows", "measure_device", "thread_counts"]
+__all__ = ["format_device", "frame_parallel_rows", "measure_device", "thread_counts", "mean_error_deg",
+           "max_deviation_deg"]
 
 #: Field of view (mm) of the benchmark's frames (``pipeline.bench.live``'s).
 FOV_MM = 16.0
 
 
-def _err(normals, truth, mask=None) -> float:
+def mean_error_deg(normals, truth, mask=None) -> float:
+    """Mean angular error (deg) of ``normals (..., 3)`` against ``truth``, over ``mask`` if given."""
     from pipeline.evaluate import angular_error_deg
 
     e = angular_error_deg(np.asarray(normals, np.float64), truth)
     return float(e.mean() if mask is None else e[mask].mean())
 
 
-def _dev(a, b, mask) -> float:
+def max_deviation_deg(a, b, mask) -> float:
+    """Largest angle (deg) between two normal maps over ``mask`` (0 where the mask is empty)."""
     from pipeline.evaluate import angular_error_deg
 
     m = np.asarray(mask, bool)
@@ -77,8 +80,8 @@ def frame_parallel_rows(label: str, size: str, fast, dst, frames: np.ndarray, tr
         base = base or fps
         last = planes.result(count - 1)
         rows.append({"solver": label, "size": size, "path": "frames", "threads": n, "seconds": sec / count,
-                     "fps": fps, "error_deg": _err(last.normals, truth),
-                     "deviation_deg": _dev(last.normals, r0.normals, last.mask & r0.mask), "frames": count,
+                     "fps": fps, "error_deg": mean_error_deg(last.normals, truth),
+                     "deviation_deg": max_deviation_deg(last.normals, r0.normals, last.mask & r0.mask), "frames": count,
                      "speedup": fps / base, "device": "cpu", "normals_fps": count / sec_n, "depth_fps": count / sec_d,
                      "serial_us": serial * 1e6 / count, "gil_busy": serial / sec})
     if per_frame:
@@ -133,7 +136,7 @@ def _pool_rows(label: str, size: str, fast, dst, batch: np.ndarray, truth: np.nd
         fps = count / sec
         base = base or fps
         rows.append({"solver": label, "size": size, "path": "pool", "threads": n, "seconds": sec / count, "fps": fps,
-                     "error_deg": _err(out[-1][0].normals, truth), "deviation_deg": None, "frames": count,
+                     "error_deg": mean_error_deg(out[-1][0].normals, truth), "deviation_deg": None, "frames": count,
                      "speedup": fps / base, "device": "cpu"})
     return rows
 
@@ -205,9 +208,9 @@ def measure_device(width: int, height: int, device: str, batch: int, repeats: in
         normals_ms, depth_ms = _split_ms(pipe, d_frames, r, repeats)
         n0 = r["normals"][0].cpu().numpy()
         floor_ms = batch * (frame_bytes + 4 * width * height) / bw * 1e3
-        row = {"solver": name, "first_batch_seconds": first, "error_deg": _err(n0, s.normals),
-               "cpu_error_deg": _err(cpu.normals, s.normals),
-               "deviation_from_cpu_deg": _dev(n0, cpu.normals, r["mask"][0].cpu().numpy() & cpu.mask),
+        row = {"solver": name, "first_batch_seconds": first, "error_deg": mean_error_deg(n0, s.normals),
+               "cpu_error_deg": mean_error_deg(cpu.normals, s.normals),
+               "deviation_from_cpu_deg": max_deviation_deg(n0, cpu.normals, r["mask"][0].cpu().numpy() & cpu.mask),
                "solve": {"ms_per_batch": solve_ms, "frames_per_second": batch / (solve_ms * 1e-3),
                          "memory_floor_fraction": floor_ms / solve_ms, "normals_ms": normals_ms,
                          "depth_ms": depth_ms}}
