@@ -34,7 +34,15 @@ import statistics
 from dataclasses import asdict, dataclass
 
 from pipeline.charts.model import format_seconds, format_value
-from pipeline.charts.rows import load_results, result_rows, row_key, time_noise
+from pipeline.charts.rows import (
+    ERROR_FLOOR,
+    TIME_NOISE_FLOOR,
+    TIME_TOLERANCE,
+    load_results,
+    result_rows,
+    row_key,
+    time_noise,
+)
 
 __all__ = ["add_arguments", "run", "format_table", "compare_runs", "Change", "time_noise"]
 
@@ -42,12 +50,12 @@ __all__ = ["add_arguments", "run", "format_table", "compare_runs", "Change", "ti
 def add_arguments(parser) -> None:
     parser.add_argument("old", metavar="OLD.json", help="the earlier run (iristac bench all's JSON)")
     parser.add_argument("new", metavar="NEW.json", help="the later run")
-    parser.add_argument("--time-floor", type=float, default=0.10,
-                        help="smallest relative slow-down flagged for rows with recorded repeats (default 0.10)")
-    parser.add_argument("--time-tolerance", type=float, default=0.25,
-                        help="relative slow-down flagged for rows without recorded repeats (default 0.25)")
-    parser.add_argument("--error-floor", type=float, default=0.01,
-                        help="smallest relative error growth flagged (default 0.01)")
+    parser.add_argument("--time-floor", type=float, default=TIME_NOISE_FLOOR,
+                        help=f"smallest relative slow-down flagged for rows with recorded repeats (default {TIME_NOISE_FLOOR})")
+    parser.add_argument("--time-tolerance", type=float, default=TIME_TOLERANCE,
+                        help=f"relative slow-down flagged for rows without recorded repeats (default {TIME_TOLERANCE})")
+    parser.add_argument("--error-floor", type=float, default=ERROR_FLOOR,
+                        help=f"smallest relative error growth flagged (default {ERROR_FLOOR})")
     parser.add_argument("--across-machines", action="store_true",
                         help="compare times even when the two runs were measured on different machines")
 
@@ -88,11 +96,7 @@ def _time_change(old: dict, new: dict, opts: dict) -> Change | None:
         kind = "faster"
     else:
         return None
-    return Change(kind, *_ids(new), a, b, change, thr, how)
-
-
-def _ids(row: dict) -> tuple[str, str, str]:
-    return row_key(row)
+    return Change(kind, *row_key(new), a, b, change, thr, how)
 
 
 def _error_change(old: dict, new: dict, knob_max: float, opts: dict) -> Change | None:
@@ -112,11 +116,11 @@ def _error_change(old: dict, new: dict, knob_max: float, opts: dict) -> Change |
     else:
         return None
     change = b / a - 1.0 if a else float("inf")
-    return Change(kind, *_ids(new), a, b, change, margin / abs(a) if a else 0.0, how)
+    return Change(kind, *row_key(new), a, b, change, margin / abs(a) if a else 0.0, how)
 
 
-def compare_runs(old: dict, new: dict, *, time_floor: float = 0.10, time_tolerance: float = 0.25,
-                 error_floor: float = 0.01, across_machines: bool = False) -> dict:
+def compare_runs(old: dict, new: dict, *, time_floor: float = TIME_NOISE_FLOOR, time_tolerance: float = TIME_TOLERANCE,
+                 error_floor: float = ERROR_FLOOR, across_machines: bool = False) -> dict:
     """Changes between two runs (dicts as ``iristac bench all`` writes them).
 
     Returns ``{"changes": [Change...], "regressions": n, "only_old": [...], "only_new": [...],

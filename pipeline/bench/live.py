@@ -39,7 +39,7 @@ import time
 
 import numpy as np
 
-from pipeline.bench.live_scaling import max_deviation_deg, mean_error_deg
+from pipeline.bench.live_scaling import FOV_MM, max_deviation_deg, mean_error_deg, measure_device
 
 __all__ = ["add_arguments", "run", "format_table", "TARGETS"]
 
@@ -48,7 +48,6 @@ TARGETS = {("nearfield", "320x240"): 400.0, ("nearfield", "640x480"): 100.0, ("l
            ("mlp", "320x240"): 200.0}
 #: The fast near-field path's error may exceed the eager solver's by at most this (deg).
 ERROR_MARGIN_DEG = 0.05
-FOV_MM = 16.0
 
 
 def add_arguments(parser) -> None:
@@ -70,13 +69,6 @@ def _runs(fn, repeats: int):
         out = fn()
         times.append(time.perf_counter() - t)
     return times, out
-
-
-def _best(fn, repeats: int):
-    times, out = _runs(fn, repeats)
-    return min(times), out
-
-
 
 
 def _row(solver, size, path, threads, sec, err, dev=None, extra=None):
@@ -198,13 +190,6 @@ def measure_model(solver: str, width: int, height: int, repeats: int, store, thr
         rows += _fast_rows(label, size, lambda th, fs=fs: fs.solve(raw, threads=th), dst, repeats, threads_all,
                            truth, normals, mask, {"eager_error_deg": e_eager, "prepare_seconds": prep})
     return rows
-
-
-def measure_device(width: int, height: int, device: str, batch: int, repeats: int) -> dict:
-    """The GPU pipeline (:func:`pipeline.bench.live_scaling.measure_device`): uint8 host frames to heights."""
-    from pipeline.bench.live_scaling import measure_device as measure
-
-    return measure(width, height, device, batch, repeats)
 
 
 _STARTUP = r"""

@@ -20,9 +20,9 @@ import time
 import numpy as np
 
 __all__ = ["format_device", "frame_parallel_rows", "measure_device", "thread_counts", "mean_error_deg",
-           "max_deviation_deg"]
+           "max_deviation_deg", "FOV_MM"]
 
-#: Field of view (mm) of the benchmark's frames (``pipeline.bench.live``'s).
+#: Field of view (mm) of the live benchmark's frames (``pipeline.bench.live`` and this module).
 FOV_MM = 16.0
 
 

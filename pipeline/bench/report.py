@@ -104,7 +104,7 @@ def write_summary(ov: Overview, path: str | Path) -> dict:
 
 
 def _decision_charts(ov: Overview):
-    return [c for c in ov.charts if not c.key.startswith(("other-",)) and not c.group.startswith("Other")]
+    return [c for c in ov.charts if not c.group.startswith("Other")]
 
 
 def write_chart_pngs(ov: Overview, folder: str | Path) -> list[str]:

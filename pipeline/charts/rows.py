@@ -32,7 +32,8 @@ from typing import Any
 from pipeline.base.errors import UserError
 
 __all__ = ["load_results", "result_rows", "row_threads", "row_size", "row_path", "row_device", "is_default",
-           "row_key", "time_noise"]
+           "row_key", "time_noise", "TIME_NOISE_FLOOR",
+           "TIME_TOLERANCE", "ERROR_FLOOR"]
 
 _SIZE = re.compile(r"@ ?(\d+x\d+)")
 _THREADS = re.compile(r"(\d+) thread")
@@ -126,6 +127,14 @@ def is_default(row: dict) -> bool:
     if "default" in row:
         return bool(row["default"])
     return bool(_DEFAULT.search(str(row.get("setting", ""))))
+
+
+#: Noise floors shared by ``iristac bench compare`` and the sentences under the charts: a time
+#: change smaller than TIME_NOISE_FLOOR (relative; or twice the repeats' spread) is noise, as is
+#: an error change under ERROR_FLOOR; rows without recorded repeats use TIME_TOLERANCE.
+TIME_NOISE_FLOOR = 0.10
+TIME_TOLERANCE = 0.25
+ERROR_FLOOR = 0.01
 
 
 def time_noise(row: dict) -> float | None:

@@ -18,6 +18,7 @@ from __future__ import annotations
 import math
 
 from pipeline.charts.model import Chart, Point, chart_fronts, format_seconds
+from pipeline.charts.rows import ERROR_FLOOR, TIME_NOISE_FLOOR
 
 __all__ = ["front", "within_budget", "within_target", "contrast", "steps", "threads", "sizes", "describe",
            "default_status"]
@@ -36,13 +37,9 @@ def _err(chart: Chart, y: float) -> str:
     return f"{y:.3g}{'' if short == '%' else ' '}{short}".strip()
 
 
-def _name(p: Point) -> str:
-    return p.title()
-
-
 def describe(chart: Chart, p: Point) -> str:
     """``name (time, error)``."""
-    return f"{_name(p)} ({format_seconds(p.x)}, {_err(chart, p.y)})"
+    return f"{p.title()} ({format_seconds(p.x)}, {_err(chart, p.y)})"
 
 
 def _ratio(a: float, b: float) -> str:
@@ -58,27 +55,21 @@ def default_status(chart: Chart) -> str:
     p = d[0]
     on_front = any(chart.points.index(p) in f for f in chart_fronts(chart))
     if on_front or chart.front != "all":
-        return f" The shipped default ({_name(p)}) is on the front." if on_front else ""
+        return f" The shipped default ({p.title()}) is on the front." if on_front else ""
     better = [q for q in chart.points if q.x <= p.x and q.y <= p.y and q is not p]
     q = min(better, key=lambda q: (q.y, q.x))
     if _within_noise(p, q):
         if q.y >= (1.0 - ERROR_FLOOR) * p.y:
-            return f" The shipped default ({_name(p)}) ties with {describe(chart, q)} within the timing noise."
+            return f" The shipped default ({p.title()}) ties with {describe(chart, q)} within the timing noise."
         return (f" The shipped default ({describe(chart, p)}) is as fast as {describe(chart, q)} within the timing "
-                f"noise, and {_name(q)} is more accurate.")
+                f"noise, and {q.title()} is more accurate.")
     how = "as accurate" if q.y >= (1.0 - ERROR_FLOOR) * p.y else "more accurate"
-    return f" The shipped default ({_name(p)}) is dominated: {describe(chart, q)} is faster and {how}."
-
-
-# Two times closer than this are not called faster or slower: the floor ``iristac bench compare``
-# uses between runs, or twice the larger spread of the two points' repeats.
-TIME_NOISE_FLOOR = 0.10
-# Errors closer than this (relative) are called equal: ``iristac bench compare``'s error floor.
-ERROR_FLOOR = 0.01
+    return f" The shipped default ({p.title()}) is dominated: {describe(chart, q)} is faster and {how}."
 
 
 def _within_noise(p: Point, q: Point) -> bool:
-    """Whether ``q``'s time is below ``p``'s by less than the timing noise.
+    """Whether ``q``'s time is below ``p``'s by less than the timing noise: max(TIME_NOISE_FLOOR,
+    twice the larger spread of the two points' repeats), as ``iristac bench compare`` judges runs.
 
     >>> _within_noise(Point(0.0100, 1, "a", x_noise=0.02), Point(0.0095, 1, "b", x_noise=0.01))
     True
@@ -100,7 +91,7 @@ def front(chart: Chart) -> str:
         return f"{describe(chart, f[0])} is both the fastest and the most accurate: pick it." + default_status(chart)
     a, b = f[0], f[-1]
     mid = f[1:-1]
-    between = f" In between on the front: {', '.join(_name(p) for p in mid)}." if mid else ""
+    between = f" In between on the front: {', '.join(p.title() for p in mid)}." if mid else ""
     gain = "exact" if b.y <= 0 else f"{_ratio(a.y, b.y)}x less error"
     cost = f"{format_seconds(b.x - a.x)} more time" if a.x <= 0 else f"{_ratio(b.x, a.x)}x the time"
     return (f"Fastest: {describe(chart, a)}; most accurate: {describe(chart, b)}: {gain} for {cost}.{between}"
@@ -120,7 +111,7 @@ def within_budget(chart: Chart) -> str:
     cheaper = [p for p in ok if p.x < best.x and p.y <= best.y * 1.05 and p is not best]
     if cheaper:
         c = min(cheaper, key=lambda p: p.x)
-        text += f" {_name(c)} is within 5 % of its error at {format_seconds(c.x)}."
+        text += f" {c.title()} is within 5 % of its error at {format_seconds(c.x)}."
     over = [p for p in chart.points if p.x > limit and p.y < best.y]
     if over:
         o = min(over, key=lambda p: p.y)
