@@ -196,7 +196,7 @@ class LabelSession:
         if self._linear is None:
             frames, ref = self.capture.linear()
             if self.capture.markers is not None:
-                from calibration.markers import fill_markers
+                from pipeline.normals.prepare import fill_markers
 
                 frames, ref = fill_markers(frames, self.capture.markers), fill_markers(ref, self.capture.markers)
             self._linear = (frames, ref)
@@ -208,7 +208,8 @@ class LabelSession:
         with self._lock:
             if self._detected[k] is None:
                 frames, ref = self._linear_frames()
-                self._detected[k] = detect_contacts(frames[k:k + 1], ref, self.ball_radius_px, self._options)[0]
+                self._detected[k] = detect_contacts(frames[k:k + 1], ref, self.ball_radius_px, self._options,
+                                                     exclude=self.capture.markers)[0]
             return self._detected[k]
 
     def press(self, k: int, detect: bool = True) -> dict[str, Any]:

@@ -182,3 +182,26 @@ def test_drag_and_resize_in_headless_chromium(capture):
     assert abs(lab["radius_px"][0] - (det["radius_px"] + 16 / scale)) < 0.6
     assert lab["rejected"].tolist() == [False, True, False]
     assert "press1,,," in (capture.parent / "cap.labels.csv").read_text()
+
+
+def test_a_capture_with_printed_markers_is_detected_as_calibrate_detects_it(tmp_path):
+    """The labeller shows the circles calibration uses: markers filled in and left out of the drift
+    fit (a capture carrying a marker mask once crashed it on an import)."""
+    from calibration.detect import detect_contacts
+    from pipeline.base.capture import write_capture
+    from pipeline.normals.prepare import fill_markers
+
+    sensor = random_sensor(21, shape=(120, 160), num_presses=3, effects=("markers",), border_fraction=0.0)
+    path = tmp_path / "markers.h5"
+    out = write_sensor_capture(path, sensor)
+    cap = read_capture(path)
+    cap.markers = np.asarray(out.truth.markers, bool)
+    assert cap.markers.any()
+    write_capture(path, cap)
+    session = LabelSession(path)
+    frames, ref = cap.linear()
+    frames, ref = fill_markers(frames, cap.markers), fill_markers(ref, cap.markers)
+    expected = detect_contacts(frames[:1], ref, session.ball_radius_px, exclude=cap.markers)[0]
+    got = session.detected(0)
+    assert got.accepted and np.allclose(got.center_xy, expected.center_xy)
+    assert got.radius_px == pytest.approx(expected.radius_px)
