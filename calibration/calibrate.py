@@ -545,8 +545,6 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
     frames, drifts = _without_drift(frames, ref, use, detected, ball_px, opt, mask, sat)
     accepted = sum(c.accepted for c in use)
     if accepted < 2 and strict:
-        from calibration.gate import judge
-
         verdict = judge(use, best_model=None, cv_deg=None, ball_radius_error=None, source_of_circles=source)
         raise CalibrationRefused(verdict.message(src), verdict, use)
     samples = collect_samples(frames, ref, use, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
@@ -649,18 +647,18 @@ def _marker_mask(markers, cap: Capture, reference: np.ndarray) -> np.ndarray | N
     return resolve_markers(markers, reference)
 
 
-def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: Samples, balls=None,
-                    how: bool | str = True) -> dict[str, Any]:
+def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: Samples, balls=None
+                    ) -> dict[str, Any]:
     """Set the model's tilt gain and tilt limit; CV report of the result.
 
     The limit keeps answers within the tilts the truth covered (beyond them, at the rim and in
-    the bulge, a model only extrapolates). The gain (``how``): ``"ball"`` (default, ``True``):
-    the one that makes the model's reconstructions of held-out presses the ball's size
-    (:mod:`calibration.ball_gain`), falling back to ``"regression"`` when too few spheres were
-    fitted; ``"regression"``: the one that undoes the shrinkage toward flat of its out-of-fold
-    predictions (:func:`calibration.models.base.fit_tilt_gain`: a least-squares fit dominated by
-    the steep rim, where a blurred image shrinks the tilts most; on the DIGIT frames it made the
-    middle of every cap too steep, spheres 13 % too small). The CV report's errors become those of
+    the bulge, a model only extrapolates). The gain: the one that makes the model's
+    reconstructions of held-out presses the ball's size (:mod:`calibration.ball_gain`, from
+    ``balls``), falling back, when too few spheres were fitted, to the one that undoes the
+    shrinkage toward flat of its out-of-fold predictions
+    (:func:`calibration.models.base.fit_tilt_gain`: a least-squares fit dominated by the steep
+    rim, where a blurred image shrinks the tilts most; on the DIGIT frames it made the middle of
+    every cap too steep, spheres 13 % too small). The CV report's errors become those of
     the corrected predictions; the uncorrected mean is kept as
     ``cv_uncorrected_mean_angular_error_deg``, the ball figures as ``ball_gain``.
     """
@@ -669,7 +667,7 @@ def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: S
     truth_tilt = np.hypot(samples.normals[samples.contact, 0], samples.normals[samples.contact, 1])
     model.max_tilt = float(min(0.999, 1.05 * truth_tilt.max())) if truth_tilt.size else None
     regression = fit_tilt_gain(pred[use, :2], samples.normals[use, :2]) if use.any() else 1.0
-    ball = balls.gain(model.max_tilt) if balls is not None and how in (True, "ball") else None
+    ball = balls.gain(model.max_tilt) if balls is not None else None
     model.tilt_gain = ball["gain"] if ball is not None and ball["gain"] is not None else regression
     corrected, _ = scale_tilt(pred, model.tilt_gain, model.max_tilt)
     errors = np.full(len(samples), np.nan)
@@ -718,7 +716,7 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
         model = make()
         fit = model.fit(samples, ref)
         if tilt_correction:
-            cv = _correct_output(model, cv, oof, samples, balls, tilt_correction)
+            cv = _correct_output(model, cv, oof, samples, balls)
         reports[name] = {"fit": fit, "cv": cv, "seconds": time.perf_counter() - t,
                          "problems": model_problems(cv, gate)}
         fitted[name] = model

@@ -86,7 +86,6 @@ class DetectOptions:
 
     blur_sigma_px: float = 1.0
     work_ball_radius_px: float = 24.0
-    blob_level: float = 0.4
     edge_level: float = 0.8
     num_rays: int = 120
     ray_step_px: float = 0.2

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from calibration.detect import Circle
+from calibration.detect import Circle, difference_image
 from pipeline.base.capture import Capture
 
 __all__ = ["TILE_WIDTH", "overlay_image", "write_overlay"]
@@ -86,7 +86,7 @@ def overlay_image(capture: Capture, circles: list[Circle], scale: float | None =
     labels = capture.labels if capture.labels and "center_xy" in capture.labels else None
     tiles = []
     for k, c in enumerate(circles):
-        diff = np.abs(frames[k] - ref).sum(axis=(0, 3))
+        diff = difference_image(frames[k], ref, 0.0)
         lab = None
         if labels is not None:
             x, y = np.asarray(labels["center_xy"], float)[k]

@@ -27,7 +27,8 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["contact_mask", "color_change", "capture_contact_masks", "drift_estimator", "CONTACT_DRIFT"]
+__all__ = ["contact_mask", "color_change", "capture_contact_masks", "drift_estimator", "contact_reference_level",
+           "CONTACT_DRIFT"]
 
 #: The drift model the colour change removes (:mod:`pipeline.normals.drift`): a gain and an offset
 #: that vary smoothly over the image (degree 2), as vignetting and a moved light do. On the virtual
@@ -118,11 +119,16 @@ def _close_and_fill(mask: np.ndarray, radius: int) -> np.ndarray:
     return (m > 0) | holes
 
 
+def contact_reference_level(reference) -> float:
+    """The no-contact reference's 99th percentile (every third pixel): the scale of ``min_change``."""
+    return float(np.percentile(np.asarray(reference, np.float32)[..., ::3, ::3, :], 99))
+
+
 def contact_mask(frames=None, reference=None, height=None, *, color_threshold: float | None = None,
                  noise_sigmas: float = 6.0, height_threshold_mm: float | None = None, height_fraction: float = 0.05,
                  min_change: float = 0.02, peak_fraction: float = 0.3, valid=None, blur_px: float = 1.0,
                  close_px: int = 3, grow_px: int = 3, min_area_px: int = 9, drift: str = CONTACT_DRIFT,
-                 estimator=None) -> np.ndarray:
+                 estimator=None, reference_level: float | None = None) -> np.ndarray:
     """Where the object touches the gel: ``(H, W)`` bool.
 
     Parameters
@@ -148,6 +154,9 @@ def contact_mask(frames=None, reference=None, height=None, *, color_threshold: f
         raised region its colour outline may reach; smallest region kept (pixels).
     drift, estimator
         The illumination drift removed from the colour change (:func:`color_change`).
+    reference_level : float, optional
+        :func:`contact_reference_level` of ``reference`` (what ``min_change`` scales), for callers that
+        mask many frames against one reference; computed here when not given.
 
     Returns
     -------
@@ -184,7 +193,7 @@ def contact_mask(frames=None, reference=None, height=None, *, color_threshold: f
         sample = change[::2, ::2]  # noise statistics from every other pixel: as good, 4x cheaper
         med = float(np.median(sample))
         sigma = 1.4826 * float(np.median(np.abs(sample - med)))
-        floor = min_change * float(np.percentile(np.asarray(reference, np.float32)[..., ::3, ::3, :], 99))
+        floor = min_change * (reference_level if reference_level is not None else contact_reference_level(reference))
         if color_threshold is None:
             peak = float(np.percentile(sample, 99.9))
             color_threshold = max(med + noise_sigmas * sigma, floor, med + peak_fraction * (peak - med)) + 1e-6
@@ -256,12 +265,14 @@ def capture_contact_masks(data, heights, valid=None, region=None, **options) -> 
     heights = np.asarray(heights)
     k = heights.shape[0]
     out = np.zeros(heights.shape, bool)
-    est = None if ref is None else drift_estimator(ref, options.pop("drift", CONTACT_DRIFT))
+    drift = options.pop("drift", CONTACT_DRIFT)
+    est = None if ref is None else drift_estimator(ref, drift)
+    level = None if ref is None else contact_reference_level(ref)  # one reference for every instance
     for i in range(k):
         v = None if valid is None else np.asarray(valid[i], bool)
         if ref is not None:
-            out[i] = contact_mask(frames[i], ref, heights[i], valid=v, drift="none" if est is None else est.model,
-                                  estimator=est, **options)
+            out[i] = contact_mask(frames[i], ref, heights[i], valid=v, drift="none" if est is None else drift,
+                                  estimator=est, reference_level=level, **options)
         else:
             out[i] = contact_mask(height=heights[i], valid=v, **options)
     if region is not None:

@@ -288,10 +288,12 @@ patterns (use a single-frame mode such as trichromatic)
         if ref is None or np.shape(ref) != np.shape(frames):
             return contact_mask(height=depth.height, valid=depth.mask)
         if self._contact_drift is None or self._contact_drift[0] is not ref:
-            from pipeline.contact import drift_estimator
+            from pipeline.contact import contact_reference_level, drift_estimator
 
-            self._contact_drift = (ref, drift_estimator(ref))  # built once per reference
-        return contact_mask(frames, ref, depth.height, valid=depth.mask, estimator=self._contact_drift[1])
+            # Built once per reference, not per frame.
+            self._contact_drift = (ref, drift_estimator(ref), contact_reference_level(ref))
+        _, est, level = self._contact_drift
+        return contact_mask(frames, ref, depth.height, valid=depth.mask, estimator=est, reference_level=level)
 
     def run(self, *, frames: int | None = None, seconds: float | None = None, record=None, view: bool = False,
             view_port: int = 0, queue: int = 4, contact: bool = False, on_ready=None, on_result=None) -> LiveResult:

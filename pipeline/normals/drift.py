@@ -171,12 +171,9 @@ class Drift:
         return g, o
 
     def remove(self, press: np.ndarray) -> np.ndarray:
-        """``press (P, H, W, C)`` mapped onto the reference's lighting, float32."""
-        press = np.asarray(press, np.float32)
-        if self.model == "none":
-            return press
-        g, o = self.fields(press.shape[1:3])
-        return ((press - o) / np.where(np.abs(g) > 1e-3, g, 1.0)).astype(np.float32)
+        """``press (P, H, W, C)`` mapped onto the reference's lighting, float32
+        (:meth:`remove_from` of the whole image: a constant drift without building fields)."""
+        return self.remove_from(press)
 
     @property
     def constant(self) -> bool:
@@ -195,7 +192,7 @@ class Drift:
     def remove_from(self, frames: np.ndarray, gather=None, shape: tuple[int, int] | None = None) -> np.ndarray:
         """:meth:`remove` of frames ``(P, H, W, C)``, or of a region's pixels ``(P, 1, M, C)``:
         ``gather`` maps a full ``(P, H, W, C)`` field of the image ``shape (H, W)`` onto them (a
-        varying drift needs both). The same arithmetic as :meth:`remove` (float64, then float32).
+        varying drift needs both). Float64 arithmetic, float32 result.
 
         Examples
         --------
@@ -436,7 +433,7 @@ class DriftEstimator:
         x, A, model, nt = self.x, self.A, self.model, self.terms_count
         p, c = self.reference.shape[0], self.reference.shape[3]
         ident.before_dn = float(np.sqrt(np.mean((y - x) ** 2)))
-        if model == "none" or A is None:
+        if A is None:  # the "none" model
             ident.residual_dn, ident.pixels = ident.before_dn, y.shape[1]
             return ident
         keep = np.ones(y.shape, bool)
