@@ -91,11 +91,6 @@ def matvec3(A: Array, x: Array) -> Array:
     return A[:, 0] * x[0] + A[:, 1] * x[1] + A[:, 2] * x[2]
 
 
-def dot3(x: Array, y: Array) -> Array:
-    """Per-pixel dot product of ``(3, M)`` vectors -> ``(M,)``."""
-    return x[0] * y[0] + x[1] * y[1] + x[2] * y[2]
-
-
 def project(L: Array, n: Array) -> Array:
     """``s_k = n . L_k`` per observation and pixel ``(N, M)``; ``L`` is ``(N, 3)`` or ``(N, 3, M)``,
     ``n`` is ``(3, M)``."""

@@ -218,11 +218,13 @@ class NearFieldFast:
         scale = self._shared_scale(Lm)
         counts = np.bincount(self.groups, minlength=self.num_groups)
         if albedo_iterations is None:
-            shared = self._channels_share_lights(Lm)
+            from pipeline.normals._lstsq import channels_share_lights
+
+            shared = channels_share_lights(Lm, [np.flatnonzero(self.groups == g) for g in range(self.num_groups)])
             albedo_iterations = 0 if shared or (counts < 3).any() else 3
         self.iterations = int(albedo_iterations) if self.num_groups > 1 else 0
         # White patterns (channels share their lights, no alternation): the pseudo-inverse
-        # kernel (pipeline.normals.fast_kernels.shared_kernel), which reads fewer bytes and vectorises.
+        # kernel (pipeline.normals.fast_kernels.shared_batch), which reads fewer bytes and vectorises.
         self.pinv = scale is not None and self.iterations == 0
         if self.pinv:
             L0 = Lm[::self.num_groups]  # (P, M, 3): the first channel's lights
@@ -254,6 +256,12 @@ class NearFieldFast:
             self.scale = blocked(np.where(self.valid0, scale, 0.0))
         self._count = np.full(M, N, np.int32)  # every observation is used: the same every frame
         self._count.flags.writeable = False  # shared by every result (as the condition map)
+        # The two per-pixel maps that do not change between frames, as images once: every
+        # result shares them (a region's fill is built here, not per frame).
+        self._condition_image = self._full(self.condition_m, COND_CAP)
+        self._count_image = self._full(self._count, 0)
+        for a in (self._condition_image, self._count_image):
+            a.flags.writeable = False
         self.set_dark(dark)
 
     def _shared_scale(self, Lm: np.ndarray, rtol: float = 2e-7):
@@ -274,21 +282,6 @@ class NearFieldFast:
                 return None
             scale[g] = a
         return scale
-
-    def _channels_share_lights(self, Lm: np.ndarray, rtol: float = 1e-4) -> bool:
-        """As :func:`pipeline.normals._lstsq.channels_share_lights`: every group's lights a scalar
-        multiple of the first group's (then a joint solve is exact)."""
-        sel = [np.flatnonzero(self.groups == g) for g in range(self.num_groups)]
-        ref = Lm[sel[0]]
-        ref_norm = float((ref * ref).sum())
-        for s in sel[1:]:
-            Lg = Lm[s]
-            if Lg.shape != ref.shape:
-                return False
-            a = float((Lg * ref).sum()) / max(ref_norm, 1e-300)
-            if float(((Lg - a * ref) ** 2).sum()) > rtol ** 2 * max(float((Lg * Lg).sum()), 1e-300):
-                return False
-        return True
 
     def set_dark(self, dark) -> None:
         """Subtract ``dark (H, W, C)`` (None: nothing) from every later frame."""
@@ -327,7 +320,7 @@ class NearFieldFast:
         G = self.num_groups
         out = PlaneBatch(np.empty((K, 3, H, W), np.float32), np.empty((K, G, H, W), np.float32),
                          np.empty((K, H, W), np.float32), np.empty((K, H, W), np.bool_),
-                         self._full(self.condition_m, COND_CAP), self._full(self._count, 0),
+                         self._condition_image, self._count_image,
                          {"solver": "nearfield", "method": "fast", "max_condition": self.max_condition})
         if self.region is not None:
             out.normals[:, :2] = 0.0
