@@ -110,7 +110,7 @@ patterns (use a single-frame mode such as trichromatic)
         self.size, self.mm_per_px, self.fps, self.contacts, self.press_s = size, mm_per_px, fps, contacts, press_s
         self.cache, self.reference_kind, self.markers_spec = cache, reference, markers
         self.fast, self.max_condition, self.threads = bool(fast), float(max_condition), int(threads)
-        from pipeline.stages.normals import check_drift
+        from pipeline.normals.drift import check_drift
 
         self.drift = check_drift(drift)
         self.say = log or (lambda m: None)

@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 
 __all__ = ["DRIFT_MODELS", "DRIFT_CHOICES", "AUTO_DRIFT", "GAIN_PIVOT", "SAMPLES", "LIVE_SAMPLES", "LIVE_REFIT_EVERY", "Drift", "DriftEstimator", "contact_exclusion",
-           "drift_terms", "drifted_capture", "fit_drift", "remove_drift", "resolve_drift"]
+           "drift_terms", "drifted_capture", "fit_drift", "remove_drift", "resolve_drift", "check_drift"]
 
 #: The gain is trusted as far as the reference spans more than this fraction of its own level
 #: (a ridge toward 1 of that strength; see :func:`fit_drift`).
@@ -69,6 +69,21 @@ DRIFT_CHOICES = ("auto", *DRIFT_MODELS)
 AUTO_DRIFT = "gain_offset"
 
 
+def check_drift(drift: str | None, where: str = "") -> str:
+    """``drift`` if it is one of :data:`DRIFT_CHOICES` (None is ``auto``), else a UserError
+    naming the choices (prefixed by ``where``).
+
+    >>> check_drift(None), check_drift("offset")
+    ('auto', 'offset')
+    """
+    from pipeline.base.errors import UserError
+
+    d = "auto" if drift is None else str(drift)
+    if d not in DRIFT_CHOICES:
+        raise UserError(f"{where + ': ' if where else ''}--drift must be one of {', '.join(DRIFT_CHOICES)}, got {d!r}")
+    return d
+
+
 def resolve_drift(drift: str | None, *, applies: bool, has_reference: bool, where: str = "frames") -> str:
     """The drift model a solve removes: ``drift`` (one of :data:`DRIFT_CHOICES`; None is ``auto``).
 
@@ -89,9 +104,7 @@ there is no reference (the capture has none, and the solver's model stores none)
     """
     from pipeline.base.errors import UserError
 
-    d = "auto" if drift is None else str(drift)
-    if d not in DRIFT_CHOICES:
-        raise UserError(f"{where}: --drift must be one of {', '.join(DRIFT_CHOICES)}, got {d!r}")
+    d = check_drift(drift, where)
     if d == "auto":
         return AUTO_DRIFT if applies and has_reference else "none"
     if d != "none" and not has_reference:
@@ -214,6 +227,11 @@ class Drift:
             if gather is not None:
                 g, o = gather(g), gather(o)
         return ((f - o) / g).astype(np.float32)
+
+    def result_meta(self) -> dict[str, Any]:
+        """What a normals result records of the drift removed from its frames."""
+        return {"drift": self.model, "drift_before_dn": round(self.before_dn, 3),
+                "drift_residual_dn": round(self.residual_dn, 3)}
 
     def summary(self) -> dict[str, Any]:
         """JSON-ready: model, mean gain and offset per pattern-channel, residual before and after."""

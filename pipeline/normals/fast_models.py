@@ -183,9 +183,7 @@ class _Base:
     def _meta(self, solver: str) -> dict:
         meta = {"solver": solver, "method": "fast"}
         if self.last_drift is not None and self.drift is not None and self.drift.model != "none":
-            d = self.last_drift
-            meta.update({"drift": d.model, "drift_before_dn": round(d.before_dn, 3),
-                         "drift_residual_dn": round(d.residual_dn, 3)})
+            meta.update(self.last_drift.result_meta())
         return meta
 
     def _check(self, frames) -> np.ndarray:

@@ -326,8 +326,7 @@ class FramePrep:
             results = [pm.restrict(r) for r in results]
         if self.estimator is not None:
             for r, d in zip(results, self.drifts):
-                r.meta.update({"drift": d.model, "drift_before_dn": round(d.before_dn, 3),
-                               "drift_residual_dn": round(d.residual_dn, 3)})
+                r.meta.update(d.result_meta())
         if self.markers is not None:
             for r in results:  # a filled-in value is a guess, not a measurement
                 r.mask = r.mask & ~self.markers

@@ -49,6 +49,7 @@ import numpy as np
 
 from pipeline.base.errors import UserError
 from pipeline.base.registry import SOLVERS
+from pipeline.normals.drift import check_drift
 from pipeline.normals.lights import LightSource
 from pipeline.stages.base import StageSpec, record_key
 
@@ -277,17 +278,6 @@ def params(section: Mapping[str, Any]) -> dict:
 
             p[name] = digest(np.asarray(s[name], bool))
     return p
-
-
-def check_drift(drift) -> str:
-    """``drift`` if it is one of :data:`pipeline.normals.drift.DRIFT_CHOICES`, else a UserError
-    naming the choices (None is ``auto``)."""
-    from pipeline.normals.drift import DRIFT_CHOICES
-
-    d = "auto" if drift is None else str(drift)
-    if d not in DRIFT_CHOICES:
-        raise UserError(f"--drift must be one of {', '.join(DRIFT_CHOICES)}, got {d!r}")
-    return d
 
 
 def resolve(section: dict, config: Mapping[str, Any], base: Path, source: str) -> None:
