@@ -16,11 +16,12 @@ server is the standard library's ``ThreadingHTTPServer`` (no framework); the pag
 
 from __future__ import annotations
 
-import json
 import threading
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 
 import numpy as np
+
+from pipeline.base.http_page import send, send_json
 
 __all__ = ["LiveView", "PAGE"]
 
@@ -112,25 +113,17 @@ class LiveView:
             def do_GET(self):  # noqa: N802 - http.server's name
                 path = self.path.split("?", 1)[0]
                 if path in ("/", "/index.html"):
-                    self._send(200, "text/html; charset=utf-8", PAGE.encode())
+                    send(self, 200, "text/html; charset=utf-8", PAGE.encode())
                 elif path == "/stats.json":
-                    self._send(200, "application/json", json.dumps(view.stats()).encode())
+                    send_json(self, 200, view.stats())
                 elif path in ("/depth.png", "/normals.png", "/contact.png"):
                     body = view.image(path[1:-4])
                     if body is None:
-                        self._send(503, "text/plain", b"no result yet")
+                        send(self, 503, "text/plain", b"no result yet")
                     else:
-                        self._send(200, "image/png", body)
+                        send(self, 200, "image/png", body)
                 else:
-                    self._send(404, "text/plain", b"not found")
-
-            def _send(self, code, kind, body):
-                self.send_response(code)
-                self.send_header("Content-Type", kind)
-                self.send_header("Content-Length", str(len(body)))
-                self.send_header("Cache-Control", "no-store")
-                self.end_headers()
-                self.wfile.write(body)
+                    send(self, 404, "text/plain", b"not found")
 
             def log_message(self, *args):  # the live loop's terminal stays quiet
                 pass
