@@ -21,7 +21,7 @@ from typing import Sequence
 
 __all__ = ["Point", "Chart", "Table", "Axes", "chart_axes", "point_label", "front_indices", "chart_fronts", "log_range",
            "format_seconds", "format_value",
-           "log_ticks", "plot_value", "MARKERS"]
+           "log_ticks", "tick_labels", "plot_value", "MARKERS"]
 
 #: Series styles, the same in both renderers: (colour, matplotlib marker, Plotly symbol).
 MARKERS = [("#1f77b4", "o", "circle"), ("#d62728", "s", "square"), ("#2ca02c", "D", "diamond"),
@@ -77,6 +77,11 @@ class Chart:
     stages: tuple[str, ...] = ()
     group: str = ""
     connect: bool = False
+
+    @property
+    def time_axis(self) -> bool:
+        """Whether ``x`` is a time in seconds (its ticks then read "10 ms", "1 s")."""
+        return "second" in self.x_label or self.x_label.endswith("(s)")
 
     def series_names(self) -> list[str]:
         """Series in order of first appearance."""
@@ -135,6 +140,11 @@ def log_range(values: Sequence[float], pad: float = 0.12) -> tuple[float, float,
     mid = (hi + lo) / 2
     lo, hi = mid - span / 2, mid + span / 2
     return lo - pad * span, hi + pad * span, floor
+
+
+def tick_labels(values, seconds: bool) -> list[str]:
+    """Tick texts, the same in both renderers: times as :func:`format_seconds`, others as numbers."""
+    return [format_seconds(v) if seconds else format_value(v, 3) for v in values]
 
 
 def log_ticks(lo: float, hi: float) -> list[float]:

@@ -37,11 +37,10 @@ from pipeline.charts.model import (
     Table,
     chart_axes,
     chart_fronts,
-    format_seconds,
-    format_value,
     log_ticks,
     plot_value,
     point_label,
+    tick_labels,
 )
 
 __all__ = ["write_page", "chart_figure", "chart_html", "library_tag", "render_script", "WIDTH", "HEIGHT"]
@@ -65,7 +64,7 @@ def _hover(p) -> str:
 
 def _ticks(lo: float, hi: float, seconds: bool) -> dict:
     vals = log_ticks(lo, hi)
-    return {"tickvals": vals, "ticktext": [format_seconds(v) if seconds else format_value(v, 3) for v in vals]}
+    return {"tickvals": vals, "ticktext": tick_labels(vals, seconds)}
 
 
 def _traces(chart: Chart, axes) -> list[dict]:
@@ -132,7 +131,7 @@ def chart_figure(chart: Chart) -> dict:
     margin = dict(MARGIN, b=58 + legend_h)
     height = HEIGHT + legend_h
     plot_w, plot_h = WIDTH - margin["l"] - margin["r"], height - margin["t"] - margin["b"]
-    seconds = "second" in chart.x_label
+    seconds = chart.time_axis
     layout = {"width": WIDTH, "height": height, "margin": margin, "font": {"family": FONT, "size": 12},
               "hovermode": "closest", "plot_bgcolor": "white",
               "xaxis": {"type": "log", "range": [axes.x_lo, axes.x_hi], "title": {"text": html.escape(chart.x_label)},

@@ -30,11 +30,10 @@ from pipeline.charts.model import (
     Chart,
     chart_axes,
     chart_fronts,
-    format_seconds,
-    format_value,
     log_ticks,
     plot_value,
     point_label,
+    tick_labels,
 )
 
 __all__ = ["summary_figure", "chart_png", "PanelStyle"]
@@ -98,11 +97,10 @@ def _draw_axes(ax, chart: Chart, st: PanelStyle, plot_w: float, plot_h: float) -
     ax.set_yscale("log")
     ax.set_xlim(10 ** axes.x_lo, 10 ** axes.x_hi)
     ax.set_ylim(10 ** axes.y_lo, 10 ** axes.y_hi)
-    time_axis = "second" in chart.x_label or chart.x_label.endswith("(s)")
     xt = log_ticks(axes.x_lo, axes.x_hi)
-    ax.set_xticks(xt, [format_seconds(v) if time_axis else format_value(v, 3) for v in xt], fontsize=_pt(st.tick_px))
+    ax.set_xticks(xt, tick_labels(xt, chart.time_axis), fontsize=_pt(st.tick_px))
     yt = log_ticks(axes.y_lo, axes.y_hi)
-    ax.set_yticks(yt, [format_value(v, 3) for v in yt], fontsize=_pt(st.tick_px))
+    ax.set_yticks(yt, tick_labels(yt, False), fontsize=_pt(st.tick_px))
     ax.minorticks_off()
     ax.grid(True, which="major", alpha=0.25)
     ax.set_xlabel(chart.x_label, fontsize=_pt(st.label_px), labelpad=2)
