@@ -32,14 +32,16 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DIGIT_BALL_MM", "DIGIT_MM_PER_PX", "format_sensors", "run_sensors"]
+__all__ = ["DIGIT_BALL_MM", "DIGIT_MM_PER_PX", "format_sensors", "run_sensors", "shared_data_dir"]
 
 #: The DIGIT folder's ball and pixel pitch (its README).
 DIGIT_BALL_MM = 3.0
 DIGIT_MM_PER_PX = 0.0266
 
 
-def _shared() -> Path | None:
+def shared_data_dir() -> Path | None:
+    """``../shared/data`` beside the checkout (or one level further up), where the real sensor
+    frames live; None when there is none."""
     repo = Path(__file__).resolve().parents[2]
     for base in (repo.parent, repo.parent.parent):
         if (base / "shared" / "data").is_dir():
@@ -59,21 +61,20 @@ def _circle_errors(circles, center_xy, radius_px) -> dict[str, Any]:
             "radius_error": float(np.median(r / tr - 1.0))}
 
 
-def _split_row(name: str, cap, ball_mm: float, models, train, test, truth=None, exact_normals=None,
+def _split_row(name: str, cap, ball_mm: float, models, truth=None, exact_normals=None,
                reference_note: str | None = None) -> dict[str, Any]:
-    """Calibrate on ``train``, evaluate on ``test``; one row of the table."""
-    from calibration.calibrate import calibrate
-    from calibration.evaluate import evaluate_calibration
+    """Calibrate on the split's training presses, evaluate on its test presses
+    (:func:`calibration.split.split_evaluation`); one row of the table."""
+    from calibration.split import TEST_PRESSES, TRAIN_PRESSES, split_evaluation
 
+    train, test = TRAIN_PRESSES, TEST_PRESSES
     t = time.perf_counter()
-    res = calibrate(cap.select(train), ball_mm, models=models)
-    cal_s = time.perf_counter() - t
-    ev = evaluate_calibration(res, cap.select(test), ball_mm)
+    sp = split_evaluation(cap, ball_mm, models)
     seconds = time.perf_counter() - t
+    res, ev, cal_s = sp["calibration"], sp["evaluation"], sp["seconds"]
     best = res.best_model
     s = res.summary()
     ball = ev["ball_fit"].get(best, {}) if best else {}
-    circles_test = [c for c in ev["truth"]["detected"]["circles"]]
     idx = np.arange(len(cap.frames))
     row = {"sensor": name, "shape": list(cap.shape), "presses": [len(idx[train]), len(idx[test])],
            "accepted": [s["accepted"], ev["accepted"]], "best_model": best,
@@ -96,7 +97,7 @@ def _split_row(name: str, cap, ball_mm: float, models, train, test, truth=None, 
 
         cal_err = _circle_errors(res.circles, truth[0][train], truth[1][train])
         test_circles = [Circle(tuple(c["center_xy"]), c["radius_px"], c["contact_radius_px"], c["quality"],
-                               c["accepted"], c["reason"]) for c in circles_test]
+                               c["accepted"], c["reason"]) for c in ev["truth"]["detected"]["circles"]]
         test_err = _circle_errors(test_circles, truth[0][test], truth[1][test])
         row["centre_error_px"] = [cal_err["centre_error_px"], test_err["centre_error_px"]]
         row["radius_error"] = [cal_err["radius_error"], test_err["radius_error"]]
@@ -118,7 +119,7 @@ def _virtual_rows(seeds, models, tmp: Path) -> list[dict[str, Any]]:
         truth = (np.asarray(out.truth.center_xy, float), np.asarray(out.truth.radius_px, float))
         h, w = cap.shape
         name = f"virtual seed {seed} ({h}x{w}, ball {sensor.ball_radius_px:.0f} px, {len(sensor.effects)} effects)"
-        row = _split_row(name, cap, float(cap.meta["ball_radius_mm"]), models, slice(0, 20), slice(20, 30), truth)
+        row = _split_row(name, cap, float(cap.meta["ball_radius_mm"]), models, truth)
         row["effects"] = list(sensor.effects)
         row["touching_border"] = int(np.asarray(out.truth.touches_border).sum())
         rows.append(row)
@@ -127,9 +128,10 @@ def _virtual_rows(seeds, models, tmp: Path) -> list[dict[str, Any]]:
 
 def _drift_model_rows(cases, model: str) -> list[dict[str, Any]]:
     """Test error and ball fit of ``model`` on each real case with each drift model."""
-    from calibration.calibrate import calibrate, find_circles
+    from calibration.calibrate import find_circles
     from calibration.detect import DetectOptions
-    from calibration.evaluate import TEST_TRUTH, evaluate_calibration
+    from calibration.evaluate import TEST_TRUTH
+    from calibration.split import TEST_PRESSES, split_evaluation
     from pipeline.normals.drift import DRIFT_MODELS
 
     rows = []
@@ -137,9 +139,9 @@ def _drift_model_rows(cases, model: str) -> list[dict[str, Any]]:
         for drift in DRIFT_MODELS:
             opt = DetectOptions(drift=drift)
             t = time.perf_counter()
-            res = calibrate(cap.select(slice(0, 20)), ball_mm, models=[model], detect_options=opt)
-            tc = find_circles(cap.select(slice(20, 30)), ball_mm, detect_options=opt, strict=False, **TEST_TRUTH)
-            ev = evaluate_calibration(res, cap.select(slice(20, 30)), ball_mm, circles=tc)
+            tc = find_circles(cap.select(TEST_PRESSES), ball_mm, detect_options=opt, strict=False, **TEST_TRUTH)
+            sp = split_evaluation(cap, ball_mm, [model], test_circles=tc, detect_options=opt)
+            res, ev = sp["calibration"], sp["evaluation"]
             rows.append({"sensor": name, "drift": drift, "model": model, "accepted": [res.summary()["accepted"],
                                                                                        ev["accepted"]],
                          "cv_deg": res.reports[model]["cv"]["cv_mean_angular_error_deg"],
@@ -156,7 +158,7 @@ def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
     from calibration.importers import load_gelsight_npz
     from pipeline.normals.drift import drifted_capture
 
-    data = _shared()
+    data = shared_data_dir()
     out: dict[str, Any] = {"sensors": [], "drift_models": [], "quick": bool(quick)}
     real = []
     with tempfile.TemporaryDirectory(prefix="iristac-bench-sensors-") as tmp:
@@ -164,17 +166,16 @@ def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
         if data is not None and (data / "gelsight_ball_presses.npz").is_file():
             gs = load_gelsight_npz(data / "gelsight_ball_presses.npz")
             labels = (np.asarray(gs.labels["center_xy"], float), np.asarray(gs.labels["radius_px"], float))
-            out["sensors"].append(_split_row("GelSight (shared, 120x160)", gs, 2.0, models, slice(0, 20),
-                                             slice(20, 30), labels))
+            out["sensors"].append(_split_row("GelSight (shared, 120x160)", gs, 2.0, models, labels))
             drifted = drifted_capture(gs, seed=0)
             out["sensors"].append(_split_row("GelSight drifted (+-15 % gain, +-30 DN per press)", drifted, 2.0,
-                                             models, slice(0, 20), slice(20, 30), labels))
+                                             models, labels))
             real.append(("GelSight", gs, 2.0))
         digit = None if data is None else data / "digit_ball_presses"
         if digit is not None and digit.is_dir():
             cap, rep = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM)
             out["sensors"].append(_split_row(f"DIGIT (640x480 JPEG, reference {rep['reference']} found)", cap,
-                                             DIGIT_BALL_MM, models, slice(0, 20), slice(20, 30)))
+                                             DIGIT_BALL_MM, models))
             real.append(("DIGIT", cap, DIGIT_BALL_MM))
             folder = tmp / "digit_no_reference"
             folder.mkdir()
@@ -182,8 +183,7 @@ def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
                 if f.name != rep["reference"]:
                     (folder / f.name).symlink_to(f.resolve())
             built, brep = load_images(folder, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM)
-            row = _split_row("DIGIT without its no-contact frame (reference built)", built, DIGIT_BALL_MM, models,
-                             slice(0, 20), slice(20, 30))
+            row = _split_row("DIGIT without its no-contact frame (reference built)", built, DIGIT_BALL_MM, models)
             row["reference_built"] = brep.get("reference_built")
             out["sensors"].append(row)
         out["sensors"] += _virtual_rows(range(2) if quick else range(4), models, tmp)

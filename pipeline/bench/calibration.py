@@ -27,12 +27,11 @@ __all__ = ["add_arguments", "run", "format_table"]
 
 
 def _shared_data() -> Path | None:
-    repo = Path(__file__).resolve().parents[2]
-    for base in (repo.parent, repo.parent.parent):
-        p = base / "shared" / "data" / "gelsight_ball_presses.npz"
-        if p.is_file():
-            return p
-    return None
+    from pipeline.bench._calibration_sensors import shared_data_dir
+
+    d = shared_data_dir()
+    p = None if d is None else d / "gelsight_ball_presses.npz"
+    return p if p is not None and p.is_file() else None
 
 
 def add_arguments(parser) -> None:

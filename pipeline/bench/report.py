@@ -67,18 +67,19 @@ def _intro(results: dict, source: str, ov: Overview) -> str:
 
 
 def build_report(results: dict | str | Path, out: str | Path, *, figure: str | Path | None = None,
-                 charts_dir: str | Path | None = None, js: str = "beside", source: str | None = None) -> dict:
+                 charts_dir: str | Path | None = None, js: str = "beside", source: str | None = None,
+                 ov: Overview | None = None) -> dict:
     """Write the page (and the summary figure, the chart PNGs) of a benchmark run.
 
-    ``results`` is a run (dict) or the path of its JSON. Returns what was written and the
-    charts' keys, titles and sentences.
+    ``results`` is a run (dict) or the path of its JSON; ``ov`` its charts when the caller has
+    built them already. Returns what was written and the charts' keys, titles and sentences.
     """
     from pipeline.charts.page import write_page
 
     if not isinstance(results, dict):
         source = source or str(results)
         results = load_results(results)
-    ov = overview(result_rows(results))
+    ov = ov if ov is not None else overview(result_rows(results))
     page = write_page(out, ov.charts, chart_tables(ov), title="IrisTac benchmarks: what accuracy costs in time",
                       intro=_intro(results, source or "iristac bench all", ov), js=js)
     written = {"page": str(page), "charts": [{"key": c.key, "title": c.title, "sentence": c.sentence,
@@ -116,9 +117,10 @@ def write_chart_pngs(ov: Overview, folder: str | Path) -> list[str]:
     return [chart_png(c, folder / f"{c.key}.png")["path"] for c in _decision_charts(ov)]
 
 
-def markdown_charts(results: dict, image_prefix: str | None) -> list[str]:
-    """Markdown lines: per decision, its question, its chart (``image_prefix/KEY.png``) and sentence."""
-    ov = overview(result_rows(results))
+def markdown_charts(results: dict, image_prefix: str | None, ov: Overview | None = None) -> list[str]:
+    """Markdown lines: per decision, its question, its chart (``image_prefix/KEY.png``) and sentence
+    (``ov``: the run's charts, when already built)."""
+    ov = ov if ov is not None else overview(result_rows(results))
     lines: list[str] = []
     group = None
     for c in _decision_charts(ov):
@@ -164,10 +166,11 @@ def write_docs(out: dict, md_path: Path, plot: str | None) -> None:
     """The page, the summary figure, the chart PNGs and the markdown of a run (``out``, as
     ``benchmarks.json`` holds it) beside ``md_path``; fills in what was written."""
     raw = md_path.with_suffix(".json")
+    ov = overview(result_rows(out))  # once, for the page, the figures and the markdown
     written = build_report(dict(out), md_path.with_suffix(".html"), figure=plot,
-                           charts_dir=md_path.parent / CHART_DIR, source=f"iristac bench all ({raw.name})")
+                           charts_dir=md_path.parent / CHART_DIR, source=f"iristac bench all ({raw.name})", ov=ov)
     md = format_markdown(out, plot_name=_relative(plot, md_path.parent) if plot else None, chart_prefix=CHART_DIR,
-                         page_name=md_path.with_suffix(".html").name)
+                         page_name=md_path.with_suffix(".html").name, ov=ov)
     md_path.write_text(md, encoding="utf-8")
     out.update(markdown=str(md_path), page=written["page"], json=str(raw))
     if plot:
@@ -183,7 +186,7 @@ def _relative(path: str, folder: Path) -> str:
 
 
 def format_markdown(result: dict, plot_name: str | None = None, chart_prefix: str | None = None,
-                    page_name: str | None = None) -> str:
+                    page_name: str | None = None, ov: Overview | None = None) -> str:
     """The run as markdown: the summary figure, one chart and sentence per decision (when
     ``chart_prefix`` names their folder), then every row in a table per benchmark."""
     load = result.get("load_average")
@@ -203,7 +206,7 @@ def format_markdown(result: dict, plot_name: str | None = None, chart_prefix: st
     if chart_prefix is not None:
         lines += ["## What to pick", "", "Each chart: error against time on log axes, the Pareto front dashed, the "
                   "shipped default ringed; the sentence under it is computed from the figures.", ""]
-        lines += markdown_charts(result, chart_prefix)
+        lines += markdown_charts(result, chart_prefix, ov)
     lines += ["## Every row", ""]
     for s in result["sections"]:
         lines += [f"### {s['bench']}", "", f"(benchmark ran for {s['seconds']:.1f} s)", ""]
