@@ -307,9 +307,9 @@ def _run(args) -> dict:
 def _live_defaults() -> tuple[str, int]:
     """``iristac live``'s default solver and threads, read from its command line (the live view
     always runs the fast path)."""
-    from pipeline.cli import build_parser
+    from pipeline.cli import command_defaults
 
-    a = build_parser().parse_args(["live", "--virtual"])
+    a = command_defaults("live", "--virtual")
     return a.solver, a.threads
 
 

@@ -27,10 +27,10 @@ def add_arguments(parser) -> None:
 
 def live_defaults() -> tuple[str, str]:
     """``iristac live``'s default mode and solver, read from its command line."""
-    from pipeline.cli import build_parser
+    from pipeline.cli import command_defaults
     from pipeline.live.session import DEFAULT_MODE
 
-    a = build_parser().parse_args(["live", "--virtual"])
+    a = command_defaults("live", "--virtual")
     return a.mode or DEFAULT_MODE, a.solver
 
 

@@ -240,9 +240,9 @@ SOLVER_NAMES = {"lstsq (far field)": "lstsq", "lstsq (far field, compiled)": "ls
 
 def _reconstruct_defaults() -> tuple[str, str]:
     """``iristac reconstruct``'s default solver and integrator, read from its command line."""
-    from pipeline.cli import build_parser
+    from pipeline.cli import command_defaults
 
-    a = build_parser().parse_args(["reconstruct", "CAPTURE.h5", "--out", "OUT"])
+    a = command_defaults("reconstruct", "CAPTURE.h5", "--out", "OUT")
     return a.solver, a.integrator
 
 

@@ -52,6 +52,20 @@ def add_drift_flag(parser) -> None:
                              "off)")
 
 
+def add_threads_flag(parser, help_text: str) -> None:
+    """``--threads N`` (default 1; 0: every core); read it back with :func:`threads_arg`."""
+    parser.add_argument("--threads", type=int, default=1, help=help_text)
+
+
+def threads_arg(args) -> int | None:
+    """``--threads`` as the Python API takes it (None: every core), or a UserError when negative."""
+    if args.threads < 0:
+        from pipeline.base.errors import UserError
+
+        raise UserError(f"--threads must be 0 (every core) or more, got {args.threads}")
+    return args.threads or None
+
+
 def mode_help(what: str = "lighting mode") -> str:
     """Help text naming the built-in lighting modes (:func:`pipeline.base.registry.list_modes`)."""
     from pipeline.base.registry import list_modes

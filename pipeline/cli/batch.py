@@ -13,7 +13,9 @@ from pipeline.cli._common import (
     add_markers_flag,
     add_mask_flag,
     add_solver_flags,
+    add_threads_flag,
     print_json,
+    threads_arg,
 )
 
 
@@ -36,7 +38,7 @@ def register(sub, name, help_text):
     p.add_argument("--images", action="store_true", help="also write PNG/PLY pictures to --out")
     p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
     p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
-    p.add_argument("--threads", type=int, default=1, help="threads within each recording: torch's while solving; "
+    add_threads_flag(p, "threads within each recording: torch's while solving; "
                    "with more than one, nearfield/lstsq on integer frames and dst depth take their batch fast paths, "
                    "every contact instance at once (default 1; 0: every core)")
     add_heal_flag(p)
@@ -48,16 +50,13 @@ def _run(args) -> int:
     from pipeline.batch import format_summary
     from pipeline.batch_reconstruct import SUMMARY_COLUMNS, batch_reconstruct
 
-    if args.threads < 0:
-        from pipeline.base.errors import UserError
-
-        raise UserError(f"--threads must be 0 (every core) or more, got {args.threads}")
+    threads = threads_arg(args)
     items = batch_reconstruct(args.recordings, calibration=args.calibration, illumination=args.illumination,
                               solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                               images=args.images, device=args.device, workers=args.workers,
                               scheduler=args.scheduler, progress=not args.json,
                               connect_timeout=args.connect_timeout, heal=not args.no_heal, mask=args.mask,
-                              markers=args.markers, threads=args.threads or None, drift=args.drift)
+                              markers=args.markers, threads=threads, drift=args.drift)
     failed = sum(not i.ok for i in items)
     if args.json:
         print_json({"items": [i.to_json() for i in items], "processed": len(items) - failed, "failed": failed})

@@ -9,7 +9,9 @@ from pipeline.cli._common import (
     add_markers_flag,
     add_mask_flag,
     add_solver_flags,
+    add_threads_flag,
     print_json,
+    threads_arg,
 )
 
 #: The stable key set of ``--json`` (truth errors only when the capture carries truth).
@@ -33,7 +35,7 @@ def register(sub, name, help_text):
                    "and does not import torch")
     p.add_argument("--compile", action="store_true",
                    help="lstsq: torch.compile the far-field solver (a few seconds once; ~4x faster per frame)")
-    p.add_argument("--threads", type=int, default=1, help="threads: torch's while solving (BLAS's for lstsq on the cpu); with more than one, "
+    add_threads_flag(p, "threads: torch's while solving (BLAS's for lstsq on the cpu); with more than one, "
                    "nearfield/lstsq on integer frames and dst depth take their batch fast paths, every contact "
                    "instance at once (default 1; 0: every core)")
     p.add_argument("--no-images", action="store_true", help="write only normals.h5 and depth.h5")
@@ -48,15 +50,12 @@ def register(sub, name, help_text):
 def _run(args) -> int:
     from pipeline.reconstruct import reconstruct
 
-    if args.threads < 0:
-        from pipeline.base.errors import UserError
-
-        raise UserError(f"--threads must be 0 (every core) or more, got {args.threads}")
+    threads = threads_arg(args)
     res = reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
                       solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
                       images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
-                      markers=args.markers, threads=args.threads or None, drift=args.drift)
+                      markers=args.markers, threads=threads, drift=args.drift)
     s = res.summary
     if args.json:
         print_json(s)
