@@ -52,26 +52,17 @@ def add_arguments(parser) -> None:
                         help="PS object radius in pixels (default 71: 15.8k pixels; --quick: 20)")
 
 
-_CPU: dict[int, float] = {}
-
-
-_RUNS: dict[int, list] = {}
-
-
-def _best(fn, repeats: int) -> tuple[float, object]:
-    """Best wall time of ``repeats`` runs; the best process CPU time of the same runs is
-    left in ``_CPU[id(result)]`` (with one torch thread, CPU time is what a frame costs when
-    it has a core to itself: the shared machine's wall times include waiting for one), every
-    run's wall time in ``_RUNS[id(result)]``."""
+def _best(fn, repeats: int) -> tuple[float, float, list[float], object]:
+    """``(best wall time, best process CPU time, every run's wall time, result)`` of ``repeats``
+    runs (with one torch thread, CPU time is what a frame costs when it has a core to itself:
+    the shared machine's wall times include waiting for one)."""
     best_cpu, out, times = float("inf"), None, []
     for _ in range(repeats):
         t, c = time.perf_counter(), time.process_time()
         out = fn()
         best_cpu = min(best_cpu, time.process_time() - c)
         times.append(time.perf_counter() - t)
-    _CPU[id(out)] = best_cpu
-    _RUNS[id(out)] = times
-    return min(times), out
+    return min(times), best_cpu, times, out
 
 
 def _obs(frames: np.ndarray) -> np.ndarray:
@@ -137,10 +128,9 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
         if name.endswith("compiled)") and not fast.compile:
             continue  # compilation unavailable or skipped: nothing to report
         reps = repeats if name.startswith(("lstsq", "nearfield")) and "ratio" not in name else max(1, repeats // 5)
-        sec, res = _best(fn, reps)
+        sec, cpu, runs, res = _best(fn, reps)
         results[name] = res
-        out["solvers"][name] = {"seconds": sec, "fps": 1.0 / sec, "cpu_seconds": _CPU.pop(id(res)),
-                                "seconds_runs": _RUNS.pop(id(res)),
+        out["solvers"][name] = {"seconds": sec, "fps": 1.0 / sec, "cpu_seconds": cpu, "seconds_runs": runs,
                                 "mean_deg": err(res), "valid_fraction": res.valid_fraction}
     from pipeline.base.registry import INTEGRATORS
 
@@ -148,10 +138,10 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
         for src in ("nearfield", "lstsq (far field)"):
             res = results[src]
             reps = repeats if method != "sparse" else max(1, repeats // 10)
-            sec, d = _best(lambda: integrate(res.normals, mm, res.mask, method=method), reps)
+            sec, cpu, runs, d = _best(lambda: integrate(res.normals, mm, res.mask, method=method), reps)
             rmse = float(np.sqrt(np.mean((d.height.astype(np.float64) - s.height) ** 2)))
-            out["integrators"].setdefault(method, {})[src] = {"seconds": sec, "cpu_seconds": _CPU.pop(id(d)),
-                                                            "seconds_runs": _RUNS.pop(id(d)),
+            out["integrators"].setdefault(method, {})[src] = {"seconds": sec, "cpu_seconds": cpu,
+                                                            "seconds_runs": runs,
                                                             "rmse_mm": rmse,
                                                             "rmse_pct_depth": 100 * rmse / DEPTH}
     # Real-time pipelines: far-field least squares + DST or FC, from uint8 frames to heights,
@@ -164,10 +154,9 @@ def measure_size(width: int, height: int, repeats: int, device: str, no_compile:
             def pipeline(method=method, solver=solver):
                 r = solver.solve_frames(frames)
                 return integrate(r.normals, mm, r.mask, method=method)
-            sec, d = _best(pipeline, repeats)
-            cpu = _CPU.pop(id(d))
+            sec, cpu, runs, _ = _best(pipeline, repeats)
             out["pipelines"][f"lstsq+{method} ({solver_name})"] = {"seconds": sec, "fps": 1.0 / sec,
-                                                                   "seconds_runs": _RUNS.pop(id(d)),
+                                                                   "seconds_runs": runs,
                                                                    "cpu_seconds": cpu, "cpu_fps": 1.0 / cpu,
                                                                    "integrator": method}
     rng = np.random.default_rng(1)
