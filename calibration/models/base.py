@@ -18,7 +18,7 @@ from calibration.samples import Samples
 from pipeline.base.errors import UserError
 from pipeline.evaluate import angular_error_deg
 
-__all__ = ["CalibrationModel", "LightFieldModel", "MIN_FLAT", "solve_normals", "check_light_rank", "fit_tilt_gain",
+__all__ = ["CalibrationModel", "LightFieldModel", "MIN_FLAT", "flat_field", "solve_normals", "check_light_rank", "fit_tilt_gain",
            "scale_tilt"]
 
 #: A flat field (the no-contact reference over its channel's median level) below this carries no
@@ -85,6 +85,22 @@ def solve_normals(obs: np.ndarray, lights: np.ndarray, shadow_iterations: int = 
     ok &= rho > 0
     n = np.where(ok[:, None], b / np.maximum(rho, 1e-30)[:, None], np.array([0.0, 0.0, 1.0]))
     return n, rho, ok
+
+
+def flat_field(reference, p: int, c: int, shape: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """The reference's flat field and its levels: ``(flat (P * C, H, W) float64, 0 where below
+    :data:`MIN_FLAT`; scale (P * C,))``, each pattern-channel over its median level.
+
+    >>> ref = np.full((1, 2, 2, 1), 50.0); ref[0, 0, 0] = 2.0
+    >>> flat, scale = flat_field(ref, 1, 1, (2, 2))
+    >>> flat[0].tolist(), scale.tolist()
+    ([[0.0, 1.0], [1.0, 1.0]], [50.0])
+    """
+    ref = np.asarray(reference, np.float64).transpose(0, 3, 1, 2).reshape(p * c, *shape)
+    scale = np.median(ref.reshape(p * c, -1), axis=1)
+    flat = ref / np.maximum(scale[:, None, None], 1e-12)
+    # 0 where the reference is dark: no shading there (the solvers of pipeline.normals leave flat <= 0 out).
+    return np.where(flat >= MIN_FLAT, flat, 0.0), scale
 
 
 def check_light_rank(samples: Samples, min_ratio: float = 0.05, what: str = "capture") -> float:

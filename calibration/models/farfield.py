@@ -22,7 +22,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.models.base import MIN_FLAT, LightFieldModel
+from calibration.models.base import MIN_FLAT, LightFieldModel, flat_field
 from calibration.samples import Samples
 
 __all__ = ["FarFieldModel"]
@@ -49,9 +49,7 @@ class FarFieldModel(LightFieldModel):
         if reference is None:
             raise ValueError("FarFieldModel.fit: the reference frames (P, H, W, C) are needed for the flat field")
         _, p, c = samples.intensities.shape
-        reference = np.asarray(reference, dtype=np.float64)
-        flat_ref = reference.transpose(0, 3, 1, 2).reshape(p * c, *samples.shape)  # (M, H, W)
-        scale = np.median(flat_ref.reshape(p * c, -1), axis=1)
+        flat, scale = flat_field(reference, p, c, samples.shape)  # (M, H, W), (M,)
         obs = samples.flat_observations.astype(np.float64)
         ref = samples.reference.reshape(len(samples), -1).astype(np.float64)
         ratio = obs / np.maximum(ref, 1e-6)
@@ -66,9 +64,7 @@ class FarFieldModel(LightFieldModel):
             shade = n[:, :2] @ ab.T + n[:, 2:3]  # (N, M) = n . (a, b, 1)
             use = (shade > 0.02) & lit
         self.lights = (np.concatenate([ab, np.ones((len(ab), 1))], axis=1) * scale[:, None]).reshape(p, c, 3)
-        flat = flat_ref / np.maximum(scale[:, None, None], 1e-12)
-        # 0 where the reference is dark: no shading there (the solvers of pipeline.normals leave flat <= 0 out).
-        self.flat = np.where(flat >= MIN_FLAT, flat, 0.0).reshape(p, c, *samples.shape).astype(np.float32)
+        self.flat = flat.reshape(p, c, *samples.shape).astype(np.float32)
         self.num_patterns, self.num_channels = p, c
         return self._fit_report(samples)
 

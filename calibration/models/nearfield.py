@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.models.base import MIN_FLAT, LightFieldModel
+from calibration.models.base import MIN_FLAT, LightFieldModel, flat_field
 from calibration.samples import Samples
 
 __all__ = ["NearFieldModel", "poly_terms"]
@@ -78,10 +78,8 @@ class NearFieldModel(LightFieldModel):
         if self.use_flat:
             if reference is None:
                 raise ValueError("NearFieldModel.fit: flat=True needs the reference frames (P, H, W, C)")
-            ref = np.asarray(reference, np.float64).transpose(0, 3, 1, 2).reshape(p * c, *samples.shape)
-            flat = ref / np.maximum(np.median(ref.reshape(p * c, -1), axis=1), 1e-12)[:, None, None]
-            # 0 where the reference is dark: no shading there (pipeline.normals leaves flat <= 0 out).
-            self.flat = np.where(flat >= MIN_FLAT, flat, 0.0).reshape(p, c, *samples.shape).astype(np.float32)
+            flat, _ = flat_field(reference, p, c, samples.shape)
+            self.flat = flat.reshape(p, c, *samples.shape).astype(np.float32)
             fitted = samples.subset((flat[:, samples.rows, samples.cols] >= MIN_FLAT).all(axis=0))
         else:
             fitted = samples
