@@ -41,26 +41,23 @@ __all__ = ["NearFieldFast", "PlaneBatch", "frame_planes_np", "split_into", "run_
 BLOCK = 512
 
 
-_POOL = None
+_POOLS: dict = {}  # threads -> FramePool, kept for the process (a live loop calls per frame)
 
 
 def run_split(fn, M: int, threads: int = 1) -> None:
     """``fn(start, stop)`` over ``[0, M)`` in ``threads`` contiguous parts, in parallel (``fn``
-    must release the GIL: a ``nogil`` Numba kernel). Parts are multiples of :data:`BLOCK`."""
+    must release the GIL: a ``nogil`` Numba kernel). Parts are multiples of :data:`BLOCK`
+    (:meth:`pipeline.base.frame_pool.FramePool.split`)."""
     threads = max(1, int(threads))
     if threads == 1 or M <= BLOCK:
         fn(0, M)
         return
-    global _POOL
-    from concurrent.futures import ThreadPoolExecutor
+    pool = _POOLS.get(threads)
+    if pool is None:
+        from pipeline.base.frame_pool import FramePool
 
-    if _POOL is None or _POOL._max_workers < threads:
-        _POOL = ThreadPoolExecutor(max_workers=threads, thread_name_prefix="iristac-fast")
-    step = -(-M // threads)
-    step = -(-step // BLOCK) * BLOCK
-    futures = [_POOL.submit(fn, a, min(M, a + step)) for a in range(0, M, step)]
-    for f in futures:
-        f.result()
+        pool = _POOLS.setdefault(threads, FramePool(threads))
+    pool.split(fn, M, multiple=BLOCK)
 
 
 def frame_planes_np(frames: np.ndarray, index: np.ndarray | None = None) -> np.ndarray:
