@@ -26,3 +26,14 @@ def run_cli(*args, cwd=None, env=None, timeout=300, input=None) -> subprocess.Co
         timeout=timeout,
         input=input,
     )
+
+
+def calibration_samples(cap, truth):
+    """Samples of a synthetic sphere capture's presses at their detected circles, and the reference
+    (linear frames, 8-bit saturation): what the calibration models' tests fit on."""
+    from calibration.detect import detect_contacts
+    from calibration.samples import collect_samples
+
+    f, r = cap.linear()
+    circles = detect_contacts(f, r, truth.ball_radius_mm / cap.mm_per_px)
+    return collect_samples(f, r, circles, truth.ball_radius_mm, cap.mm_per_px, saturation=255), r

@@ -11,20 +11,13 @@ import pytest
 
 from calibration.ballfit import MIN_ROUNDNESS, ball_fit
 from calibration.calibrate import _best
-from calibration.detect import detect_contacts
 from calibration.evaluate import evaluate_models, format_report
 from calibration.gate import model_problems
 from calibration.models import FarFieldModel, NearFieldModel
-from calibration.samples import collect_samples
 from calibration.synthetic import synthetic_sphere_capture
 from calibration.truth import sphere_cap
 from calibration.validate import cross_validate
-
-
-def _samples(cap, tr):
-    f, r = cap.linear()
-    circles = detect_contacts(f, r, tr.ball_radius_mm / cap.mm_per_px)
-    return collect_samples(f, r, circles, tr.ball_radius_mm, cap.mm_per_px, saturation=255), r
+from helpers import calibration_samples
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +28,7 @@ def far_capture():
 def test_a_black_reference_pixel_does_not_spoil_the_far_field_lights(far_capture):
     """A reference pixel at 0 DN (a marker, a vignetted corner) made the far-field ratio ~1e7 there:
     lights ~1e6 times too long, every prediction invalid. It is left out of the fit and has no normal."""
-    s, ref = _samples(*far_capture)
+    s, ref = calibration_samples(*far_capture)
     good = FarFieldModel()
     good.fit(s, ref)
     dark_ref = ref.copy()
@@ -60,7 +53,7 @@ def test_near_field_model_reads_vignetting_from_the_reference():
     vignetting = 1.0 - 0.45 * (((yy - h / 2) / (h / 2)) ** 2 + ((xx - w / 2) / (w / 2)) ** 2)
     cv = {}
     for name, albedo in (("uniform", 1.0), ("vignetted", np.clip(vignetting, 0.2, 1.0))):
-        s, ref = _samples(*synthetic_sphere_capture((h, w), 6, peak_dn=140, seed=4, albedo=albedo))
+        s, ref = calibration_samples(*synthetic_sphere_capture((h, w), 6, peak_dn=140, seed=4, albedo=albedo))
         for flat in (True, False):
             cv[name, flat] = cross_validate(lambda flat=flat: NearFieldModel(flat=flat), s, ref,
                                             folds=3)["cv_mean_angular_error_deg"]
@@ -73,7 +66,7 @@ def test_flat_normalised_near_model_stores_its_flat_field(far_capture):
     """What reconstruct reads back (calibration.stored) predicts as the fitted model does."""
     from calibration.stored import StoredLightField
 
-    s, ref = _samples(*far_capture)
+    s, ref = calibration_samples(*far_capture)
     m = NearFieldModel()
     m.fit(s, ref)
     arrays = m.to_arrays()
@@ -134,7 +127,7 @@ class _Blind:
 
 
 def test_a_model_without_valid_predictions_prints_no_90_degrees(far_capture):
-    s, _ = _samples(*far_capture)
+    s, _ = calibration_samples(*far_capture)
     stats = evaluate_models({"far": _Blind()}, s)["far"]
     assert stats["mean_deg"] is None and stats["invalid_fraction"] == 1.0
     stats.update(problems=["no valid prediction on the test presses"], usable=False)

@@ -4,20 +4,13 @@ import numpy as np
 import pytest
 
 from calibration.calibrate import calibrate
-from calibration.detect import detect_contacts
 from calibration.models import FarFieldModel, LookupTable, MLPModel, NearFieldModel, TracedModel
 from calibration.models.base import check_light_rank, solve_normals
-from calibration.samples import collect_samples
 from calibration.synthetic import synthetic_sphere_capture
 from calibration.validate import cross_validate
+from helpers import calibration_samples
 from pipeline.base.errors import UserError
 from pipeline.evaluate import angular_error_deg
-
-
-def _samples(cap, tr):
-    f, r = cap.linear()
-    circles = detect_contacts(f, r, tr.ball_radius_mm / cap.mm_per_px)
-    return collect_samples(f, r, circles, tr.ball_radius_mm, cap.mm_per_px, saturation=255), r
 
 
 @pytest.fixture(scope="module")
@@ -32,7 +25,7 @@ def point_near():
 
 def test_far_field_recovers_led_directions_and_gains(point_far):
     cap, tr = point_far
-    s, r = _samples(cap, tr)
+    s, r = calibration_samples(cap, tr)
     m = FarFieldModel()
     m.fit(s, r)
     L = m.lights[:, 0]  # white LEDs: channel 0 of each point pattern
@@ -49,7 +42,7 @@ def test_far_field_recovers_led_directions_and_gains(point_far):
 
 def test_traced_recovers_gains(point_near):
     cap, tr = point_near
-    s, r = _samples(cap, tr)
+    s, r = calibration_samples(cap, tr)
     m = TracedModel(tr.V, cap.drive)
     m.fit(s, r)
     want = tr.gains * tr.exposure / np.pi  # sigma absorbs exposure and 1/pi (albedo 1)
@@ -65,7 +58,7 @@ def test_cross_validated_error_near_and_traced(point_near, name):
 
 def test_light_field_layout_and_far_field_is_constant(point_near):
     cap, tr = point_near
-    s, r = _samples(cap, tr)
+    s, r = calibration_samples(cap, tr)
     far = FarFieldModel()
     far.fit(s, r)
     lf = far.light_field((60, 80))
@@ -101,7 +94,7 @@ def test_lut_recovers_truth_and_round_trips(trichromatic):
 
 def test_mlp_recovers_truth_and_is_deterministic(trichromatic):
     cap, tr = trichromatic
-    s, r = _samples(cap, tr)
+    s, r = calibration_samples(cap, tr)
     a = MLPModel(epochs=150, max_samples=2000)
     b = MLPModel(epochs=150, max_samples=2000)
     a.fit(s, r)
@@ -123,7 +116,7 @@ def test_rank_deficient_patterns_raise():
 
 
 def test_rank_check_passes_full_ring(point_near):
-    s, _ = _samples(*point_near)
+    s, _ = calibration_samples(*point_near)
     assert check_light_rank(s) > 0.2
 
 
@@ -137,7 +130,7 @@ class _SpyNear(NearFieldModel):
 
 def test_cross_validation_never_fits_on_the_held_out_press(point_near):
     cap, tr = point_near
-    s, r = _samples(cap, tr)
+    s, r = calibration_samples(cap, tr)
     _SpyNear.seen = []
     cv = cross_validate(_SpyNear, s, r, folds=3)
     assert len(cv["folds"]) == 3 == len(_SpyNear.seen)
