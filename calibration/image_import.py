@@ -16,7 +16,11 @@ over the image), by the largest local difference. The choice, its distance and t
 closest frame's are reported. When no frame stands out (all are presses: the closest is not
 :data:`CLEAN_RATIO` times closer than the next), or with ``reference="build"``, every frame is
 a press and the reference is built from them (:mod:`calibration.reference`), which the
-capture's ``reference_source`` attribute and every calibration report say.
+capture's ``reference_source`` attribute and every calibration report say. A frame found
+automatically also gives way to a reference built from the presses when, given the ball
+radius and enough presses, the presses match the built one clearly better
+(:func:`calibration.reference.compare_with_built`: on the DIGIT folder the frame had been taken
+under other light); naming the frame keeps it.
 
 Pixel values are kept as the camera wrote them: a 16-bit PNG stays ``uint16`` (OpenCV's
 ``IMREAD_ANYDEPTH``), a float TIFF ``float32``; grey images have one channel. OpenCV
@@ -145,6 +149,26 @@ def _built_reference(frames: np.ndarray, ball_radius_px: float) -> tuple[np.ndar
         info = np.iinfo(frames.dtype)
         ref = np.clip(np.round(ref), info.min, info.max)
     return ref.astype(frames.dtype), report
+
+
+def _prefer_built(presses: np.ndarray, frame: np.ndarray, ball_radius_px: float, name: str):
+    """``(built, comparison)``: the reference built from ``presses`` (as :func:`_built_reference`, its
+    note saying why) when they match it clearly better than the found no-contact ``frame``
+    (:func:`calibration.reference.compare_with_built`), else ``(None, comparison)``; ``comparison`` is
+    None with too few presses to compare."""
+    from calibration.reference import MIN_PRESSES_TO_COMPARE, compare_with_built
+
+    if len(presses) < MIN_PRESSES_TO_COMPARE:
+        return None, None
+    comparison = compare_with_built(presses.astype(np.float32), frame.astype(np.float32), ball_radius_px)
+    if not comparison["prefer_built"]:
+        return None, comparison
+    ref, report = _built_reference(presses, ball_radius_px)
+    report["note"] = (f"built from the {len(presses)} presses (per-pixel median with each contact masked), preferred "
+                      f"to the no-contact frame {name}: presses it was not built from match it better (drift left "
+                      f"{comparison['built_residual_dn']:.2f} against {comparison['frame_residual_dn']:.2f} DN RMS; "
+                      f"--reference {Path(name).stem} keeps the frame)")
+    return (ref, report), comparison
 
 
 def auto_reference(frames: np.ndarray, blur_px: float = 2.0) -> tuple[int, np.ndarray]:
@@ -325,7 +349,9 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         video, a frame index; or ``"build"``: every frame is a press and the reference is built
         from them (:func:`calibration.reference.build_reference`; needs ``ball_radius_mm``).
         Default: found automatically (:func:`auto_reference`), and built when no frame is
-        clearly closer to the median frame than the others (:data:`CLEAN_RATIO`).
+        clearly closer to the median frame than the others (:data:`CLEAN_RATIO`), or when the
+        presses match a reference built from them clearly better than the found frame (needs
+        ``ball_radius_mm``; :func:`calibration.reference.compare_with_built`).
     pattern : str, optional
         File-name template with ``{press}`` and ``{pattern}`` (folders only).
     mm_per_px : float
@@ -348,7 +374,9 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         ``frames (K, P, H, W, C)``, ``reference (P, H, W, C)``, dtype as the files.
     report : dict
         ``source``, ``presses``, ``patterns``, ``shape``, ``channels``, ``dtype``, ``bit_depth``,
-        ``reference``, ``reference_auto``, ``reference_distance`` (:func:`auto_reference`'s
+        ``reference`` (the frame's name, or ``built``), ``reference_auto``, ``reference_found`` (the
+        no-contact frame found or named, None when there is none), ``reference_comparison``
+        (:func:`calibration.reference.compare_with_built`'s result, or None), ``reference_distance`` (:func:`auto_reference`'s
         distance to the median frame), ``next_closest_distance``, ``labels``, ``markers`` (pixels), ``mm_per_px``,
         ``ball_radius_mm``.
     """
@@ -381,6 +409,10 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         built = _built_reference(frames, ball_radius_mm / mm_per_px)
     keep = [i for i in range(len(names)) if i != ref_i]
     press_names = [names[i] for i in keep]
+    comparison = None
+    if reference is None and ref_i is not None and ball_radius_mm is not None:
+        built, comparison = _prefer_built(frames[keep], frames[ref_i], ball_radius_mm / mm_per_px, names[ref_i])
+    found = names[ref_i] if ref_i is not None else None
     ref = frames[ref_i] if built is None else built[0]
     mask = None
     if markers is not None:
@@ -393,8 +425,8 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         "source": f"{kind}:{src.name}", "pattern_names": list(pattern_names),
         "mode": "trichromatic" if (p, c) == (1, 3) else "user-defined", "bit_depth": _BIT_DEPTH[frames.dtype],
         "frame_names": press_names, "original_file": src.name,
-        "reference_name": names[ref_i] if built is None else "built",
-        "reference_source": f"frame {names[ref_i]}" if built is None else built[1]["note"],
+        "reference_name": found if built is None else "built",
+        "reference_source": f"frame {found}" if built is None else built[1]["note"],
     }
     if ball_radius_mm is not None:
         meta["ball_radius_mm"] = float(ball_radius_mm)
@@ -412,8 +444,9 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
     report = {"source": str(src), "presses": len(keep), "patterns": int(p), "shape": [int(frames.shape[2]),
                                                                                         int(frames.shape[3])],
               "channels": int(c), "dtype": str(frames.dtype), "bit_depth": _BIT_DEPTH[frames.dtype],
-              "reference": names[ref_i] if built is None else "built", "reference_auto": reference is None,
-              "reference_built": None if built is None else built[1],
+              "reference": found if built is None else "built", "reference_auto": reference is None,
+              "reference_built": None if built is None else built[1], "reference_found": found,
+              "reference_comparison": comparison,
               "reference_distance": None if dist is None or ref_i is None else float(dist[ref_i]),
               "next_closest_distance": None if others is None or not len(others) else float(others[0]),
               "labels": lab is not None, "markers": 0 if mask is None else int(mask.sum()),

@@ -7,8 +7,10 @@ Per sensor, calibrate on some presses and judge on the others (issue 22, item 8)
   and channel: gain up to +-15 %, offset up to +-30 DN, seeded) against the untouched
   reference, the same split;
 - the **DIGIT** folder (``../shared/data/digit_ball_presses``) through ``import images`` (its
-  no-contact frame found automatically): presses 0-19 calibrate, 20-29 test; and the same
-  folder without its no-contact frame (``frame_30.jpg``): the reference built from the presses;
+  no-contact frame found automatically, and a reference built from the presses preferred when
+  they match it better, :func:`calibration.reference.compare_with_built`): presses 0-19
+  calibrate, 20-29 test; then with the found frame kept (``--reference``), and the same folder
+  without its no-contact frame (``frame_30.jpg``): the reference built from the presses;
 - **randomised virtual sensors** (:func:`sim.virtual_sensor.random_sensor`, every effect:
   markers, vignetting, drift, column stripes, read noise, JPEG; sizes 120 x 160 to 640 x 480,
   portrait and landscape) with exact truth: 20 presses calibrate, 10 test.
@@ -81,6 +83,8 @@ def _split_row(name: str, cap, ball_mm: float, models, truth=None, exact_normals
            "cv_deg": None if best is None else s["models"][best]["cv_mean_angular_error_deg"],
            "test_deg": None if best is None else ev["models"][best]["mean_deg"],
            "ball_radius_error": ball.get("radius_error_median"),
+           "ball_median_radius_error": None if ball.get("radius_mm_median") is None else
+           float(ball["radius_mm_median"] / ball_mm - 1.0),
            "gate": s.get("quality_gate", {}).get("passed"), "gate_cause": s.get("quality_gate", {}).get("cause"),
            "calibrate_seconds": cal_s, "seconds": seconds, "reference": reference_note or s.get("reference"),
            "drift_residual_dn": (s.get("drift") or {}).get("residual_dn_median"),
@@ -174,13 +178,23 @@ def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
         digit = None if data is None else data / "digit_ball_presses"
         if digit is not None and digit.is_dir():
             cap, rep = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM)
-            out["sensors"].append(_split_row(f"DIGIT (640x480 JPEG, reference {rep['reference']} found)", cap,
-                                             DIGIT_BALL_MM, models))
+            found = rep["reference_found"]
+            if rep["reference"] == "built":
+                name = f"DIGIT (640x480 JPEG; {found} found, built preferred)"
+            else:
+                name = f"DIGIT (640x480 JPEG, reference {found} found)"
+            row = _split_row(name, cap, DIGIT_BALL_MM, models)
+            row["reference_comparison"] = rep["reference_comparison"]
+            out["sensors"].append(row)
             real.append(("DIGIT", cap, DIGIT_BALL_MM))
+            if rep["reference"] == "built" and found is not None:
+                kept, _ = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, reference=found)
+                out["sensors"].append(_split_row(f"DIGIT, no-contact frame kept (--reference {found})", kept,
+                                                 DIGIT_BALL_MM, models))
             folder = tmp / "digit_no_reference"
             folder.mkdir()
             for f in digit.glob("*.jpg"):
-                if f.name != rep["reference"]:
+                if f.name != found:
                     (folder / f.name).symlink_to(f.resolve())
             built, brep = load_images(folder, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM)
             row = _split_row("DIGIT without its no-contact frame (reference built)", built, DIGIT_BALL_MM, models)
@@ -200,11 +214,12 @@ def format_sensors(result: dict[str, Any]) -> list[str]:
     """The ``--sensors`` table."""
     lines = [("sensors: calibrate on presses 0-19, test on 20-29 (virtual: 20 of 30 random presses, 10 test); "
              "test = best model (by CV) against the test presses' detected circles, truth = against the exact "
-             "circles (virtual), ball = median |radius error| of a sphere fitted to each reconstructed test press; "
+             "circles (virtual), ball = median |radius error| of a sphere fitted to each reconstructed test press, "
+             "r med = the median fitted radius against the ball's (signed: the scale the presses share); "
              "centre/radius = accepted circles against the hand labels (GelSight: a convention ~2 px off) or the "
              "exact circles (virtual), calibration presses / test presses")]
     lines.append(f"  {'sensor':58s} {'accepted':>9s} {'centre px':>11s} {'radius':>13s} {'best':>5s} {'CV':>6s} "
-                 f"{'test':>6s} {'truth':>6s} {'ball':>7s} {'gate':>5s} {'s':>6s}")
+                 f"{'test':>6s} {'truth':>6s} {'ball':>7s} {'r med':>7s} {'gate':>5s} {'s':>6s}")
     for r in result["sensors"]:
         ce = r.get("centre_error_px") or [None, None]
         re = r.get("radius_error") or [None, None]
@@ -213,6 +228,7 @@ def format_sensors(result: dict[str, Any]) -> list[str]:
                      f"{_f(None if re[0] is None else 100 * re[0], '+.1f')},{_f(None if re[1] is None else 100 * re[1], '+.1f'):>6s}% "
                      f"{r['best_model'] or '-':>5s} {_f(r['cv_deg']):>6s} {_f(r['test_deg']):>6s} "
                      f"{_f(r.get('test_deg_truth')):>6s} {_f(None if r['ball_radius_error'] is None else 100 * r['ball_radius_error'], '.1f', ' %'):>7s} "
+                     f"{_f(None if r.get('ball_median_radius_error') is None else 100 * r['ball_median_radius_error'], '+.1f', ' %'):>7s} "
                      f"{'pass' if r['gate'] else 'FAIL':>5s} {r['seconds']:6.1f}")
     lines.append("  every model (CV / test / ball radius; UNUSABLE: the model's own verdict, its figures are no results):")
     unusable = []

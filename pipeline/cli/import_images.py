@@ -18,7 +18,8 @@ def register(group):
     p.add_argument("--reference", default=None, metavar="NAME",
                    help="the no-contact frame: file name or stem (with --pattern: a press id; video: a frame index), "
                         "or 'build' (no clean frame: build it from the presses, needs --ball-radius); default: the "
-                        "frame closest to the median of all frames, built when no frame stands out")
+                        "frame closest to the median of all frames, built when no frame stands out or (with "
+                        "--ball-radius and 10+ presses) when the presses match a built one clearly better")
     p.add_argument("--pattern", default=None, metavar="TEMPLATE",
                    help='file-name template for several lighting patterns per press, e.g. "press{press}_led{pattern}.png"')
     p.add_argument("--ball-radius", type=float, default=None, metavar="MM",

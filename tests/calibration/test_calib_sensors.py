@@ -9,6 +9,7 @@ sensor (calibrate on some presses, judge on the others) are in ``iristac bench c
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -142,6 +143,59 @@ def test_built_reference_on_import(tmp_path):
     assert "built from the 8 presses" in cap.meta["reference_source"]
     with pytest.raises(Exception, match="no frame is clearly free of contact"):
         load_images(tmp_path / "f", mm_per_px=sensor.mm_per_px)
+
+
+def _gel_and_presses(k=12, seed=0):
+    """A lit gel (1, 40, 60, 3) and ``k`` presses of it with read noise and a bright contact each."""
+    rng = np.random.default_rng(seed)
+    gel = rng.uniform(80, 160, (1, 40, 60, 3)).astype(np.float32)
+    presses = gel + rng.normal(0, 2, (k, 1, 40, 60, 3)).astype(np.float32)
+    yy, xx = np.mgrid[:40, :60]
+    for i in range(k):
+        presses[i, :, np.hypot(xx - 8 - 4 * i, yy - 15 - (i % 3) * 5) < 5] += 60.0
+    return gel, presses
+
+
+def test_a_built_reference_is_preferred_only_where_the_presses_match_it_better():
+    """A no-contact frame taken under other light (a gain across the image, the DIGIT's case) loses
+    to a reference built from other presses; the exact frame of the presses' light does not."""
+    from calibration.reference import MIN_PRESSES_TO_COMPARE, PREFER_BUILT_RATIO, compare_with_built
+
+    gel, presses = _gel_and_presses()
+    stale = gel * np.linspace(0.9, 1.1, 60, dtype=np.float32)[None, None, :, None]
+    moved = compare_with_built(presses, stale, 5.0)
+    exact = compare_with_built(presses, gel, 5.0)
+    assert moved["prefer_built"] and moved["ratio"] < 0.5 * PREFER_BUILT_RATIO, moved
+    assert not exact["prefer_built"] and exact["ratio"] > 1.0, exact
+    assert exact["presses_built"] + exact["presses_judged"] == len(presses)
+    with pytest.raises(ValueError, match=f"K >= {MIN_PRESSES_TO_COMPARE}"):
+        compare_with_built(presses[:MIN_PRESSES_TO_COMPARE - 1], gel, 5.0)
+    with pytest.raises(ValueError, match=r"frame_reference must be \(1, 40, 60, 3\).*got \(40, 60, 3\)"):
+        compare_with_built(presses, gel[0], 5.0)
+
+
+def test_import_prefers_a_built_reference_to_a_noisy_frame_and_keeps_a_named_one(tmp_path):
+    """``import images``: the found frame, as noisy as any one press, gives way to the median of the
+    presses (and says why); named with ``--reference`` it is kept; without the ball radius nothing
+    can be built and the found frame stays."""
+    import cv2
+
+    from calibration.image_import import load_images
+    from sim.virtual_sensor import write_sensor_images
+
+    sensor = random_sensor(4, shape=(120, 160), num_presses=12, effects=["read_noise"], border_fraction=0.0)
+    res = write_sensor_images(tmp_path / "f", sensor)
+    ref_file = tmp_path / "f" / res["reference"]
+    kw = dict(mm_per_px=sensor.mm_per_px, ball_radius_mm=sensor.ball_radius_mm)
+    cap, rep = load_images(tmp_path / "f", **kw)
+    assert rep["reference"] == "built" and rep["reference_found"] == res["reference"], rep
+    assert rep["reference_comparison"]["prefer_built"] and cap.frames.shape[0] == 12
+    assert f"preferred to the no-contact frame {res['reference']}" in cap.meta["reference_source"]
+    named, nrep = load_images(tmp_path / "f", reference=Path(res["reference"]).stem, **kw)
+    assert nrep["reference"] == res["reference"] and nrep["reference_comparison"] is None
+    assert np.array_equal(named.reference[0], cv2.imread(str(ref_file))[..., ::-1])
+    _, plain = load_images(tmp_path / "f", mm_per_px=sensor.mm_per_px)
+    assert plain["reference"] == res["reference"] and plain["reference_comparison"] is None
 
 
 @pytest.fixture(scope="module")
