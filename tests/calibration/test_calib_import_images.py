@@ -81,7 +81,7 @@ def test_real_frames_as_png_folder_equal_the_npz_import(tmp_path):
     """The shared frames written as PNGs (+ labels CSV) import to exactly the npz import's capture when
     the background is named, as the npz names it; found automatically, it gives way to a reference
     built from the 30 presses, which they match better (calibration.reference.compare_with_built)."""
-    from calibration.importers import load_gelsight_npz
+    from calibration.importers import load_gelsight_npz, load_images
     from pipeline.base.capture import read_capture
 
     raw = np.load(DATA)
@@ -93,10 +93,7 @@ def test_real_frames_as_png_folder_equal_the_npz_import(tmp_path):
         assert cv2.imwrite(str(folder / f"press{k:02d}.png"), img)
         rows.append(f"press{k:02d},{c[0]},{c[1]},{rad}")
     (tmp_path / "labels.csv").write_text("\n".join(rows) + "\n")
-    auto = run_cli("import", "images", folder, "--out", tmp_path / "auto.h5", "--mm-per-px", "0.1245",
-                   "--ball-radius", "2", "--json")
-    assert auto.returncode == 0, auto.stderr
-    rep = json.loads(auto.stdout)
+    _, rep = load_images(folder, mm_per_px=0.1245, ball_radius_mm=2.0)
     assert rep["reference"] == "built" and rep["reference_found"] == "background.png", rep
     cmp = rep["reference_comparison"]
     assert cmp["built_residual_dn"] < 0.8 * cmp["frame_residual_dn"], cmp

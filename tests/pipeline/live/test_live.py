@@ -321,13 +321,14 @@ def test_live_view_endpoints_over_http(store):
 
 
 def _stop_view(proc) -> None:
-    """Ctrl-C the live process (killed if it has not ended in 20 s)."""
+    """Ctrl-C the live process (killed if it has not ended in 20 s), reading what it still writes to
+    stderr meanwhile (a full pipe would block it before it sees the signal)."""
     proc.send_signal(signal.SIGINT)
     try:
-        proc.wait(timeout=20)
+        proc.communicate(timeout=20)
     except subprocess.TimeoutExpired:
         proc.kill()
-    proc.stderr.close()
+        proc.communicate()
 
 
 @pytest.mark.skipif(find_chromium() is None, reason="no headless Chromium installed (apt-get install chromium); "
