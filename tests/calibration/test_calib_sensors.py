@@ -145,6 +145,28 @@ def test_built_reference_on_import(tmp_path):
         load_images(tmp_path / "f", mm_per_px=sensor.mm_per_px)
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_nanmedian_first_axis_equals_numpy(seed):
+    """The built reference's median: numpy's nanmedian to the last bit, odd and even counts, columns
+    with no valid value (NaN), float32 and float64."""
+    import warnings
+
+    from calibration.reference import nanmedian_first_axis
+
+    rng = np.random.default_rng(seed)
+    dtype = (np.float32, np.float64)[seed % 2]
+    x = rng.normal(100, 5, (int(rng.integers(1, 12)), 7, 9, 3)).astype(dtype)
+    x[rng.random(x.shape) < 0.3] = np.nan
+    x[:, 0, 0] = np.nan
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        want = np.nanmedian(x, axis=0)
+    got = nanmedian_first_axis(x)
+    assert got.dtype == dtype and np.array_equal(got, want, equal_nan=True)
+    with pytest.raises(ValueError, match=r"got \(0, 3\)"):
+        nanmedian_first_axis(np.zeros((0, 3)))
+
+
 def _gel_and_presses(k=12, seed=0):
     """A lit gel (1, 40, 60, 3) and ``k`` presses of it with read noise and a bright contact each."""
     rng = np.random.default_rng(seed)
