@@ -268,11 +268,20 @@ def test_recording_survives_sigkill(store, tmp_path):
     assert (np.diff(got.data["dropped"]) >= 0).all()
 
 
+def _ctrl_c_as_in_a_terminal() -> None:
+    """In the child before exec: Ctrl-C (SIGINT) back to its default. A test run started as a
+    background job of a non-interactive shell (``nohup pytest &``, some CI runners) ignores SIGINT,
+    an ignored signal stays ignored across exec, and Python then never installs its handler: the
+    live process would sit out the 20 s wait of :func:`_stop_view` and be killed."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _start_view(store, *extra):
     env = dict(os.environ, PYTHONPATH=str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", ""))
     proc = subprocess.Popen([sys.executable, "-m", "pipeline", "live", "--virtual", "--size", SIZE, "--cache",
                              str(store), "--mode", "trichromatic", "--solver", "lut", "--view", "--view-port", "0",
-                             *extra], cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                             *extra], cwd=REPO, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=_ctrl_c_as_in_a_terminal)
     url = None
     deadline = time.monotonic() + 240
     while time.monotonic() < deadline:
