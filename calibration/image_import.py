@@ -140,11 +140,12 @@ def _natural_key(name: str):
 CLEAN_RATIO = 0.5
 
 
-def _built_reference(frames: np.ndarray, ball_radius_px: float) -> tuple[np.ndarray, dict[str, Any]]:
-    """:func:`calibration.reference.build_reference` of every frame, in the frames' own dtype."""
+def _built_reference(frames: np.ndarray, ball_radius_px: float, **kwargs) -> tuple[np.ndarray, dict[str, Any]]:
+    """:func:`calibration.reference.build_reference` of every frame (keyword arguments passed on), in
+    the frames' own dtype."""
     from calibration.reference import build_reference
 
-    ref, report = build_reference(frames.astype(np.float32), ball_radius_px)
+    ref, report = build_reference(frames.astype(np.float32), ball_radius_px, **kwargs)
     if frames.dtype.kind in "ui":
         info = np.iinfo(frames.dtype)
         ref = np.clip(np.round(ref), info.min, info.max)
@@ -160,15 +161,13 @@ def _prefer_built(presses: np.ndarray, frame: np.ndarray, ball_radius_px: float,
 
     if len(presses) < MIN_PRESSES_TO_COMPARE:
         return None, None
-    comparison = compare_with_built(presses.astype(np.float32), frame.astype(np.float32), ball_radius_px)
+    comparison = compare_with_built(presses, frame, ball_radius_px)
     if not comparison["prefer_built"]:
         return None, comparison
-    ref, report = _built_reference(presses, ball_radius_px)
-    report["note"] = (f"built from the {len(presses)} presses (per-pixel median with each contact masked), preferred "
-                      f"to the no-contact frame {name}: presses it was not built from match it better (drift left "
-                      f"{comparison['built_residual_dn']:.2f} against {comparison['frame_residual_dn']:.2f} DN RMS; "
-                      f"--reference {Path(name).stem} keeps the frame)")
-    return (ref, report), comparison
+    why = (f", preferred to the no-contact frame {name}: presses it was not built from match it better (drift left "
+           f"{comparison['built_residual_dn']:.2f} against {comparison['frame_residual_dn']:.2f} DN RMS; "
+           f"--reference {Path(name).stem} keeps the frame)")
+    return _built_reference(presses, ball_radius_px, why=why), comparison
 
 
 def auto_reference(frames: np.ndarray, blur_px: float = 2.0) -> tuple[int, np.ndarray]:

@@ -38,12 +38,15 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["BUILT_REFERENCE_NOTE", "MIN_PRESSES_TO_COMPARE", "PREFER_BUILT_RATIO", "build_reference",
+__all__ = ["BUILT_REFERENCE_NOTE", "MIN_PRESSES_TO_COMPARE", "NO_CLEAN_FRAME", "PREFER_BUILT_RATIO", "build_reference",
            "compare_with_built", "nanmedian_first_axis"]
 
-#: What a capture with a built reference says about it (its ``reference_source`` attribute).
-BUILT_REFERENCE_NOTE = ("built from the {k} presses (per-pixel median with each contact masked): no clean no-contact "
-                        "frame")
+#: What a capture with a built reference says about it (its ``reference_source`` attribute); ``why``
+#: defaults to :data:`NO_CLEAN_FRAME`.
+BUILT_REFERENCE_NOTE = "built from the {k} presses (per-pixel median with each contact masked){why}"
+
+#: Why a reference was built when no frame is free of contact.
+NO_CLEAN_FRAME = ": no clean no-contact frame"
 
 
 #: A found no-contact frame gives way to a reference built from the presses when presses the built one
@@ -83,7 +86,7 @@ def nanmedian_first_axis(stack: np.ndarray) -> np.ndarray:
 
 
 def build_reference(frames: np.ndarray, ball_radius_px: float, *, iterations: int = 2, options=None,
-                    exclude: np.ndarray | None = None) -> tuple[np.ndarray, dict[str, Any]]:
+                    exclude: np.ndarray | None = None, why: str = NO_CLEAN_FRAME) -> tuple[np.ndarray, dict[str, Any]]:
     """The no-contact reference ``(P, H, W, C)`` (float32) of presses ``frames (K, P, H, W, C)``.
 
     Parameters
@@ -96,6 +99,8 @@ def build_reference(frames: np.ndarray, ball_radius_px: float, *, iterations: in
     options : DetectOptions, optional
     exclude : ndarray (H, W) bool, optional
         Pixels left out of the drift fits (markers).
+    why : str
+        Why it was built, appended to the note (:data:`BUILT_REFERENCE_NOTE`).
 
     Returns
     -------
@@ -140,7 +145,7 @@ def build_reference(frames: np.ndarray, ball_radius_px: float, *, iterations: in
         med = nanmedian_first_axis(stack)
         ref = np.where(np.isfinite(med), med, guess).astype(np.float32)
     uncovered = float(np.mean(count == 0))
-    note = BUILT_REFERENCE_NOTE.format(k=k)
+    note = BUILT_REFERENCE_NOTE.format(k=k, why=why)
     if uncovered > 0:
         note += f"; {uncovered:.1%} of the pixels were inside every press's contact and keep the plain median"
     return ref, {"presses": k, "iterations": int(iterations), "accepted": accepted,
