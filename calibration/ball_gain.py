@@ -51,15 +51,20 @@ class OutOfFoldBalls:
     folds : int
     markers : ndarray (H, W) bool, optional
     max_presses : int
+    contacts : sequence of (x, y, r), optional
+        Each press's contact circle (pixels), so that a press cut by the image border is not
+        fitted (:func:`calibration.ballfit.ball_fit`'s ``contact``).
     """
 
     def __init__(self, frames, reference, accepted, mm_per_px: float, ball_radius_mm: float, folds: int,
-                 markers=None, max_presses: int = BALL_GAIN_PRESSES):
+                 markers=None, max_presses: int = BALL_GAIN_PRESSES, contacts=None):
         self.frames, self.reference, self.markers = frames, reference, markers
+        self.contacts = None if contacts is None else [tuple(map(float, c)) for c in contacts]
         self.accepted = {int(k) for k in accepted}
         self.mm, self.ball = float(mm_per_px), float(ball_radius_mm)
         self.per_fold = max(1, int(np.ceil(max_presses / max(1, folds))))
-        self.maps: list[tuple[int, np.ndarray, np.ndarray]] = []  # (press, normals (H, W, 3), usable (H, W))
+        # (press, normals (H, W, 3), usable (H, W), contact circle or None)
+        self.maps: list[tuple[int, np.ndarray, np.ndarray, tuple[float, ...] | None]] = []
 
     def __call__(self, model, held_out: list[int]) -> None:
         chosen = [p for p in held_out if p in self.accepted]
@@ -70,7 +75,8 @@ class OutOfFoldBalls:
         maps = model.normal_maps(self.frames[chosen], self.reference, markers=self.markers)
         for i, k in enumerate(chosen):
             usable = maps.mask[i] if maps.filled is None else maps.mask[i] | maps.filled
-            self.maps.append((k, np.asarray(maps.normals[i], np.float64), usable))
+            self.maps.append((k, np.asarray(maps.normals[i], np.float64), usable,
+                              None if self.contacts is None else self.contacts[k]))
 
     def radii(self, gain: float = 1.0, max_tilt: float | None = None) -> list[float]:
         """Fitted sphere radii (mm) of the reconstructed presses with their tilts scaled by ``gain``."""
@@ -78,9 +84,9 @@ class OutOfFoldBalls:
         from calibration.models.base import scale_tilt
 
         out = []
-        for _, n, usable in self.maps:
+        for _, n, usable, contact in self.maps:
             scaled = n if gain == 1.0 and max_tilt is None else scale_tilt(n, gain, max_tilt)[0]
-            r = ball_fit(scaled, self.mm, self.ball, mask=usable)
+            r = ball_fit(scaled, self.mm, self.ball, mask=usable, contact=contact)
             if r["radius_mm"] is not None:
                 out.append(float(r["radius_mm"]))
         return out

@@ -17,7 +17,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from calibration.ball_gain import OutOfFoldBalls
-from calibration.detect import Circle, DetectOptions, detect_contacts
+from calibration.detect import Circle, DetectOptions, detect_contacts, drift_settings
 from calibration.gate import CalibrationRefused, GateSettings, Verdict, judge, model_problems, shading_explained
 from calibration.labels import capture_label_circles, has_labels, label_errors
 from calibration.models import (
@@ -433,6 +433,8 @@ class CircleFit:
         :func:`calibration.gate.shading_explained` of the samples (None when not checked).
     reference_note : str
         Where the reference came from (the capture's ``reference_source`` attribute).
+    options : DetectOptions
+        The detection options used (the drift model removed among them).
     """
 
     capture: Capture
@@ -454,6 +456,7 @@ class CircleFit:
     mismatch: float | None = None
     explained: float | None = None
     reference_note: str = ""
+    options: DetectOptions = field(default_factory=DetectOptions)
 
 
 def find_circles(capture: Capture | str | Path, ball_radius_mm: float, mm_per_px: float | None = None, *,
@@ -504,6 +507,30 @@ def _circle_source(circles, k: int, src: str) -> str:
     return "given"
 
 
+def capture_detect_options(capture: Capture) -> DetectOptions:
+    """The detection options a capture is calibrated with when none are given: its sensor
+    profile's drift model (``calibration_drift``; the capture names its profile when ``import
+    images --profile`` made it), else :class:`calibration.detect.DetectOptions`' defaults.
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace
+    >>> capture_detect_options(SimpleNamespace(meta={"sensor_profile": "digit"})).drift
+    'field'
+    >>> capture_detect_options(SimpleNamespace(meta={})).drift
+    'gain_offset'
+    """
+    name = (getattr(capture, "meta", None) or {}).get("sensor_profile")
+    if not name:
+        return DetectOptions()
+    from pipeline.capture.sensor_profiles import list_profiles, load_profile
+
+    if str(name) not in list_profiles():  # a user's profile file: its name alone does not find it
+        return DetectOptions()
+    drift = load_profile(str(name)).calibration_drift
+    return DetectOptions(drift=drift) if drift else DetectOptions()
+
+
 def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, shrink_px, detect_options,
                   model_options, refine_iterations, refine_model, seed, markers=None, circles="auto",
                   strict=True) -> CircleFit:
@@ -534,7 +561,7 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
         from pipeline.normals.prepare import fill_markers
 
         frames, ref = fill_markers(frames, mask), fill_markers(ref, mask)
-    opt = detect_options or DetectOptions()
+    opt = detect_options or capture_detect_options(cap)
     t0 = time.perf_counter()
     # The detector runs in every mode: with labels or given circles its circles are what
     # they are compared with (the report's centre offset), not what is fitted.
@@ -576,7 +603,7 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
     refine_report["seconds"] = time.perf_counter() - t0
     return CircleFit(cap, src, float(mm), frames, ref, sat, use, samples, rank, t_detect, refine_report, mask,
                      ball_radius_mm, source, detected, drifts, _mismatch(frames, ref, use, drifts), explained,
-                     str(cap.meta.get("reference_source") or "the capture's no-contact frame"))
+                     str(cap.meta.get("reference_source") or "the capture's no-contact frame"), opt)
 
 
 #: A far-field fit of the samples whose ``sigma_3 / sigma_1`` is below this is looked into (see :func:`_light_rank`).
@@ -710,7 +737,8 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
             continue
         t = time.perf_counter()
         balls = OutOfFoldBalls(frames, ref, [k for k, c in enumerate(circles) if c.accepted], mm, ball_radius_mm,
-                               folds, markers=found.markers) if tilt_correction else None
+                               folds, markers=found.markers,
+                               contacts=[(*c.center_xy, c.radius_px) for c in circles]) if tilt_correction else None
         cv, oof = cross_validate(make, samples, ref, folds=folds, seed=seed, return_predictions=True,
                                  fold_hook=balls)
         model = make()
@@ -742,7 +770,8 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
                                    "circle_settings": {"circles": found.source_of_circles,
                                                        "refine_model": refine_report["model"],
                                                        "refine_iterations": int(refine_report["iterations"]),
-                                                       "shrink_px": float(shrink_px), "folds": int(folds)},
+                                                       "shrink_px": float(shrink_px), "folds": int(folds),
+                                                       **drift_settings(found.options)},
                                    "reference": found.reference_note, "drift": drift,
                                    **({"ball_fit": ball} if ball is not None else {})},
                              markers=found.markers)

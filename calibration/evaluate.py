@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from calibration.ballfit import ball_fit
+from calibration.detect import recorded_drift
 from calibration.labels import capture_label_circles, has_labels, label_circles
 from calibration.samples import Samples, collect_samples
 from calibration.validate import INVALID_ERROR_DEG
@@ -100,8 +101,9 @@ def _ball_fits(models, found, ball_radius_mm: float, depths: list[float | None],
             # Filled-in marker pixels are guesses (False in the mask) but good enough to integrate
             # through: treating them as flat gel would dent every cap they cross.
             usable = maps.mask[k] if maps.filled is None else maps.mask[k] | maps.filled
+            c = found.circles[k]
             r = ball_fit(maps.normals[k], found.mm_per_px, ball_radius_mm, mask=usable, level=level,
-                         true_depth_mm=depths[k])
+                         true_depth_mm=depths[k], contact=(*c.center_xy, c.radius_px))
             per.append({"press": k, **r})
         rad = [abs(p["radius_error"]) for p in per if p["radius_error"] is not None]
         dep = [abs(p["depth_error"]) for p in per if p["depth_error"] is not None]
@@ -160,7 +162,8 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     detect_options : DetectOptions, optional
         How the test presses' circles are found and their drift removed
         (:class:`calibration.detect.DetectOptions`; ``drift="none"`` keeps the frames as
-        recorded, as ``iristac reconstruct`` reads them).
+        recorded, as ``iristac reconstruct`` reads them). Default: the drift model the
+        calibration removed from its own presses (:func:`calibration.detect.recorded_drift`).
 
     Returns
     -------
@@ -176,7 +179,7 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         (no valid prediction, a ball fit more than
         :data:`calibration.gate.MAX_BALL_RADIUS_ERROR` off or no round bump), and ``usable`` = no
         problems), ``truth`` (``detected``: how the circles were
-        found and the circles; ``labels`` when the capture has hand labels: the same statistics
+        found, the circles and ``drift``, the model removed from the test presses; ``labels`` when the capture has hand labels: the same statistics
         per model against them) and ``ball_fit`` (name -> ``radius_error_median`` and
         ``depth_error_median`` (median relative errors), ``radius_mm_median``, ``per_press``).
     """
@@ -218,6 +221,10 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     if markers is None and cap.markers is None:
         markers = meta.get("markers")
     cs = meta.get("circle_settings") or {}
+    if detect_options is None and "circle_settings" in meta:
+        # The test presses lose the drift the calibration's presses lost: a model fitted to
+        # field-corrected contrasts is judged on field-corrected contrasts.
+        detect_options = recorded_drift(cs)
     refine_iterations = TEST_TRUTH["refine_iterations"] if refine_iterations is None else int(refine_iterations)
     refine_model = "auto" if refine_model is None else refine_model
     shrink_px = TEST_TRUTH["shrink_px"] if shrink_px is None else float(shrink_px)
@@ -235,7 +242,8 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
                    f"test presses ({found.refine['iterations']} passes)" if refined else
                    "edge detector alone (no light model votes for the centres)") +
                   f", contact radius minus a {shrink_px:g} px margin",
-        "circles": [c.to_dict() for c in found.circles]}}
+        "circles": [c.to_dict() for c in found.circles],
+        "drift": found.drifts[0].model if found.drifts else "none"}}
     if not detected:
         truth["detected"]["note"] = ("the detector accepted no test press: no detected truth; "
                                      + ("the hand labels" if has_labels(cap) else "only the ball fit") + " judge the "
@@ -314,7 +322,9 @@ def format_report(result: dict[str, Any]) -> str:
 
     lab = (result["truth"].get("labels") or {}).get("models", {})
     cv_truth = next((m.get("cv_truth") for m in result["models"].values() if m.get("cv_truth")), None)
-    lines = [f"{result['accepted']} of {result['presses']} test presses accepted"]
+    drift = result["truth"]["detected"].get("drift")
+    lines = [f"{result['accepted']} of {result['presses']} test presses accepted"
+             + (f" (drift removed from each: {drift})" if drift else "")]
     if result["truth"]["detected"].get("note"):
         lines.append("  " + result["truth"]["detected"]["note"])
     if cv_truth == "labels":

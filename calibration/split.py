@@ -16,14 +16,21 @@ from __future__ import annotations
 import time
 from typing import Any
 
+import numpy as np
+
 from pipeline.base.capture import Capture
 
-__all__ = ["TRAIN_PRESSES", "TEST_PRESSES", "SETTINGS", "TARGETS", "split_evaluation", "split_rows", "best_row",
-           "test_truth", "four_way", "split_targets", "fixed_truth_cv"]
+__all__ = ["TRAIN_PRESSES", "TEST_PRESSES", "ROTATIONS", "SETTINGS", "TARGETS", "split_evaluation", "split_rows", "best_row",
+           "test_truth", "four_way", "split_targets", "fixed_truth_cv", "rotated_splits"]
 
 #: The fixed split of the shared real frames (``../shared/data/gelsight_ball_presses.npz``).
 TRAIN_PRESSES = slice(0, 20)
 TEST_PRESSES = slice(20, 30)
+
+#: Six ways of holding ten of thirty presses out, for figures that must not hang on one draw
+#: (:func:`rotated_splits`): the three blocks of ten (the first is the fixed split) and every
+#: third press from 0, 1 and 2 (presses taken minutes apart: a drifting sensor is seen in both).
+ROTATIONS = ("20-29", "0-9", "10-19", "every 3rd from 0", "every 3rd from 1", "every 3rd from 2")
 
 #: The two ways of calibrating that :func:`four_way` compares: the circles the models are fitted to.
 SETTINGS = ("detected", "labels")
@@ -33,6 +40,25 @@ SETTINGS = ("detected", "labels")
 TARGETS = (("test_detected", "test <= 7 deg, detected truth", "test_mean_deg", 7.0),
            ("test_labels", "test <= 9 deg, hand labels", "labels_mean_deg", 9.0),
            ("ball_radius", "ball radius within 3 %", "ball_radius_error", 0.03))
+
+
+def rotated_splits(num_presses: int = 30) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """:data:`ROTATIONS` as ``name -> (train, test)`` press indices of a capture of ``num_presses``.
+
+    Examples
+    --------
+    >>> s = rotated_splits(30)
+    >>> list(s) == list(ROTATIONS), s["20-29"][1].tolist() == list(range(20, 30))
+    (True, True)
+    >>> s["every 3rd from 1"][1][:4].tolist(), len(s["every 3rd from 1"][0])
+    ([1, 4, 7, 10], 20)
+    """
+    if num_presses < 6:
+        raise ValueError(f"rotated_splits: needs at least 6 presses, got {num_presses}")
+    idx = np.arange(int(num_presses))
+    block = num_presses // 3
+    tests = [idx[2 * block:], idx[:block], idx[block:2 * block]] + [idx[idx % 3 == r] for r in range(3)]
+    return {name: (np.setdiff1d(idx, t), t) for name, t in zip(ROTATIONS, tests)}
 
 
 def split_evaluation(capture: Capture, ball_radius_mm: float, models="all", *, train=TRAIN_PRESSES,

@@ -6,11 +6,13 @@ Per sensor, calibrate on some presses and judge on the others (issue 22, item 8)
   calibrate, 20-29 test (:mod:`calibration.split`); also with every press drifted (per press
   and channel: gain up to +-15 %, offset up to +-30 DN, seeded) against the untouched
   reference, the same split;
-- the **DIGIT** folder (``../shared/data/digit_ball_presses``) through ``import images`` (its
+- the **DIGIT** folder (``../shared/data/digit_ball_presses``) through ``import images
+  --profile digit`` (so calibrated with the profile's drift model, ``field``; its
   no-contact frame found automatically, and a reference built from the presses preferred when
   they match it better, :func:`calibration.reference.compare_with_built`): presses 0-19
   calibrate, 20-29 test; then with the found frame kept (``--reference``), and the same folder
-  without its no-contact frame (``frame_30.jpg``): the reference built from the presses;
+  without its no-contact frame (``frame_30.jpg``): the reference built from the presses (the
+  same capture as the first row when that one preferred the built reference: not run twice);
 - **randomised virtual sensors** (:func:`sim.virtual_sensor.random_sensor`, every effect:
   markers, vignetting, drift, column stripes, read noise, JPEG; sizes 120 x 160 to 640 x 480,
   portrait and landscape) with exact truth: 20 presses calibrate, 10 test.
@@ -22,7 +24,8 @@ sensors), the best model by CV, its CV, its error on the test presses against th
 detected circles (and against the exact truth, virtual sensors), its truth-free ball fit on
 the test presses, whether the quality gate passed, and seconds. The drift-model table compares
 the drift models of :mod:`pipeline.normals.drift` on the real sensors (best model's test error and
-ball fit).
+ball fit); the rotated table ``field`` against ``gain_offset`` on six splits of each real capture
+(:func:`calibration.split.rotated_splits`), so that a lead is not one split's luck.
 """
 
 from __future__ import annotations
@@ -156,6 +159,34 @@ def _drift_model_rows(cases, model: str) -> list[dict[str, Any]]:
     return rows
 
 
+#: The drift models the rotated table compares: the calibration's default and the constant one.
+ROTATED_DRIFTS = ("field", "gain_offset")
+
+
+def _drift_rotation_rows(cases, model: str) -> list[dict[str, Any]]:
+    """Test error and ball fit of ``model`` per real case, drift model and split of
+    :func:`calibration.split.rotated_splits`: whether a drift model's lead holds beyond one split."""
+    from calibration.calibrate import find_circles
+    from calibration.detect import DetectOptions
+    from calibration.evaluate import TEST_TRUTH
+    from calibration.split import rotated_splits, split_evaluation
+
+    rows = []
+    for name, cap, ball_mm in cases:
+        for split, (train, test) in rotated_splits(len(cap.frames)).items():
+            for drift in ROTATED_DRIFTS:
+                opt = DetectOptions(drift=drift)
+                tc = find_circles(cap.select(test), ball_mm, detect_options=opt, strict=False, **TEST_TRUTH)
+                sp = split_evaluation(cap, ball_mm, [model], train=train, test=test, test_circles=tc,
+                                      detect_options=opt)
+                res, ev = sp["calibration"], sp["evaluation"]
+                rows.append({"sensor": name, "split": split, "drift": drift,
+                             "cv_deg": res.reports[model]["cv"]["cv_mean_angular_error_deg"],
+                             "test_deg": ev["models"][model]["mean_deg"],
+                             "ball_radius_error": ev["ball_fit"][model]["radius_error_median"]})
+    return rows
+
+
 def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
     """Every sensor on hand through calibrate (train presses) and eval calibration (test presses)."""
     from calibration.image_import import load_images
@@ -175,20 +206,23 @@ def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
             out["sensors"].append(_split_row("GelSight drifted (+-15 % gain, +-30 DN per press)", drifted, 2.0,
                                              models, labels))
             real.append(("GelSight", gs, 2.0))
+            real.append(("drifted", drifted, 2.0))
         digit = None if data is None else data / "digit_ball_presses"
         if digit is not None and digit.is_dir():
-            cap, rep = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM)
+            # As a DIGIT user imports: with its profile, whose drift model the calibration removes.
+            cap, rep = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, profile="digit")
             found = rep["reference_found"]
             if rep["reference"] == "built":
-                name = f"DIGIT (640x480 JPEG; {found} found, built preferred)"
+                name = f"DIGIT (--profile digit; {found} found, built preferred)"
             else:
-                name = f"DIGIT (640x480 JPEG, reference {found} found)"
-            row = _split_row(name, cap, DIGIT_BALL_MM, models)
-            row["reference_comparison"] = rep["reference_comparison"]
-            out["sensors"].append(row)
+                name = f"DIGIT (--profile digit; reference {found} found)"
+            digit_row = _split_row(name, cap, DIGIT_BALL_MM, models)
+            digit_row["reference_comparison"] = rep["reference_comparison"]
+            out["sensors"].append(digit_row)
             real.append(("DIGIT", cap, DIGIT_BALL_MM))
             if rep["reference"] == "built" and found is not None:
-                kept, _ = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, reference=found)
+                kept, _ = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, reference=found,
+                                      profile="digit")
                 out["sensors"].append(_split_row(f"DIGIT, no-contact frame kept (--reference {found})", kept,
                                                  DIGIT_BALL_MM, models))
             folder = tmp / "digit_no_reference"
@@ -196,13 +230,19 @@ def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
             for f in digit.glob("*.jpg"):
                 if f.name != found:
                     (folder / f.name).symlink_to(f.resolve())
-            built, brep = load_images(folder, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM)
-            row = _split_row("DIGIT without its no-contact frame (reference built)", built, DIGIT_BALL_MM, models)
+            built, brep = load_images(folder, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, profile="digit")
+            name = "DIGIT without its no-contact frame (reference built)"
+            if np.array_equal(built.frames, cap.frames) and np.array_equal(built.reference, cap.reference):
+                # The folder with the frame already calibrated on this very reference: the same row.
+                row = {**digit_row, "sensor": name + ": the same capture as the first DIGIT row", "seconds": 0.0}
+            else:
+                row = _split_row(name, built, DIGIT_BALL_MM, models)
             row["reference_built"] = brep.get("reference_built")
             out["sensors"].append(row)
         out["sensors"] += _virtual_rows(range(2) if quick else range(4), models, tmp)
         if not quick and real:
-            out["drift_models"] = _drift_model_rows(real, "mlp")
+            out["drift_models"] = _drift_model_rows([c for c in real if c[0] != "drifted"], "mlp")
+            out["drift_rotations"] = _drift_rotation_rows(real, "mlp")
     return out
 
 
@@ -255,4 +295,29 @@ def format_sensors(result: dict[str, Any]) -> list[str]:
                          f"{_f(r['cv_deg'])} / {_f(r['test_deg'])} / "
                          f"{_f(None if r['ball_radius_error'] is None else 100 * r['ball_radius_error'], '.1f', ' %')} / "
                          f"{_f(r['residual_dn'])}  {r['seconds']:.1f} s")
+    if result.get("drift_rotations"):
+        lines += format_drift_rotations(result["drift_rotations"])
+    return lines
+
+
+def format_drift_rotations(rows: list[dict[str, Any]]) -> list[str]:
+    """The drift models over the six splits: per sensor and model, test deg / ball % per split and the means."""
+    from calibration.split import ROTATIONS
+
+    def pct(v):
+        return None if v is None else 100 * v
+
+    lines = ["  drift models over six splits (mlp; test deg / ball radius % on the ten presses held out; "
+             "splits: " + ", ".join(f"{chr(65 + i)} = test {n}" for i, n in enumerate(ROTATIONS)) + "):",
+             f"    {'sensor':9s} {'drift':12s} " + " ".join(f"{chr(65 + i):>11s}" for i in range(len(ROTATIONS)))
+             + f" {'mean':>11s} {'ball <= 5 %':>11s}"]
+    for sensor in dict.fromkeys(r["sensor"] for r in rows):
+        for drift in dict.fromkeys(r["drift"] for r in rows):
+            mine = [r for r in rows if r["sensor"] == sensor and r["drift"] == drift]
+            cells = [f"{_f(r['test_deg'])}/{_f(pct(r['ball_radius_error']), '.1f')}" for r in mine]
+            tests = [r["test_deg"] for r in mine if r["test_deg"] is not None]
+            balls = [r["ball_radius_error"] for r in mine if r["ball_radius_error"] is not None]
+            mean = f"{_f(np.mean(tests) if tests else None)}/{_f(pct(np.mean(balls)) if balls else None, '.1f')}"
+            lines.append(f"    {sensor:9s} {drift:12s} " + " ".join(f"{c:>11s}" for c in cells)
+                         + f" {mean:>11s} {sum(b <= 0.05 for b in balls):>6d} of {len(mine)}")
     return lines

@@ -3,8 +3,9 @@
 A profile says which camera the sensor is (a device-name pattern, matched against
 ``/dev/v4l/by-id`` by :func:`pipeline.capture.camera_names.find_camera`), how its stream
 becomes the images the pipeline works on (``crop``, ``rotate``, resized to ``resolution``),
-their pixel pitch on the gel (``mm_per_px``) and the ball it is calibrated with
-(``ball_radius_mm``); schema ``data_schemas/configs/sensor.json``. Built in: ``gelsight-mini``,
+their pixel pitch on the gel (``mm_per_px``), the ball it is calibrated with
+(``ball_radius_mm``) and, where measured, the illumination drift its calibration removes
+(``calibration_drift``); schema ``data_schemas/configs/sensor.json``. Built in: ``gelsight-mini``,
 ``digit``, ``iristac-ring``; any other file with the same keys is a profile too.
 
 ``iristac import images --profile``, ``calibrate --profile`` and ``live --profile`` take a
@@ -52,6 +53,7 @@ class SensorProfile:
     crop: tuple[int, int, int, int] | None = None
     rotate: int = 0
     mode: str | None = None
+    calibration_drift: str | None = None
     notes: str = ""
     source: str = ""
 
@@ -136,6 +138,7 @@ def load_profile(name_or_path) -> SensorProfile:
     return SensorProfile(name=obj["name"], make=obj["make"], resolution=res, mm_per_px=float(obj["mm_per_px"]),
                          ball_radius_mm=float(obj["ball_radius_mm"]), camera=obj.get("camera"), stream=stream,
                          crop=crop, rotate=int(obj.get("rotate", 0)), mode=obj.get("mode"),
+                         calibration_drift=obj.get("calibration_drift"),
                          notes=str(obj.get("notes", "")).strip(), source=str(path))
 
 

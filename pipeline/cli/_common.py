@@ -52,6 +52,24 @@ def add_drift_flag(parser) -> None:
                              "off)")
 
 
+def add_calibration_drift_flag(parser, help_text: str) -> None:
+    """``--drift none|offset|gain_offset|field`` of ``calibrate`` and ``eval calibration``: the drift
+    removed from each press outside its contact (:class:`calibration.detect.DetectOptions`);
+    read it back with :func:`drift_options`."""
+    from pipeline.normals.drift import DRIFT_MODELS
+
+    parser.add_argument("--drift", choices=DRIFT_MODELS, default=None, help=help_text)
+
+
+def drift_options(drift: str | None):
+    """Detection options removing ``drift`` (None: None, the callee's default)."""
+    if drift is None:
+        return None
+    from calibration.detect import DetectOptions
+
+    return DetectOptions(drift=drift)
+
+
 def add_threads_flag(parser, help_text: str) -> None:
     """``--threads N`` (default 1; 0: every core); read it back with :func:`threads_arg`."""
     parser.add_argument("--threads", type=int, default=1, help=help_text)

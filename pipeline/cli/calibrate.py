@@ -3,7 +3,7 @@
 Calls :func:`calibration.calibrate.calibrate` and :meth:`CalibrationResult.save`.
 """
 
-from pipeline.cli._common import add_json_flag, print_json
+from pipeline.cli._common import add_calibration_drift_flag, add_json_flag, drift_options, print_json
 
 MODEL_CHOICES = ["far", "near", "traced", "lut", "mlp", "all"]
 
@@ -15,8 +15,9 @@ def register(sub, name, help_text):
                    help="ball radius in mm (default: the capture's ball_radius_mm, from import images --ball-radius)")
     p.add_argument("--mm-per-px", type=float, default=None, help="pixel pitch (default: the capture's)")
     p.add_argument("--profile", default=None, metavar="NAME|FILE",
-                   help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): its ball radius and pixel "
-                        "pitch where --ball-radius / --mm-per-px are not given")
+                   help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): its ball radius, pixel "
+                        "pitch and drift model where --ball-radius / --mm-per-px / --drift are not given (a capture "
+                        "imported with --profile calibrates with that profile's drift model anyway)")
     p.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
     p.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
     p.add_argument("--out", required=True, help="calibration.h5 to write")
@@ -39,6 +40,9 @@ def register(sub, name, help_text):
     p.add_argument("--overlay", default=None,
                    help="also write an overlay PNG: every press with its circle and why it was accepted or rejected "
                         "(written even when the calibration is refused)")
+    add_calibration_drift_flag(p, "illumination drift removed from each press, fitted outside its contact (default: the "
+                               "--profile's, else gain_offset: a gain and an offset per channel; field: both quadratic "
+                               "in the image position)")
     p.add_argument("--force", action="store_true",
                    help="write the calibration even when the quality gate refuses it (its verdict is kept in the file)")
     add_json_flag(p)
@@ -54,16 +58,18 @@ def _run(args) -> int:
 
         raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
     opts = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else None
-    ball, mm = args.ball_radius, args.mm_per_px
+    ball, mm, drift = args.ball_radius, args.mm_per_px, args.drift
     if args.profile:
-        from pipeline.capture.sensor_profiles import capture_defaults
+        from pipeline.capture.sensor_profiles import capture_defaults, load_profile
 
         ball, mm = capture_defaults(args.profile, args.capture, ball, mm)
+        drift = drift or load_profile(args.profile).calibration_drift
     from calibration.gate import CalibrationRefused
 
     try:
         res = calibrate(args.capture, ball, mm, args.model, folds=args.folds, illumination=ill,
-                        model_options=opts, refine_iterations=0 if args.no_refine else 2,
+                        model_options=opts, detect_options=drift_options(drift),
+                        refine_iterations=0 if args.no_refine else 2,
                         refine_model=args.refine_model, markers=args.markers, circles=args.circles)
     except CalibrationRefused as exc:
         if args.overlay and exc.circles:

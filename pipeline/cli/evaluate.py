@@ -4,7 +4,7 @@
 
 from __future__ import annotations
 
-from pipeline.cli._common import add_json_flag, make_group, print_json
+from pipeline.cli._common import add_calibration_drift_flag, add_json_flag, drift_options, make_group, print_json
 
 
 def register(sub, name, help_text):
@@ -30,6 +30,8 @@ def register(sub, name, help_text):
                    help="ball radius in mm (default: the calibration's)")
     c.add_argument("--model", action="append", default=None, metavar="NAME",
                    help="evaluate only this model (repeatable; default all)")
+    add_calibration_drift_flag(c, "illumination drift removed from each test press (default: the one the calibration "
+                                  "removed)")
     add_json_flag(c)
     c.set_defaults(func=_run_calibration)
 
@@ -48,7 +50,8 @@ def _run(args) -> int:
 def _run_calibration(args) -> int:
     from calibration.evaluate import evaluate_calibration, format_report
 
-    r = evaluate_calibration(args.calibration, args.test_capture, args.ball_radius, models=args.model)
+    r = evaluate_calibration(args.calibration, args.test_capture, args.ball_radius, models=args.model,
+                             detect_options=drift_options(args.drift))
     if args.json:
         print_json(r)
     else:

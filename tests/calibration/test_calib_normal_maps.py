@@ -94,6 +94,24 @@ def test_sphere_fit_on_exact_cap_normals():
     assert abs(r["radius_error"]) < 0.005 and abs(r["depth_error"]) < 0.02 and r["pixels"] > 100
 
 
+def test_sphere_fit_refuses_a_contact_cut_by_the_border():
+    """Exact normals of a cap cut by the image edge integrate to no sphere (the integrator holds
+    the edge flat): given its circle the fit says so instead of reporting a wrong radius; a cap
+    whose rim barely leaves the image (as DIGIT test presses 28 and 29 do) still fits the ball."""
+    from calibration.ballfit import MIN_RIM_INSIDE
+    from calibration.detect import rim_inside
+
+    cut = sphere_cap((120, 160), (8.0, 60.0), 14.0, 2.0, 0.1245)  # centre (row, col); circles are (x, y)
+    assert ball_fit(cut.normals, 0.1245, 2.0)["radius_error"] > 0.1  # what the fit alone reports
+    r = ball_fit(cut.normals, 0.1245, 2.0, contact=(60.0, 8.0, 14.0))
+    assert r["radius_mm"] is None and "border" in r["reason"] and "69% of its rim" in r["reason"], r["reason"]
+    grazing = sphere_cap((120, 160), (13.0, 60.0), 14.0, 2.0, 0.1245)
+    assert MIN_RIM_INSIDE < rim_inside((120, 160), (60.0, 13.0), 14.0) < 0.9
+    assert abs(ball_fit(grazing.normals, 0.1245, 2.0, contact=(60.0, 13.0, 14.0))["radius_error"]) < 0.005
+    with pytest.raises(ValueError, match=r"\(120, 160\)"):
+        ball_fit(grazing.normals[..., 0], 0.1245, 2.0)
+
+
 def test_sphere_fit_sees_too_flat_normals():
     """Normals 10 % too flat (the shrinkage the tilt gain undoes) read as a larger ball."""
     from calibration.models.base import scale_tilt

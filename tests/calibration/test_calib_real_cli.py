@@ -71,6 +71,34 @@ def test_cli_calibrate_json_keys(tmp_path):
     assert (tmp_path / "o.png").stat().st_size > 1000
 
 
+@needs_data
+def test_the_drift_model_is_chosen_recorded_and_followed_by_eval(tmp_path):
+    """``calibrate --drift`` removes that model from every press and records it; ``eval
+    calibration`` removes the same from the test presses unless told otherwise; a capture
+    imported with a sensor profile calibrates with the profile's model (the DIGIT's: field)."""
+    import dataclasses
+
+    from calibration.calibrate import calibrate
+    from calibration.importers import load_gelsight_npz
+    from calibration.split import TEST_PRESSES, TRAIN_PRESSES
+    from pipeline.base.capture import write_capture
+    from pipeline.base.store import read_record
+
+    cap = load_gelsight_npz(DATA)
+    train = write_capture(tmp_path / "train.h5", cap.select(TRAIN_PRESSES))
+    test = write_capture(tmp_path / "test.h5", cap.select(TEST_PRESSES))
+    r = run_cli("calibrate", train, "--ball-radius", "2.0", "--model", "near", "--folds", "2", "--drift", "offset",
+                "--out", tmp_path / "cal.h5")
+    assert r.returncode == 0 and "drift (offset) removed from every press" in r.stdout, r.stderr
+    meta = read_record(tmp_path / "cal.h5", "calibration").meta
+    assert meta["circle_settings"]["drift"] == "offset" and meta["summary"]["drift"]["model"] == "offset"
+    r = run_cli("eval", "calibration", tmp_path / "cal.h5", test, "--model", "near", "--json")
+    assert r.returncode == 0 and json.loads(r.stdout)["truth"]["detected"]["drift"] == "offset", r.stderr
+    profiled = dataclasses.replace(cap.select(TRAIN_PRESSES), meta={**cap.meta, "sensor_profile": "digit"})
+    res = calibrate(profiled, 2.0, models="near", folds=2)
+    assert res.summary()["drift"]["model"] == "field" and res.meta["circle_settings"]["drift"] == "field"
+
+
 def test_cli_bad_inputs_are_one_line_errors(tmp_path):
     r = run_cli("import", "gelsight-npz", tmp_path / "missing.npz", "--out", tmp_path / "c.h5")
     assert r.returncode == 2 and "missing.npz" in r.stderr and "Traceback" not in r.stderr

@@ -133,9 +133,13 @@ def test_eval_calibration_cli(tmp_path, capture, split):
     assert set(out["truth"]) == {"detected", "labels"} and out["presses"] == 10
     fit = out["ball_fit"]["near"]
     assert len(fit["per_press"]) == 10 and {"radius_mm", "depth_mm", "radius_error"} <= set(fit["per_press"][0])
-    # The file reproduces the in-memory evaluation of the same model.
+    # The file reproduces the in-memory evaluation of the same model, on presses that lost the
+    # drift the calibration's presses lost (recorded in the file).
     assert out["models"]["near"]["mean_deg"] == pytest.approx(split["evaluation"]["models"]["near"]["mean_deg"],
                                                               abs=0.01)
+    assert out["truth"]["detected"]["drift"] == split["evaluation"]["truth"]["detected"]["drift"] == "gain_offset"
+    r = run_cli("eval", "calibration", cal, test, "--ball-radius", "2.0", "--model", "near", "--drift", "none")
+    assert r.returncode == 0 and "10 of 10 test presses accepted (drift removed from each: none)" in r.stdout, r.stderr
     r = run_cli("eval", "calibration", cal, tmp_path / "missing.h5")
     assert r.returncode == 2 and "missing.h5" in r.stderr and "Traceback" not in r.stderr
 

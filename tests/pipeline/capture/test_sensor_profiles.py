@@ -4,6 +4,7 @@ symlinks; the profile in import images, calibrate and a camera's frames."""
 from __future__ import annotations
 
 import os
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -61,6 +62,24 @@ def test_shipped_profiles_are_valid_and_bad_ones_are_named(tmp_path):
     bad.write_text("name: x\nmake: y\nresolution: {width: 32, height: 24}\nmm_per_px: -1\nball_radius_mm: 1\n")
     with pytest.raises(UserError, match="bad.yaml.*mm_per_px"):
         load_profile(bad)
+    # The DIGIT's calibration removes a smooth drift field (measured: docs/calibration.md, "Drift"); the
+    # others keep the default. A drift model the code does not know is the file's error.
+    assert digit.calibration_drift == "field" and mini.calibration_drift is None
+    bad.write_text("name: x\nmake: y\nresolution: {width: 32, height: 24}\nmm_per_px: 0.1\nball_radius_mm: 1\n"
+                   "calibration_drift: wobble\n")
+    with pytest.raises(UserError, match="bad.yaml.*calibration_drift"):
+        load_profile(bad)
+
+
+def test_profile_drift_choices_are_the_drift_models():
+    """One owner: the schema's choices are pipeline.normals.drift.DRIFT_MODELS."""
+    import json
+
+    import data_schemas
+    from pipeline.normals.drift import DRIFT_MODELS
+
+    schema = json.loads((Path(data_schemas.__file__).parent / "configs" / "sensor.json").read_text())
+    assert tuple(schema["properties"]["calibration_drift"]["enum"]) == DRIFT_MODELS
 
 
 def _profile_file(tmp_path):
