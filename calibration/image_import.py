@@ -450,8 +450,15 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
               "next_closest_distance": None if others is None or not len(others) else float(others[0]),
               "labels": lab is not None, "markers": 0 if mask is None else int(mask.sum()),
               "mm_per_px": float(mm_per_px), "ball_radius_mm": ball_radius_mm,
-              "profile": None if prof is None else prof.name}
+              "profile": None if prof is None else prof.name,
+              "matching_profiles": [] if prof is not None else _profiles_of_size(frames.shape[3], frames.shape[2])}
     return cap, report
+
+
+def _profiles_of_size(width: int, height: int) -> list[str]:
+    from pipeline.capture.sensor_profiles import profiles_of_size
+
+    return profiles_of_size(width, height)
 
 
 def import_images(source: str | Path, out: str | Path, **kwargs) -> dict[str, Any]:

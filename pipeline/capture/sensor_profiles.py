@@ -31,7 +31,8 @@ import numpy as np
 
 from pipeline.base.errors import UserError
 
-__all__ = ["SensorProfile", "ProfileCamera", "load_profile", "list_profiles", "capture_defaults", "camera_source",
+__all__ = ["SensorProfile", "ProfileCamera", "load_profile", "list_profiles", "profiles_of_size", "capture_defaults",
+           "camera_source",
            "PROFILES_DIR"]
 
 #: Folder of the built-in profiles.
@@ -102,6 +103,15 @@ class SensorProfile:
 def list_profiles() -> list[str]:
     """Names of the built-in profiles."""
     return sorted(p.stem for p in PROFILES_DIR.glob("*.yaml"))
+
+
+def profiles_of_size(width: int, height: int) -> list[str]:
+    """Built-in profiles whose images are ``width x height`` (a hint for an import without ``--profile``).
+
+    >>> profiles_of_size(480, 640), profiles_of_size(160, 120)
+    (['digit'], [])
+    """
+    return [n for n in list_profiles() if load_profile(n).resolution == (int(width), int(height))]
 
 
 def load_profile(name_or_path) -> SensorProfile:

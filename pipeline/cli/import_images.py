@@ -49,4 +49,7 @@ def _run(args) -> int:
     print(f"wrote {res['out']}: {res['presses']} presses x {res['patterns']} pattern(s) of {res['shape'][0]}x"
           f"{res['shape'][1]} px, {res['channels']} channel(s), {res['bit_depth']}-bit; {ref}; labels "
           f"{'kept' if res['labels'] else 'absent'}; {res['markers']} marker pixels")
+    for name in res.get("matching_profiles") or []:
+        print(f"  the images are the size of the {name!r} sensor profile's: if this is that sensor, import with "
+              f"--profile {name} (its pixel pitch, ball and calibration settings: docs/calibration.md, Sensor profiles)")
     return 0

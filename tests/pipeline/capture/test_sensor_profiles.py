@@ -142,3 +142,19 @@ def test_profile_in_import_calibrate_and_a_camera(tmp_path):
         np.testing.assert_array_equal(got.image, load_profile(prof_path).to_image(stream[0]))
     finally:
         cam.close()
+
+
+def test_import_without_a_profile_names_the_profile_of_that_size(tmp_path):
+    """Images of a built-in profile's size imported without --profile: the import says which
+    profile has that size (its calibration settings, the DIGIT's drift model, come with it)."""
+    from helpers import run_cli
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    for i in range(3):
+        cv2.imwrite(str(folder / f"f{i}.png"), rng.integers(0, 200, (640, 480, 3), dtype=np.uint8))
+    r = run_cli("import", "images", folder, "--out", tmp_path / "a.h5", "--mm-per-px", "0.03", "--reference", "f0")
+    assert r.returncode == 0 and "'digit' sensor profile" in r.stdout and "--profile digit" in r.stdout, r.stderr
+    r = run_cli("import", "images", folder, "--out", tmp_path / "b.h5", "--profile", "digit", "--reference", "f0")
+    assert r.returncode == 0 and "sensor profile" not in r.stdout, r.stderr
