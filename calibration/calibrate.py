@@ -318,6 +318,10 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
     shrink_px : float
         Margin inside each contact circle excluded from fitting and validation.
     detect_options : DetectOptions, optional
+        Contact detection and the drift removed from each press; default
+        :func:`capture_detect_options` (the capture's sensor profile's drift model, else
+        ``gain_offset``). The drift model used is recorded (``meta["circle_settings"]``) and
+        :func:`calibration.evaluate.evaluate_calibration` removes the same from test presses.
     model_options : dict, optional
         name -> keyword arguments of that model's constructor (e.g. ``{"near": {"degree": 3}}``).
     refine_iterations : int

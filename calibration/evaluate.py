@@ -178,9 +178,9 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         calibration's verdict (:func:`calibration.gate.model_problems`) and from the test presses
         (no valid prediction, a ball fit more than
         :data:`calibration.gate.MAX_BALL_RADIUS_ERROR` off or no round bump), and ``usable`` = no
-        problems), ``truth`` (``detected``: how the circles were
-        found, the circles and ``drift``, the model removed from the test presses; ``labels`` when the capture has hand labels: the same statistics
-        per model against them) and ``ball_fit`` (name -> ``radius_error_median`` and
+        problems), ``truth`` (``detected``: how the circles were found, the circles and
+        ``drift``, the model removed from the test presses; ``labels`` when the capture has hand
+        labels: the same statistics per model against them) and ``ball_fit`` (name -> ``radius_error_median`` and
         ``depth_error_median`` (median relative errors), ``radius_mm_median``, ``per_press``).
     """
     from calibration.calibrate import find_circles
