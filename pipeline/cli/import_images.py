@@ -1,5 +1,7 @@
 """``iristac import images SOURCE --out capture.h5`` (calls :func:`calibration.importers.import_images`)."""
 
+import sys
+
 from pipeline.cli._common import add_json_flag, print_json
 
 
@@ -36,7 +38,8 @@ def _run(args) -> int:
 
     res = import_images(args.source, args.out, reference=args.reference, pattern=args.pattern,
                         mm_per_px=args.mm_per_px, ball_radius_mm=args.ball_radius, labels=args.labels,
-                        markers=args.markers, profile=args.profile)
+                        markers=args.markers, profile=args.profile,
+                        log=lambda m: print(f"iristac import images: {m}", file=sys.stderr, flush=True))
     if args.json:
         print_json(res)
         return 0

@@ -93,8 +93,12 @@ def test_real_frames_as_png_folder_equal_the_npz_import(tmp_path):
         assert cv2.imwrite(str(folder / f"press{k:02d}.png"), img)
         rows.append(f"press{k:02d},{c[0]},{c[1]},{rad}")
     (tmp_path / "labels.csv").write_text("\n".join(rows) + "\n")
-    _, rep = load_images(folder, mm_per_px=0.1245, ball_radius_mm=2.0)
+    said: list[str] = []
+    _, rep = load_images(folder, mm_per_px=0.1245, ball_radius_mm=2.0, log=said.append)
     assert rep["reference"] == "built" and rep["reference_found"] == "background.png", rep
+    # The seconds-long step says so before it starts, and how to skip it.
+    assert len(said) == 1 and "comparing the no-contact frame background.png" in said[0], said
+    assert "--reference background skips this" in said[0]
     cmp = rep["reference_comparison"]
     assert cmp["built_residual_dn"] < 0.8 * cmp["frame_residual_dn"], cmp
     out = tmp_path / "cap.h5"

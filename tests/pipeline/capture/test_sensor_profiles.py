@@ -156,5 +156,6 @@ def test_import_without_a_profile_names_the_profile_of_that_size(tmp_path):
         cv2.imwrite(str(folder / f"f{i}.png"), rng.integers(0, 200, (640, 480, 3), dtype=np.uint8))
     r = run_cli("import", "images", folder, "--out", tmp_path / "a.h5", "--mm-per-px", "0.03", "--reference", "f0")
     assert r.returncode == 0 and "'digit' sensor profile" in r.stdout and "--profile digit" in r.stdout, r.stderr
+    assert "comparing" not in r.stderr  # the reference was named: no comparison, nothing to wait for
     r = run_cli("import", "images", folder, "--out", tmp_path / "b.h5", "--profile", "digit", "--reference", "f0")
     assert r.returncode == 0 and "sensor profile" not in r.stdout, r.stderr
