@@ -511,10 +511,23 @@ def _circle_source(circles, k: int, src: str) -> str:
     return "given"
 
 
+def profile_detect_options(profile) -> DetectOptions:
+    """Detection options removing a sensor profile's drift model (``calibration_drift``; a name, a
+    file or a SensorProfile), else :class:`calibration.detect.DetectOptions`' defaults.
+
+    >>> profile_detect_options("digit").drift, profile_detect_options("gelsight-mini").drift
+    ('field', 'gain_offset')
+    """
+    from pipeline.capture.sensor_profiles import load_profile
+
+    drift = load_profile(profile).calibration_drift
+    return DetectOptions(drift=drift) if drift else DetectOptions()
+
+
 def capture_detect_options(capture: Capture) -> DetectOptions:
-    """The detection options a capture is calibrated with when none are given: its sensor
-    profile's drift model (``calibration_drift``; the capture names its profile when ``import
-    images --profile`` made it), else :class:`calibration.detect.DetectOptions`' defaults.
+    """The detection options a capture is calibrated with when none are given: those of its sensor
+    profile (:func:`profile_detect_options`; the capture names its profile when ``import images
+    --profile`` made it), else :class:`calibration.detect.DetectOptions`' defaults.
 
     Examples
     --------
@@ -524,15 +537,11 @@ def capture_detect_options(capture: Capture) -> DetectOptions:
     >>> capture_detect_options(SimpleNamespace(meta={})).drift
     'gain_offset'
     """
-    name = (getattr(capture, "meta", None) or {}).get("sensor_profile")
-    if not name:
-        return DetectOptions()
-    from pipeline.capture.sensor_profiles import list_profiles, load_profile
+    from pipeline.capture.sensor_profiles import list_profiles
 
-    if str(name) not in list_profiles():  # a user's profile file: its name alone does not find it
-        return DetectOptions()
-    drift = load_profile(str(name)).calibration_drift
-    return DetectOptions(drift=drift) if drift else DetectOptions()
+    name = (getattr(capture, "meta", None) or {}).get("sensor_profile")
+    # A user's profile file: its name alone does not find it.
+    return profile_detect_options(str(name)) if name and str(name) in list_profiles() else DetectOptions()
 
 
 def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, shrink_px, detect_options,

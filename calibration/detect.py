@@ -114,14 +114,13 @@ class DetectOptions:
     seed: int = 0
 
 
-def drift_settings(options: "DetectOptions | None") -> dict[str, Any]:
+def drift_settings(options: "DetectOptions") -> dict[str, Any]:
     """The drift a calibration removed, as it records it (``circle_settings``): ``drift`` and ``drift_degree``.
 
-    >>> drift_settings(None) == {"drift": DetectOptions.drift, "drift_degree": DetectOptions.drift_degree}
+    >>> drift_settings(DetectOptions()) == {"drift": DetectOptions.drift, "drift_degree": DetectOptions.drift_degree}
     True
     """
-    opt = options or DetectOptions()
-    return {"drift": opt.drift, "drift_degree": int(opt.drift_degree)}
+    return {"drift": options.drift, "drift_degree": int(options.drift_degree)}
 
 
 def recorded_drift(circle_settings: dict[str, Any]) -> "DetectOptions":

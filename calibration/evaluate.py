@@ -243,7 +243,7 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
                    "edge detector alone (no light model votes for the centres)") +
                   f", contact radius minus a {shrink_px:g} px margin",
         "circles": [c.to_dict() for c in found.circles],
-        "drift": found.drifts[0].model if found.drifts else "none"}}
+        "drift": found.options.drift}}
     if not detected:
         truth["detected"]["note"] = ("the detector accepted no test press: no detected truth; "
                                      + ("the hand labels" if has_labels(cap) else "only the ball fit") + " judge the "

@@ -152,11 +152,6 @@ def _built_reference(frames: np.ndarray, ball_radius_px: float, **kwargs) -> tup
     return ref.astype(frames.dtype), report
 
 
-def _say(log: Callable[[str], None] | None, message: str) -> None:
-    if log is not None:
-        log(message)
-
-
 def _prefer_built(presses: np.ndarray, frame: np.ndarray, ball_radius_px: float, name: str):
     """``(built, comparison)``: the reference built from ``presses`` (as :func:`_built_reference`, its
     note saying why) when they match it clearly better than the found no-contact ``frame``
@@ -388,11 +383,12 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         distance to the median frame), ``next_closest_distance``, ``labels``, ``markers`` (pixels), ``mm_per_px``,
         ``ball_radius_mm``.
     """
+    from pipeline.capture.sensor_profiles import load_profile, profiles_of_size
+
     src = Path(source)
+    say = log or (lambda message: None)
     prof = None
     if profile is not None:
-        from pipeline.capture.sensor_profiles import load_profile
-
         prof = load_profile(profile)
         mm_per_px = prof.mm_per_px if mm_per_px is None else mm_per_px
         ball_radius_mm = prof.ball_radius_mm if ball_radius_mm is None else ball_radius_mm
@@ -414,14 +410,14 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
                             f"{'-' if dist is None else f'{np.min(dist):.1f}'}, next "
                             f"{'-' if dist is None else f'{np.sort(dist)[1]:.1f}'}); name it with --reference NAME, "
                             "or give --ball-radius to build a reference from the presses (--reference build)")
-        _say(log, f"{src}: no clean frame found; building the reference from the {len(names)} presses")
+        say(f"{src}: no clean frame found; building the reference from the {len(names)} presses")
         built = _built_reference(frames, ball_radius_mm / mm_per_px)
     keep = [i for i in range(len(names)) if i != ref_i]
     press_names = [names[i] for i in keep]
     comparison = None
     if reference is None and ref_i is not None and ball_radius_mm is not None:
-        _say(log, f"{src}: comparing the no-contact frame {names[ref_i]} with references built from the "
-                  f"{len(keep)} presses (--reference {Path(names[ref_i]).stem} skips this)")
+        say(f"{src}: comparing the no-contact frame {names[ref_i]} with references built from the "
+            f"{len(keep)} presses (--reference {Path(names[ref_i]).stem} skips this)")
         built, comparison = _prefer_built(frames[keep], frames[ref_i], ball_radius_mm / mm_per_px, names[ref_i])
     found = names[ref_i] if ref_i is not None else None
     ref = frames[ref_i] if built is None else built[0]
@@ -463,14 +459,9 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
               "labels": lab is not None, "markers": 0 if mask is None else int(mask.sum()),
               "mm_per_px": float(mm_per_px), "ball_radius_mm": ball_radius_mm,
               "profile": None if prof is None else prof.name,
-              "matching_profiles": [] if prof is not None else _profiles_of_size(frames.shape[3], frames.shape[2])}
+              "matching_profiles": [] if prof is not None else profiles_of_size(frames.shape[3], frames.shape[2])}
     return cap, report
 
-
-def _profiles_of_size(width: int, height: int) -> list[str]:
-    from pipeline.capture.sensor_profiles import profiles_of_size
-
-    return profiles_of_size(width, height)
 
 
 def import_images(source: str | Path, out: str | Path, **kwargs) -> dict[str, Any]:

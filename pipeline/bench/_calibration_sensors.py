@@ -133,58 +133,52 @@ def _virtual_rows(seeds, models, tmp: Path) -> list[dict[str, Any]]:
     return rows
 
 
-def _drift_model_rows(cases, model: str) -> list[dict[str, Any]]:
-    """Test error and ball fit of ``model`` on each real case with each drift model."""
+def _drift_split(cap, ball_mm: float, model: str, drift: str, train, test) -> dict[str, Any]:
+    """``model`` calibrated on ``train`` and judged on ``test`` with ``drift`` removed from both."""
     from calibration.calibrate import find_circles
     from calibration.detect import DetectOptions
     from calibration.evaluate import TEST_TRUTH
-    from calibration.split import TEST_PRESSES, split_evaluation
+    from calibration.split import split_evaluation
+
+    opt = DetectOptions(drift=drift)
+    tc = find_circles(cap.select(test), ball_mm, detect_options=opt, strict=False, **TEST_TRUTH)
+    sp = split_evaluation(cap, ball_mm, [model], train=train, test=test, test_circles=tc, detect_options=opt)
+    res, ev = sp["calibration"], sp["evaluation"]
+    return {"accepted": [res.summary()["accepted"], ev["accepted"]],
+            "cv_deg": res.reports[model]["cv"]["cv_mean_angular_error_deg"],
+            "test_deg": ev["models"][model]["mean_deg"],
+            "ball_radius_error": ev["ball_fit"][model]["radius_error_median"],
+            "residual_dn": (res.summary().get("drift") or {}).get("residual_dn_median")}
+
+
+def _drift_model_rows(cases, model: str) -> list[dict[str, Any]]:
+    """Test error and ball fit of ``model`` on each real case with each drift model (the fixed split)."""
+    from calibration.split import TEST_PRESSES, TRAIN_PRESSES
     from pipeline.normals.drift import DRIFT_MODELS
 
     rows = []
     for name, cap, ball_mm in cases:
         for drift in DRIFT_MODELS:
-            opt = DetectOptions(drift=drift)
             t = time.perf_counter()
-            tc = find_circles(cap.select(TEST_PRESSES), ball_mm, detect_options=opt, strict=False, **TEST_TRUTH)
-            sp = split_evaluation(cap, ball_mm, [model], test_circles=tc, detect_options=opt)
-            res, ev = sp["calibration"], sp["evaluation"]
-            rows.append({"sensor": name, "drift": drift, "model": model, "accepted": [res.summary()["accepted"],
-                                                                                       ev["accepted"]],
-                         "cv_deg": res.reports[model]["cv"]["cv_mean_angular_error_deg"],
-                         "test_deg": ev["models"][model]["mean_deg"],
-                         "ball_radius_error": ev["ball_fit"][model]["radius_error_median"],
-                         "residual_dn": (res.summary().get("drift") or {}).get("residual_dn_median"),
-                         "seconds": time.perf_counter() - t})
+            row = _drift_split(cap, ball_mm, model, drift, TRAIN_PRESSES, TEST_PRESSES)
+            rows.append({"sensor": name, "drift": drift, "model": model, **row, "seconds": time.perf_counter() - t})
     return rows
 
 
-#: The drift models the rotated table compares: the calibration's default and the constant one.
+#: The drift models the rotated table compares: the default (constants per channel) and the
+#: smooth field a sensor profile may name (the DIGIT's).
 ROTATED_DRIFTS = ("field", "gain_offset")
 
 
 def _drift_rotation_rows(cases, model: str) -> list[dict[str, Any]]:
     """Test error and ball fit of ``model`` per real case, drift model and split of
     :func:`calibration.split.rotated_splits`: whether a drift model's lead holds beyond one split."""
-    from calibration.calibrate import find_circles
-    from calibration.detect import DetectOptions
-    from calibration.evaluate import TEST_TRUTH
-    from calibration.split import rotated_splits, split_evaluation
+    from calibration.split import rotated_splits
 
-    rows = []
-    for name, cap, ball_mm in cases:
-        for split, (train, test) in rotated_splits(len(cap.frames)).items():
-            for drift in ROTATED_DRIFTS:
-                opt = DetectOptions(drift=drift)
-                tc = find_circles(cap.select(test), ball_mm, detect_options=opt, strict=False, **TEST_TRUTH)
-                sp = split_evaluation(cap, ball_mm, [model], train=train, test=test, test_circles=tc,
-                                      detect_options=opt)
-                res, ev = sp["calibration"], sp["evaluation"]
-                rows.append({"sensor": name, "split": split, "drift": drift,
-                             "cv_deg": res.reports[model]["cv"]["cv_mean_angular_error_deg"],
-                             "test_deg": ev["models"][model]["mean_deg"],
-                             "ball_radius_error": ev["ball_fit"][model]["radius_error_median"]})
-    return rows
+    return [{"sensor": name, "split": split, "drift": drift, **_drift_split(cap, ball_mm, model, drift, train, test)}
+            for name, cap, ball_mm in cases
+            for split, (train, test) in rotated_splits(len(cap.frames)).items()
+            for drift in ROTATED_DRIFTS]
 
 
 def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:

@@ -58,17 +58,18 @@ def _run(args) -> int:
 
         raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
     opts = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else None
-    ball, mm, drift = args.ball_radius, args.mm_per_px, args.drift
+    ball, mm, detect = args.ball_radius, args.mm_per_px, drift_options(args.drift)
     if args.profile:
-        from pipeline.capture.sensor_profiles import capture_defaults, load_profile
+        from calibration.calibrate import profile_detect_options
+        from pipeline.capture.sensor_profiles import capture_defaults
 
         ball, mm = capture_defaults(args.profile, args.capture, ball, mm)
-        drift = drift or load_profile(args.profile).calibration_drift
+        detect = detect or profile_detect_options(args.profile)
     from calibration.gate import CalibrationRefused
 
     try:
         res = calibrate(args.capture, ball, mm, args.model, folds=args.folds, illumination=ill,
-                        model_options=opts, detect_options=drift_options(drift),
+                        model_options=opts, detect_options=detect,
                         refine_iterations=0 if args.no_refine else 2,
                         refine_model=args.refine_model, markers=args.markers, circles=args.circles)
     except CalibrationRefused as exc:
