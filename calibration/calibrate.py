@@ -525,13 +525,19 @@ def profile_detect_options(profile) -> DetectOptions:
 
 
 def capture_detect_options(capture: Capture) -> DetectOptions:
-    """The detection options a capture is calibrated with when none are given: those of its sensor
-    profile (:func:`profile_detect_options`; the capture names its profile when ``import images
-    --profile`` made it), else :class:`calibration.detect.DetectOptions`' defaults.
+    """The detection options a capture is calibrated with when none are given: its sensor
+    profile's drift model, else :class:`calibration.detect.DetectOptions`' defaults.
+
+    ``import images --profile`` records the profile's name (``sensor_profile``) and its drift
+    model (``calibration_drift``, when the profile names one). The recorded model is used; a
+    capture that names a built-in profile but records none (imported before the model was
+    recorded) gets that profile's (:func:`profile_detect_options`).
 
     Examples
     --------
     >>> from types import SimpleNamespace
+    >>> capture_detect_options(SimpleNamespace(meta={"sensor_profile": "lab-gel", "calibration_drift": "field"})).drift
+    'field'
     >>> capture_detect_options(SimpleNamespace(meta={"sensor_profile": "digit"})).drift
     'field'
     >>> capture_detect_options(SimpleNamespace(meta={})).drift
@@ -539,8 +545,10 @@ def capture_detect_options(capture: Capture) -> DetectOptions:
     """
     from pipeline.capture.sensor_profiles import list_profiles
 
-    name = (getattr(capture, "meta", None) or {}).get("sensor_profile")
-    # A user's profile file: its name alone does not find it.
+    meta = getattr(capture, "meta", None) or {}
+    if meta.get("calibration_drift"):
+        return DetectOptions(drift=str(meta["calibration_drift"]))
+    name = meta.get("sensor_profile")
     return profile_detect_options(str(name)) if name and str(name) in list_profiles() else DetectOptions()
 
 

@@ -439,6 +439,9 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         meta["ball_radius_mm"] = float(ball_radius_mm)
     if prof is not None:
         meta["sensor_profile"] = prof.name
+        # Recorded, not looked up later by name: a user's profile file is not found by its name.
+        if prof.calibration_drift:
+            meta["calibration_drift"] = prof.calibration_drift
     # The drive is not known from files: each pattern is taken as its own light (P = 1 with three
     # colour channels: three LED groups, red, green and blue, as the GelSight import does).
     drive = np.eye(3, dtype=np.float32)[None] if (p, c) == (1, 3) else np.repeat(

@@ -72,7 +72,7 @@ def test_shipped_profiles_are_valid_and_bad_ones_are_named(tmp_path):
 
 
 def test_profile_drift_choices_are_the_drift_models():
-    """One owner: the schema's choices are pipeline.normals.drift.DRIFT_MODELS."""
+    """One owner: the profile's and the capture's schema choices are pipeline.normals.drift.DRIFT_MODELS."""
     import json
 
     import data_schemas
@@ -80,6 +80,8 @@ def test_profile_drift_choices_are_the_drift_models():
 
     schema = json.loads((Path(data_schemas.__file__).parent / "configs" / "sensor.json").read_text())
     assert tuple(schema["properties"]["calibration_drift"]["enum"]) == DRIFT_MODELS
+    capture = json.loads((Path(data_schemas.__file__).parent / "stages" / "capture.json").read_text())
+    assert tuple(capture["properties"]["attrs"]["properties"]["calibration_drift"]["enum"]) == DRIFT_MODELS
 
 
 def _profile_file(tmp_path):
@@ -121,7 +123,7 @@ def test_profile_in_import_calibrate_and_a_camera(tmp_path):
         cv2.imwrite(str(folder / f"f{i}.png"), f[..., ::-1])
     cap, rep = load_images(folder, profile=prof_path, reference="f0")
     assert cap.frames.shape == (2, 1, 24, 18, 3) and cap.mm_per_px == 0.2 and cap.meta["ball_radius_mm"] == 1.5
-    assert rep["profile"] == "tiny" and cap.meta["sensor_profile"] == "tiny"
+    assert rep["profile"] == "tiny" and cap.meta["sensor_profile"] == "tiny" and "calibration_drift" not in cap.meta
     np.testing.assert_array_equal(cap.reference[0], load_profile(prof_path).to_image(stream[0]))
     write_capture(tmp_path / "c.h5", cap)
     assert capture_defaults(prof_path, tmp_path / "c.h5") == (1.5, 0.2)
@@ -142,6 +144,34 @@ def test_profile_in_import_calibrate_and_a_camera(tmp_path):
         np.testing.assert_array_equal(got.image, load_profile(prof_path).to_image(stream[0]))
     finally:
         cam.close()
+
+
+def test_a_profile_files_drift_model_travels_with_the_capture(tmp_path):
+    """A user's profile file is not found by its name later: import records its drift model, and
+    calibrate (no --profile) removes that one; a bad recorded value is named on reading."""
+    import h5py
+
+    from calibration.calibrate import capture_detect_options
+    from calibration.image_import import load_images
+    from pipeline.base.capture import read_capture, write_capture
+
+    prof_path = _profile_file(tmp_path)
+    prof_path.write_text(prof_path.read_text() + "calibration_drift: offset\n")
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    rng = np.random.default_rng(1)
+    frames = rng.integers(0, 200, (3, 24, 18, 3), dtype=np.uint8)
+    for i, f in enumerate(frames):
+        cv2.imwrite(str(folder / f"f{i}.png"), f[..., ::-1])
+    cap, _ = load_images(folder, profile=prof_path, reference="f0")
+    assert cap.meta["calibration_drift"] == "offset"
+    write_capture(tmp_path / "c.h5", cap)
+    assert capture_detect_options(read_capture(tmp_path / "c.h5")).drift == "offset"
+    with h5py.File(tmp_path / "c.h5", "r+") as f:
+        f.attrs["calibration_drift"] = "wobble"
+    with pytest.raises(Exception, match="calibration_drift") as err:
+        read_capture(tmp_path / "c.h5")
+    assert "c.h5" in str(err.value)
 
 
 def test_import_without_a_profile_names_the_profile_of_that_size(tmp_path):
