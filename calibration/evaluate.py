@@ -105,13 +105,18 @@ def _ball_fits(models, found, ball_radius_mm: float, depths: list[float | None],
             r = ball_fit(maps.normals[k], found.mm_per_px, ball_radius_mm, mask=usable, level=level,
                          true_depth_mm=depths[k], contact=(*c.center_xy, c.radius_px))
             per.append({"press": k, **r})
-        rad = [abs(p["radius_error"]) for p in per if p["radius_error"] is not None]
+        signed = np.array([p["radius_error"] for p in per if p["radius_error"] is not None], float)
         dep = [abs(p["depth_error"]) for p in per if p["depth_error"] is not None]
-        out[name] = {"radius_error_median": float(np.median(rad)) if rad else None,
+        out[name] = {"radius_error_median": float(np.median(np.abs(signed))) if signed.size else None,
                      "depth_error_median": float(np.median(dep)) if dep else None,
                      "radius_mm_median": float(np.median([p["radius_mm"] for p in per if p["radius_mm"] is not None]))
-                     if rad else None,
-                     "seconds": time.perf_counter() - t, "per_press": per}
+                     if signed.size else None,
+                     # The median |error| mixes the scale (the signed median) with how much single
+                     # presses scatter: both are reported, so a user can tell them apart.
+                     "radius_error_signed_median": float(np.median(signed)) if signed.size else None,
+                     "radius_error_spread": float(1.4826 * np.median(np.abs(signed - np.median(signed))))
+                     if signed.size >= 3 else None,
+                     "fitted": int(signed.size), "seconds": time.perf_counter() - t, "per_press": per}
     return out
 
 
@@ -181,7 +186,10 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         problems), ``truth`` (``detected``: how the circles were found, the circles and
         ``drift``, the model removed from the test presses; ``labels`` when the capture has hand
         labels: the same statistics per model against them) and ``ball_fit`` (name -> ``radius_error_median`` and
-        ``depth_error_median`` (median relative errors), ``radius_mm_median``, ``per_press``).
+        ``depth_error_median`` (medians of the absolute relative errors), ``radius_mm_median``,
+        ``radius_error_signed_median`` (the median radius's relative error: the scale),
+        ``radius_error_spread`` (1.4826 x the median absolute deviation of the signed errors: how
+        much single presses scatter; None under 3 fits), ``fitted`` (presses with a radius), ``per_press``).
     """
     from calibration.calibrate import find_circles
     from calibration.stored import load_calibration
@@ -344,6 +352,12 @@ def format_report(result: dict[str, Any]) -> str:
                  "its hand labels; CV = the calibration's own, against the "
                  f"{'hand labels' if cv_truth == 'labels' else 'circles it was fitted to'}; ball radius/depth = median "
                  "relative error of a sphere fitted to each reconstructed press)")
+    for name, m in result["models"].items():
+        b = result["ball_fit"].get(name, {})
+        if b.get("radius_error_spread") is not None:
+            lines.append(f"  ball fit: {name}: {b['fitted']} of {len(b['per_press'])} presses fitted; their median "
+                         f"radius {b['radius_mm_median']:.3g} mm, {100 * b['radius_error_signed_median']:+.1f} % off "
+                         f"the ball; single presses scatter by {100 * b['radius_error_spread']:.1f} % (1.48 MAD)")
     for name, m in result["models"].items():
         if m.get("problems"):
             lines.append(f"  UNUSABLE: {name}: {'; '.join(m['problems'])} (its figures above are not results)")

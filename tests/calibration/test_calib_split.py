@@ -7,6 +7,7 @@ calibration`` end to end, and markers printed on the real frames.
 """
 
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -133,6 +134,13 @@ def test_eval_calibration_cli(tmp_path, capture, split):
     assert set(out["truth"]) == {"detected", "labels"} and out["presses"] == 10
     fit = out["ball_fit"]["near"]
     assert len(fit["per_press"]) == 10 and {"radius_mm", "depth_mm", "radius_error"} <= set(fit["per_press"][0])
+    # The scale (signed median) and the scatter of single presses, beside the median |error|.
+    signed = np.array([p["radius_error"] for p in fit["per_press"] if p["radius_error"] is not None])
+    assert fit["fitted"] == signed.size >= 3
+    assert fit["radius_error_signed_median"] == pytest.approx(np.median(signed))
+    assert fit["radius_error_median"] == pytest.approx(np.median(np.abs(signed)))
+    assert fit["radius_error_spread"] == pytest.approx(1.4826 * np.median(np.abs(signed - np.median(signed))))
+    assert fit["radius_mm_median"] == pytest.approx(2.0 * (1 + fit["radius_error_signed_median"]), rel=1e-9)
     # The file reproduces the in-memory evaluation of the same model, on presses that lost the
     # drift the calibration's presses lost (recorded in the file).
     assert out["models"]["near"]["mean_deg"] == pytest.approx(split["evaluation"]["models"]["near"]["mean_deg"],
@@ -140,6 +148,8 @@ def test_eval_calibration_cli(tmp_path, capture, split):
     assert out["truth"]["detected"]["drift"] == split["evaluation"]["truth"]["detected"]["drift"] == "gain_offset"
     r = run_cli("eval", "calibration", cal, test, "--ball-radius", "2.0", "--model", "near", "--drift", "none")
     assert r.returncode == 0 and "10 of 10 test presses accepted (drift removed from each: none)" in r.stdout, r.stderr
+    assert re.search(r"ball fit: near: \d+ of 10 presses fitted; their median radius [\d.]+ mm, [+-][\d.]+ % off the "
+                     r"ball; single presses scatter by [\d.]+ %", r.stdout), r.stdout
     r = run_cli("eval", "calibration", cal, tmp_path / "missing.h5")
     assert r.returncode == 2 and "missing.h5" in r.stderr and "Traceback" not in r.stderr
 
