@@ -86,8 +86,8 @@ def _split_row(name: str, cap, ball_mm: float, models, truth=None, exact_normals
            "cv_deg": None if best is None else s["models"][best]["cv_mean_angular_error_deg"],
            "test_deg": None if best is None else ev["models"][best]["mean_deg"],
            "ball_radius_error": ball.get("radius_error_median"),
-           "ball_median_radius_error": None if ball.get("radius_mm_median") is None else
-           float(ball["radius_mm_median"] / ball_mm - 1.0),
+           "ball_median_radius_error": ball.get("radius_error_signed_median"),
+           "ball_spread": ball.get("radius_error_spread"),
            "gate": s.get("quality_gate", {}).get("passed"), "gate_cause": s.get("quality_gate", {}).get("cause"),
            "calibrate_seconds": cal_s, "seconds": seconds, "reference": reference_note or s.get("reference"),
            "drift_residual_dn": (s.get("drift") or {}).get("residual_dn_median"),
@@ -249,11 +249,12 @@ def format_sensors(result: dict[str, Any]) -> list[str]:
     lines = [("sensors: calibrate on presses 0-19, test on 20-29 (virtual: 20 of 30 random presses, 10 test); "
              "test = best model (by CV) against the test presses' detected circles, truth = against the exact "
              "circles (virtual), ball = median |radius error| of a sphere fitted to each reconstructed test press, "
-             "r med = the median fitted radius against the ball's (signed: the scale the presses share); "
+             "r med = the median fitted radius against the ball's (signed: the scale the presses share), "
+             "scatter = how much single presses scatter about it (1.48 MAD); "
              "centre/radius = accepted circles against the hand labels (GelSight: a convention ~2 px off) or the "
              "exact circles (virtual), calibration presses / test presses")]
     lines.append(f"  {'sensor':58s} {'accepted':>9s} {'centre px':>11s} {'radius':>13s} {'best':>5s} {'CV':>6s} "
-                 f"{'test':>6s} {'truth':>6s} {'ball':>7s} {'r med':>7s} {'gate':>5s} {'s':>6s}")
+                 f"{'test':>6s} {'truth':>6s} {'ball':>7s} {'r med':>7s} {'scatter':>7s} {'gate':>5s} {'s':>6s}")
     for r in result["sensors"]:
         ce = r.get("centre_error_px") or [None, None]
         re = r.get("radius_error") or [None, None]
@@ -263,6 +264,7 @@ def format_sensors(result: dict[str, Any]) -> list[str]:
                      f"{r['best_model'] or '-':>5s} {_f(r['cv_deg']):>6s} {_f(r['test_deg']):>6s} "
                      f"{_f(r.get('test_deg_truth')):>6s} {_f(None if r['ball_radius_error'] is None else 100 * r['ball_radius_error'], '.1f', ' %'):>7s} "
                      f"{_f(None if r.get('ball_median_radius_error') is None else 100 * r['ball_median_radius_error'], '+.1f', ' %'):>7s} "
+                     f"{_f(None if r.get('ball_spread') is None else 100 * r['ball_spread'], '.1f', ' %'):>7s} "
                      f"{'pass' if r['gate'] else 'FAIL':>5s} {r['seconds']:6.1f}")
     lines.append("  every model (CV / test / ball radius; UNUSABLE: the model's own verdict, its figures are no results):")
     unusable = []

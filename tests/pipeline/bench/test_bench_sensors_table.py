@@ -1,0 +1,28 @@
+"""The ``bench calibration --sensors`` table prints what each row measured, scale and scatter apart."""
+
+from __future__ import annotations
+
+from pipeline.bench._calibration_sensors import format_sensors
+
+
+def _row(**over):
+    row = {"sensor": "DIGIT (test row)", "presses": [20, 10], "accepted": [20, 10], "best_model": "mlp",
+           "cv_deg": 5.7, "test_deg": 4.9, "ball_radius_error": 0.032, "ball_median_radius_error": -0.002,
+           "ball_spread": 0.044, "gate": True, "seconds": 12.0, "ball_presses": [9, 10],
+           "models": {"mlp": {"cv_deg": 5.7, "test_deg": 4.9, "ball_radius_error": 0.032, "usable": True,
+                              "problems": []}}}
+    row.update(over)
+    return row
+
+
+def test_sensor_rows_show_the_ball_scale_beside_its_scatter():
+    lines = format_sensors({"sensors": [_row(), _row(sensor="no ball", ball_radius_error=None,
+                                                     ball_median_radius_error=None, ball_spread=None)]})
+    assert "scatter = how much single presses scatter" in lines[0]
+    header = lines[1]
+    assert header.index("ball") < header.index("r med") < header.index("scatter") < header.index("gate")
+    row = next(line for line in lines if line.startswith("  DIGIT (test row)"))
+    assert "3.2 %" in row and "-0.2 %" in row and "4.4 %" in row and "pass" in row
+    empty = next(line for line in lines if line.startswith("  no ball"))
+    assert "%" not in empty.split("pass")[0].split("4.90")[1]  # no figure where no sphere was fitted
+    assert "9/10" in lines[-1]
