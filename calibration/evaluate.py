@@ -91,6 +91,27 @@ def evaluate_models(models: dict[str, Any], samples: Samples) -> dict[str, dict[
     return out
 
 
+#: Resamplings of the test presses behind the range of the ball fit's median |error|.
+BOOTSTRAP_RESAMPLES = 2000
+
+
+def _median_range(values: np.ndarray, low: float = 10.0, high: float = 90.0) -> list[float] | None:
+    """Where the median of ``values`` falls when the presses are drawn again (bootstrap, seeded):
+    its ``low``-``high`` percentiles, or None under 5 values.
+
+    A median of ten presses that scatter by several per cent is itself uncertain by a few: this
+    says by how much, from the presses at hand.
+
+    >>> [round(v, 3) for v in _median_range(np.arange(1, 10) / 100)]
+    [0.03, 0.07]
+    """
+    if values.size < 5:
+        return None
+    draws = np.random.default_rng(0).integers(0, values.size, (BOOTSTRAP_RESAMPLES, values.size))
+    lo, hi = np.percentile(np.median(values[draws], axis=1), [low, high])
+    return [float(lo), float(hi)]
+
+
 def _ball_fits(models, found, ball_radius_mm: float, depths: list[float | None], level: float) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, model in models.items():
@@ -116,6 +137,7 @@ def _ball_fits(models, found, ball_radius_mm: float, depths: list[float | None],
                      "radius_error_signed_median": float(np.median(signed)) if signed.size else None,
                      "radius_error_spread": float(1.4826 * np.median(np.abs(signed - np.median(signed))))
                      if signed.size >= 3 else None,
+                     "radius_error_median_range": _median_range(np.abs(signed)),
                      "fitted": int(signed.size), "seconds": time.perf_counter() - t, "per_press": per}
     return out
 
@@ -189,7 +211,9 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         ``depth_error_median`` (medians of the absolute relative errors), ``radius_mm_median``,
         ``radius_error_signed_median`` (the median radius's relative error: the scale),
         ``radius_error_spread`` (1.4826 x the median absolute deviation of the signed errors: how
-        much single presses scatter; None under 3 fits), ``fitted`` (presses with a radius), ``per_press``).
+        much single presses scatter; None under 3 fits), ``radius_error_median_range`` (10-90 %
+        of the median |error| over bootstrap draws of the fitted presses; None under 5),
+        ``fitted`` (presses with a radius), ``per_press``).
     """
     from calibration.calibrate import find_circles
     from calibration.stored import load_calibration
@@ -355,9 +379,14 @@ def format_report(result: dict[str, Any]) -> str:
     for name, m in result["models"].items():
         b = result["ball_fit"].get(name, {})
         if b.get("radius_error_spread") is not None:
+            rng = b.get("radius_error_median_range")
             lines.append(f"  ball fit: {name}: {b['fitted']} of {len(b['per_press'])} presses fitted; their median "
                          f"radius {b['radius_mm_median']:.3g} mm, {100 * b['radius_error_signed_median']:+.1f} % off "
-                         f"the ball; single presses scatter by {100 * b['radius_error_spread']:.1f} % (1.48 MAD)")
+                         f"the ball; single presses scatter by {100 * b['radius_error_spread']:.1f} % (1.48 MAD)"
+                         + ("" if rng is None else
+                            f"; the median |error| {100 * b['radius_error_median']:.1f} % would be "
+                            f"{100 * rng[0]:.1f}-{100 * rng[1]:.1f} % on another draw of as many presses "
+                            "(bootstrap, 10-90 %)"))
     for name, m in result["models"].items():
         if m.get("problems"):
             lines.append(f"  UNUSABLE: {name}: {'; '.join(m['problems'])} (its figures above are not results)")

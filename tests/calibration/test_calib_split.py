@@ -141,6 +141,8 @@ def test_eval_calibration_cli(tmp_path, capture, split):
     assert fit["radius_error_median"] == pytest.approx(np.median(np.abs(signed)))
     assert fit["radius_error_spread"] == pytest.approx(1.4826 * np.median(np.abs(signed - np.median(signed))))
     assert fit["radius_mm_median"] == pytest.approx(2.0 * (1 + fit["radius_error_signed_median"]), rel=1e-9)
+    lo, hi = fit["radius_error_median_range"]  # where the median |error| falls on other draws of the presses
+    assert np.abs(signed).min() <= lo <= fit["radius_error_median"] <= hi <= np.abs(signed).max() and lo < hi
     # The file reproduces the in-memory evaluation of the same model, on presses that lost the
     # drift the calibration's presses lost (recorded in the file).
     assert out["models"]["near"]["mean_deg"] == pytest.approx(split["evaluation"]["models"]["near"]["mean_deg"],
@@ -149,7 +151,8 @@ def test_eval_calibration_cli(tmp_path, capture, split):
     r = run_cli("eval", "calibration", cal, test, "--ball-radius", "2.0", "--model", "near", "--drift", "none")
     assert r.returncode == 0 and "10 of 10 test presses accepted (drift removed from each: none)" in r.stdout, r.stderr
     assert re.search(r"ball fit: near: \d+ of 10 presses fitted; their median radius [\d.]+ mm, [+-][\d.]+ % off the "
-                     r"ball; single presses scatter by [\d.]+ %", r.stdout), r.stdout
+                     r"ball; single presses scatter by [\d.]+ % \(1.48 MAD\); the median \|error\| [\d.]+ % would be [\d.]+-[\d.]+ % on "
+                     r"another draw", r.stdout), r.stdout
     r = run_cli("eval", "calibration", cal, tmp_path / "missing.h5")
     assert r.returncode == 2 and "missing.h5" in r.stderr and "Traceback" not in r.stderr
 
