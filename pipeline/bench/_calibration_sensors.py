@@ -113,7 +113,8 @@ def _split_row(name: str, cap, ball_mm: float, models, truth=None, exact_normals
     return row
 
 
-def _virtual_rows(seeds, models, tmp: Path) -> list[dict[str, Any]]:
+def _virtual_rows(seeds, models, tmp: Path, done=None) -> list[dict[str, Any]]:
+    """One row per virtual sensor seed; ``done(row)`` after each (progress)."""
     from pipeline.base.capture import read_capture
     from sim.virtual_sensor import random_sensor, write_sensor_capture
 
@@ -130,6 +131,8 @@ def _virtual_rows(seeds, models, tmp: Path) -> list[dict[str, Any]]:
         row["effects"] = list(sensor.effects)
         row["touching_border"] = int(np.asarray(out.truth.touches_border).sum())
         rows.append(row)
+        if done is not None:
+            done(row)
     return rows
 
 
@@ -181,8 +184,12 @@ def _drift_rotation_rows(cases, model: str) -> list[dict[str, Any]]:
             for drift in ROTATED_DRIFTS]
 
 
-def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
-    """Every sensor on hand through calibrate (train presses) and eval calibration (test presses)."""
+def run_sensors(quick: bool = False, models="all", log=None) -> dict[str, Any]:
+    """Every sensor on hand through calibrate (train presses) and eval calibration (test presses).
+
+    ``log(message)``, when given, hears one line per finished row and before each drift table
+    (the whole run takes about a quarter of an hour on two cores).
+    """
     from calibration.image_import import load_images
     from calibration.importers import load_gelsight_npz
     from pipeline.normals.drift import drifted_capture
@@ -190,15 +197,24 @@ def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
     data = shared_data_dir()
     out: dict[str, Any] = {"sensors": [], "drift_models": [], "quick": bool(quick)}
     real = []
+    say = log or (lambda message: None)
+    start = time.perf_counter()
+
+    def done(row: dict[str, Any]) -> None:
+        say(f"{row['sensor']}: {row['seconds']:.0f} s ({time.perf_counter() - start:.0f} s so far)")
+
+    def add(row: dict[str, Any]) -> None:
+        out["sensors"].append(row)
+        done(row)
+
     with tempfile.TemporaryDirectory(prefix="iristac-bench-sensors-") as tmp:
         tmp = Path(tmp)
         if data is not None and (data / "gelsight_ball_presses.npz").is_file():
             gs = load_gelsight_npz(data / "gelsight_ball_presses.npz")
             labels = (np.asarray(gs.labels["center_xy"], float), np.asarray(gs.labels["radius_px"], float))
-            out["sensors"].append(_split_row("GelSight (shared, 120x160)", gs, 2.0, models, labels))
+            add(_split_row("GelSight (shared, 120x160)", gs, 2.0, models, labels))
             drifted = drifted_capture(gs, seed=0)
-            out["sensors"].append(_split_row("GelSight drifted (+-15 % gain, +-30 DN per press)", drifted, 2.0,
-                                             models, labels))
+            add(_split_row("GelSight drifted (+-15 % gain, +-30 DN per press)", drifted, 2.0, models, labels))
             real.append(("GelSight", gs, 2.0))
             real.append(("drifted", drifted, 2.0))
         digit = None if data is None else data / "digit_ball_presses"
@@ -212,13 +228,12 @@ def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
                 name = f"DIGIT (--profile digit; reference {found} found)"
             digit_row = _split_row(name, cap, DIGIT_BALL_MM, models)
             digit_row["reference_comparison"] = rep["reference_comparison"]
-            out["sensors"].append(digit_row)
+            add(digit_row)
             real.append(("DIGIT", cap, DIGIT_BALL_MM))
             if rep["reference"] == "built" and found is not None:
                 kept, _ = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, reference=found,
                                       profile="digit")
-                out["sensors"].append(_split_row(f"DIGIT, no-contact frame kept (--reference {found})", kept,
-                                                 DIGIT_BALL_MM, models))
+                add(_split_row(f"DIGIT, no-contact frame kept (--reference {found})", kept, DIGIT_BALL_MM, models))
             folder = tmp / "digit_no_reference"
             folder.mkdir()
             for f in digit.glob("*.jpg"):
@@ -232,10 +247,12 @@ def run_sensors(quick: bool = False, models="all") -> dict[str, Any]:
             else:
                 row = _split_row(name, built, DIGIT_BALL_MM, models)
             row["reference_built"] = brep.get("reference_built")
-            out["sensors"].append(row)
-        out["sensors"] += _virtual_rows(range(2) if quick else range(4), models, tmp)
+            add(row)
+        out["sensors"] += _virtual_rows(range(2) if quick else range(4), models, tmp, done)
         if not quick and real:
+            say("drift models on the fixed split (mlp)")
             out["drift_models"] = _drift_model_rows([c for c in real if c[0] != "drifted"], "mlp")
+            say(f"drift models on six splits (mlp; {len(real) * 2 * 6} calibrations, about half the run)")
             out["drift_rotations"] = _drift_rotation_rows(real, "mlp")
     return out
 

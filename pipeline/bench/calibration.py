@@ -78,9 +78,12 @@ def run(args) -> dict:
 
     quick = bool(getattr(args, "quick", False))
     if getattr(args, "sensors", False):
+        import sys
+
         from pipeline.bench._calibration_sensors import run_sensors
 
-        return run_sensors(quick)
+        return run_sensors(quick, log=lambda m: print(f"iristac bench calibration --sensors: {m}", file=sys.stderr,
+                                                      flush=True))
     out: dict = {"cases": [], "rows": []}
     npz = Path(args.npz) if getattr(args, "npz", None) else _shared_data()
     if npz is not None:

@@ -26,3 +26,14 @@ def test_sensor_rows_show_the_ball_scale_beside_its_scatter():
     empty = next(line for line in lines if line.startswith("  no ball"))
     assert "%" not in empty.split("pass")[0].split("4.90")[1]  # no figure where no sphere was fitted
     assert "9/10" in lines[-1]
+
+
+def test_each_finished_row_is_reported_as_it_lands(tmp_path):
+    """The quarter-hour bench says what it finished: the hook hears each row, as it is returned."""
+    from pipeline.bench._calibration_sensors import _virtual_rows
+
+    heard = []
+    rows = _virtual_rows([1], ["near"], tmp_path, heard.append)
+    assert len(rows) == 1 and heard == rows
+    assert heard[0]["sensor"].startswith("virtual seed 1 (120x160") and heard[0]["seconds"] > 0
+    assert heard[0]["accepted"][1] >= 8 and heard[0]["test_deg"] < 10  # a real calibration, judged
