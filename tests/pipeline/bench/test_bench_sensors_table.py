@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import pytest
+
 from pipeline.bench._calibration_sensors import format_sensors
 
 
@@ -28,8 +30,9 @@ def test_sensor_rows_show_the_ball_scale_beside_its_scatter():
     assert "9/10" in lines[-1]
 
 
-def test_each_finished_row_is_reported_as_it_lands(tmp_path):
-    """The quarter-hour bench says what it finished: the hook hears each row, as it is returned."""
+def test_rows_are_reported_as_they_land_and_two_captures_give_the_split(tmp_path):
+    """The quarter-hour bench says what it finished (the hook hears each row as it is returned), and
+    its two-folder row equals the split row on the same presses."""
     from pipeline.bench._calibration_sensors import _virtual_rows
 
     heard = []
@@ -37,3 +40,15 @@ def test_each_finished_row_is_reported_as_it_lands(tmp_path):
     assert len(rows) == 1 and heard == rows
     assert heard[0]["sensor"].startswith("virtual seed 1 (120x160") and heard[0]["seconds"] > 0
     assert heard[0]["accepted"][1] >= 8 and heard[0]["test_deg"] < 10  # a real calibration, judged
+    # The two-folder row (calibrate on one capture, evaluate on another) on the same presses as
+    # the split gives the split's figures.
+    from calibration.split import TEST_PRESSES, TRAIN_PRESSES
+    from pipeline.base.capture import read_capture
+    from pipeline.bench._calibration_sensors import _split_row
+
+    cap = read_capture(tmp_path / "virtual_1.h5")
+    two = _split_row("two", cap.select(TRAIN_PRESSES), float(cap.meta["ball_radius_mm"]), ["near"],
+                     test_capture=cap.select(TEST_PRESSES))
+    assert two["presses"] == [20, 10] and two["accepted"] == heard[0]["accepted"]
+    for key in ("cv_deg", "test_deg", "ball_radius_error", "ball_spread"):
+        assert two[key] == pytest.approx(heard[0][key], rel=1e-9), key
