@@ -128,18 +128,26 @@ def _ball_fits(models, found, ball_radius_mm: float, depths: list[float | None],
             per.append({"press": k, **r})
         signed = np.array([p["radius_error"] for p in per if p["radius_error"] is not None], float)
         dep = [abs(p["depth_error"]) for p in per if p["depth_error"] is not None]
-        out[name] = {"radius_error_median": float(np.median(np.abs(signed))) if signed.size else None,
+        out[name] = {**_radius_summary(signed, ball_radius_mm),
                      "depth_error_median": float(np.median(dep)) if dep else None,
-                     "radius_mm_median": float(np.median([p["radius_mm"] for p in per if p["radius_mm"] is not None]))
-                     if signed.size else None,
-                     # The median |error| mixes the scale (the signed median) with how much single
-                     # presses scatter: both are reported, so a user can tell them apart.
-                     "radius_error_signed_median": float(np.median(signed)) if signed.size else None,
-                     "radius_error_spread": float(1.4826 * np.median(np.abs(signed - np.median(signed))))
-                     if signed.size >= 3 else None,
-                     "radius_error_median_range": _median_range(np.abs(signed)),
-                     "fitted": int(signed.size), "seconds": time.perf_counter() - t, "per_press": per}
+                     "seconds": time.perf_counter() - t, "per_press": per}
     return out
+
+
+def _radius_summary(signed: np.ndarray, ball_radius_mm: float) -> dict[str, Any]:
+    """The fitted presses' relative radius errors ``signed`` summed up (:func:`evaluate_calibration`'s
+    ``ball_fit`` keys). The median |error| mixes the scale (the signed median) with how much
+    single presses scatter: both are reported, so a user can tell them apart."""
+    if not signed.size:
+        return {"radius_error_median": None, "radius_mm_median": None, "radius_error_signed_median": None,
+                "radius_error_spread": None, "radius_error_median_range": None, "fitted": 0}
+    scale = float(np.median(signed))
+    return {"radius_error_median": float(np.median(np.abs(signed))),
+            "radius_mm_median": ball_radius_mm * (1.0 + scale),
+            "radius_error_signed_median": scale,
+            "radius_error_spread": float(1.4826 * np.median(np.abs(signed - scale))) if signed.size >= 3 else None,
+            "radius_error_median_range": _median_range(np.abs(signed)),
+            "fitted": int(signed.size)}
 
 
 def _press_depths(cap: Capture, circles: list[Circle], ball_radius_mm: float, mm_per_px: float):

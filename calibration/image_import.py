@@ -466,7 +466,6 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
     return cap, report
 
 
-
 def import_images(source: str | Path, out: str | Path, **kwargs) -> dict[str, Any]:
     """Import a folder of images or a video as ``capture.h5``; returns :func:`load_images`' report plus ``out``.
 

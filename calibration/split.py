@@ -20,8 +20,9 @@ import numpy as np
 
 from pipeline.base.capture import Capture
 
-__all__ = ["TRAIN_PRESSES", "TEST_PRESSES", "ROTATIONS", "SETTINGS", "TARGETS", "split_evaluation", "split_rows", "best_row",
-           "test_truth", "four_way", "split_targets", "fixed_truth_cv", "rotated_splits"]
+__all__ = ["TRAIN_PRESSES", "TEST_PRESSES", "ROTATIONS", "SETTINGS", "TARGETS", "calibrate_and_evaluate",
+           "split_evaluation", "split_rows", "best_row", "test_truth", "four_way", "split_targets", "fixed_truth_cv",
+           "rotated_splits"]
 
 #: The fixed split of the shared real frames (``../shared/data/gelsight_ball_presses.npz``).
 TRAIN_PRESSES = slice(0, 20)
@@ -61,9 +62,42 @@ def rotated_splits(num_presses: int = 30) -> dict[str, tuple[np.ndarray, np.ndar
     return {name: (np.setdiff1d(idx, t), t) for name, t in zip(ROTATIONS, tests)}
 
 
+def calibrate_and_evaluate(train_capture: Capture, test_capture: Capture, ball_radius_mm: float, models="all", *,
+                           test_circles=None, **calibrate_kwargs) -> dict[str, Any]:
+    """Calibrate on every press of ``train_capture`` and evaluate every model on ``test_capture``
+    (two folders imported one by one, as the documented workflow has it).
+
+    Parameters
+    ----------
+    train_capture, test_capture : Capture
+    ball_radius_mm : float
+    models : as :func:`calibration.calibrate.calibrate`
+    test_circles : CircleFit, optional
+        The test presses' circles (``find_circles`` of ``test_capture``), to reuse.
+    **calibrate_kwargs
+        Passed to :func:`calibration.calibrate.calibrate` (``model_options``, ``markers`` ...).
+
+    Returns
+    -------
+    dict
+        ``calibration`` (the CalibrationResult), ``evaluation`` (:func:`evaluate_calibration`'s
+        result), ``seconds`` (the calibration's wall time), ``rows`` (:func:`split_rows`).
+    """
+    from calibration.calibrate import calibrate
+    from calibration.evaluate import evaluate_calibration
+
+    t = time.perf_counter()
+    res = calibrate(train_capture, ball_radius_mm, models=models, **calibrate_kwargs)
+    seconds = time.perf_counter() - t
+    ev = evaluate_calibration(res, test_capture, ball_radius_mm, circles=test_circles,
+                              markers=calibrate_kwargs.get("markers"))
+    return {"calibration": res, "evaluation": ev, "seconds": seconds, "rows": split_rows(res, ev)}
+
+
 def split_evaluation(capture: Capture, ball_radius_mm: float, models="all", *, train=TRAIN_PRESSES,
                      test=TEST_PRESSES, test_circles=None, **calibrate_kwargs) -> dict[str, Any]:
-    """Calibrate on the ``train`` presses and evaluate every model on the ``test`` presses.
+    """Calibrate on the ``train`` presses and evaluate every model on the ``test`` presses
+    (:func:`calibrate_and_evaluate` of ``capture.select(train)`` and ``capture.select(test)``).
 
     Parameters
     ----------
@@ -79,18 +113,10 @@ def split_evaluation(capture: Capture, ball_radius_mm: float, models="all", *, t
     Returns
     -------
     dict
-        ``calibration`` (the CalibrationResult), ``evaluation`` (:func:`evaluate_calibration`'s
-        result), ``seconds`` (the calibration's wall time), ``rows`` (:func:`split_rows`).
+        As :func:`calibrate_and_evaluate`.
     """
-    from calibration.calibrate import calibrate
-    from calibration.evaluate import evaluate_calibration
-
-    t = time.perf_counter()
-    res = calibrate(capture.select(train), ball_radius_mm, models=models, **calibrate_kwargs)
-    seconds = time.perf_counter() - t
-    ev = evaluate_calibration(res, capture.select(test), ball_radius_mm, circles=test_circles,
-                              markers=calibrate_kwargs.get("markers"))
-    return {"calibration": res, "evaluation": ev, "seconds": seconds, "rows": split_rows(res, ev)}
+    return calibrate_and_evaluate(capture.select(train), capture.select(test), ball_radius_mm, models,
+                                  test_circles=test_circles, **calibrate_kwargs)
 
 
 def split_rows(result, evaluation: dict[str, Any]) -> list[dict[str, Any]]:

@@ -68,28 +68,24 @@ def _circle_errors(circles, center_xy, radius_px) -> dict[str, Any]:
             "radius_error": float(np.median(r / tr - 1.0))}
 
 
-def _split_row(name: str, cap, ball_mm: float, models, truth=None, exact_normals=None,
-               reference_note: str | None = None, test_capture=None) -> dict[str, Any]:
+def _split_row(name: str, cap, ball_mm: float, models, truth=None, test_capture=None) -> dict[str, Any]:
     """Calibrate on the split's training presses, evaluate on its test presses
     (:func:`calibration.split.split_evaluation`); one row of the table. With ``test_capture``,
-    calibrate on all of ``cap`` and evaluate on that capture instead (two folders, two imports)."""
-    from calibration.calibrate import calibrate
-    from calibration.evaluate import evaluate_calibration
-    from calibration.split import TEST_PRESSES, TRAIN_PRESSES, split_evaluation
+    calibrate on all of ``cap`` and evaluate on that capture instead
+    (:func:`calibration.split.calibrate_and_evaluate`: two folders, two imports)."""
+    from calibration.split import TEST_PRESSES, TRAIN_PRESSES, calibrate_and_evaluate, split_evaluation
 
     train, test = TRAIN_PRESSES, TEST_PRESSES
     t = time.perf_counter()
     if test_capture is None:
         sp = split_evaluation(cap, ball_mm, models)
-        res, ev, cal_s = sp["calibration"], sp["evaluation"], sp["seconds"]
         idx = np.arange(len(cap.frames))
         presses = [len(idx[train]), len(idx[test])]
     else:
-        res = calibrate(cap, ball_mm, models=models)
-        cal_s = time.perf_counter() - t
-        ev = evaluate_calibration(res, test_capture, ball_mm)
+        sp = calibrate_and_evaluate(cap, test_capture, ball_mm, models)
         presses = [len(cap.frames), len(test_capture.frames)]
     seconds = time.perf_counter() - t
+    res, ev, cal_s = sp["calibration"], sp["evaluation"], sp["seconds"]
     best = res.best_model
     s = res.summary()
     ball = ev["ball_fit"].get(best, {}) if best else {}
@@ -101,7 +97,7 @@ def _split_row(name: str, cap, ball_mm: float, models, truth=None, exact_normals
            "ball_median_radius_error": ball.get("radius_error_signed_median"),
            "ball_spread": ball.get("radius_error_spread"),
            "gate": s.get("quality_gate", {}).get("passed"), "gate_cause": s.get("quality_gate", {}).get("cause"),
-           "calibrate_seconds": cal_s, "seconds": seconds, "reference": reference_note or s.get("reference"),
+           "calibrate_seconds": cal_s, "seconds": seconds, "reference": s.get("reference"),
            "drift_residual_dn": (s.get("drift") or {}).get("residual_dn_median"),
            "ball_presses": None if best is None else
            [sum(p["radius_error"] is not None for p in ev["ball_fit"][best]["per_press"]),
@@ -123,6 +119,14 @@ def _split_row(name: str, cap, ball_mm: float, models, truth=None, exact_normals
     if best is not None and "labels" in ev["truth"]:
         row["test_deg_truth"] = ev["truth"]["labels"]["models"][best]["mean_deg"]
     return row
+
+
+def _linked_folder(folder: Path, source: Path, names) -> Path:
+    """``folder`` holding links to the files ``names`` of ``source`` (a folder to import, no copies)."""
+    folder.mkdir()
+    for n in names:
+        (folder / n).symlink_to((source / n).resolve())
+    return folder
 
 
 def _virtual_rows(seeds, models, tmp: Path, done=None) -> list[dict[str, Any]]:
@@ -246,11 +250,8 @@ def run_sensors(quick: bool = False, models="all", log=None) -> dict[str, Any]:
                 kept, _ = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, reference=found,
                                       profile="digit")
                 add(_split_row(f"DIGIT, no-contact frame kept (--reference {found})", kept, DIGIT_BALL_MM, models))
-            folder = tmp / "digit_no_reference"
-            folder.mkdir()
-            for f in digit.glob("*.jpg"):
-                if f.name != found:
-                    (folder / f.name).symlink_to(f.resolve())
+            folder = _linked_folder(tmp / "digit_no_reference", digit, [f.name for f in digit.glob("*.jpg")
+                                                                         if f.name != found])
             built, brep = load_images(folder, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, profile="digit")
             name = "DIGIT without its no-contact frame (reference built)"
             if np.array_equal(built.frames, cap.frames) and np.array_equal(built.reference, cap.reference):
@@ -262,14 +263,10 @@ def run_sensors(quick: bool = False, models="all", log=None) -> dict[str, Any]:
             add(row)
             # The documented workflow: two folders (presses 0-19, 20-29), each with the
             # no-contact frame, each imported on its own (so each builds its own reference).
-            imported = []
-            for part, presses in (("train", range(0, 20)), ("test", range(20, 30))):
-                folder = tmp / f"digit_{part}"
-                folder.mkdir()
-                names = [f"frame_{i}.jpg" for i in presses] + ([found] if found else [])
-                for f in names:
-                    (folder / f).symlink_to((digit / f).resolve())
-                imported.append(load_images(folder, ball_radius_mm=DIGIT_BALL_MM, profile="digit")[0])
+            imported = [load_images(_linked_folder(tmp / f"digit_{part}", digit,
+                                                   [f"frame_{i}.jpg" for i in presses] + ([found] if found else [])),
+                                    ball_radius_mm=DIGIT_BALL_MM, profile="digit")[0]
+                        for part, presses in (("train", range(0, 20)), ("test", range(20, 30)))]
             add(_split_row("DIGIT two folders (0-19, 20-29; each with the frame)", imported[0], DIGIT_BALL_MM,
                            models, test_capture=imported[1]))
         out["sensors"] += _virtual_rows(range(2) if quick else range(4), models, tmp, done)

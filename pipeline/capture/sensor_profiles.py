@@ -32,8 +32,7 @@ import numpy as np
 from pipeline.base.errors import UserError
 
 __all__ = ["SensorProfile", "ProfileCamera", "load_profile", "list_profiles", "profiles_of_size", "capture_defaults",
-           "camera_source",
-           "PROFILES_DIR"]
+           "camera_source", "PROFILES_DIR"]
 
 #: Folder of the built-in profiles.
 PROFILES_DIR = Path(__file__).resolve().parent / "sensors"
