@@ -94,13 +94,14 @@ def load_pipeline_config(path: str | Path) -> dict[str, Any]:
     """
     import yaml
 
+    from data_schemas import safe_load_yaml
     from pipeline.stages.config import resolve_config
 
     p = Path(path)
     if not p.is_file():
         raise UserError(f"{p}: no such config file")
     try:
-        obj = yaml.safe_load(p.read_text(encoding="utf-8"))
+        obj = safe_load_yaml(p.read_text(encoding="utf-8"))
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise UserError(f"{p}: not valid YAML: {' '.join(str(exc).split())}") from None
     if obj is None:

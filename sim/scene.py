@@ -248,9 +248,11 @@ def load_scene(name_or_path: str | Path) -> Scene:
     """
     import yaml
 
+    from data_schemas import safe_load_yaml
+
     path = resolve_scene_path(name_or_path)
     try:
-        data = yaml.safe_load(path.read_text())
+        data = safe_load_yaml(path.read_text())
     except yaml.YAMLError as exc:
         raise UserError(f"scene file {path}: not valid YAML ({exc})") from None
     return scene_from_dict(data, source=str(path))

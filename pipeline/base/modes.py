@@ -157,11 +157,13 @@ def read_config_file(kind: str, path) -> Any:
 def _read_yaml(path: Path) -> Any:
     import yaml
 
+    from data_schemas import safe_load_yaml
+
     if not path.is_file():
         raise UserError(f"{path}: no such file")
     try:
         with open(path, encoding="utf-8") as f:
-            obj = yaml.safe_load(f)
+            obj = safe_load_yaml(f)
     except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise UserError(f"{path}: not valid YAML: {exc}") from None
     return {} if obj is None else obj

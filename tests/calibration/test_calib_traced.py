@@ -142,3 +142,32 @@ def test_cli_refine_model_without_fields_is_one_line_and_keeps_the_old_output(di
                 "traced", "--out", out)
     assert r.returncode == 2 and "refinement with the 'traced' model is impossible" in r.stderr
     assert "Traceback" not in r.stderr and out.read_bytes() == b"an earlier calibration"
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_tall_nnls_on_the_qr_factor_equals_scipy_nnls(seed):
+    """The gain fit's NNLS on the triangular factor of [A | b] finds scipy's NNLS solution of the
+    full tall problem and its residual norm: well and badly conditioned columns (scaled over six
+    decades), active bounds, an exact fit, and a repeated column (a rank-deficient A)."""
+    from scipy.optimize import nnls
+
+    from calibration.models.traced import nnls_tall
+
+    rng = np.random.default_rng(seed)
+    m, n = int(rng.integers(60, 3000)), int(rng.integers(2, 25))
+    A = rng.random((m, n)) * 10.0 ** rng.uniform(-3, 3, n)
+    x_true = np.where(rng.random(n) < 0.3, 0.0, rng.random(n)) / np.abs(A).max(0)
+    b = A @ x_true
+    if seed % 2:
+        b = b - 0.3 * A[:, 0] * x_true.max() + rng.normal(0, 1e-3 * np.abs(b).mean(), m)  # some bounds active
+    if seed == 4:
+        A[:, -1] = A[:, 0]
+    x, r = nnls_tall(A, b)
+    x0, r0 = nnls(A, b, maxiter=50 * n)
+    assert x.shape == (n,) and x.min() >= 0
+    assert r == pytest.approx(np.linalg.norm(A @ x - b), rel=1e-6, abs=1e-9 * np.linalg.norm(b))
+    assert r <= r0 + 1e-9 * np.linalg.norm(b)  # as good a fit (a rank-deficient A has many minimisers)
+    if seed != 4:
+        np.testing.assert_allclose(A @ x, A @ x0, rtol=0, atol=1e-7 * np.abs(b).max())
+    with pytest.raises(ValueError, match=r"got \(5, 2\) and \(4,\)"):
+        nnls_tall(np.ones((5, 2)), np.ones(4))

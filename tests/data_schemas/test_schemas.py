@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 
 import data_schemas
+from helpers import REPO
 from pipeline.base.store import StoreError, read_record, write_record
 from schema_examples import example_record
 
@@ -100,3 +101,27 @@ def test_load_config_file_reports_bad_yaml(tmp_path):
     p.write_text("cache: c\nnormalz: {}\n")
     with pytest.raises(data_schemas.SchemaError, match="unknown key 'normalz'"):
         data_schemas.load_config_file("pipeline", p)
+
+
+@pytest.mark.parametrize("name", sorted(str(p.relative_to(REPO)) for d in ("pipeline", "sim", "calibration",
+                                                                           "data_schemas", "examples")
+                                        for p in (REPO / d).rglob("*.yaml")))
+def test_the_one_yaml_reader_reads_every_shipped_file_as_pyyaml_safe_load_does(name):
+    """safe_load_yaml (libyaml's parser when present) gives the very objects of the pure-Python
+    yaml.safe_load on every YAML file the project ships (modes, sensor profiles, scenes, examples)."""
+    import yaml
+
+    from data_schemas import safe_load_yaml
+
+    text = (REPO / name).read_text(encoding="utf-8")
+    assert safe_load_yaml(text) == yaml.load(text, Loader=yaml.SafeLoader)
+
+
+def test_the_one_yaml_reader_refuses_what_safe_load_refuses():
+    import yaml
+
+    from data_schemas import safe_load_yaml
+
+    for bad in ("a: [1, 2", "!!python/object/apply:os.system ['true']", "a: b: c"):
+        with pytest.raises(yaml.YAMLError):
+            safe_load_yaml(bad)
