@@ -24,7 +24,7 @@ from calibration.samples import Samples
 from pipeline.base.errors import UserError
 from sim.illumination_model import light_matrices
 
-__all__ = ["TracedModel", "nnls_tall"]
+__all__ = ["TracedModel", "nnls_tall", "nnls_on_gram", "MAX_GRAM_CONDITION"]
 
 
 class TracedModel(LightFieldModel):
@@ -107,23 +107,40 @@ class TracedModel(LightFieldModel):
         return self.basis[:, :, samples.rows, samples.cols]  # (L, K, N, 3)
 
     def _fit_gains(self, Vs: np.ndarray, samples: Samples) -> tuple[np.ndarray, float]:
-        """NNLS per camera channel for fields ``Vs (L, N, 3)`` at the samples; returns gains and RMS residual."""
+        """NNLS per camera channel for fields ``Vs (L, N, 3)`` at the samples; returns gains and RMS residual.
+
+        The system of channel ``j`` has a row per pixel n and pattern p, ``A[(n, p), l] = s[n, l]
+        w[p, l]`` (shading times drive), so its Gram matrix is the elementwise product of two small
+        ones, ``A^T A = (s^T s) * (w^T w)``, and ``A^T b = sum_n s[n] * (B w)[n]``: built in
+        O(N L^2) rather than O(N P L^2), and solved on its Cholesky factor (:func:`nnls_on_gram`).
+        When that Gram matrix is too ill-conditioned for its squared condition number
+        (:data:`MAX_GRAM_CONDITION`) the rows are built and solved on their QR factor
+        (:func:`nnls_tall`).
+        """
         s = np.maximum(np.einsum("lnk,nk->nl", Vs, samples.normals), 0.0)  # (N, L)
         w = self.drive * self.brightness[:, None, None]  # (P, L, 3)
         n_led = Vs.shape[0]
         gains = np.zeros((n_led, 3))
         resid = []
+        ss = s.T @ s  # (L, L)
+        s_max = np.abs(s).max(0)
         for j in range(3):
-            A = (s[:, None, :] * w[None, :, :, j]).reshape(-1, n_led)  # (N * P, L)
-            b = samples.intensities[:, :, j].reshape(-1).astype(np.float64)
-            active = np.abs(A).sum(0) > 0
+            wj = w[:, :, j]  # (P, L)
+            B = samples.intensities[:, :, j].astype(np.float64)  # (N, P)
+            active = (s_max > 0) & (np.abs(wj).sum(0) > 0)  # the columns of A that are not zero
             g = np.zeros(n_led)
-            # Column scaling keeps NNLS well conditioned (V is ~1e-4 W/mm^2).
-            sc = np.maximum(np.abs(A[:, active]).max(0), 1e-300)
-            g_act, rn = nnls_tall(A[:, active] / sc, b)
+            # Column scaling keeps NNLS well conditioned (V is ~1e-4 W/mm^2): by each column's largest entry.
+            sc = np.maximum((s_max * np.abs(wj).max(0))[active], 1e-300)
+            gram = (ss * (wj.T @ wj))[np.ix_(active, active)] / np.outer(sc, sc)
+            atb = np.einsum("nl,nl->l", s, B @ wj)[active] / sc
+            solved = nnls_on_gram(gram, atb, float(np.sum(B * B)))
+            if solved is None:
+                A = (s[:, None, :] * wj[None, :, :]).reshape(-1, n_led)  # (N * P, L)
+                solved = nnls_tall(A[:, active] / sc, B.reshape(-1))
+            g_act, rn = solved
             g[active] = g_act / sc
             gains[:, j] = g
-            resid.append(rn / np.sqrt(max(len(b), 1)))
+            resid.append(rn / np.sqrt(max(B.size, 1)))
         return gains, float(np.sqrt(np.mean(np.square(resid))))
 
     def _geometry_step(self, Vs: np.ndarray, gains: np.ndarray, samples: Samples) -> np.ndarray:
@@ -161,6 +178,50 @@ class TracedModel(LightFieldModel):
         if self.theta is not None:
             out["geometry_correction"] = self.theta.astype(np.float32)  # (L, 5): led_geometry.GEOMETRY_PARAMS
         return out
+
+
+#: Largest condition number of a (column-scaled) Gram matrix solved on its Cholesky factor: the
+#: solution's relative error grows with it (``cond(A)^2 eps``), so 1e10 keeps about 6 digits;
+#: beyond it :func:`nnls_tall` works on the rows themselves.
+MAX_GRAM_CONDITION = 1e10
+
+
+def nnls_on_gram(gram: np.ndarray, atb: np.ndarray, btb: float) -> tuple[np.ndarray, float] | None:
+    """``nnls_tall(A, b)`` from ``A^T A``, ``A^T b`` and ``b^T b`` alone, or None when ``A^T A`` is
+    not positive definite or its condition number exceeds :data:`MAX_GRAM_CONDITION`.
+
+    With the Cholesky factor ``A^T A = R^T R``, ``|A x - b|^2 = |R x - R^{-T} A^T b|^2 + (b^T b -
+    |R^{-T} A^T b|^2)``: the same reduction as :func:`nnls_tall`, for a caller who can build the
+    Gram matrix without the rows (the traced model's gains: 24x fewer operations).
+
+    Examples
+    --------
+    >>> rng = np.random.default_rng(2)
+    >>> A = rng.random((400, 5)); b = A @ np.array([1.0, 0.0, 2.0, 0.5, 0.1]) - 0.3 * A[:, 1]
+    >>> x, r = nnls_on_gram(A.T @ A, A.T @ b, float(b @ b)); x0, r0 = nnls_tall(A, b)
+    >>> bool(np.allclose(x, x0, atol=1e-8)), bool(abs(r - r0) < 1e-6)
+    (True, True)
+    >>> nnls_on_gram(np.ones((2, 2)), np.ones(2), 2.0) is None  # singular: no answer from the Gram matrix
+    True
+    """
+    from scipy.linalg import solve_triangular
+    from scipy.optimize import nnls
+
+    gram, atb = np.asarray(gram, np.float64), np.asarray(atb, np.float64)
+    n = len(atb)
+    if gram.shape != (n, n):
+        raise ValueError(f"nnls_on_gram: gram must be ({n}, {n}) like atb, got {gram.shape}")
+    if n == 0:
+        return np.zeros(0), float(np.sqrt(max(btb, 0.0)))
+    if not np.all(np.isfinite(gram)) or np.linalg.cond(gram) > MAX_GRAM_CONDITION:  # an SVD of n x n: cheap
+        return None
+    try:
+        L = np.linalg.cholesky(gram)
+    except np.linalg.LinAlgError:
+        return None
+    qb = solve_triangular(L, atb, lower=True)
+    x, rn_small = nnls(L.T, qb, maxiter=50 * n)
+    return x, float(np.sqrt(rn_small ** 2 + max(btb - float(qb @ qb), 0.0)))
 
 
 def nnls_tall(A: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, float]:

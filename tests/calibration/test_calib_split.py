@@ -159,7 +159,9 @@ def test_eval_calibration_cli(tmp_path, capture, split):
 
 def test_markers_on_the_real_frames_cost_less_than_a_degree(capture, split):
     """Dark dots printed on every frame (reference included) at fixed places: detected in the reference,
-    filled in and left out; the test-press error stays within 1 deg of the marker-free error."""
+    filled in and left out; the test-press error stays within 1 deg of the marker-free error. The
+    near-field model, whose split takes half the MLP's time: the markers are handled before any
+    model sees a pixel (the MLP: 4.64 -> 4.56 deg with them; near 5.82 -> 5.84)."""
     from calibration.markers import draw_markers
     from calibration.split import split_evaluation
     from pipeline.base.capture import Capture
@@ -168,10 +170,10 @@ def test_markers_on_the_real_frames_cost_less_than_a_degree(capture, split):
     reference, _ = draw_markers(capture.reference, spacing_px=12.0, radius_px=1.5)
     marked = Capture(frames=frames, reference=reference, drive=capture.drive, brightness=capture.brightness,
                      mm_per_px=capture.mm_per_px, labels=capture.labels, meta=capture.meta)
-    res = split_evaluation(marked, 2.0, ["mlp"], markers="auto")
+    res = split_evaluation(marked, 2.0, ["near"], markers="auto")
     found = res["calibration"].markers
     assert found[mask].mean() > 0.95 and found.sum() < 2.5 * mask.sum()
-    clean = {r["model"]: r for r in split["rows"]}["mlp"]["test_mean_deg"]
+    clean = {r["model"]: r for r in split["rows"]}["near"]["test_mean_deg"]
     with_markers = res["rows"][0]["test_mean_deg"]
     assert abs(with_markers - clean) <= 1.0, (clean, with_markers)
 

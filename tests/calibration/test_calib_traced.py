@@ -171,3 +171,47 @@ def test_tall_nnls_on_the_qr_factor_equals_scipy_nnls(seed):
         np.testing.assert_allclose(A @ x, A @ x0, rtol=0, atol=1e-7 * np.abs(b).max())
     with pytest.raises(ValueError, match=r"got \(5, 2\) and \(4,\)"):
         nnls_tall(np.ones((5, 2)), np.ones(4))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_nnls_on_the_gram_matrix_equals_nnls_on_the_rows(seed):
+    """From A^T A, A^T b and b^T b alone: the rows' NNLS solution and residual norm, and no answer
+    (None) where the Gram matrix is singular or too ill-conditioned to trust."""
+    from calibration.models.traced import MAX_GRAM_CONDITION, nnls_on_gram, nnls_tall
+
+    rng = np.random.default_rng(seed)
+    m, n = int(rng.integers(50, 2000)), int(rng.integers(2, 25))
+    A = rng.random((m, n))
+    b = A @ np.where(rng.random(n) < 0.3, 0.0, rng.random(n)) - 0.2 * A[:, 0] + rng.normal(0, 0.01, m)
+    x, r = nnls_on_gram(A.T @ A, A.T @ b, float(b @ b))
+    x0, r0 = nnls_tall(A, b)
+    np.testing.assert_allclose(x, x0, atol=1e-8 * max(1.0, np.abs(x0).max()))
+    assert r == pytest.approx(r0, rel=1e-6, abs=1e-9)
+    bad = A.copy()
+    bad[:, -1] = bad[:, 0] * (1 + 1e-7)  # two columns alike to 1e-7: condition ~1e14 in the Gram matrix
+    assert np.linalg.cond(bad.T @ bad) > MAX_GRAM_CONDITION
+    assert nnls_on_gram(bad.T @ bad, bad.T @ b, float(b @ b)) is None
+    with pytest.raises(ValueError, match=r"gram must be \(3, 3\) like atb, got \(2, 2\)"):
+        nnls_on_gram(np.eye(2), np.ones(3), 1.0)
+
+
+@pytest.mark.parametrize("mode", ["point", "monochromatic", "trichromatic"])
+def test_traced_gains_from_the_gram_matrix_equal_the_gains_from_the_rows(mode, monkeypatch):
+    """The traced model's per-LED gains built from the small Gram matrices equal those of the full
+    (pixel x pattern) rows solved on their QR factor, the path every ill-conditioned drive takes."""
+    import calibration.models.traced as traced
+    from pipeline.base.modes import load_mode
+
+    ill = ring_illumination(SHAPE, MM, 24, gel_z=GEL_Z)
+    cap, _ = synthetic_sphere_capture(SHAPE, 8, ball_radius_mm=1.5, illumination=ill, peak_dn=140, seed=3,
+                                      num_leds=24, drive=load_mode(mode).drive)
+    f, r = cap.linear()
+    s = collect_samples(f, r, detect_contacts(f, r, 15.0), 1.5, MM, saturation=255)
+    fast = TracedModel(ill.V, cap.drive, cap.brightness)
+    rep = fast.fit(s, r)
+    monkeypatch.setattr(traced, "MAX_GRAM_CONDITION", 0.0)  # every Gram matrix refused: the rows' path
+    rows = TracedModel(ill.V, cap.drive, cap.brightness)
+    rep_rows = rows.fit(s, r)
+    np.testing.assert_allclose(fast.gains, rows.gains, rtol=0, atol=1e-9 * np.abs(rows.gains).max())
+    assert rep["residual_rms_dn"] == pytest.approx(rep_rows["residual_rms_dn"], rel=1e-6)
+    assert rep["residual_rms_dn"] < 1.2  # read noise (1 DN) and 8-bit rounding: the fit is right too
