@@ -268,7 +268,8 @@ def safe_load_yaml(stream) -> Any:
 
 
 def load_config_file(kind: str, path: str | Path) -> Any:
-    """Read a YAML or JSON config file and validate it as ``kind``."""
+    """Read a YAML or JSON config file and validate it as ``kind`` (SchemaError naming the file: missing,
+    not YAML, not UTF-8, or the key that breaks the schema)."""
     import yaml
 
     path = Path(path)
@@ -277,7 +278,7 @@ def load_config_file(kind: str, path: str | Path) -> Any:
     try:
         with open(path, encoding="utf-8") as f:
             obj = safe_load_yaml(f)
-    except yaml.YAMLError as exc:
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise SchemaError(f"{path}: not valid YAML: {exc}") from None
     if obj is None:
         obj = {}

@@ -146,35 +146,12 @@ class LightingMode:
 
 
 def read_config_file(kind: str, path) -> Any:
-    """A YAML config file, validated against ``data_schemas/configs/<kind>.json`` (UserError naming
-    the file and the key)."""
-    path = Path(path)
-    obj = _read_yaml(path)
-    _validate_config(kind, obj, path)
-    return obj
-
-
-def _read_yaml(path: Path) -> Any:
-    import yaml
-
-    from data_schemas import safe_load_yaml
-
-    if not path.is_file():
-        raise UserError(f"{path}: no such file")
-    try:
-        with open(path, encoding="utf-8") as f:
-            obj = safe_load_yaml(f)
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise UserError(f"{path}: not valid YAML: {exc}") from None
-    return {} if obj is None else obj
-
-
-def _validate_config(kind: str, obj: Any, source) -> None:
-    """Validate against ``data_schemas/configs/<kind>.json``; UserError naming the file and the key."""
-    from data_schemas import SchemaError, validate_config
+    """A YAML config file, validated against ``data_schemas/configs/<kind>.json``
+    (:func:`data_schemas.load_config_file`; its errors, naming the file and the key, as UserError)."""
+    from data_schemas import SchemaError, load_config_file
 
     try:
-        validate_config(kind, obj, str(source))
+        return load_config_file(kind, path)
     except SchemaError as exc:
         raise UserError(str(exc)) from None
 
