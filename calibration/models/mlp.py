@@ -175,6 +175,7 @@ class MLPModel(CalibrationModel):
             losses.append(loss)
         rep = self._fit_report(samples)
         rep["final_l1_loss"] = float(np.mean(losses))
+        rep["members"] = len(self.nets)
         return rep
 
     def _train(self, x: np.ndarray, y: np.ndarray, seed: int, weights: np.ndarray | None = None):

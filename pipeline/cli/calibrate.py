@@ -20,6 +20,10 @@ def register(sub, name, help_text):
                         "imported with --profile calibrates with that profile's drift model anyway)")
     p.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
     p.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
+    p.add_argument("--mlp-members", type=int, default=1, metavar="N",
+                   help="fit the MLP as an ensemble of N nets (mean prediction; their agreement is the per-pixel "
+                        "confidence): steadier on new presses than one net's seed, for about 1.6x the time with 3 "
+                        "(default 1; docs/calibration.md, point 11 of 'Accuracy on presses never seen')")
     p.add_argument("--out", required=True, help="calibration.h5 to write")
     p.add_argument("--illumination", default=None,
                    help="illumination.h5 (LED fields V from iristac sim trace) for the traced model")
@@ -57,7 +61,16 @@ def _run(args) -> int:
         from pipeline.base.errors import UserError
 
         raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
-    opts = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else None
+    opts: dict = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else {}
+    if args.mlp_members != 1:
+        from pipeline.base.errors import UserError
+
+        if args.mlp_members < 1:
+            raise UserError(f"--mlp-members must be at least 1 (nets in the MLP ensemble), got {args.mlp_members}")
+        if args.model not in ("mlp", "all"):
+            raise UserError(f"--mlp-members {args.mlp_members} sizes the MLP ensemble, but --model {args.model} fits "
+                            "no MLP (use --model mlp or all)")
+        opts["mlp"] = {"members": args.mlp_members}
     ball, mm, detect = args.ball_radius, args.mm_per_px, drift_options(args.drift)
     if args.profile:
         from calibration.calibrate import profile_detect_options
@@ -69,7 +82,7 @@ def _run(args) -> int:
 
     try:
         res = calibrate(args.capture, ball, mm, args.model, folds=args.folds, illumination=ill,
-                        model_options=opts, detect_options=detect,
+                        model_options=opts or None, detect_options=detect,
                         refine_iterations=0 if args.no_refine else 2,
                         refine_model=args.refine_model, markers=args.markers, circles=args.circles)
     except CalibrationRefused as exc:
@@ -110,8 +123,10 @@ def _print_summary(args, s, refused: bool) -> None:
         elif m["cv_mean_angular_error_deg"] is None:
             print(f"  {name:7s} {m['note']}  {m['seconds']:6.2f} s")
         else:
+            members = (m.get("fit") or {}).get("members", 1)
             print(f"  {name:7s} CV mean {m['cv_mean_angular_error_deg']:6.2f} deg  median "
                   f"{m['cv_median_angular_error_deg']:6.2f} deg  {m['seconds']:6.2f} s"
+                  + (f"  (ensemble of {members} nets)" if members > 1 else "")
                   + ("" if m.get("usable", True) else "  UNUSABLE: " + "; ".join(m["problems"])))
     if "center_error_px_median" in s:
         off = s["center_offset_px_median"]

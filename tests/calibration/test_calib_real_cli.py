@@ -157,3 +157,32 @@ def test_hand_labels_sit_down_left_of_the_contacts():
     assert shifted < raw - 0.5, (raw, shifted)
     # Against its own refined circles (not comparable with CV on the detector's circles).
     assert s["models"]["near"]["cv_mean_angular_error_deg"] <= 8.0
+
+
+@needs_data
+def test_cli_mlp_ensemble(tmp_path):
+    """``calibrate --mlp-members N`` fits the MLP as an ensemble of N nets: the file holds N nets and
+    their agreement is a per-pixel confidence (one net's is 1 everywhere); bad counts and a model
+    list without an MLP are refused before any work, naming the flag."""
+    from calibration.importers import load_gelsight_npz
+    from calibration.stored import load_models
+    from pipeline.base.capture import write_capture
+
+    cap_path = write_capture(tmp_path / "cap.h5", load_gelsight_npz(DATA).select(np.arange(12)))
+    cal = tmp_path / "cal.h5"
+    r = run_cli("calibrate", cap_path, "--ball-radius", "2.0", "--model", "mlp", "--mlp-members", "2", "--folds", "2",
+                "--out", cal, "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["models"]["mlp"]["fit"]["members"] == 2
+    model = load_models(cal)["mlp"]
+    assert len(model.nets) == 2
+    from pipeline.base.capture import read_capture
+
+    frames, ref = read_capture(cap_path).linear()
+    conf = model.normal_maps(frames[:1], ref).confidence
+    assert 0.0 < conf.min() < 0.99 and conf.max() <= 1.0
+    for extra, words in ((["--mlp-members", "0"], "at least 1"), (["--model", "near", "--mlp-members", "3"],
+                                                                    "fits no MLP")):
+        bad = run_cli("calibrate", cap_path, "--ball-radius", "2.0", *extra, "--out", tmp_path / "x.h5")
+        assert bad.returncode == 2 and "--mlp-members" in bad.stderr and words in bad.stderr, bad.stderr
+        assert "Traceback" not in bad.stderr and not (tmp_path / "x.h5").exists()
