@@ -22,8 +22,9 @@ def register(sub, name, help_text):
     p.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
     p.add_argument("--mlp-members", type=int, default=1, metavar="N",
                    help="fit the MLP as an ensemble of N nets (mean prediction; their agreement is the per-pixel "
-                        "confidence): steadier on new presses than one net's seed, for about 1.6x the time with 3 "
-                        "(default 1; docs/calibration.md, point 11 of 'Accuracy on presses never seen')")
+                        "confidence): steadier on new presses than one net, whose figures move with its seed; "
+                        "costs about 1.6x the calibration time with 3, and N times the MLP's time per frame in "
+                        "reconstruct and live (default 1; docs/calibration.md, step 3)")
     p.add_argument("--out", required=True, help="calibration.h5 to write")
     p.add_argument("--illumination", default=None,
                    help="illumination.h5 (LED fields V from iristac sim trace) for the traced model")
