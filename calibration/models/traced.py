@@ -123,7 +123,7 @@ class TracedModel(LightFieldModel):
         gains = np.zeros((n_led, 3))
         resid = []
         ss = s.T @ s  # (L, L)
-        s_max = np.abs(s).max(0)
+        s_max = s.max(0, initial=0.0)  # s >= 0 already
         for j in range(3):
             wj = w[:, :, j]  # (P, L)
             B = samples.intensities[:, :, j].astype(np.float64)  # (N, P)

@@ -56,22 +56,22 @@ def register(sub, name, help_text):
 
 def _run(args) -> int:
     from calibration.calibrate import calibrate, read_illumination
+    from pipeline.base.errors import UserError
 
-    ill = read_illumination(args.illumination) if args.illumination else None
-    if args.correct_led_geometry and ill is None:
-        from pipeline.base.errors import UserError
-
+    # The flags are checked before any file is read.
+    if args.correct_led_geometry and not args.illumination:
         raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
-    opts: dict = {"traced": {"correct_geometry": True}} if args.correct_led_geometry else {}
+    if args.mlp_members < 1:
+        raise UserError(f"--mlp-members must be at least 1 (nets in the MLP ensemble), got {args.mlp_members}")
+    if args.mlp_members != 1 and args.model not in ("mlp", "all"):
+        raise UserError(f"--mlp-members {args.mlp_members} sizes the MLP ensemble, but --model {args.model} fits "
+                        "no MLP (use --model mlp or all)")
+    opts: dict = {}
+    if args.correct_led_geometry:
+        opts["traced"] = {"correct_geometry": True}
     if args.mlp_members != 1:
-        from pipeline.base.errors import UserError
-
-        if args.mlp_members < 1:
-            raise UserError(f"--mlp-members must be at least 1 (nets in the MLP ensemble), got {args.mlp_members}")
-        if args.model not in ("mlp", "all"):
-            raise UserError(f"--mlp-members {args.mlp_members} sizes the MLP ensemble, but --model {args.model} fits "
-                            "no MLP (use --model mlp or all)")
         opts["mlp"] = {"members": args.mlp_members}
+    ill = read_illumination(args.illumination) if args.illumination else None
     ball, mm, detect = args.ball_radius, args.mm_per_px, drift_options(args.drift)
     if args.profile:
         from calibration.calibrate import profile_detect_options
@@ -83,7 +83,7 @@ def _run(args) -> int:
 
     try:
         res = calibrate(args.capture, ball, mm, args.model, folds=args.folds, illumination=ill,
-                        model_options=opts or None, detect_options=detect,
+                        model_options=opts, detect_options=detect,
                         refine_iterations=0 if args.no_refine else 2,
                         refine_model=args.refine_model, markers=args.markers, circles=args.circles)
     except CalibrationRefused as exc:
