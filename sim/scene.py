@@ -252,8 +252,8 @@ def load_scene(name_or_path: str | Path) -> Scene:
 
     path = resolve_scene_path(name_or_path)
     try:
-        data = safe_load_yaml(path.read_text())
-    except yaml.YAMLError as exc:
+        data = safe_load_yaml(path.read_text(encoding="utf-8"))
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
         raise UserError(f"scene file {path}: not valid YAML ({exc})") from None
     return scene_from_dict(data, source=str(path))
 

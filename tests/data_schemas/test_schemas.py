@@ -104,16 +104,19 @@ def test_load_config_file_reports_bad_yaml(tmp_path):
 
 
 def test_a_config_file_that_is_not_utf8_is_one_clear_error_everywhere(tmp_path):
-    """Latin-1 bytes in a sensor profile or a user mode file: an error naming the file, never a traceback."""
+    """Latin-1 bytes in a sensor profile, a user mode, a pipeline config or a scene file: an error naming
+    the file, never a traceback."""
     from pipeline.base.errors import UserError
     from pipeline.base.modes import load_mode
     from pipeline.capture.sensor_profiles import load_profile
+    from pipeline.run import load_pipeline_config
+    from sim.scene import load_scene
 
     p = tmp_path / "caf\u00e9.yaml"
     p.write_bytes("name: caf\u00e9\n".encode("latin-1"))
     with pytest.raises(data_schemas.SchemaError, match="caf\u00e9.yaml: not valid YAML"):
         data_schemas.load_config_file("sensor", p)
-    for load in (load_profile, load_mode):
+    for load in (load_profile, load_mode, load_pipeline_config, load_scene):
         with pytest.raises(UserError, match="caf\u00e9.yaml: not valid YAML"):
             load(p)
 
