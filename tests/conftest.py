@@ -92,7 +92,11 @@ def _compile_tracer_ptx(out: Path) -> subprocess.Popen:
 def pytest_collection_modifyitems(session, config, items):
     """Start the tracer's PTX compile in a background process once the run is known to hold its
     test among others, so the compile overlaps them; the test waits for it (its outcome does
-    not depend on when the compile ends, only the suite's wall time does)."""
+    not depend on when the compile ends, only the suite's wall time does). Not in a parallel
+    worker (pytest-xdist): every worker collects every test, and only one runs it; there the
+    test compiles when it runs, while the other workers go on."""
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        return
     if len(items) > 1 and any(item.name == _PTX_TEST for item in items):
         out = Path(tempfile.mkdtemp(prefix="iristac-ptx-")) / "ptx.txt"
         config.stash[_PTX_JOB] = (_compile_tracer_ptx(out), out)
