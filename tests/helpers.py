@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
@@ -37,3 +38,13 @@ def calibration_samples(cap, truth):
     f, r = cap.linear()
     circles = detect_contacts(f, r, truth.ball_radius_mm / cap.mm_per_px)
     return collect_samples(f, r, circles, truth.ball_radius_mm, cap.mm_per_px, saturation=255), r
+
+
+def wait_until(cond, timeout: float = 10.0) -> None:
+    """Poll ``cond()`` until it holds (a camera's queue filled, a counter moved), failing after
+    ``timeout`` seconds: tests wait for a thread's state, never for a sleep that a loaded machine
+    (a second test worker) can outlast."""
+    t = time.monotonic() + timeout
+    while not cond():
+        assert time.monotonic() < t, "timed out"
+        time.sleep(0.002)

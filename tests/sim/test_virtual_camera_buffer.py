@@ -1,10 +1,9 @@
 """The virtual camera behaves like a webcam: a small FIFO buffer makes frames stale after a pattern change."""
 
-import time
-
 import numpy as np
 import pytest
 
+from helpers import wait_until
 from pipeline.base.camera import Camera
 from pipeline.base.modes import mode_drive
 from sim.geometry import sphere
@@ -31,13 +30,6 @@ class Ring:
         return self.drive, 1.0
 
 
-def _wait(cond, timeout=5.0):
-    t = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < t, "timed out"
-        time.sleep(0.005)
-
-
 def test_stale_frame_without_flush_and_fresh_with_flush_and_settle(model):
     A, B = mode_drive("monochromatic")[0], mode_drive("monochromatic")[1]
     ring = Ring(A)
@@ -46,14 +38,17 @@ def test_stale_frame_without_flush_and_fresh_with_flush_and_settle(model):
     assert isinstance(cam, Camera)
     cam.open()
     try:
-        _wait(lambda: cam.buffered == 4)  # buffer full of pattern A
+        wait_until(lambda: cam.buffered == 4)  # buffer full of pattern A
         ring.drive = B  # the ring changes pattern
         stale = cam.read()  # forgot to flush: the oldest buffered frame is still pattern A
         np.testing.assert_array_equal(stale.info["drive"], A)
         # and its pixels really are pattern A (deterministic: the seed of that frame index)
         ref = Renderer(model, s)
         np.testing.assert_array_equal(stale.image, ref.render(A, 1.0, seed=cam.frame_seed(stale.index)))
-        time.sleep(2.0 / FPS)  # settle: the frame exposing during the change has finished
+        # Settle: two more frames queued (the second overflows the queue), so the frame exposing
+        # during the change has finished, whenever the camera's thread gets to run.
+        dropped = cam.dropped
+        wait_until(lambda: cam.dropped > dropped)
         assert cam.flush() >= 1
         fresh = cam.read()
         np.testing.assert_array_equal(fresh.info["drive"], B)
@@ -68,7 +63,7 @@ def test_buffer_drops_oldest_and_indices_count_frames(model):
                         buffer_size=2)
     cam.open()
     try:
-        _wait(lambda: cam.dropped >= 3)
+        wait_until(lambda: cam.dropped >= 3)
         with cam._cond:  # freeze the producer to look at the queue: the newest frames, in order
             kept = [e.index for e in cam._buffer]
             assert kept == [cam.dropped, cam.dropped + 1]

@@ -8,6 +8,7 @@ import cv2
 import numpy as np
 import pytest
 
+from helpers import wait_until
 from pipeline.base.camera import Camera
 from pipeline.capture.camera import CameraError, CameraSettingWarning, OpenCVCamera
 from pipeline.capture.emulator import ShownState
@@ -73,15 +74,6 @@ def _camera(hist, fps, buffer_size=4, contacts=()):
                          settings=RenderSettings(exposure=1e5), fps=fps, buffer_size=buffer_size)
 
 
-def _wait(cond, timeout=10.0):
-    """Until ``cond()`` holds: the camera's thread is waited for by its state, not by a sleep
-    that a loaded machine (parallel test workers) can outlast."""
-    t = time.monotonic() + timeout
-    while not cond():
-        assert time.monotonic() < t, "timed out"
-        time.sleep(0.002)
-
-
 def test_virtual_camera_queue_is_stale_until_flushed():
     hist = _History([_state(-1e9, 0)])
     # 20 ms frames: the camera's thread may be woken a frame late on a loaded machine and still
@@ -89,12 +81,12 @@ def test_virtual_camera_queue_is_stale_until_flushed():
     cam = _camera(hist, fps=50.0, buffer_size=3)
     cam.open()
     try:
-        _wait(lambda: cam.buffered == 3)
+        wait_until(lambda: cam.buffered == 3)
         t_change = time.monotonic()
         hist.states.append(_state(t_change, 255))
         assert cam.read().image.max() == 0  # the queued frames predate the change
         dropped = cam.dropped
-        _wait(lambda: cam.dropped > dropped)
+        wait_until(lambda: cam.dropped > dropped)
         assert cam.flush() == 3  # the queue was full: older frames were pushed out
         frame = cam.read()
         assert frame.info["exposure_window"][0] >= t_change and frame.image.min() > 0
