@@ -49,6 +49,7 @@ __all__ = [
     "check_dims",
     "validate_config",
     "load_config_file",
+    "read_yaml_file",
     "coerce_params",
     "safe_load_yaml",
 ]
@@ -267,19 +268,38 @@ def safe_load_yaml(stream) -> Any:
     return yaml.load(stream, Loader=getattr(yaml, "CSafeLoader", yaml.SafeLoader))
 
 
+def read_yaml_file(path: str | Path) -> Any:
+    """The parsed YAML (or JSON) of a file read as UTF-8 (:func:`safe_load_yaml`): every config, mode,
+    profile and scene file is read here. A file that is not UTF-8 or not YAML is one SchemaError,
+    ``"<path>: not valid YAML: <the parser's message on one line>"``.
+
+    Examples
+    --------
+    >>> import tempfile
+    >>> p = Path(tempfile.mkdtemp()) / "bad.yaml"
+    >>> _ = p.write_bytes(b"a: [1,")
+    >>> try:
+    ...     read_yaml_file(p)
+    ... except SchemaError as exc:
+    ...     print(str(exc).startswith(f"{p}: not valid YAML: while parsing"), len(str(exc).splitlines()))
+    True 1
+    """
+    import yaml
+
+    try:
+        with open(path, encoding="utf-8") as f:
+            return safe_load_yaml(f)
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        raise SchemaError(f"{path}: not valid YAML: {' '.join(str(exc).split())}") from None
+
+
 def load_config_file(kind: str, path: str | Path) -> Any:
     """Read a YAML or JSON config file and validate it as ``kind`` (SchemaError naming the file: missing,
     not YAML, not UTF-8, or the key that breaks the schema)."""
-    import yaml
-
     path = Path(path)
     if not path.is_file():
         raise SchemaError(f"{path}: no such file")
-    try:
-        with open(path, encoding="utf-8") as f:
-            obj = safe_load_yaml(f)
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise SchemaError(f"{path}: not valid YAML: {exc}") from None
+    obj = read_yaml_file(path)
     if obj is None:
         obj = {}
     return validate_config(kind, obj, str(path))

@@ -92,18 +92,16 @@ def load_pipeline_config(path: str | Path) -> dict[str, Any]:
         Missing or unreadable file, invalid YAML, unknown keys (named, with the allowed
         ones), or stage sections that contradict each other.
     """
-    import yaml
-
-    from data_schemas import safe_load_yaml
+    from data_schemas import SchemaError, read_yaml_file
     from pipeline.stages.config import resolve_config
 
     p = Path(path)
     if not p.is_file():
         raise UserError(f"{p}: no such config file")
     try:
-        obj = safe_load_yaml(p.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise UserError(f"{p}: not valid YAML: {' '.join(str(exc).split())}") from None
+        obj = read_yaml_file(p)
+    except SchemaError as exc:
+        raise UserError(str(exc)) from None
     if obj is None:
         obj = {}
     if not isinstance(obj, dict):

@@ -246,15 +246,13 @@ def load_scene(name_or_path: str | Path) -> Scene:
     >>> s.leds.count, s.has("lens"), round(s.lens.refractive_index, 2)
     (24, True, 1.49)
     """
-    import yaml
-
-    from data_schemas import safe_load_yaml
+    from data_schemas import SchemaError, read_yaml_file
 
     path = resolve_scene_path(name_or_path)
     try:
-        data = safe_load_yaml(path.read_text(encoding="utf-8"))
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise UserError(f"scene file {path}: not valid YAML ({exc})") from None
+        data = read_yaml_file(path)
+    except SchemaError as exc:
+        raise UserError(f"scene file {exc}") from None
     return scene_from_dict(data, source=str(path))
 
 
