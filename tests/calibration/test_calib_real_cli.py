@@ -166,7 +166,7 @@ def test_cli_mlp_ensemble(tmp_path):
     list without an MLP are refused before any work, naming the flag."""
     from calibration.importers import load_gelsight_npz
     from calibration.stored import load_models
-    from pipeline.base.capture import write_capture
+    from pipeline.base.capture import read_capture, write_capture
 
     cap_path = write_capture(tmp_path / "cap.h5", load_gelsight_npz(DATA).select(np.arange(12)))
     cal = tmp_path / "cal.h5"
@@ -176,8 +176,6 @@ def test_cli_mlp_ensemble(tmp_path):
     assert json.loads(r.stdout)["models"]["mlp"]["fit"]["members"] == 2
     model = load_models(cal)["mlp"]
     assert len(model.nets) == 2
-    from pipeline.base.capture import read_capture
-
     frames, ref = read_capture(cap_path).linear()
     conf = model.normal_maps(frames[:1], ref).confidence
     assert 0.0 < conf.min() < 0.99 and conf.max() <= 1.0
