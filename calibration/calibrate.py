@@ -280,6 +280,8 @@ def model_factories(names, capture: Capture, illumination, saturation, model_opt
                 out[name] = lambda o=o: LUTModel(**o)
         elif name == "mlp":
             scale = float(saturation) if saturation else 1.0
+            # The sensor's own MLP settings (its profile's ensemble size) unless the caller set them.
+            o = {**capture_model_options(capture).get("mlp", {}), **o}
             out[name] = lambda o=o, scale=scale: MLPModel(**{"input_scale": scale, **o})
         else:
             raise UserError(f"calibrate: unknown model '{name}' (expected one of {', '.join(MODEL_NAMES)} or all)")
@@ -324,6 +326,8 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
         :func:`calibration.evaluate.evaluate_calibration` removes the same from test presses.
     model_options : dict, optional
         name -> keyword arguments of that model's constructor (e.g. ``{"near": {"degree": 3}}``).
+        The MLP's default is the capture's sensor profile's (:func:`capture_model_options`: the
+        DIGIT's fits an ensemble of three nets); a key given here wins.
     refine_iterations : int
         Passes of :func:`calibration.refine.refine_centres` (photometric centres from
         cross-fitted normals); 0 keeps the edge detector's centres.
@@ -550,6 +554,43 @@ def capture_detect_options(capture: Capture) -> DetectOptions:
         return DetectOptions(drift=str(meta["calibration_drift"]))
     name = meta.get("sensor_profile")
     return profile_detect_options(str(name)) if name and str(name) in list_profiles() else DetectOptions()
+
+
+def profile_model_options(profile) -> dict[str, dict]:
+    """Model options a sensor profile sets (a name, a file or a SensorProfile): ``{"mlp":
+    {"members": N}}`` from its ``calibration_mlp_members``, else ``{}``.
+
+    >>> profile_model_options("digit"), profile_model_options("gelsight-mini")
+    ({'mlp': {'members': 3}}, {})
+    """
+    from pipeline.capture.sensor_profiles import load_profile
+
+    members = load_profile(profile).calibration_mlp_members
+    return {"mlp": {"members": int(members)}} if members else {}
+
+
+def capture_model_options(capture: Capture) -> dict[str, dict]:
+    """The model options a capture is calibrated with unless the caller gives them: its sensor
+    profile's (:func:`profile_model_options`), as recorded at import
+    (``calibration_mlp_members``), else the built-in profile it names, else none.
+
+    Examples
+    --------
+    >>> from types import SimpleNamespace
+    >>> capture_model_options(SimpleNamespace(meta={"sensor_profile": "lab-gel", "calibration_mlp_members": 5}))
+    {'mlp': {'members': 5}}
+    >>> capture_model_options(SimpleNamespace(meta={"sensor_profile": "digit"}))
+    {'mlp': {'members': 3}}
+    >>> capture_model_options(SimpleNamespace(meta={}))
+    {}
+    """
+    from pipeline.capture.sensor_profiles import list_profiles
+
+    meta = getattr(capture, "meta", None) or {}
+    if meta.get("calibration_mlp_members"):
+        return {"mlp": {"members": int(meta["calibration_mlp_members"])}}
+    name = meta.get("sensor_profile")
+    return profile_model_options(str(name)) if name and str(name) in list_profiles() else {}
 
 
 def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, shrink_px, detect_options,

@@ -5,7 +5,7 @@ A profile says which camera the sensor is (a device-name pattern, matched agains
 becomes the images the pipeline works on (``crop``, ``rotate``, resized to ``resolution``),
 their pixel pitch on the gel (``mm_per_px``), the ball it is calibrated with
 (``ball_radius_mm``) and, where measured, the illumination drift its calibration removes
-(``calibration_drift``); schema ``data_schemas/configs/sensor.json``. Built in: ``gelsight-mini``,
+(``calibration_drift``) and the size of the MLP ensemble it fits (``calibration_mlp_members``); schema ``data_schemas/configs/sensor.json``. Built in: ``gelsight-mini``,
 ``digit``, ``iristac-ring``; any other file with the same keys is a profile too.
 
 ``iristac import images --profile``, ``calibrate --profile`` and ``live --profile`` take a
@@ -54,6 +54,7 @@ class SensorProfile:
     rotate: int = 0
     mode: str | None = None
     calibration_drift: str | None = None
+    calibration_mlp_members: int | None = None
     notes: str = ""
     source: str = ""
 
@@ -148,6 +149,7 @@ def load_profile(name_or_path) -> SensorProfile:
                          ball_radius_mm=float(obj["ball_radius_mm"]), camera=obj.get("camera"), stream=stream,
                          crop=crop, rotate=int(obj.get("rotate", 0)), mode=obj.get("mode"),
                          calibration_drift=obj.get("calibration_drift"),
+                         calibration_mlp_members=obj.get("calibration_mlp_members"),
                          notes=str(obj.get("notes", "")).strip(), source=str(path))
 
 

@@ -16,15 +16,17 @@ def register(sub, name, help_text):
     p.add_argument("--mm-per-px", type=float, default=None, help="pixel pitch (default: the capture's)")
     p.add_argument("--profile", default=None, metavar="NAME|FILE",
                    help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): its ball radius, pixel "
-                        "pitch and drift model where --ball-radius / --mm-per-px / --drift are not given (a capture "
-                        "imported with --profile calibrates with that profile's drift model anyway)")
+                        "pitch, drift model and MLP ensemble size where --ball-radius / --mm-per-px / --drift / "
+                        "--mlp-members are not given (a capture imported with --profile calibrates with that "
+                        "profile's settings anyway)")
     p.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
     p.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
-    p.add_argument("--mlp-members", type=int, default=1, metavar="N",
+    p.add_argument("--mlp-members", type=int, default=None, metavar="N",
                    help="fit the MLP as an ensemble of N nets (mean prediction; their agreement is the per-pixel "
                         "confidence): steadier on new presses than one net, whose figures move with its seed; "
                         "costs about 1.6x the calibration time with 3, and N times the MLP's time per frame in "
-                        "reconstruct and live (default 1; docs/calibration.md, step 3)")
+                        "reconstruct and live (default: the sensor profile's calibration_mlp_members, 3 for the "
+                        "DIGIT, else 1; docs/calibration.md, step 3)")
     p.add_argument("--out", required=True, help="calibration.h5 to write")
     p.add_argument("--illumination", default=None,
                    help="illumination.h5 (LED fields V from iristac sim trace) for the traced model")
@@ -61,24 +63,25 @@ def _run(args) -> int:
     # The flags are checked before any file is read.
     if args.correct_led_geometry and not args.illumination:
         raise UserError("--correct-led-geometry needs --illumination ILL.h5 (the LED fields to correct)")
-    if args.mlp_members < 1:
+    if args.mlp_members is not None and args.mlp_members < 1:
         raise UserError(f"--mlp-members must be at least 1 (nets in the MLP ensemble), got {args.mlp_members}")
-    if args.mlp_members != 1 and args.model not in ("mlp", "all"):
+    if args.mlp_members is not None and args.model not in ("mlp", "all"):
         raise UserError(f"--mlp-members {args.mlp_members} sizes the MLP ensemble, but --model {args.model} fits "
                         "no MLP (use --model mlp or all)")
     opts: dict = {}
     if args.correct_led_geometry:
         opts["traced"] = {"correct_geometry": True}
-    if args.mlp_members != 1:
+    if args.mlp_members is not None:
         opts["mlp"] = {"members": args.mlp_members}
     ill = read_illumination(args.illumination) if args.illumination else None
     ball, mm, detect = args.ball_radius, args.mm_per_px, drift_options(args.drift)
     if args.profile:
-        from calibration.calibrate import profile_detect_options
+        from calibration.calibrate import profile_detect_options, profile_model_options
         from pipeline.capture.sensor_profiles import capture_defaults
 
         ball, mm = capture_defaults(args.profile, args.capture, ball, mm)
         detect = detect or profile_detect_options(args.profile)
+        opts = {**profile_model_options(args.profile), **opts}
     from calibration.gate import CalibrationRefused
 
     try:

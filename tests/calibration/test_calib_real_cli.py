@@ -161,17 +161,21 @@ def test_hand_labels_sit_down_left_of_the_contacts():
 
 @needs_data
 def test_cli_mlp_ensemble(tmp_path):
-    """``calibrate --mlp-members N`` fits the MLP as an ensemble of N nets: the file holds N nets and
-    their agreement is a per-pixel confidence (one net's is 1 everywhere); bad counts and a model
-    list without an MLP are refused before any work, naming the flag."""
+    """A sensor profile's ``calibration_mlp_members: N`` (or ``calibrate --mlp-members N``) fits the
+    MLP as an ensemble of N nets: the file holds N nets and their agreement is a per-pixel
+    confidence (one net's is 1 everywhere); bad counts and a model list without an MLP are refused
+    before any work, naming the flag."""
     from calibration.importers import load_gelsight_npz
     from calibration.stored import load_models
     from pipeline.base.capture import read_capture, write_capture
 
-    cap_path = write_capture(tmp_path / "cap.h5", load_gelsight_npz(DATA).select(np.arange(12)))
+    gs = load_gelsight_npz(DATA).select(np.arange(12))
+    cap_path = write_capture(tmp_path / "cap.h5", gs)
+    prof = tmp_path / "lab-gelsight.yaml"
+    prof.write_text(f"name: lab-gelsight\nmake: test\nresolution: {{width: {gs.shape[1]}, height: {gs.shape[0]}}}\n"
+                    f"mm_per_px: {gs.mm_per_px}\nball_radius_mm: 2.0\ncalibration_mlp_members: 2\n")
     cal = tmp_path / "cal.h5"
-    r = run_cli("calibrate", cap_path, "--ball-radius", "2.0", "--model", "mlp", "--mlp-members", "2", "--folds", "2",
-                "--out", cal, "--json")
+    r = run_cli("calibrate", cap_path, "--profile", prof, "--model", "mlp", "--folds", "2", "--out", cal, "--json")
     assert r.returncode == 0, r.stderr
     assert json.loads(r.stdout)["models"]["mlp"]["fit"]["members"] == 2
     model = load_models(cal)["mlp"]

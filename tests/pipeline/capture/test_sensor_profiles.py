@@ -3,6 +3,7 @@ symlinks; the profile in import images, calibrate and a camera's frames."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
@@ -68,6 +69,12 @@ def test_shipped_profiles_are_valid_and_bad_ones_are_named(tmp_path):
     bad.write_text("name: x\nmake: y\nresolution: {width: 32, height: 24}\nmm_per_px: 0.1\nball_radius_mm: 1\n"
                    "calibration_drift: wobble\n")
     with pytest.raises(UserError, match="bad.yaml.*calibration_drift"):
+        load_profile(bad)
+    # The DIGIT's calibration fits three nets (docs/calibration.md, point 11); an ensemble of none is the file's error.
+    assert digit.calibration_mlp_members == 3 and mini.calibration_mlp_members is None
+    bad.write_text("name: x\nmake: y\nresolution: {width: 32, height: 24}\nmm_per_px: 0.1\nball_radius_mm: 1\n"
+                   "calibration_mlp_members: 0\n")
+    with pytest.raises(UserError, match="bad.yaml.*calibration_mlp_members"):
         load_profile(bad)
 
 
@@ -147,16 +154,17 @@ def test_profile_in_import_calibrate_and_a_camera(tmp_path):
 
 
 def test_a_profile_files_drift_model_travels_with_the_capture(tmp_path):
-    """A user's profile file is not found by its name later: import records its drift model, and
-    calibrate (no --profile) removes that one; a bad recorded value is named on reading."""
+    """A user's profile file is not found by its name later: import records its drift model and MLP
+    ensemble size, and calibrate (no --profile) uses them unless told otherwise; a bad recorded
+    value is named on reading."""
     import h5py
 
-    from calibration.calibrate import capture_detect_options
+    from calibration.calibrate import capture_detect_options, capture_model_options, model_factories
     from calibration.image_import import load_images
     from pipeline.base.capture import read_capture, write_capture
 
     prof_path = _profile_file(tmp_path)
-    prof_path.write_text(prof_path.read_text() + "calibration_drift: offset\n")
+    prof_path.write_text(prof_path.read_text() + "calibration_drift: offset\ncalibration_mlp_members: 2\n")
     folder = tmp_path / "frames"
     folder.mkdir()
     rng = np.random.default_rng(1)
@@ -167,11 +175,24 @@ def test_a_profile_files_drift_model_travels_with_the_capture(tmp_path):
     assert cap.meta["calibration_drift"] == "offset"
     write_capture(tmp_path / "c.h5", cap)
     assert capture_detect_options(read_capture(tmp_path / "c.h5")).drift == "offset"
+    back = read_capture(tmp_path / "c.h5")
+    assert capture_model_options(back) == {"mlp": {"members": 2}}
+    assert model_factories(["mlp"], back, None, 255.0, None)["mlp"]().members == 2
+    # What the caller says wins over the profile (calibrate --mlp-members 1, or model_options).
+    assert model_factories(["mlp"], back, None, 255.0, {"mlp": {"members": 1}})["mlp"]().members == 1
+    # A capture naming a built-in profile but recording no size (imported before it was recorded) gets the profile's.
+    assert capture_model_options(dataclasses.replace(back, meta={"sensor_profile": "digit"})) == {"mlp": {"members": 3}}
     with h5py.File(tmp_path / "c.h5", "r+") as f:
         f.attrs["calibration_drift"] = "wobble"
     with pytest.raises(Exception, match="calibration_drift") as err:
         read_capture(tmp_path / "c.h5")
     assert "c.h5" in str(err.value)
+    write_capture(tmp_path / "d.h5", cap)
+    with h5py.File(tmp_path / "d.h5", "r+") as f:
+        f.attrs["calibration_mlp_members"] = 0
+    with pytest.raises(Exception, match="calibration_mlp_members") as err:
+        read_capture(tmp_path / "d.h5")
+    assert "d.h5" in str(err.value)
 
 
 def test_import_without_a_profile_names_the_profile_of_that_size(tmp_path):
