@@ -128,9 +128,11 @@ def _print_summary(args, s, refused: bool) -> None:
             print(f"  {name:7s} {m['note']}  {m['seconds']:6.2f} s")
         else:
             members = (m.get("fit") or {}).get("members", 1)
+            # Without --mlp-members an ensemble can only have come from the sensor profile.
+            whose = "" if args.mlp_members is not None else ": the sensor profile's calibration_mlp_members"
             print(f"  {name:7s} CV mean {m['cv_mean_angular_error_deg']:6.2f} deg  median "
                   f"{m['cv_median_angular_error_deg']:6.2f} deg  {m['seconds']:6.2f} s"
-                  + (f"  (ensemble of {members} nets)" if members > 1 else "")
+                  + (f"  (ensemble of {members} nets{whose})" if members > 1 else "")
                   + ("" if m.get("usable", True) else "  UNUSABLE: " + "; ".join(m["problems"])))
     if "center_error_px_median" in s:
         off = s["center_offset_px_median"]
