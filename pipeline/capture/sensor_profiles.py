@@ -5,8 +5,9 @@ A profile says which camera the sensor is (a device-name pattern, matched agains
 becomes the images the pipeline works on (``crop``, ``rotate``, resized to ``resolution``),
 their pixel pitch on the gel (``mm_per_px``), the ball it is calibrated with
 (``ball_radius_mm``) and, where measured, the illumination drift its calibration removes
-(``calibration_drift``) and the size of the MLP ensemble it fits (``calibration_mlp_members``); schema ``data_schemas/configs/sensor.json``. Built in: ``gelsight-mini``,
-``digit``, ``iristac-ring``; any other file with the same keys is a profile too.
+(``calibration_drift``) and the size of the MLP ensemble it fits (``calibration_mlp_members``);
+schema ``data_schemas/configs/sensor.json``. Built in: ``gelsight-mini``, ``digit``,
+``iristac-ring``; any other file with the same keys is a profile too.
 
 ``iristac import images --profile``, ``calibrate --profile`` and ``live --profile`` take a
 name or a file (:func:`load_profile`).
