@@ -535,7 +535,7 @@ def capture_detect_options(capture: Capture) -> DetectOptions:
     ``import images --profile`` records the profile's name (``sensor_profile``) and its drift
     model (``calibration_drift``, when the profile names one). The recorded model is used; a
     capture that names a built-in profile but records none (imported before the model was
-    recorded) gets that profile's (:func:`profile_detect_options`).
+    recorded) gets that profile's (:func:`pipeline.capture.sensor_profiles.capture_setting`).
 
     Examples
     --------
@@ -547,13 +547,10 @@ def capture_detect_options(capture: Capture) -> DetectOptions:
     >>> capture_detect_options(SimpleNamespace(meta={})).drift
     'gain_offset'
     """
-    from pipeline.capture.sensor_profiles import list_profiles
+    from pipeline.capture.sensor_profiles import capture_setting
 
-    meta = getattr(capture, "meta", None) or {}
-    if meta.get("calibration_drift"):
-        return DetectOptions(drift=str(meta["calibration_drift"]))
-    name = meta.get("sensor_profile")
-    return profile_detect_options(str(name)) if name and str(name) in list_profiles() else DetectOptions()
+    drift = capture_setting(getattr(capture, "meta", None) or {}, "calibration_drift")
+    return DetectOptions(drift=str(drift)) if drift else DetectOptions()
 
 
 def profile_model_options(profile) -> dict[str, dict]:
@@ -571,8 +568,8 @@ def profile_model_options(profile) -> dict[str, dict]:
 
 def capture_model_options(capture: Capture) -> dict[str, dict]:
     """The model options a capture is calibrated with unless the caller gives them: its sensor
-    profile's (:func:`profile_model_options`), as recorded at import
-    (``calibration_mlp_members``), else the built-in profile it names, else none.
+    profile's ensemble size (``calibration_mlp_members``) as recorded at import, else the
+    built-in profile's it names (:func:`pipeline.capture.sensor_profiles.capture_setting`), else none.
 
     Examples
     --------
@@ -584,13 +581,10 @@ def capture_model_options(capture: Capture) -> dict[str, dict]:
     >>> capture_model_options(SimpleNamespace(meta={}))
     {}
     """
-    from pipeline.capture.sensor_profiles import list_profiles
+    from pipeline.capture.sensor_profiles import capture_setting
 
-    meta = getattr(capture, "meta", None) or {}
-    if meta.get("calibration_mlp_members"):
-        return {"mlp": {"members": int(meta["calibration_mlp_members"])}}
-    name = meta.get("sensor_profile")
-    return profile_model_options(str(name)) if name and str(name) in list_profiles() else {}
+    members = capture_setting(getattr(capture, "meta", None) or {}, "calibration_mlp_members")
+    return {"mlp": {"members": int(members)}} if members else {}
 
 
 def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, shrink_px, detect_options,

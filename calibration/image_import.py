@@ -440,10 +440,7 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
     if prof is not None:
         meta["sensor_profile"] = prof.name
         # Recorded, not looked up later by name: a user's profile file is not found by its name.
-        if prof.calibration_drift:
-            meta["calibration_drift"] = prof.calibration_drift
-        if prof.calibration_mlp_members:
-            meta["calibration_mlp_members"] = int(prof.calibration_mlp_members)
+        meta.update(prof.recorded_settings())
     # The drive is not known from files: each pattern is taken as its own light (P = 1 with three
     # colour channels: three LED groups, red, green and blue, as the GelSight import does).
     drive = np.eye(3, dtype=np.float32)[None] if (p, c) == (1, 3) else np.repeat(

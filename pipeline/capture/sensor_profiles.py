@@ -39,6 +39,11 @@ __all__ = ["SensorProfile", "ProfileCamera", "load_profile", "list_profiles", "p
 PROFILES_DIR = Path(__file__).resolve().parent / "sensors"
 
 
+#: The profile's calibration settings a capture records at import (a user's profile file is not
+#: found by its name later) and ``calibrate`` reads back (:func:`capture_setting`).
+RECORDED_SETTINGS = ("calibration_drift", "calibration_mlp_members")
+
+
 @dataclass(frozen=True)
 class SensorProfile:
     """One sensor (see the module docstring). Sizes are ``(width, height)``; ``crop`` is
@@ -58,6 +63,14 @@ class SensorProfile:
     calibration_mlp_members: int | None = None
     notes: str = ""
     source: str = ""
+
+    def recorded_settings(self) -> dict:
+        """The :data:`RECORDED_SETTINGS` this profile sets, as a capture records them.
+
+        >>> load_profile("digit").recorded_settings()
+        {'calibration_drift': 'field', 'calibration_mlp_members': 3}
+        """
+        return {k: getattr(self, k) for k in RECORDED_SETTINGS if getattr(self, k) is not None}
 
     def to_image(self, frame: np.ndarray) -> np.ndarray:
         """One stream frame ``(H, W, C)`` as the pipeline's image: cropped, rotated, resized to
@@ -106,6 +119,26 @@ def list_profiles() -> list[str]:
     return sorted(p.stem for p in PROFILES_DIR.glob("*.yaml"))
 
 
+def capture_setting(meta: dict, key: str):
+    """A profile setting (one of :data:`RECORDED_SETTINGS`) for a capture with attributes
+    ``meta``: the value it recorded at import, else that of the built-in profile it names
+    (imported before the key was recorded), else None.
+
+    >>> capture_setting({"sensor_profile": "lab-gel", "calibration_drift": "offset"}, "calibration_drift")
+    'offset'
+    >>> capture_setting({"sensor_profile": "digit"}, "calibration_mlp_members")
+    3
+    >>> capture_setting({}, "calibration_drift") is None
+    True
+    """
+    if key not in RECORDED_SETTINGS:
+        raise ValueError(f"capture_setting: key must be one of {', '.join(RECORDED_SETTINGS)}, got {key!r}")
+    if meta.get(key) is not None:
+        return meta[key]
+    name = meta.get("sensor_profile")
+    return getattr(load_profile(str(name)), key) if name and str(name) in list_profiles() else None
+
+
 def profiles_of_size(width: int, height: int) -> list[str]:
     """Built-in profiles whose images are ``width x height`` (a hint for an import without ``--profile``).
 
@@ -150,7 +183,8 @@ def load_profile(name_or_path) -> SensorProfile:
                          ball_radius_mm=float(obj["ball_radius_mm"]), camera=obj.get("camera"), stream=stream,
                          crop=crop, rotate=int(obj.get("rotate", 0)), mode=obj.get("mode"),
                          calibration_drift=obj.get("calibration_drift"),
-                         calibration_mlp_members=obj.get("calibration_mlp_members"),
+                         calibration_mlp_members=(None if obj.get("calibration_mlp_members") is None
+                                                  else int(obj["calibration_mlp_members"])),
                          notes=str(obj.get("notes", "")).strip(), source=str(path))
 
 
