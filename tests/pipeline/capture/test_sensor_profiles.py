@@ -193,6 +193,20 @@ def test_a_profile_files_drift_model_travels_with_the_capture(tmp_path):
     with pytest.raises(Exception, match="calibration_mlp_members") as err:
         read_capture(tmp_path / "d.h5")
     assert "d.h5" in str(err.value)
+    # Through the CLI: a bad value in a profile file or in a capture is one line naming the file and
+    # the key, and the file the command would have written is left as it was.
+    from helpers import run_cli
+
+    kept = tmp_path / "kept.h5"
+    kept.write_bytes(b"saved before")
+    bad_prof = tmp_path / "bad.yaml"
+    bad_prof.write_text(prof_path.read_text().replace("calibration_mlp_members: 2", "calibration_mlp_members: 0"))
+    for args in (("import", "images", folder, "--profile", bad_prof, "--reference", "f0", "--out", kept),
+                 ("calibrate", tmp_path / "d.h5", "--ball-radius", "1.5", "--out", kept)):
+        r = run_cli(*args)
+        assert r.returncode == 2 and "calibration_mlp_members" in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert ("bad.yaml" if args[0] == "import" else "d.h5") in r.stderr, r.stderr
+        assert kept.read_bytes() == b"saved before"
 
 
 def test_import_without_a_profile_names_the_profile_of_that_size(tmp_path):
