@@ -25,7 +25,7 @@ from typing import Any, Callable, Sequence
 from pipeline.base.errors import UserError
 from pipeline.report import format_number
 
-__all__ = ["BatchItem", "run_batch", "format_summary"]
+__all__ = ["BatchItem", "run_batch", "map_tasks", "progress_bar", "format_summary"]
 
 
 @dataclass
@@ -38,6 +38,8 @@ class BatchItem:
     result: Any = None
     error: str | None = None
     worker: str = ""
+    #: How the frames were solved: ``fast``, ``eager``, or ``cached`` (read from the store).
+    method: str = ""
 
     def to_json(self) -> dict:
         return {"recording": self.recording, "ok": self.ok, "seconds": round(self.seconds, 4),
@@ -55,12 +57,7 @@ def _guarded(task: Callable[[str], Any], recording: str) -> BatchItem:
         result = task(recording)
         return BatchItem(recording, True, time.perf_counter() - t0, result, None, worker)
     except Exception as exc:  # noqa: BLE001 - one bad recording must not stop the batch
-        msg = str(exc) or type(exc).__name__
-        if not isinstance(exc, UserError):
-            last = traceback.extract_tb(exc.__traceback__)[-1:]
-            where = f" (at {last[0].filename}:{last[0].lineno})" if last else ""
-            msg = f"{type(exc).__name__}: {msg}{where}"
-        return BatchItem(recording, False, time.perf_counter() - t0, None, msg, worker)
+        return BatchItem(recording, False, time.perf_counter() - t0, None, _error_message(exc), worker)
 
 
 def run_batch(recordings: Sequence[str], task: Callable[[str], Any], *, workers: int = 1,
@@ -111,18 +108,7 @@ def run_batch(recordings: Sequence[str], task: Callable[[str], Any], *, workers:
 
 
 def _run_dask(recordings, task, scheduler, bar, connect_timeout) -> list[BatchItem]:
-    try:
-        from distributed import Client
-    except ImportError as exc:  # pragma: no cover - dask[distributed] is a dependency
-        raise UserError("--scheduler needs dask.distributed (pip install 'dask[distributed]')") from exc
-    import dask
-
-    try:
-        # The comm-level connect timeout governs retries on a refused connection.
-        with dask.config.set({"distributed.comm.timeouts.connect": f"{connect_timeout}s"}):
-            client = Client(scheduler, timeout=f"{connect_timeout}s")
-    except OSError as exc:
-        raise UserError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there ({exc})") from None
+    client = _dask_client(scheduler, connect_timeout)
     try:
         futures = client.map(_guarded, [task] * len(recordings), recordings, pure=False)
         index = {f.key: i for i, f in enumerate(futures)}
@@ -137,6 +123,94 @@ def _run_dask(recordings, task, scheduler, bar, connect_timeout) -> list[BatchIt
         client.close()
 
 
+def map_tasks(fn: Callable, tasks: Sequence[tuple], *, workers: int = 1, scheduler: str | None = None,
+              connect_timeout: float = 10.0, on_done: Callable[[int], None] | None = None) -> list[tuple[bool, Any]]:
+    """``fn(*task)`` for every task: in this process, on ``workers`` local processes, or on a Dask
+    cluster (``scheduler``); ``[(True, result) or (False, error message)]`` in task order (a failed
+    task never stops the others). ``on_done(index)`` as each finishes. ``fn`` and the tasks must be
+    picklable for a pool or a cluster.
+
+    >>> [(ok, value if ok else value.split(" (at")[0]) for ok, value in map_tasks(divmod, [(7, 2), (1, 0)])]
+    [(True, (3, 1)), (False, 'ZeroDivisionError: integer division or modulo by zero')]
+    """
+    if workers < 1:
+        raise UserError(f"--workers must be at least 1, got {workers}")
+    out: list[tuple[bool, Any]] = [(False, "not run")] * len(tasks)
+    done = on_done or (lambda i: None)
+    if scheduler:
+        return _map_dask(fn, tasks, scheduler, connect_timeout, done)
+    if workers == 1 or len(tasks) <= 1:
+        for i, t in enumerate(tasks):
+            out[i] = _call_guarded(fn, t)
+            done(i)
+        return out
+    # spawn: torch and HDF5 are not fork-safe once initialised in the parent.
+    with ProcessPoolExecutor(max_workers=workers, mp_context=get_context("spawn")) as pool:
+        futures = {pool.submit(_call_guarded, fn, t): i for i, t in enumerate(tasks)}
+        from concurrent.futures import as_completed
+
+        for f in as_completed(futures):
+            out[futures[f]] = f.result()
+            done(futures[f])
+    return out
+
+
+def _call_guarded(fn: Callable, task: tuple) -> tuple[bool, Any]:
+    try:
+        return True, fn(*task)
+    except Exception as exc:  # noqa: BLE001 - reported in its result
+        return False, _error_message(exc)
+
+
+def _error_message(exc: BaseException) -> str:
+    msg = str(exc) or type(exc).__name__
+    if not isinstance(exc, UserError):
+        last = traceback.extract_tb(exc.__traceback__)[-1:]
+        where = f" (at {last[0].filename}:{last[0].lineno})" if last else ""
+        msg = f"{type(exc).__name__}: {msg}{where}"
+    return msg
+
+
+def _map_dask(fn, tasks, scheduler, connect_timeout, done) -> list[tuple[bool, Any]]:
+    client = _dask_client(scheduler, connect_timeout)
+    try:
+        from distributed import as_completed
+
+        futures = [client.submit(_call_guarded, fn, t, pure=False) for t in tasks]
+        index = {f.key: i for i, f in enumerate(futures)}
+        out: list[tuple[bool, Any]] = [(False, "not run")] * len(tasks)
+        for fut in as_completed(futures):
+            out[index[fut.key]] = fut.result()
+            done(index[fut.key])
+        return out
+    finally:
+        client.close()
+
+
+def _dask_client(scheduler: str, connect_timeout: float):
+    try:
+        from distributed import Client
+    except ImportError as exc:  # pragma: no cover - dask[distributed] is a dependency
+        raise UserError("--scheduler needs dask.distributed (pip install 'dask[distributed]')") from exc
+    import dask
+
+    try:
+        # The comm-level connect timeout governs retries on a refused connection.
+        with dask.config.set({"distributed.comm.timeouts.connect": f"{connect_timeout}s"}):
+            return Client(scheduler, timeout=f"{connect_timeout}s")
+    except OSError as exc:
+        raise UserError(f"--scheduler {scheduler}: cannot reach a Dask scheduler there ({exc})") from None
+
+
+def progress_bar(total: int, enabled: bool, *, unit: str = "rec", desc: str = "batch"):
+    """A tqdm bar on stderr (rate and time left), or one that draws nothing."""
+    if not enabled:
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit=unit, desc=desc, unit_scale=False, smoothing=0.1)
+
+
 class _NoBar:
     def update(self, n):
         pass
@@ -146,11 +220,7 @@ class _NoBar:
 
 
 def _bar(total: int, enabled: bool):
-    if not enabled:
-        return _NoBar()
-    from tqdm import tqdm
-
-    return tqdm(total=total, unit="rec", desc="batch")
+    return progress_bar(total, enabled)
 
 
 def format_summary(items: Sequence[BatchItem], columns: Sequence[str] = ()) -> str:

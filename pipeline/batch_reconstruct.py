@@ -1,13 +1,19 @@
-"""``iristac batch``: reconstruct many recorded captures with one shared light model.
+"""``iristac batch``: reconstruct recordings of any length with one shared light model.
 
-:func:`batch_reconstruct` hands :func:`reconstruct_recording` (a module-level, picklable
-task calling :func:`pipeline.reconstruct.reconstruct`) to :func:`pipeline.batch.run_batch`:
-serially, on a local process pool (``workers``) or on a Dask cluster (``scheduler``). Every
-recording goes through the shared stage store, so a rerun reads results back and workers on
-several machines can share a network store (entries are written atomically). One bad
-recording is reported and skipped. A task's result holds only what the inputs decide (stage
-keys, content digests of the normals and heights, errors against truth), so a parallel run's
-results equal a serial run's exactly; timings live in :class:`pipeline.batch.BatchItem`.
+Each recording is planned here (:func:`pipeline.stream.plan_stream`: its keys, what the store
+already has; a bad recording is reported and skipped, the others go on), then its missing
+frames are reconstructed by the one frame pipeline a chunk at a time (:func:`pipeline.stream.run_frames`):
+
+- in this process, frames in parallel on ``threads`` threads (the default);
+- on ``workers`` local processes or a Dask cluster (``scheduler``): every recording's missing
+  frames cut into frame ranges (a long recording is many tasks, not one), each range written
+  straight into the recording's partial store files by the worker that solved it.
+
+Memory does not grow with a recording's length; a run killed at any moment resumes from the
+chunks its progress files record; a rerun of finished work is read from the store. Results
+equal a serial run's whatever ran them (the same code on the same frames; a task's result
+holds only what the inputs decide). Timings and memory live in the summary
+(:func:`summary_json`).
 
 Examples
 --------
@@ -32,85 +38,18 @@ Examples
 
 from __future__ import annotations
 
-import hashlib
-from functools import partial
+import resource
+import time
 from pathlib import Path
 from typing import Any, Sequence
 
-import numpy as np
-
 from pipeline.base.errors import UserError
+from pipeline.batch import BatchItem, map_tasks
 
-__all__ = ["reconstruct_recording", "batch_reconstruct", "expand_recordings", "SUMMARY_COLUMNS"]
+__all__ = ["batch_reconstruct", "expand_recordings", "summary_json", "SUMMARY_COLUMNS", "frame_ranges"]
 
 #: Result keys shown in the summary table.
-SUMMARY_COLUMNS = ("valid_fraction", "normal_mean_error_deg", "depth_rmse_mm")
-
-
-def _sha(a: np.ndarray) -> str:
-    a = np.ascontiguousarray(a)
-    return hashlib.sha256(str((a.dtype.str, a.shape)).encode() + a.tobytes()).hexdigest()[:32]
-
-
-def reconstruct_recording(recording: str, *, calibration: str | None = None, illumination: str | None = None,
-                          solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
-                          store: str | None = None, images: bool = False, device: str = "cpu",
-                          heal: bool = True, mask: str | None = None, markers: str | None = None,
-                          threads: int | None = 1, drift: str = "auto") -> dict[str, Any]:
-    """Reconstruct one recording (the batch task; picklable as a :func:`functools.partial`).
-
-    Parameters
-    ----------
-    recording : str
-        A ``capture.h5``.
-    calibration, illumination : str, optional
-        The shared light model file (exactly one, unless the capture embeds its lights).
-    solver, integrator : str
-        As in :func:`pipeline.reconstruct.reconstruct`.
-    out : str, optional
-        Results go to ``out/<recording stem>/`` (``normals.h5``, ``depth.h5``, and PNG/PLY
-        with ``images``).
-    store : str, optional
-        Stage store folder (default ``$IRISTAC_CACHE`` or ``./iristac-cache``).
-    device : str
-        Torch device.
-    threads : int, optional
-        Threads of one recording (:func:`pipeline.reconstruct.reconstruct`'s: torch's while solving,
-        contact instances integrated at once); None: every core.
-    heal : bool
-        Quarantine and recompute a corrupt cache entry (False: the recording fails on it).
-    mask : str, optional
-        A mask file (PNG/NPY) of the pixels to reconstruct, for every recording (replaces a
-        capture's own ``mask``).
-    markers : str, optional
-        ``auto``, ``none`` or a marker mask image, for every recording (default: each
-        capture's own markers, else the calibration's; :func:`pipeline.stages.normals.marker_mask`).
-    drift : str
-        Illumination drift removed before the solve (:func:`pipeline.reconstruct.reconstruct`'s).
-
-    Returns
-    -------
-    dict
-        ``normals_key``, ``depth_key`` (stage keys), ``normals_sha256``, ``depth_sha256``
-        (content digests of the normals ``(K, H, W, 3)`` and heights ``(K, H, W)``),
-        ``valid_fraction``, ``contacts`` (K), ``outputs``, and with truth in the capture
-        ``normal_mean_error_deg`` and ``depth_rmse_mm``.
-    """
-    from pipeline.reconstruct import reconstruct
-
-    dest = None if out is None else str(Path(out) / Path(recording).stem)
-    res = reconstruct(recording, calibration=calibration, illumination=illumination, solver=solver,
-                      integrator=integrator, out=dest, store=store, images=images, device=device, heal=heal,
-                      mask=mask, markers=markers, threads=threads, drift=drift)
-    n, d = res.normals, res.depth
-    result = {"normals_key": n.provenance.get("iristac_key") or "", "depth_key": d.provenance.get("iristac_key") or "",
-              "normals_sha256": _sha(n.data["normals"]), "depth_sha256": _sha(d.data["height"]),
-              "contacts": int(n.data["normals"].shape[0]), "valid_fraction": res.summary["valid_fraction"],
-              "outputs": res.summary.get("outputs", [])}
-    for k in ("normal_mean_error_deg", "depth_rmse_mm"):
-        if k in res.summary:
-            result[k] = res.summary[k]
-    return result
+SUMMARY_COLUMNS = ("frames", "valid_fraction", "normal_mean_error_deg", "depth_rmse_mm")
 
 
 def expand_recordings(paths: Sequence[str]) -> list[str]:
@@ -134,12 +73,38 @@ def expand_recordings(paths: Sequence[str]) -> list[str]:
     return out
 
 
+def frame_ranges(missing: Sequence[tuple[int, int]], parts: int, min_frames: int) -> list[tuple[int, int]]:
+    """The ``missing`` frame ranges cut into about ``parts`` pieces of at least ``min_frames``.
+
+    >>> frame_ranges([(0, 100)], 4, 10)
+    [(0, 25), (25, 50), (50, 75), (75, 100)]
+    >>> frame_ranges([(0, 30), (50, 60)], 8, 16)
+    [(0, 15), (15, 30), (50, 60)]
+    """
+    total = sum(b - a for a, b in missing)
+    size = max(int(min_frames), -(-total // max(1, int(parts))))
+    out = []
+    for a, b in missing:
+        n = max(1, round((b - a) / size))
+        step = -(-(b - a) // n)
+        out += [(s, min(b, s + step)) for s in range(a, b, step)]
+    return out
+
+
+def _range_task(job, start: int, stop: int, threads) -> dict:
+    """A worker's frame range (module level: picklable for a process pool and Dask)."""
+    from pipeline.stream import run_frames
+
+    return run_frames(job, start, stop, threads=threads)
+
+
 def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = None, illumination: str | None = None,
                       solver: str = "lstsq", integrator: str = "dst", out: str | None = None,
                       store: str | None = None, images: bool = False, device: str = "cpu", workers: int = 1,
                       scheduler: str | None = None, progress: bool = False, connect_timeout: float = 10.0,
                       heal: bool = True, mask: str | None = None, markers: str | None = None,
-                      threads: int | None = 1, drift: str = "auto"):
+                      threads: int | None = 1, drift: str = "auto", save: str | None = None,
+                      precision: str = "single", force: bool = False) -> list[BatchItem]:
     """Reconstruct every recording with a shared calibration or illumination model.
 
     Parameters
@@ -148,43 +113,204 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
         ``capture.h5`` files or folders of them (:func:`expand_recordings`).
     calibration, illumination : str, optional
         The shared light model (at most one).
+    solver, integrator, device, heal, mask, markers, drift, force
+        As :func:`pipeline.reconstruct.reconstruct`.
+    out : str, optional
+        ``out/<recording stem>/normals.h5``, ``depth.h5`` (and ``contact.h5``): links to the
+        store's entries; with ``images`` also the per-instance pictures.
+    store : str, optional
+        Stage store folder (default ``$IRISTAC_CACHE`` or ``./iristac-cache``): workers must see it.
     workers : int
-        Local processes (1: in this process).
+        Local processes (1: this process).
     scheduler : str, optional
-        A Dask scheduler address (``tcp://host:8786``): the recordings are spread over its
-        workers, which must see the same paths (and the store) as this machine.
+        A Dask scheduler address (``tcp://host:8786``): frame ranges spread over its workers,
+        which must see the same paths (and the store) as this machine.
     threads : int, optional
-        Threads within each recording (:func:`reconstruct_recording`): frame-level parallelism
-        for one process; ``workers`` adds processes, one recording each.
-    solver, integrator, out, store, images, device, heal, progress, connect_timeout, mask, markers, drift
-        See :func:`reconstruct_recording` and :func:`pipeline.batch.run_batch`.
+        The frame pipeline's threads in each process (None: every core).
+    save, precision : str
+        What is written (:class:`pipeline.frame_pipeline.outputs.OutputSpec`; default
+        ``confidence``: no contact mask, about 10 ms a 320 x 240 frame), float type.
+    progress : bool
+        A progress bar of frames on stderr (frames, frames/s, time left).
 
     Returns
     -------
     list of pipeline.batch.BatchItem
         One per recording, in input order.
     """
-    from pipeline.batch import run_batch
+    from pipeline.frame_pipeline.outputs import DEFAULT_BATCH, OutputSpec
 
     if calibration is not None and illumination is not None:
         raise UserError("batch: give either --calibration or --illumination, not both")
+    if workers < 1:
+        raise UserError(f"--workers must be at least 1, got {workers}")
     marker_file = markers if markers not in (None, "auto", "none") else None
     for flag, path in (("--calibration", calibration), ("--illumination", illumination), ("--mask", mask),
                        ("--markers", marker_file)):
         if path is not None and not Path(path).is_file():
             raise UserError(f"{flag} {path}: no such file")
-    # Workers may run elsewhere or in another folder: hand them absolute paths.
-    def absolute(p):
-        return None if p is None else str(Path(p).resolve())
-
+    outputs = OutputSpec.parse(DEFAULT_BATCH if save is None else save, precision)
     recs = [str(Path(r).resolve()) for r in expand_recordings(recordings)]
     if store is None:
         from pipeline.base.store import default_store_root
 
         store = str(default_store_root())
-    task = partial(reconstruct_recording, calibration=absolute(calibration), illumination=absolute(illumination),
-                   solver=solver, integrator=integrator, out=absolute(out), store=absolute(store), images=images,
-                   device=device, heal=heal, mask=absolute(mask),
-                   markers=absolute(marker_file) if marker_file else markers, threads=threads, drift=drift)
-    return run_batch(recs, task, workers=workers, scheduler=scheduler, progress=progress,
-                     connect_timeout=connect_timeout)
+    store = str(Path(store).resolve())
+    options = dict(calibration=_absolute(calibration), illumination=_absolute(illumination), solver=solver,
+                   integrator=integrator, store=store, device=device, mask=_absolute(mask),
+                   markers=_absolute(marker_file) if marker_file else markers, drift=drift, outputs=outputs,
+                   heal=heal, force=force)
+    t0 = time.perf_counter()
+    planned = [_plan(r, options, threads) for r in recs]
+    todo = sum(p["frames"] for p in planned if p.get("job") is not None and not p["job"].cached)
+    bar = _bar(todo, progress)
+    try:
+        if scheduler or workers > 1:
+            _run_distributed(planned, threads, workers, scheduler, connect_timeout, bar)
+        else:
+            for p in planned:
+                _run_here(p, threads, bar)
+    finally:
+        bar.close()
+    return [_finish(p, out, images, t0) for p in planned]
+
+
+def _absolute(p):
+    return None if p is None else str(Path(p).resolve())
+
+
+def _plan(recording: str, options: dict, threads) -> dict:
+    """A recording's job, or its failure (one bad recording never stops the batch)."""
+    from pipeline.stream import plan_stream, prepare
+
+    t0 = time.perf_counter()
+    entry: dict[str, Any] = {"recording": recording, "job": None, "error": None, "frames": 0, "t0": t0,
+                             "method": "cached", "pipe": None}
+    try:
+        job, cap, lights = plan_stream(recording, **options)
+        entry.update(job=job, frames=job.frames, cap=cap, lights=lights)
+        if not job.cached:
+            entry["pipe"] = prepare(job, cap, lights, threads)
+    except Exception as exc:  # noqa: BLE001 - reported in its item
+        entry["error"] = _message(exc)
+    entry["seconds"] = time.perf_counter() - t0
+    return entry
+
+
+def _message(exc: BaseException) -> str:
+    import traceback
+
+    msg = str(exc) or type(exc).__name__
+    if not isinstance(exc, UserError):
+        last = traceback.extract_tb(exc.__traceback__)[-1:]
+        where = f" (at {last[0].filename}:{last[0].lineno})" if last else ""
+        msg = f"{type(exc).__name__}: {msg}{where}"
+    return msg
+
+
+def _run_here(p: dict, threads, bar) -> None:
+    from pipeline.stream import run_frames
+
+    job = p["job"]
+    if job is None or job.cached or p["error"]:
+        return
+    t0 = time.perf_counter()
+    try:
+        r = run_frames(job, threads=threads, progress=bar.update, cap=p["cap"], lights=p["lights"], pipe=p["pipe"])
+        p["method"] = r["method"]
+    except Exception as exc:  # noqa: BLE001 - this recording fails, the others go on
+        p["error"] = _message(exc)
+    p["seconds"] += time.perf_counter() - t0
+
+
+def _run_distributed(planned: list[dict], threads, workers: int, scheduler, connect_timeout: float, bar) -> None:
+    """Every recording's missing frames as frame ranges on a process pool or a Dask cluster."""
+    from pipeline.stream import open_files
+
+    tasks, owners = [], []
+    parts = max(2, workers) * 2
+    for i, p in enumerate(planned):
+        job = p["job"]
+        if job is None or job.cached or p["error"]:
+            continue
+        p.pop("pipe", None)  # the workers build their own
+        try:
+            files = open_files(job)  # created here once, so the workers only attach to them
+        except Exception as exc:  # noqa: BLE001
+            p["error"] = _message(exc)
+            continue
+        from pipeline.base.streamed import merge_ranges
+
+        missing = merge_ranges(r for sf in files.values() for r in sf.missing())
+        for a, b in frame_ranges(missing, parts, max(job.chunk, 16)):
+            tasks.append((job, a, b, threads))
+            owners.append(i)
+    t0 = time.perf_counter()
+    results = map_tasks(_range_task, tasks, workers=workers, scheduler=scheduler, connect_timeout=connect_timeout,
+                        on_done=lambda k: bar.update(tasks[k][2] - tasks[k][1]))
+    for k, (ok, value) in enumerate(results):
+        p = planned[owners[k]]
+        if ok:
+            p["method"] = value["method"]
+        elif not p["error"]:
+            p["error"] = value
+    seconds = time.perf_counter() - t0
+    for p in planned:
+        if p.get("job") is not None and not p["job"].cached:
+            p["seconds"] += seconds * p["frames"] / max(1, sum(q["frames"] for q in planned))
+
+
+def _finish(p: dict, out, images: bool, t0: float) -> BatchItem:
+    """The item of one recording: its entries finished and summarised, linked into ``out``."""
+    from pipeline.base.store import read_record
+    from pipeline.stream import LAZY_BYTES, finish_stream, link_outputs
+
+    job = p["job"]
+    if p["error"] or job is None:
+        return BatchItem(p["recording"], False, p["seconds"], None, p["error"])
+    try:
+        summary = finish_stream(job, {"method": p["method"]})
+        recs = {name: read_record(e["path"], e["key"].schema, lazy_bytes=LAZY_BYTES)
+                for name, e in job.entries.items()}
+        n_meta, d_meta = recs["normals"].meta, recs["depth"].meta
+        result: dict[str, Any] = {
+            "normals_key": job.entries["normals"]["key"].digest, "depth_key": job.entries["depth"]["key"].digest,
+            "normals_sha256": n_meta.get("content_digest", ""), "depth_sha256": d_meta.get("content_digest", ""),
+            "contacts": job.frames, "frames": job.frames, "valid_fraction": float(n_meta.get("valid_fraction", 0.0)),
+            "outputs": []}
+        for k, meta in (("normal_mean_error_deg", n_meta), ("depth_rmse_mm", d_meta)):
+            if k in summary or k in meta:
+                result[k] = float(summary.get(k, meta.get(k)))
+        if "contact" in recs:
+            result["contact_fraction"] = float(recs["contact"].meta.get("contact_fraction", 0.0))
+        if out is not None:
+            dest = Path(out) / Path(p["recording"]).stem
+            files = link_outputs(job, dest)
+            if images:
+                from pipeline.outputs import write_pictures
+
+                files += write_pictures(dest, recs["normals"], recs["depth"], job.mm_per_px,
+                                        recs["contact"].data["contact"] if "contact" in recs else None)
+            result["outputs"] = [str(f) for f in files]
+        return BatchItem(p["recording"], True, p["seconds"], result, None, method=p["method"])
+    except Exception as exc:  # noqa: BLE001
+        return BatchItem(p["recording"], False, p["seconds"], None, _message(exc))
+
+
+def summary_json(items: Sequence[BatchItem], seconds: float) -> dict:
+    """The ``--json`` summary: the items, counts, frames, frames per second (solved frames over the
+    run's wall time, planning and writing included) and the process's peak memory."""
+    failed = sum(not i.ok for i in items)
+    solved = sum(i.result["frames"] for i in items if i.ok and i.method != "cached")
+    frames = sum(i.result["frames"] for i in items if i.ok)
+    usage = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+    return {"items": [i.to_json() for i in items], "processed": len(items) - failed, "failed": failed,
+            "frames": frames, "frames_solved": solved, "seconds": round(seconds, 3),
+            "frames_per_second": round(solved / seconds, 2) if seconds > 0 and solved else 0.0,
+            "peak_rss_mb": round(usage / 1024.0, 1)}
+
+
+def _bar(total: int, enabled: bool):
+    from pipeline.batch import progress_bar
+
+    return progress_bar(total, enabled, unit="frame", desc="batch")

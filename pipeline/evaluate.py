@@ -190,7 +190,7 @@ def truth_errors(cap, n_rec, d_rec, region=None) -> dict:
             errs.append(normal_error_stats(n_rec.data["normals"][k], gt[k], m)["mean_deg"])
         out["normal_mean_error_deg"] = float(np.mean(errs))
     if "truth/height" in cap.data:
-        diff = d_rec.data["height"].astype(np.float64) - cap.data["truth/height"]
+        diff = np.asarray(d_rec.data["height"], np.float64) - np.asarray(cap.data["truth/height"])
         if region is not None:
             diff = diff[:, np.asarray(region, bool)]
         out["depth_rmse_mm"] = float(np.sqrt(np.mean(diff ** 2)))

@@ -8,6 +8,7 @@ optical axis at the undeformed gel surface, ``x`` along columns, ``y`` up the im
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +16,7 @@ import numpy as np
 from pipeline.base.frames import pixel_to_recon
 
 __all__ = ["normal_map_rgb", "depth_colormap_rgb", "png_bytes", "write_png", "write_normal_png", "write_depth_png",
-           "write_ply", "write_outputs"]
+           "write_ply", "write_pictures", "link_results"]
 
 
 def normal_map_rgb(normals, mask=None) -> np.ndarray:
@@ -161,25 +162,40 @@ def write_ply(path, height, mm_per_px: float, mask=None, colors=None, *, binary:
     return path
 
 
-def write_outputs(out: Path, n_rec, d_rec, mm_per_px: float, images: bool, contact=None) -> list[Path]:
-    """``normals.h5`` and ``depth.h5`` copies of the stage records in ``out`` and, with ``images``,
-    per contact instance ``normals_kNNN.png``, ``depth_kNNN.png`` and ``depth_kNNN.ply``; the
-    files written. ``contact`` (K, H, W) bool, when given (:mod:`pipeline.contact`), is stored in
-    ``depth.h5`` as ``contact`` and drawn as ``contact_kNNN.png``."""
-    from pipeline.base.store import Record, write_record
-
+def write_pictures(out: Path, n_rec, d_rec, mm_per_px: float, contact=None) -> list[Path]:
+    """Per contact instance ``normals_kNNN.png``, ``depth_kNNN.png`` and ``depth_kNNN.ply`` (and
+    ``contact_kNNN.png`` from ``contact (K, H, W)`` bool, :mod:`pipeline.contact`) in ``out``, from
+    the ``normals`` and ``depth`` records (their datasets read an instance at a time); the files
+    written."""
     out.mkdir(parents=True, exist_ok=True)
-    depth_data = dict(d_rec.data) if contact is None else {**d_rec.data, "contact": contact}
-    files = [write_record(out / "normals.h5", Record("normals", n_rec.data, n_rec.meta)),
-             write_record(out / "depth.h5", Record("depth", depth_data, d_rec.meta))]
-    if images:
-        for k in range(n_rec.data["normals"].shape[0]):
-            n, nm = n_rec.data["normals"][k], n_rec.data["mask"][k]
-            h, hm = d_rec.data["height"][k], d_rec.data["mask"][k]
-            files.append(write_normal_png(out / f"normals_k{k:03d}.png", n, nm))
-            files.append(write_depth_png(out / f"depth_k{k:03d}.png", h, hm))
-            files.append(write_ply(out / f"depth_k{k:03d}.ply", h, mm_per_px, hm, colors=normal_map_rgb(n, nm)))
-            if contact is not None:
-                files.append(write_png(out / f"contact_k{k:03d}.png",
-                                       np.repeat(contact[k, ..., None] * np.uint8(255), 3, -1)))
+    files = []
+    for k in range(n_rec.data["normals"].shape[0]):
+        n, nm = np.asarray(n_rec.data["normals"][k], np.float32), n_rec.data["mask"][k]
+        h, hm = d_rec.data["height"][k], d_rec.data["mask"][k]
+        files.append(write_normal_png(out / f"normals_k{k:03d}.png", n, nm))
+        files.append(write_depth_png(out / f"depth_k{k:03d}.png", h, hm))
+        files.append(write_ply(out / f"depth_k{k:03d}.ply", h, mm_per_px, hm, colors=normal_map_rgb(n, nm)))
+        if contact is not None:
+            files.append(write_png(out / f"contact_k{k:03d}.png",
+                                   np.repeat(np.asarray(contact[k])[..., None] * np.uint8(255), 3, -1)))
+    return files
+
+
+def link_results(out: Path, entries: dict) -> list[Path]:
+    """``out/<name>.h5`` for each ``name -> store file`` of ``entries``: a hard link to the store's
+    file (a symbolic link where ``out`` is on another file system), never a second copy; what was
+    there is replaced atomically. The files linked."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    for name, src in entries.items():
+        src, dst = Path(src), out / f"{name}.h5"
+        tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
+        tmp.unlink(missing_ok=True)
+        try:
+            os.link(src, tmp)
+        except OSError:
+            os.symlink(src.resolve(), tmp)
+        os.replace(tmp, dst)
+        files.append(dst)
     return files

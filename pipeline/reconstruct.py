@@ -1,21 +1,21 @@
-"""``iristac reconstruct``: normals and depth of a capture, through the normals and depth stages.
+"""``iristac reconstruct``: normals and depth of a capture, through the stage store, a chunk at a time.
 
-:func:`reconstruct` reads the capture and the light model (a calibration or an illumination
-file, or lights embedded in the capture by an importer; :func:`pipeline.stages.normals.capture_lights`),
-then runs the normals stage (:mod:`pipeline.stages.normals`, the solver picked from
-:data:`pipeline.base.registry.SOLVERS`) and the depth stage (:mod:`pipeline.stages.depth`)
-through the stage store: the same keys ``iristac run`` and ``iristac batch`` use, so a
-repeated call, or work ``run`` already did, is a cache hit. It copies both results to the
-output folder and writes a normal-map PNG, a colour-mapped depth PNG, a PLY point cloud and a
-contact-mask PNG per contact instance; the contact mask (:func:`pipeline.contact.contact_mask`:
-the colour change against the reference and the height) is also the ``contact`` dataset of
-the output ``depth.h5`` and :attr:`ReconstructResult.contact`.
+:func:`reconstruct` reads the capture (its frames a chunk at a time) and the light model (a
+calibration or an illumination file, or lights embedded in the capture by an importer;
+:func:`pipeline.stages.normals.capture_lights`) and writes the ``normals`` and ``depth`` stage
+entries (and the ``contact`` mask's) in one pass over the frames (:mod:`pipeline.stream`: the
+frame pipeline live uses, under the keys the stages compute, so a repeated call, or work
+``iristac run`` or ``iristac batch`` already did, is a cache hit). The output folder gets links
+to those entries (``normals.h5``, ``depth.h5``, ``contact.h5``) and, with ``images``, a
+normal-map PNG, a colour-mapped depth PNG, a PLY point cloud and a contact-mask PNG per
+contact instance; the contact mask (:func:`pipeline.contact.contact_mask`: the colour change
+against the reference and the height) is also :attr:`ReconstructResult.contact`.
 
 Where to solve: the capture's ``mask`` dataset (an object's silhouette, e.g. DiLiGenT's), or a
 user's ``mask=`` (a PNG/NPY file or an array), which replaces it
-(:func:`pipeline.stages.normals.capture_region`). Only those pixels are read out of the
-frames, solved and integrated (rectangular integrators on the mask's bounding box); every
-pixel outside is invalid in the outputs (:mod:`pipeline.normals.masking`).
+(:func:`pipeline.stages.normals.capture_region`). Only those pixels are solved and integrated
+(rectangular integrators on the mask's bounding box); every pixel outside is invalid in the
+outputs (:mod:`pipeline.normals.masking`).
 
 Printed gel markers (``markers=``, ``--markers auto|none|MASK.png``; default the capture's own
 ``markers`` dataset, else the calibration's): filled in before the normals are solved, False
@@ -28,6 +28,9 @@ pixels outside the contact, :mod:`pipeline.normals.drift`) is removed before the
 the solver keys on that reference (``auto``, the default: the calibration's models and
 ``--ratio``), and before the contact mask's colour change always (:mod:`pipeline.contact`; its
 no-contact frame is the capture's, else the one the solver's model stores).
+
+What is written (``save=``, ``precision=``: :mod:`pipeline.frame_pipeline.outputs`) is part of
+the keys.
 """
 
 from __future__ import annotations
@@ -36,10 +39,6 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
-
-import numpy as np
-
-from pipeline.base.errors import UserError
 
 __all__ = ["ReconstructResult", "reconstruct"]
 
@@ -64,30 +63,17 @@ class ReconstructResult:
     contact: Any = None
 
 
-def _read(path_or_record, schema: str):
-    from pipeline.base.store import Record, read_record
-
-    if isinstance(path_or_record, Record):
-        if path_or_record.schema != schema:
-            raise UserError(f"expected a {schema!r} record, got {path_or_record.schema!r}")
-        return path_or_record
-    p = Path(path_or_record)
-    if not p.exists():
-        raise UserError(f"{p}: {schema} file not found")
-    return read_record(p, schema=schema)
-
-
 def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "lstsq", integrator: str = "dst",
                 out=None, store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu",
                 dtype="float32", threads: int | None = 1, images: bool = True, force: bool = False,
-                compile: bool = False, heal: bool = True, mask=None, markers=None,
-                drift: str = "auto") -> ReconstructResult:
-    """Normals and depth of a capture, through the stage store.
+                compile: bool = False, heal: bool = True, mask=None, markers=None, drift: str = "auto",
+                save: str | None = None, precision: str = "single", progress=None) -> ReconstructResult:
+    """Normals and depth of a capture, through the stage store, a chunk of frames at a time.
 
     Parameters
     ----------
     capture : path or Record
-        ``capture.h5``.
+        ``capture.h5`` (a record in memory must carry its path).
     calibration, illumination : path or Record, optional
         The light model (at most one; see :func:`pipeline.stages.normals.capture_lights`).
     solver : str
@@ -96,9 +82,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     integrator : str
         A name in :data:`pipeline.base.registry.INTEGRATORS` (``fc``, ``dct``, ``dst``, ``sparse``).
     out : path, optional
-        Folder for ``normals.h5``, ``depth.h5`` (with ``contact``) and, with ``images``, per
-        contact instance ``normals_kNNN.png``, ``depth_kNNN.png``, ``depth_kNNN.ply`` and
-        ``contact_kNNN.png``.
+        Folder for ``normals.h5``, ``depth.h5`` and ``contact.h5`` (links to the store's entries,
+        :func:`pipeline.stream.link_outputs`) and, with ``images``, per contact instance
+        ``normals_kNNN.png``, ``depth_kNNN.png``, ``depth_kNNN.ply`` and ``contact_kNNN.png``.
     store : StageStore or path, optional
         The stage store (default: ``$IRISTAC_CACHE`` or ``./iristac-cache``).
     ratio : bool
@@ -106,24 +92,15 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     max_condition : float
         Pixels with a worse-conditioned light matrix are masked.
     device, dtype, threads
-        Torch device and dtype of the solvers (``lstsq`` on the CPU computes with numpy and does
-        not import torch); torch intra-op threads while solving (BLAS threads for that numpy
-        solve: :meth:`pipeline.normals.solve.FrameSolver.thread_limits`), and the
-        contact instances the depth stage integrates at once, one per thread (default 1:
-        fastest on a small shared CPU; None leaves torch's setting and uses every core). With
-        other than one thread on the CPU, ``nearfield``/``lstsq`` on integer frames and ``dst``
-        on the whole frame take their batch fast paths (every instance at once, a run of them
-        per thread in one compiled call: :mod:`pipeline.normals.cpu_batch`; equal to the eager
-        paths to float32 rounding). On a GPU
-        (``cuda``) ``nearfield`` solves every contact instance as one batch and ``dst``
-        integrates them all by FFT on the device (:mod:`pipeline.normals.batched`).
+        Torch device and dtype of the eager solvers; ``threads``: the frame pipeline's threads
+        (:class:`pipeline.frame_pipeline.FramePipeline`: frames in parallel where the solver has
+        a fast path, else torch's or BLAS's threads; None: every core). The fast paths equal
+        the eager solvers to float rounding, so neither enters the key.
     force : bool
         Recompute even if the store has the results.
     compile : bool
         ``lstsq`` only: solve with the ``torch.compile``-d far-field kernel
-        (:mod:`pipeline.normals.fused`): about 4x faster per frame after a few seconds of
-        compilation, so worth it for recordings of many frames. Not part of the cache key
-        (the results agree with the eager solver to float rounding).
+        (:mod:`pipeline.normals.fused`). Not part of the cache key.
     heal : bool
         A corrupt or schema-violating cache entry is quarantined, reported in one warning
         line and recomputed (False: it is an error, as ``--no-heal``).
@@ -134,66 +111,69 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         Printed gel markers to fill in (:func:`pipeline.stages.normals.marker_mask`); None: the
         capture's own ``markers``, else the calibration's.
     drift : str
-        Illumination drift removed before the solve (:func:`pipeline.stages.normals.compute`):
-        ``auto`` (default: a per-channel gain and offset against the no-contact reference where
-        the solver keys on it: ``far``, ``near``, ``traced``, ``lut``, ``mlp`` and ``ratio``),
-        ``none``, ``offset``, ``gain_offset`` or ``field``. Part of the cache key.
+        Illumination drift removed before the solve: ``auto`` (default: a per-channel gain and
+        offset against the no-contact reference where the solver keys on it: ``far``, ``near``,
+        ``traced``, ``lut``, ``mlp`` and ``ratio``), ``none``, ``offset``, ``gain_offset`` or
+        ``field``. Part of the cache key.
+    save, precision : str
+        What is written besides the normals, the heights and their masks, and the normals'
+        precision (:class:`pipeline.frame_pipeline.outputs.OutputSpec`; default ``confidence,contact``,
+        ``single``). Part of the keys.
+    progress : callable, optional
+        ``progress(frames)`` after every chunk.
 
     Returns
     -------
     ReconstructResult
     """
-    from pipeline.base.registry import INTEGRATORS, SOLVERS
-    from pipeline.base.store import StageStore
-    from pipeline.evaluate import truth_errors
-    from pipeline.outputs import write_outputs
-    from pipeline.stages import capture as capture_stage
-    from pipeline.stages import depth as depth_stage
-    from pipeline.stages import normals as normals_stage
+    from pipeline.base.store import read_record
+    from pipeline.frame_pipeline.outputs import OutputSpec
+    from pipeline.stream import LAZY_BYTES, link_outputs, reconstruct_stream
 
-    SOLVERS.check(solver)
-    INTEGRATORS.check(integrator)
     t0 = time.perf_counter()
-    cap = _read(capture, "capture")
-    cal = None if calibration is None else _read(calibration, "calibration")
-    ill = None if illumination is None else _read(illumination, "illumination")
-    lights = normals_stage.capture_lights(cap, cal, ill)
-    if ratio and normals_stage.reference_frames(cap) is None:
-        raise UserError(f"{cap.path}: --ratio needs no-contact reference frames (dataset 'reference'); this "
-                        f"capture has none (source {cap.meta.get('source')!r})")
-    region = normals_stage.capture_region(cap, mask)
-    marks = normals_stage.marker_mask(cap, markers, lights)
-    user_region = None if mask is None else region  # the capture's own mask is part of its identity
-    mm_per_px = float(cap.meta["mm_per_px"])
-    store = store if isinstance(store, StageStore) else StageStore(store)
-    n_rec, n_key, n_cached = normals_stage.run(
-        store, cap, capture_stage.capture_key(store, cap), lights, solver=solver, ratio=ratio,
-        max_condition=max_condition, device=device, dtype=dtype, threads=threads, compile=compile, force=force,
-        heal=heal, mask=user_region, markers=marks, drift=drift)
-    d_rec, _, d_cached = depth_stage.run(store, n_rec, n_key, integrator=integrator, force=force, heal=heal,
-                                         region=region, device=device, threads=threads)
-    seconds = time.perf_counter() - t0
-    summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": round(seconds, 4),
-                               "valid_fraction": float(np.asarray(n_rec.data["mask"]).mean()),
-                               "cached": bool(n_cached and d_cached),
-                               "markers": 0 if marks is None else int(marks.sum()),
-                               "drift": str(n_rec.meta.get("drift", "none"))}
-    summary.update(truth_errors(cap, n_rec, d_rec, region))
-    from pipeline.contact import capture_contact_masks
-    from pipeline.normals.solve import stored_reference
-
-    # The colour change against the capture's reference, else the one the solver's model stores
-    # (its drift against the frames, a dark level included, is removed before the change is taken).
-    ref = normals_stage.reference_frames(cap)
-    if ref is None:
-        ref = stored_reference(lights, solver)
-    frames = cap.data["frames"]
-    ref = ref if ref is not None and np.shape(ref) == frames.shape[1:] else None
-    contact = capture_contact_masks({"frames": frames, "reference": ref}, d_rec.data["height"], d_rec.data["mask"],
-                                    region)
-    summary["contact_fraction"] = float(contact.mean()) if contact.size else 0.0
+    outputs = OutputSpec.parse(save, precision)
+    job, streamed = reconstruct_stream(
+        capture, threads=threads, progress=progress, calibration=calibration, illumination=illumination, solver=solver,
+        integrator=integrator, store=store, ratio=ratio, max_condition=max_condition, device=device, dtype=dtype,
+        compile=compile, mask=mask, markers=markers, drift=drift, outputs=outputs, force=force, heal=heal)
+    recs = {name: read_record(e["path"], e["key"].schema, lazy_bytes=LAZY_BYTES) for name, e in job.entries.items()}
+    n_rec, d_rec = recs["normals"], recs["depth"]
+    summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": 0.0,
+                               "valid_fraction": float(n_rec.meta.get("valid_fraction", 0.0)),
+                               "cached": streamed["frames_solved"] == 0,
+                               "markers": 0 if job.markers is None else int(job.markers.sum()),
+                               "drift": str(n_rec.meta.get("drift", "none")), "frames": job.frames,
+                               "method": streamed["method"]}
+    summary.update(_truth(job, n_rec, d_rec, streamed))
+    contact = None
+    if "contact" in recs:
+        contact = recs["contact"].data["contact"]
+        summary["contact_fraction"] = float(recs["contact"].meta.get("contact_fraction", 0.0))
     files: list[Path] = []
     if out is not None:
-        files = write_outputs(Path(out), n_rec, d_rec, mm_per_px, images, contact)
+        from pipeline.outputs import write_pictures
+
+        files = link_outputs(job, out)
+        if images:
+            files += write_pictures(Path(out), n_rec, d_rec, job.mm_per_px, contact)
         summary["outputs"] = [str(f) for f in files]
+    summary["seconds"] = round(time.perf_counter() - t0, 4)
     return ReconstructResult(normals=n_rec, depth=d_rec, summary=summary, files=files, contact=contact)
+
+
+def _truth(job, n_rec, d_rec, streamed: dict) -> dict:
+    """Errors against the capture's truth: what the stream measured, what the entries recorded,
+    else measured now from the entries (results another command computed)."""
+    out = {k: streamed[k] for k in ("normal_mean_error_deg", "depth_rmse_mm") if k in streamed}
+    for k, rec in (("normal_mean_error_deg", n_rec), ("depth_rmse_mm", d_rec)):
+        if k not in out and k in rec.meta:
+            out[k] = float(rec.meta[k])
+    if len(out) < 2:
+        from pipeline.evaluate import truth_errors
+        from pipeline.stream import read_capture
+
+        cap = read_capture(job.capture)
+        if any(k in cap.data for k in ("truth/normals", "truth/height")):
+            full = truth_errors(cap, n_rec, d_rec, job.region)
+            out = {**full, **out}
+    return out

@@ -238,7 +238,7 @@ def _finish(config: dict, results) -> tuple[dict, list[str]]:
 
     from pipeline.base.store import read_record
     from pipeline.evaluate import truth_errors
-    from pipeline.outputs import write_outputs
+    from pipeline.outputs import link_results, write_pictures
     from pipeline.stages import stage_module
 
     def rec(name):
@@ -250,7 +250,9 @@ def _finish(config: dict, results) -> tuple[dict, list[str]]:
         summary.update(truth_errors(cap, n_rec, d_rec))
     outputs: list[str] = []
     if config.get("out") and d_rec is not None:
-        files = write_outputs(Path(config["out"]), n_rec, d_rec, float(n_rec.meta["mm_per_px"]),
-                               bool(config.get("images", True)))
+        out = Path(config["out"])
+        files = link_results(out, {"normals": results["normals"].path, "depth": results["depth"].path})
+        if config.get("images", True):
+            files += write_pictures(out, n_rec, d_rec, float(n_rec.meta["mm_per_px"]))
         outputs = [str(f) for f in files]
     return summary, outputs

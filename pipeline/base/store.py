@@ -53,6 +53,9 @@ __all__ = [
     "describe_file",
     "provenance_attrs",
     "replace_datasets",
+    "create_dataset",
+    "write_attrs",
+    "LazyDataset",
 ]
 
 _log = logging.getLogger("iristac")
@@ -194,24 +197,39 @@ def _create_dataset(f, name: str, value) -> None:
     f.create_dataset(name, data=arr, **kwargs)
 
 
+def create_dataset(f, name: str, value) -> None:
+    """Write ``value`` as dataset ``name`` of the open h5py file ``f`` as every store file holds
+    it (strings as UTF-8, checksummed, large ones compressed)."""
+    _create_dataset(f, name, value)
+
+
+def write_attrs(f, meta: Mapping[str, Any], provenance: Mapping[str, str | int] | None, *,
+                merge: bool = False) -> None:
+    """``meta`` (scalars natively, containers as JSON) and ``provenance`` as the attributes of the
+    open h5py file ``f``, as :func:`read_record` reads them back; ``merge``: added to the
+    attributes already there (their JSON list kept)."""
+    json_keys = set(json.loads(f.attrs[_JSON_ATTRS])) if merge and _JSON_ATTRS in f.attrs else set()
+    for k, v in _jsonable(meta).items():
+        if k.startswith(_PROV):
+            raise StoreError(f.filename, f"meta key {k!r} is reserved for the store's provenance attributes")
+        if isinstance(v, (bool, int, float, str)):
+            f.attrs[k] = v
+            json_keys.discard(k)
+        else:
+            f.attrs[k] = json.dumps(v)
+            json_keys.add(k)
+    for k, v in (provenance or {}).items():
+        f.attrs[k] = v
+    f.attrs[_JSON_ATTRS] = json.dumps(sorted(json_keys))
+
+
 def _write_h5(path: Path, record: Record, provenance: Mapping[str, str | int]) -> None:
     import h5py
 
     with h5py.File(path, "w", libver="latest") as f:
         for name, value in record.data.items():
             _create_dataset(f, name, value)
-        json_keys = []
-        for k, v in _jsonable(record.meta).items():
-            if k.startswith(_PROV):
-                raise StoreError(path, f"meta key {k!r} is reserved for the store's provenance attributes")
-            if isinstance(v, (bool, int, float, str)):
-                f.attrs[k] = v
-            else:
-                f.attrs[k] = json.dumps(v)
-                json_keys.append(k)
-        for k, v in provenance.items():
-            f.attrs[k] = v
-        f.attrs[_JSON_ATTRS] = json.dumps(sorted(json_keys))
+        write_attrs(f, record.meta, provenance)
         f.flush()
 
 
@@ -416,7 +434,50 @@ def _check_provenance(path: Path, provenance: Mapping[str, Any]) -> None:
         raise StoreError(path, "not an IrisTac store file: " + "; ".join(e.message for e in errors[:3]))
 
 
-def read_record(path: str | os.PathLike, schema: str | None = None, *, load: bool = True) -> Record:
+class LazyDataset:
+    """A dataset of a store file read only where it is indexed: ``shape``, ``dtype``, ``ndim``,
+    ``len()``, ``ds[a:b]`` (reads those rows; the file is opened for each read) and
+    ``np.asarray(ds)`` (reads it all). What :func:`read_record` gives for datasets above
+    ``lazy_bytes``, so a long recording's frames stay on disk until a chunk of them is needed.
+
+    Examples
+    --------
+    >>> import tempfile, os
+    >>> p = os.path.join(tempfile.mkdtemp(), "d.h5")
+    >>> rec = Record("depth", {"height": np.arange(40, dtype=np.float32).reshape(2, 4, 5),
+    ...                        "mask": np.ones((2, 4, 5), bool)}, {"integrator": "dst", "mm_per_px": 0.1})
+    >>> _ = write_record(p, rec)
+    >>> lazy = read_record(p, lazy_bytes=100).data["height"]
+    >>> lazy.shape, float(lazy[1:2].sum()), np.asarray(lazy).dtype
+    ((2, 4, 5), 590.0, dtype('float32'))
+    """
+
+    def __init__(self, path: str | os.PathLike, name: str, shape: tuple, dtype):
+        self.path, self.name = Path(path), name
+        self.shape, self.dtype = tuple(int(s) for s in shape), np.dtype(dtype)
+        self.ndim = len(self.shape)
+        self.size = int(np.prod(self.shape, dtype=np.int64))
+
+    def __len__(self) -> int:
+        return self.shape[0] if self.shape else 0
+
+    def __getitem__(self, index):
+        import h5py
+
+        try:
+            with h5py.File(self.path, "r") as f:
+                return f[self.name][index]
+        except Exception as exc:
+            raise StoreError(self.path, f"cannot read dataset {self.name!r} {index!r} (truncated or corrupt?): "
+                                        f"{exc}") from None
+
+    def __array__(self, dtype=None, copy=None):
+        a = self[()]
+        return a if dtype is None else a.astype(dtype)
+
+
+def read_record(path: str | os.PathLike, schema: str | None = None, *, load: bool = True,
+                lazy_bytes: int | None = None) -> Record:
     """Read and validate one file written by :func:`write_record` or the store.
 
     Parameters
@@ -428,6 +489,9 @@ def read_record(path: str | os.PathLike, schema: str | None = None, *, load: boo
     load : bool
         Read the datasets (checksums verified). With ``False`` only the structure is checked
         and ``data`` is empty.
+    lazy_bytes : int, optional
+        Datasets larger than this are not read but given as :class:`LazyDataset` (read where
+        indexed): a recording's frames and per-frame truth, read a chunk at a time.
 
     Raises
     ------
@@ -462,6 +526,10 @@ def read_record(path: str | os.PathLike, schema: str | None = None, *, load: boo
             with h5py.File(path, "r") as f:
                 for name, info in description["datasets"].items():
                     ds = f[name]
+                    if lazy_bytes is not None and info["dtype"] != "str" and \
+                            ds.size * ds.dtype.itemsize > lazy_bytes:
+                        data[name] = LazyDataset(path, name, ds.shape, ds.dtype)  # type: ignore[assignment]
+                        continue
                     if info["dtype"] == "str":
                         data[name] = np.asarray(ds.asstr()[()], dtype=str)
                     else:

@@ -432,6 +432,8 @@ class DriftEstimator:
         if raw.shape != self.reference.shape:
             raise ValueError(f"DriftEstimator: frames must be {self.reference.shape} like the reference, got "
                              f"{raw.shape}")
+        if self.refit_every == 1:  # fitted every call: nothing shared, so threads may fit frames at once
+            return self._fit_samples(self.samples(raw, dark) if self.enough else None)
         due = self.last is None or self.calls % self.refit_every == 0
         self.calls += 1
         if due:

@@ -32,6 +32,8 @@ Numba, compiled once and cached on disk (``cache=True``).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from numba import njit
 
@@ -168,22 +170,24 @@ class _Base:
         if self.drift is not None:
             self.drift.reset()
 
-    def _drift_planes(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def _drift_planes(self, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray, Any]:
         """The frame's drift (gain, offset) per pattern-channel for the kernel, fitted by the
-        estimator on its sampled pixels; empty arrays without an estimator (the kernel skips it)."""
+        estimator on its sampled pixels, and the drift itself; empty arrays and None without an
+        estimator (the kernel skips it). Several threads may solve frames at once: nothing here
+        is kept between frames but :attr:`last_drift`, a report."""
         if self.drift is None or self.drift.model == "none":
-            return np.zeros(0), np.zeros(0)
+            return np.zeros(0), np.zeros(0), None
         d = self.drift.fit_raw(frames, self.dark_hwc)
         self.last_drift = d
         g, o = d.coefficients()
         # The kernels multiply by 1 / g: within an ulp of float64 of dividing (as Drift.remove does),
         # which the float32 result absorbs, and a division per value cost 40 % of the LUT's time.
-        return np.ascontiguousarray(1.0 / g, np.float64), np.ascontiguousarray(o, np.float64)
+        return np.ascontiguousarray(1.0 / g, np.float64), np.ascontiguousarray(o, np.float64), d
 
-    def _meta(self, solver: str) -> dict:
+    def _meta(self, solver: str, drift=None) -> dict:
         meta = {"solver": solver, "method": "fast"}
-        if self.last_drift is not None and self.drift is not None and self.drift.model != "none":
-            meta.update(self.last_drift.result_meta())
+        if drift is not None and self.drift is not None and self.drift.model != "none":
+            meta.update(drift.result_meta())
         return meta
 
     def _check(self, frames) -> np.ndarray:
@@ -261,7 +265,7 @@ class FastLUT(_Base):
         """Normals, mask and confidence of one RGB frame ``(H, W, 3)`` or ``(1, H, W, 3)`` (integer)."""
         f = self._check(frames)
         planes = frame_planes_np(f)
-        dg, do = self._drift_planes(f)
+        dg, do, drift = self._drift_planes(f)
         H, W = self.shape
         M = H * W
         normals = np.empty((M, 3), np.float32)
@@ -270,7 +274,7 @@ class FastLUT(_Base):
         run_split(lambda a, b: _lut_kernel(planes, self.dark, self.ref, self.lo, self.width, self.bins, self.filled,
                                            self.support, self.table, self.coef, self.phi, self.apply_tilt, self.gain,
                                            self.limit, dg, do, a, b, normals, mask, conf), M, threads)
-        return self._result(normals, mask, conf, self._meta("lut"))
+        return self._result(normals, mask, conf, self._meta("lut", drift))
 
 
 # Eigen's float tanh (generic_fast_tanh_float): a (13, 6) rational approximation on [-7.9, 7.9],
@@ -526,21 +530,25 @@ class FastMLP(_Base):
 
     def outputs(self, frames, threads: int = 1) -> np.ndarray:
         """Raw network outputs ``(members, H * W, 2)`` float32 of one frame set ``(P, H, W, C)``."""
+        return self._outputs(frames, threads)[0]
+
+    def _outputs(self, frames, threads: int = 1):
         f = self._check(frames)
         planes = frame_planes_np(f)
-        dg, do = self._drift_planes(f)
+        dg, do, drift = self._drift_planes(f)
         M = self.shape[0] * self.shape[1]
         outs = np.empty((len(self.members), 2, M), np.float32)  # planes: contiguous stores
         for m, (fixed, Wd, Wh, bh, Wo, bo) in enumerate(self.members):
             o = outs[m]
             run_split(lambda a, b: _mlp_kernel(planes, self.dark, self.ref, self.inv_scale, fixed, Wd, Wh, bh, Wo, bo,
                                                dg, do, a, b, o), M, threads)
-        return outs.transpose(0, 2, 1)
+        return outs.transpose(0, 2, 1), drift
 
     def solve(self, frames, threads: int = 1):
         """Normals, mask and confidence of one frame set ``(P, H, W, C)`` (integer); as
         ``MLPModel._predict_features`` then the output correction."""
-        outs = np.ascontiguousarray(self.outputs(frames, threads).transpose(0, 2, 1))  # (members, 2, M): no copy
+        raw, drift = self._outputs(frames, threads)
+        outs = np.ascontiguousarray(raw.transpose(0, 2, 1))  # (members, 2, M): no copy
         H, W = self.shape
         M = H * W
         planes = np.empty((3, M), np.float32)
@@ -549,4 +557,4 @@ class FastMLP(_Base):
         run_split(lambda a, b: _mlp_finish(outs, self.apply_tilt, self.gain, self.limit, a, b, planes, mask, conf),
                   M, threads)
         # (M, 3) view of the planes (FastDST reads them back without a split).
-        return self._result(planes.T, mask, conf, self._meta("mlp"))
+        return self._result(planes.T, mask, conf, self._meta("mlp", drift))

@@ -130,7 +130,9 @@ def fast_mlp(lights, prep, *, reference=None, **_):
 
 
 def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=None, dark=None, markers=None,
-                 max_condition: float = 1e3, region=None, fast: bool = True, drift: str = "auto") -> Any:
+                 max_condition: float = 1e3, region=None, fast: bool = True, drift: str = "auto",
+                 drift_samples: int | None = None, drift_every: int | None = None, raw_dtype=None,
+                 bit_depth: int | None = None, name: str = "live", **eager) -> Any:
     """The per-frame solver of ``solver`` for frames of ``shape`` (H, W).
 
     Parameters
@@ -160,6 +162,16 @@ def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=Non
         fitted on :data:`pipeline.normals.drift.LIVE_SAMPLES` pixels of every
         :data:`~pipeline.normals.drift.LIVE_REFIT_EVERY`-th frame (fast and eager alike;
         ``reset_drift()`` fits the next frame).
+    drift_samples, drift_every : int, optional
+        Instead of the live defaults: a recording's frames are separate presses, each fitted
+        on :data:`pipeline.normals.drift.SAMPLES` pixels (what the normals stage does), so the
+        fast and the eager paths give the same numbers.
+    raw_dtype, bit_depth, name
+        The frames' integer type and bit depth (the eager path flags values at full scale as
+        saturated, as the normals stage does) and their name in messages.
+    **eager
+        ``ratio``, ``device``, ``dtype``, ``compile`` of :class:`pipeline.normals.solve.FrameSolver`:
+        any but their defaults (no ratio, the CPU, float32) takes the eager path.
 
     Returns
     -------
@@ -168,13 +180,18 @@ def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=Non
     from pipeline.normals.drift import LIVE_REFIT_EVERY, LIVE_SAMPLES
     from pipeline.normals.solve import FrameSolver
 
-    prep = FrameSolver.prep_for(solver, shape, dark=dark, markers=markers, region=region, name="live", drift=drift,
-                                drift_samples=LIVE_SAMPLES, drift_every=LIVE_REFIT_EVERY)
+    prep = FrameSolver.prep_for(solver, shape, raw_dtype=raw_dtype, bit_depth=bit_depth, dark=dark, markers=markers,
+                                region=region, name=name, drift=drift,
+                                drift_samples=LIVE_SAMPLES if drift_samples is None else int(drift_samples),
+                                drift_every=LIVE_REFIT_EVERY if drift_every is None else int(drift_every))
     keys = bool(SOLVERS.get(solver).info.get("keys_on_reference"))
     fast_drift = drift in ("auto", "none") or (keys and drift in ("offset", "gain_offset"))
-    build = SOLVERS.fast(solver) if fast and markers is None and fast_drift else None
+    plain = (not eager.get("ratio") and str(eager.get("device", "cpu")) == "cpu"
+             and str(eager.get("dtype", "float32")) == "float32" and not eager.get("compile")
+             and (raw_dtype is None or np.dtype(raw_dtype).kind in "ui"))
+    build = SOLVERS.fast(solver) if fast and markers is None and fast_drift and plain else None
     if build is not None:
         out = build(lights, prep, channels=channels, reference=reference, max_condition=max_condition)
         out.method = "fast"
         return out
-    return FrameSolver(solver, lights, prep, reference=reference, max_condition=max_condition)
+    return FrameSolver(solver, lights, prep, reference=reference, max_condition=max_condition, **eager)

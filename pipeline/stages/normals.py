@@ -54,14 +54,15 @@ from pipeline.normals.lights import LightSource
 from pipeline.stages.base import StageSpec, record_key
 
 __all__ = ["SPEC", "load_lights", "capture_lights", "capture_region", "reference_frames", "marker_mask", "params",
-           "check_drift", "resolve", "compute", "run", "node"]
+           "key_params", "check_drift", "resolve", "compute", "run", "node"]
 
 # 2: only the capture's (or user's) mask is solved; 3: the lut solver applies the calibrated model
 # (per-bin position correction, tilt gain), markers are filled in, confidence and filled are written;
 # 4: illumination drift against the reference removed first (``drift``, default ``auto``).
-SPEC = StageSpec("normals", version=4, schema="normals",
+# 5: what is written is a choice (``save``, ``precision``: :mod:`pipeline.frame_pipeline.outputs`).
+SPEC = StageSpec("normals", version=5, schema="normals",
                  defaults={"solver": "lstsq", "ratio": False, "max_condition": 1e3, "dtype": "float32",
-                           "drift": "auto"})
+                           "drift": "auto", "save": ["confidence"], "precision": "single"})
 
 
 def _check_shape(arr, want: tuple, path, name: str) -> np.ndarray:
@@ -259,7 +260,8 @@ def reference_frames(cap) -> np.ndarray | None:
 
 def params(section: Mapping[str, Any]) -> dict:
     """The key parameters of a normals section: ``solver``, ``ratio``, ``max_condition``,
-    ``dtype``, ``drift`` (defaults :data:`SPEC`'s) and ``lights`` (``calibration``, ``illumination`` or
+    ``dtype``, ``drift``, what is written (``save``, ``precision``: :meth:`pipeline.frame_pipeline.outputs.OutputSpec.key_params`;
+    defaults :data:`SPEC`'s) and ``lights`` (``calibration``, ``illumination`` or
     ``capture``); ``mask``, a user's region (the capture's own is part of the capture's
     identity), enters as its digest, and so does the marker mask filled in (``markers``,
     :func:`marker_mask`).
@@ -271,7 +273,8 @@ def params(section: Mapping[str, Any]) -> dict:
     """
     s = {**SPEC.defaults, **section}
     p = {"solver": SOLVERS.check(s["solver"]), "ratio": bool(s["ratio"]), "max_condition": float(s["max_condition"]),
-         "dtype": str(s["dtype"]), "lights": str(s["lights"]), "drift": check_drift(s["drift"])}
+         "dtype": str(s["dtype"]), "lights": str(s["lights"]), "drift": check_drift(s["drift"]),
+         "save": sorted(str(x) for x in s["save"]), "precision": str(s["precision"])}
     for name in ("mask", "markers"):
         if s.get(name) is not None:
             from pipeline.base.hashing import digest
@@ -292,7 +295,7 @@ def _stack(results, name: str) -> np.ndarray:
 
 def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3,
             device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False, mask=None, markers=None,
-            batched: bool | None = None, drift: str = "auto"):
+            batched: bool | None = None, drift: str = "auto", outputs=None):
     """The ``normals`` :class:`~pipeline.base.store.Record` of a capture (no caching).
 
     Parameters
@@ -329,6 +332,8 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         the capture's, else the model's), ``none``, or a model of
         :data:`pipeline.normals.drift.DRIFT_MODELS`. The batch and GPU paths take no drift: with
         one asked for by name the eager path runs.
+    outputs : OutputSpec, optional
+        What is written (:class:`pipeline.frame_pipeline.outputs.OutputSpec`; default its defaults).
 
     Returns
     -------
@@ -346,21 +351,38 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         batched = str(device) != "cpu"
     if (batched and solver == "nearfield" and not ratio and region is None and markers is None
             and lights.field is not None and str(dtype) == "float32" and plain):
-        return _compute_batched(cap, lights, max_condition=max_condition, device=device)
+        return _select(_compute_batched(cap, lights, max_condition=max_condition, device=device), outputs)
     if (threads != 1 and str(device) == "cpu" and str(dtype) == "float32" and not ratio and markers is None
             and plain):
         res = _solve_fast_batch(cap, lights, solver=solver, max_condition=max_condition, region=region,
                                 threads=threads)
         if res is not None:
-            return _record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, region=region,
-                           markers=None)
+            return _select(_record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition,
+                                   region=region, markers=None), outputs)
     prep = FrameSolver.prep_for(solver, raw.shape[2:4], raw_dtype=raw.dtype, bit_depth=cap.meta.get("bit_depth"),
                                 dark=cap.data.get("dark"), markers=markers, region=region,
                                 name=str(cap.path or "capture"), drift=drift)
     res = FrameSolver(solver, lights, prep, reference=reference, ratio=ratio, max_condition=max_condition,
                       device=device, dtype=dtype, compile=compile).solve_stack(raw, threads)
-    return _record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, region=region,
-                   markers=prep.markers)
+    return _select(_record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, region=region,
+                           markers=prep.markers), outputs)
+
+
+def _select(rec, outputs):
+    """``rec`` with only the datasets ``outputs`` chooses, in its precision."""
+    from pipeline.frame_pipeline.outputs import NORMAL_EXTRAS, OutputSpec
+
+    spec = outputs or OutputSpec()
+    d = rec.data
+    for name in NORMAL_EXTRAS:
+        if name not in spec.normal_extras:
+            d.pop(name, None)
+    if not spec.confidence:
+        d.pop("confidence", None)
+    d["normals"] = np.asarray(d["normals"]).astype(spec.normals_dtype, copy=False)
+    if "confidence" in d:
+        d["confidence"] = np.asarray(d["confidence"]).astype(spec.normals_dtype, copy=False)
+    return rec
 
 
 def _record(res: list, cap, lights: LightSource, *, solver: str, ratio: bool, max_condition: float, region,
@@ -435,18 +457,31 @@ def _compute_batched(cap, lights: LightSource, *, max_condition: float, device):
     return Record("normals", data, meta)
 
 
+def key_params(lights: LightSource, *, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3,
+               dtype="float32", mask=None, markers=None, drift: str = "auto", outputs=None) -> dict:
+    """The key parameters of the normals of a capture (:func:`params` of the section these
+    arguments make): what :func:`run` and the streamed reconstruction (:mod:`pipeline.stream`) key on."""
+    from pipeline.frame_pipeline.outputs import OutputSpec
+
+    return params({"solver": solver, "ratio": ratio, "max_condition": max_condition, "dtype": dtype,
+                   "lights": lights.source.split(":")[0], "mask": mask, "markers": markers, "drift": drift,
+                   **(outputs or OutputSpec()).key_params()})
+
+
 def run(store, cap, cap_key, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False,
         max_condition: float = 1e3, device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False,
-        force: bool = False, heal: bool = True, mask=None, markers=None, drift: str = "auto"):
+        force: bool = False, heal: bool = True, mask=None, markers=None, drift: str = "auto", outputs=None):
     """``(record, key, cached)`` of the normals of ``cap`` (identified by ``cap_key``) through
     ``store``; ``mask``: a user's region (an array, see :func:`capture_region`) instead of the
-    capture's; ``markers``: the marker mask to fill in (:func:`marker_mask`); ``drift``: as :func:`compute`."""
-    p = params({"solver": solver, "ratio": ratio, "max_condition": max_condition, "dtype": dtype,
-                "lights": lights.source.split(":")[0], "mask": mask, "markers": markers, "drift": drift})
+    capture's; ``markers``: the marker mask to fill in (:func:`marker_mask`); ``drift``,
+    ``outputs``: as :func:`compute`."""
+    p = key_params(lights, solver=solver, ratio=ratio, max_condition=max_condition, dtype=dtype, mask=mask,
+                   markers=markers, drift=drift, outputs=outputs)
     return SPEC.get_or_compute(
         store, p, [cap_key, lights.key],
         lambda: compute(cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, device=device,
-                        dtype=dtype, threads=threads, compile=compile, mask=mask, markers=markers, drift=drift),
+                        dtype=dtype, threads=threads, compile=compile, mask=mask, markers=markers, drift=drift,
+                        outputs=outputs),
         force=force, heal=heal)
 
 
