@@ -110,7 +110,7 @@ def register(group):
     add_json_flag(p)
     p.set_defaults(func=_optimize)
 
-    p = group.add_parser("synthesize", help="stage 2: trace a scene into illumination.h5 (cached in the store)",
+    p = group.add_parser("synthesize", help="stage 1: trace a scene into illumination.h5 (cached in the store)",
                          description="Trace every LED onto the camera pixel grid and write the illumination model "
                                      "(per-LED V, per-pattern light matrices) through the stage store.")
     p.add_argument("scene")

@@ -1,4 +1,4 @@
-"""Stage 1, calibrate: light models fitted to a sphere-indentation capture (``calibration.h5``).
+"""Stage 2, calibrate: light models fitted to a sphere-indentation capture (``calibration.h5``).
 
 :func:`calibration.calibrate.calibrate` on a sphere capture: a file (its content hash is
 the stage's input), or one rendered from the synthesized illumination (the synthesize
