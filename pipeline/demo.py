@@ -95,7 +95,7 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
         Receives the progress lines instead of stderr.
     scene : str or path
         The virtual sensor's optics (a shipped scene's name or a scene file), e.g.
-        ``"default-v1"`` for the lens before issue 16.
+        ``"default-v1"`` for the lens before the optimized one.
 
     Returns
     -------
