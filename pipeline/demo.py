@@ -141,7 +141,7 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
                              seed=11)
     write_capture(out / "calibration_capture.h5", Record(cal_cap.schema, cal_cap.data, cal_cap.meta))
     # Centre refinement votes with the traced model (refine_model="auto" with an illumination
-    # model): on the quick demo with the pre-issue-16 lens (scene default-v1) traced CV 0.69 deg
+    # model): on the quick demo with the previous default lens (scene default-v1) traced CV 0.69 deg
     # refined vs 1.01 deg unrefined; the polynomial near field (15 deg there: it cannot follow that
     # lens's sharp LED footprints) made it 2.9 deg. With the current default: traced 0.18 deg.
     cal, _, cal_cached = calibrate_stage.run(store, cal_cap, ball_radius_mm=settings.ball_radius_mm,
