@@ -28,7 +28,7 @@ __all__ = ["BALL_GAIN_PRESSES", "BALL_GAIN_RANGE", "MIN_BALL_FITS", "OutOfFoldBa
 #: Held-out presses reconstructed per calibration (spread over the folds). The per-press fitted
 #: radius scatters by about 6 % (DIGIT), so the gain carries a few per cent of noise either way:
 #: with 20 presses the DIGIT test presses' ball fit went from 10.4 to 7.3 % and the shared
-#: GelSight frames' from 2.3-2.7 to 2.8-3.8 % (three MLP seeds; issue 13's bound there is 3 %).
+#: GelSight frames' from 2.3-2.7 to 2.8-3.8 % (three MLP seeds; the fixed-split bound there is 3 %).
 BALL_GAIN_PRESSES = 10
 #: A ball-derived gain outside this range is not applied (the models and the ball disagree too
 #: much for a scale to mend; the quality gate says so).

@@ -106,7 +106,7 @@ class DetectOptions:
     #: the image position), and ``calibrate --drift`` any. Measured on six splits of the real
     #: presses (docs/calibration.md, "Drift"): ``field`` holds the DIGIT's fitted ball radius
     #: within 5 % on five of six (``gain_offset``: two), but the shared GelSight's fixed split,
-    #: which issue 13's 3 % bound is set on, goes from 2.3 to 4.8 %.
+    #: which the fixed-split targets' 3 % bound is set on, goes from 2.3 to 4.8 %.
     drift: str = "gain_offset"
     drift_degree: int = 2
     stripes: bool = False

@@ -224,6 +224,48 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         ``fitted`` (presses with a radius), ``per_press``).
     """
     from calibration.calibrate import find_circles
+
+    loaded, meta = _calibration_models(calibration, models)
+    cap = read_capture(test_capture) if not isinstance(test_capture, Capture) else test_capture
+    src = str(test_capture) if not isinstance(test_capture, Capture) else "test capture"
+    radius, mm = _test_scale(cap, src, meta, ball_radius_mm, mm_per_px)
+    _check_compatible(loaded, cap, src)
+    if markers is None and cap.markers is None:
+        markers = meta.get("markers")
+    cs = meta.get("circle_settings") or {}
+    if detect_options is None and "circle_settings" in meta:
+        # The test presses lose the drift the calibration's presses lost: a model fitted to
+        # field-corrected contrasts is judged on field-corrected contrasts.
+        detect_options = recorded_drift(cs)
+    refine_iterations = TEST_TRUTH["refine_iterations"] if refine_iterations is None else int(refine_iterations)
+    refine_model = "auto" if refine_model is None else refine_model
+    shrink_px = TEST_TRUTH["shrink_px"] if shrink_px is None else float(shrink_px)
+    folds = TEST_TRUTH["folds"] if folds is None else int(folds)
+    found = circles if circles is not None else find_circles(
+        cap, radius, mm, refine_iterations=refine_iterations, refine_model=refine_model, shrink_px=shrink_px,
+        folds=folds, markers=markers, strict=False, detect_options=detect_options)
+    detected = int(sum(c.accepted for c in found.circles))
+    # With no test press detected the label truth (when there is one) and the ball fit, which
+    # needs no circle, still judge the calibration.
+    det = evaluate_models(loaded, found.samples)
+    truth: dict[str, Any] = {"detected": _detected_truth(found, shrink_px, detected, has_labels(cap))}
+    if has_labels(cap):
+        truth["labels"] = _label_truth(loaded, cap, found, radius, shrink_px, src)
+    _add_cv_gaps(det, meta, truth, cs.get("circles", "detected"))
+    depths, depth_method = _press_depths(cap, found.circles, radius, found.mm_per_px)
+    fits = _ball_fits(loaded, found, radius, depths, ball_level)
+    for v in fits.values():
+        v["depth_truth"] = depth_method
+    for name, stats in det.items():
+        stats["problems"] = _model_problems((meta.get("validation") or {}).get(name), stats, fits[name])
+        stats["usable"] = not stats["problems"]
+    return {"presses": int(len(found.circles)), "accepted": detected,
+            "models": det, "truth": truth, "ball_fit": fits}
+
+
+def _calibration_models(calibration, models: list[str] | None) -> tuple[dict[str, Any], dict[str, Any]]:
+    """``(name -> model, meta)`` of a calibration file, a ``CalibrationResult`` or a dict of
+    models (``meta`` empty), keeping only ``models`` when given."""
     from calibration.stored import load_calibration
 
     meta: dict[str, Any] = {}
@@ -246,8 +288,12 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         loaded = {m: loaded[m] for m in models}
     if not loaded:
         raise UserError(f"{calibration}: the calibration holds no fitted model")
-    cap = read_capture(test_capture) if not isinstance(test_capture, Capture) else test_capture
-    src = str(test_capture) if not isinstance(test_capture, Capture) else "test capture"
+    return loaded, meta
+
+
+def _test_scale(cap: Capture, src: str, meta: dict[str, Any], ball_radius_mm, mm_per_px):
+    """``(ball radius mm, mm per pixel)`` of the test presses: given, else recorded; a UserError
+    without a radius or with another scale than the calibration's."""
     radius = ball_radius_mm or meta.get("ball_radius_mm") or cap.meta.get("ball_radius_mm")
     if not radius or not radius > 0:
         raise UserError(f"{src}: no ball radius (give --ball-radius MM; neither the calibration nor the capture "
@@ -257,50 +303,46 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
     if cal_mm and mm and abs(float(cal_mm) / float(mm) - 1) > 1e-6:
         raise UserError(f"{src}: mm_per_px {mm} differs from the calibration's {cal_mm}; a calibration holds for "
                         "the sensor (and image size) it was made with")
-    _check_compatible(loaded, cap, src)
-    if markers is None and cap.markers is None:
-        markers = meta.get("markers")
-    cs = meta.get("circle_settings") or {}
-    if detect_options is None and "circle_settings" in meta:
-        # The test presses lose the drift the calibration's presses lost: a model fitted to
-        # field-corrected contrasts is judged on field-corrected contrasts.
-        detect_options = recorded_drift(cs)
-    refine_iterations = TEST_TRUTH["refine_iterations"] if refine_iterations is None else int(refine_iterations)
-    refine_model = "auto" if refine_model is None else refine_model
-    shrink_px = TEST_TRUTH["shrink_px"] if shrink_px is None else float(shrink_px)
-    folds = TEST_TRUTH["folds"] if folds is None else int(folds)
-    found = circles if circles is not None else find_circles(
-        cap, float(radius), mm, refine_iterations=refine_iterations, refine_model=refine_model, shrink_px=shrink_px,
-        folds=folds, markers=markers, strict=False, detect_options=detect_options)
-    detected = int(sum(c.accepted for c in found.circles))
-    # With no test press detected the label truth (when there is one) and the ball fit, which
-    # needs no circle, still judge the calibration.
-    det = evaluate_models(loaded, found.samples)
+    return float(radius), mm
+
+
+def _detected_truth(found, shrink_px: float, detected: int, labelled: bool) -> dict[str, Any]:
+    """How the test presses' circles were found, the circles and the drift removed (a note when
+    none was accepted)."""
     refined = found.refine.get("iterations", 0) and found.refine.get("model")
-    truth: dict[str, Any] = {"detected": {
+    out: dict[str, Any] = {
         "method": (f"edge detector + centre refinement voted by a {found.refine['model']} model cross-fitted on the "
                    f"test presses ({found.refine['iterations']} passes)" if refined else
                    "edge detector alone (no light model votes for the centres)") +
                   f", contact radius minus a {shrink_px:g} px margin",
         "circles": [c.to_dict() for c in found.circles],
-        "drift": found.options.drift}}
+        "drift": found.options.drift}
     if not detected:
-        truth["detected"]["note"] = ("the detector accepted no test press: no detected truth; "
-                                     + ("the hand labels" if has_labels(cap) else "only the ball fit") + " judge the "
-                                     "calibration (iristac label TEST_CAPTURE.h5 draws labels)")
-    if has_labels(cap):
-        circles = capture_label_circles(cap, float(radius) / found.mm_per_px, src)
-        lab_samples = collect_samples(found.frames, found.reference, circles, float(radius), found.mm_per_px,
-                                      shrink_px=shrink_px, saturation=found.saturation, exclude=found.markers)
-        offsets = np.array([c.center_xy for c in found.circles]) - np.asarray(cap.labels["center_xy"], float)
-        acc = np.array([c.accepted for c in found.circles])
-        truth["labels"] = {"method": "hand labels labels/center_xy, labels/radius_px (contact radius clamped to "
-                                     "0.95 x ball)",
-                           "center_offset_px_median": np.median(offsets[acc], axis=0).tolist() if acc.any() else None,
-                           "models": evaluate_models(loaded, lab_samples)}
+        out["note"] = ("the detector accepted no test press: no detected truth; "
+                       + ("the hand labels" if labelled else "only the ball fit") + " judge the "
+                       "calibration (iristac label TEST_CAPTURE.h5 draws labels)")
+    return out
+
+
+def _label_truth(loaded: dict[str, Any], cap: Capture, found, radius: float, shrink_px: float,
+                 src: str) -> dict[str, Any]:
+    """Every model against the test capture's hand labels, and the detector's median offset from them."""
+    circles = capture_label_circles(cap, radius / found.mm_per_px, src)
+    lab_samples = collect_samples(found.frames, found.reference, circles, radius, found.mm_per_px,
+                                  shrink_px=shrink_px, saturation=found.saturation, exclude=found.markers)
+    offsets = np.array([c.center_xy for c in found.circles]) - np.asarray(cap.labels["center_xy"], float)
+    acc = np.array([c.accepted for c in found.circles])
+    return {"method": "hand labels labels/center_xy, labels/radius_px (contact radius clamped to "
+                      "0.95 x ball)",
+            "center_offset_px_median": np.median(offsets[acc], axis=0).tolist() if acc.any() else None,
+            "models": evaluate_models(loaded, lab_samples)}
+
+
+def _add_cv_gaps(det: dict[str, Any], meta: dict[str, Any], truth: dict[str, Any], cv_truth: str) -> None:
+    """Each model's CV error from the calibration beside its test error, the gap, and a note when
+    the gap exceeds :data:`CV_GAP_WARN_DEG` (in place)."""
     cv = {k: (v.get("cv") or {}).get("cv_mean_angular_error_deg")
           for k, v in (meta.get("validation") or {}).items() if isinstance(v, dict)}
-    cv_truth = cs.get("circles", "detected")
     for name, stats in det.items():
         c = cv.get(name)
         # CV and test compared on the same kind of truth: a calibration fitted to hand labels
@@ -314,15 +356,6 @@ def evaluate_calibration(calibration, test_capture, ball_radius_mm: float | None
         stats["note"] = (f"test error {test:.2f} deg differs from the CV error {c:.2f} deg by more than "
                          f"{CV_GAP_WARN_DEG:g} deg ({cv_truth} truth): the CV figure does not describe new presses"
                          if gap is not None and abs(gap) > CV_GAP_WARN_DEG else None)
-    depths, depth_method = _press_depths(cap, found.circles, float(radius), found.mm_per_px)
-    fits = _ball_fits(loaded, found, float(radius), depths, ball_level)
-    for v in fits.values():
-        v["depth_truth"] = depth_method
-    for name, stats in det.items():
-        stats["problems"] = _model_problems((meta.get("validation") or {}).get(name), stats, fits[name])
-        stats["usable"] = not stats["problems"]
-    return {"presses": int(len(found.circles)), "accepted": detected,
-            "models": det, "truth": truth, "ball_fit": fits}
 
 
 def _model_problems(report: dict[str, Any] | None, stats: dict[str, Any], ball: dict[str, Any]) -> list[str]:

@@ -383,42 +383,17 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         distance to the median frame), ``next_closest_distance``, ``labels``, ``markers`` (pixels), ``mm_per_px``,
         ``ball_radius_mm``.
     """
-    from pipeline.capture.sensor_profiles import load_profile, profiles_of_size
-
     src = Path(source)
     say = log or (lambda message: None)
-    prof = None
-    if profile is not None:
-        prof = load_profile(profile)
-        mm_per_px = prof.mm_per_px if mm_per_px is None else mm_per_px
-        ball_radius_mm = prof.ball_radius_mm if ball_radius_mm is None else ball_radius_mm
-    if mm_per_px is None or not (np.isfinite(mm_per_px) and mm_per_px > 0):
-        raise UserError(f"{src}: give the pixel pitch with --mm-per-px (a positive number of mm per pixel; got "
-                        f"{mm_per_px})")
-    if ball_radius_mm is not None and not (np.isfinite(ball_radius_mm) and ball_radius_mm > 0):
-        raise UserError(f"{src}: --ball-radius must be a positive radius in mm, got {ball_radius_mm}")
+    prof, mm_per_px, ball_radius_mm = _import_scale(src, profile, mm_per_px, ball_radius_mm)
     names, frames, pattern_names, kind = _source_frames(src, pattern)
     if len(names) < 2:
         raise UserError(f"{src}: only {len(names)} frame(s); a capture needs a reference and at least one press")
     if prof is not None:
         frames = prof.fit_frames(frames, str(src))
-    built = None
-    ref_i, dist = _reference_index(src, names, frames, reference)
-    if ref_i is None:
-        if ball_radius_mm is None:
-            raise UserError(f"{src}: no frame is clearly free of contact (closest to the median of all frames: "
-                            f"{'-' if dist is None else f'{np.min(dist):.1f}'}, next "
-                            f"{'-' if dist is None else f'{np.sort(dist)[1]:.1f}'}); name it with --reference NAME, "
-                            "or give --ball-radius to build a reference from the presses (--reference build)")
-        say(f"{src}: no clean frame found; building the reference from the {len(names)} presses")
-        built = _built_reference(frames, ball_radius_mm / mm_per_px)
+    ref_i, dist, built, comparison = _choose_reference(src, names, frames, reference, ball_radius_mm, mm_per_px, say)
     keep = [i for i in range(len(names)) if i != ref_i]
     press_names = [names[i] for i in keep]
-    comparison = None
-    if reference is None and ref_i is not None and ball_radius_mm is not None:
-        say(f"{src}: comparing the no-contact frame {names[ref_i]} with references built from the "
-            f"{len(keep)} presses (--reference {Path(names[ref_i]).stem} skips this)")
-        built, comparison = _prefer_built(frames[keep], frames[ref_i], ball_radius_mm / mm_per_px, names[ref_i])
     found = names[ref_i] if ref_i is not None else None
     ref = frames[ref_i] if built is None else built[0]
     mask = None
@@ -449,20 +424,74 @@ def load_images(source: str | Path, *, reference: str | None = None, pattern: st
         meta["markers_source"] = str(markers)
     cap = Capture(frames=np.ascontiguousarray(frames[keep]), reference=np.ascontiguousarray(ref), drive=drive,
                   brightness=np.ones(p, np.float32), mm_per_px=float(mm_per_px), labels=lab, meta=meta, markers=mask)
-    others = None if dist is None else np.sort(np.delete(dist, ref_i) if ref_i is not None else dist)
-    report = {"source": str(src), "presses": len(keep), "patterns": int(p), "shape": [int(frames.shape[2]),
-                                                                                        int(frames.shape[3])],
-              "channels": int(c), "dtype": str(frames.dtype), "bit_depth": _BIT_DEPTH[frames.dtype],
-              "reference": found if built is None else "built", "reference_auto": reference is None,
-              "reference_built": None if built is None else built[1], "reference_found": found,
-              "reference_comparison": comparison,
-              "reference_distance": None if dist is None or ref_i is None else float(dist[ref_i]),
-              "next_closest_distance": None if others is None or not len(others) else float(others[0]),
-              "labels": lab is not None, "markers": 0 if mask is None else int(mask.sum()),
-              "mm_per_px": float(mm_per_px), "ball_radius_mm": ball_radius_mm,
-              "profile": None if prof is None else prof.name,
-              "matching_profiles": [] if prof is not None else profiles_of_size(frames.shape[3], frames.shape[2])}
+    report = _import_report(src, frames, keep, found, built, comparison, dist, ref_i, reference, lab, mask,
+                            mm_per_px, ball_radius_mm, prof)
     return cap, report
+
+
+def _import_report(src: Path, frames: np.ndarray, keep: list[int], found, built, comparison, dist, ref_i,
+                   reference, lab, mask, mm_per_px: float, ball_radius_mm: float | None, prof) -> dict[str, Any]:
+    """:func:`load_images`'s report: what was read, which reference was taken and how, and the
+    shipped sensor profiles of the frames' size (when none was given)."""
+    from pipeline.capture.sensor_profiles import profiles_of_size
+
+    p, c = frames.shape[1], frames.shape[-1]
+    others = None if dist is None else np.sort(np.delete(dist, ref_i) if ref_i is not None else dist)
+    return {"source": str(src), "presses": len(keep), "patterns": int(p),
+            "shape": [int(frames.shape[2]), int(frames.shape[3])],
+            "channels": int(c), "dtype": str(frames.dtype), "bit_depth": _BIT_DEPTH[frames.dtype],
+            "reference": found if built is None else "built", "reference_auto": reference is None,
+            "reference_built": None if built is None else built[1], "reference_found": found,
+            "reference_comparison": comparison,
+            "reference_distance": None if dist is None or ref_i is None else float(dist[ref_i]),
+            "next_closest_distance": None if others is None or not len(others) else float(others[0]),
+            "labels": lab is not None, "markers": 0 if mask is None else int(mask.sum()),
+            "mm_per_px": float(mm_per_px), "ball_radius_mm": ball_radius_mm,
+            "profile": None if prof is None else prof.name,
+            "matching_profiles": [] if prof is not None else profiles_of_size(frames.shape[3], frames.shape[2])}
+
+
+def _import_scale(src: Path, profile, mm_per_px: float | None, ball_radius_mm: float | None):
+    """``(profile or None, mm_per_px, ball_radius_mm)``: those given, else the sensor profile's;
+    a UserError without a positive pixel pitch or with a radius that is not positive."""
+    from pipeline.capture.sensor_profiles import load_profile
+
+    prof = None
+    if profile is not None:
+        prof = load_profile(profile)
+        mm_per_px = prof.mm_per_px if mm_per_px is None else mm_per_px
+        ball_radius_mm = prof.ball_radius_mm if ball_radius_mm is None else ball_radius_mm
+    if mm_per_px is None or not (np.isfinite(mm_per_px) and mm_per_px > 0):
+        raise UserError(f"{src}: give the pixel pitch with --mm-per-px (a positive number of mm per pixel; got "
+                        f"{mm_per_px})")
+    if ball_radius_mm is not None and not (np.isfinite(ball_radius_mm) and ball_radius_mm > 0):
+        raise UserError(f"{src}: --ball-radius must be a positive radius in mm, got {ball_radius_mm}")
+    return prof, mm_per_px, ball_radius_mm
+
+
+def _choose_reference(src: Path, names: list[str], frames: np.ndarray, reference: str | None,
+                      ball_radius_mm: float | None, mm_per_px: float, say: Callable[[str], None]):
+    """``(ref_i, dist, built, comparison)``: the no-contact frame's index (None when none is
+    clean or ``build`` is asked for) and every frame's distance to the median frame
+    (:func:`_reference_index`); the reference built from the presses (with its report) where
+    there is no clean frame, or where, found automatically, a built one matches the presses
+    clearly better (``comparison``: :func:`calibration.reference.compare_with_built`'s result)."""
+    built, comparison = None, None
+    ref_i, dist = _reference_index(src, names, frames, reference)
+    if ref_i is None:
+        if ball_radius_mm is None:
+            raise UserError(f"{src}: no frame is clearly free of contact (closest to the median of all frames: "
+                            f"{'-' if dist is None else f'{np.min(dist):.1f}'}, next "
+                            f"{'-' if dist is None else f'{np.sort(dist)[1]:.1f}'}); name it with --reference NAME, "
+                            "or give --ball-radius to build a reference from the presses (--reference build)")
+        say(f"{src}: no clean frame found; building the reference from the {len(names)} presses")
+        built = _built_reference(frames, ball_radius_mm / mm_per_px)
+    if reference is None and ref_i is not None and ball_radius_mm is not None:
+        keep = [i for i in range(len(names)) if i != ref_i]
+        say(f"{src}: comparing the no-contact frame {names[ref_i]} with references built from the "
+            f"{len(keep)} presses (--reference {Path(names[ref_i]).stem} skips this)")
+        built, comparison = _prefer_built(frames[keep], frames[ref_i], ball_radius_mm / mm_per_px, names[ref_i])
+    return ref_i, dist, built, comparison
 
 
 def import_images(source: str | Path, out: str | Path, **kwargs) -> dict[str, Any]:

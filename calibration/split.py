@@ -7,7 +7,7 @@ frames (30 presses) the split is fixed: presses 0-19 calibrate, 20-29 test
 the CV on the training presses; the test figures are reported afterwards, never tuned on.
 :func:`split_evaluation` is what ``iristac bench calibration`` and the tests run;
 :func:`four_way` runs it twice, calibrated on the detected circles and on the hand labels,
-each judged against both truths, and :func:`split_targets` says which of issue 13's
+each judged against both truths, and :func:`split_targets` says which of the fixed-split
 targets hold, in which setting.
 """
 
@@ -36,7 +36,7 @@ ROTATIONS = ("20-29", "0-9", "10-19", "every 3rd from 0", "every 3rd from 1", "e
 #: The two ways of calibrating that :func:`four_way` compares: the circles the models are fitted to.
 SETTINGS = ("detected", "labels")
 
-#: Issue 13's targets on the test presses: (key, what, row field, bound). The best model by CV
+#: The fixed-split targets on the test presses: (key, what, row field, bound). The best model by CV
 #: of a setting must reach the bound; the CV-vs-test gap target is checked separately.
 TARGETS = (("test_detected", "test <= 7 deg, detected truth", "test_mean_deg", 7.0),
            ("test_labels", "test <= 9 deg, hand labels", "labels_mean_deg", 9.0),
@@ -202,7 +202,7 @@ def four_way(capture: Capture, ball_radius_mm: float, models="all", *, train=TRA
 
 
 def split_targets(four: dict[str, Any], default: str = "detected") -> list[dict[str, Any]]:
-    """Issue 13's targets against :func:`four_way`'s result: met or not, and in which setting.
+    """The fixed-split targets (:data:`TARGETS`) against :func:`four_way`'s result: met or not, and in which setting.
 
     For each target of :data:`TARGETS`: the best model by CV of every setting, its value, and
     ``met`` when any setting reaches the bound (``met_in``: those settings); ``default``: the

@@ -179,55 +179,80 @@ def contact_mask(frames=None, reference=None, height=None, *, color_threshold: f
     >>> bool(contact_mask(frame, ref)[1, 1]), bool(contact_mask(height=h)[20, 20])   # one cue alone
     (True, True)
     """
-    from scipy import ndimage
-
     if (frames is None) != (reference is None):
         raise ValueError("contact_mask: give frames and reference together (or neither)")
     if frames is None and height is None:
         raise ValueError("contact_mask: needs frames and a reference, a height map, or both")
-    color = None
+    color = change = evidence = None
     if frames is not None:
-        change = color_change(frames, reference, drift=drift, estimator=estimator)
-        if blur_px > 0:
-            change = ndimage.gaussian_filter(change, blur_px, mode="nearest")
-        sample = change[::2, ::2]  # noise statistics from every other pixel: as good, 4x cheaper
-        med = float(np.median(sample))
-        sigma = 1.4826 * float(np.median(np.abs(sample - med)))
-        floor = min_change * (reference_level if reference_level is not None else contact_reference_level(reference))
-        if color_threshold is None:
-            peak = float(np.percentile(sample, 99.9))
-            color_threshold = max(med + noise_sigmas * sigma, floor, med + peak_fraction * (peak - med)) + 1e-6
-        evidence = max(med + 0.5 * noise_sigmas * sigma, 0.5 * floor)
-        color = _close_and_fill(change > color_threshold, close_px)
+        color, change, evidence = _color_touch(frames, reference, color_threshold, noise_sigmas, min_change,
+                                               peak_fraction, blur_px, close_px, drift, estimator, reference_level)
     touch = color
     if height is not None:
-        h = np.asarray(height, np.float64)
-        if h.ndim != 2 or (color is not None and h.shape != color.shape):
-            raise ValueError(f"contact_mask: height must be (H, W) like the frames, got {h.shape}")
-        ok = np.isfinite(h) if valid is None else (np.asarray(valid, bool) & np.isfinite(h))
-        outside = ok & (~color if color is not None else np.ones_like(ok))
-        if not outside.any():
-            outside = ok
-        base = float(np.median(h[outside])) if outside.any() else 0.0
-        h = np.where(ok, h - base, 0.0)
-        if height_threshold_mm is None:
-            top = float(h[color].max()) if color is not None and color.any() else float(h.max())
-            height_threshold_mm = max(height_fraction * top, 0.0)
-        raised = ok & (h > height_threshold_mm)
-        if color is None:
-            touch = raised
-        else:
-            # Raised regions the colour confirms (they meet the colour mask, or their mean change
-            # stands out from the noise); within grow_px of them the colour gives the outline,
-            # except where a region has hardly any colour (a faint touch): there the height does.
-            hlab, hn = ndimage.label(raised)
-            idx = np.arange(1, hn + 1)
-            hit = np.asarray(ndimage.mean(color, hlab, idx)) if hn else np.zeros(0)
-            mean = np.asarray(ndimage.mean(change, hlab, idx)) if hn else np.zeros(0)
-            confirmed = np.isin(hlab, idx[(hit > 0) | (mean > evidence)])
-            faint = np.isin(hlab, idx[(hit < 0.3) & (mean > evidence)])
-            near = ndimage.binary_dilation(confirmed, iterations=grow_px) if grow_px > 0 else confirmed
-            touch = (color & near) | faint
+        raised = _raised(height, color, valid, height_threshold_mm, height_fraction)
+        touch = raised if color is None else _confirmed_outline(raised, color, change, evidence, grow_px)
+    return _without_small_regions(touch, min_area_px)
+
+
+def _color_touch(frames, reference, color_threshold, noise_sigmas, min_change, peak_fraction, blur_px, close_px,
+                 drift, estimator, reference_level):
+    """``(colour mask, blurred colour change, evidence level)``: the pixels whose change passes the
+    threshold (given, else from the change's noise, :func:`contact_mask`), closed and filled, and the
+    mean change that confirms a raised region."""
+    from scipy import ndimage
+
+    change = color_change(frames, reference, drift=drift, estimator=estimator)
+    if blur_px > 0:
+        change = ndimage.gaussian_filter(change, blur_px, mode="nearest")
+    sample = change[::2, ::2]  # noise statistics from every other pixel: as good, 4x cheaper
+    med = float(np.median(sample))
+    sigma = 1.4826 * float(np.median(np.abs(sample - med)))
+    floor = min_change * (reference_level if reference_level is not None else contact_reference_level(reference))
+    if color_threshold is None:
+        peak = float(np.percentile(sample, 99.9))
+        color_threshold = max(med + noise_sigmas * sigma, floor, med + peak_fraction * (peak - med)) + 1e-6
+    evidence = max(med + 0.5 * noise_sigmas * sigma, 0.5 * floor)
+    return _close_and_fill(change > color_threshold, close_px), change, evidence
+
+
+def _raised(height, color, valid, height_threshold_mm, height_fraction) -> np.ndarray:
+    """The valid pixels raised above the flat gel (the median height outside the colour mask) by
+    the threshold (given, else ``height_fraction`` of the highest point)."""
+    h = np.asarray(height, np.float64)
+    if h.ndim != 2 or (color is not None and h.shape != color.shape):
+        raise ValueError(f"contact_mask: height must be (H, W) like the frames, got {h.shape}")
+    ok = np.isfinite(h) if valid is None else (np.asarray(valid, bool) & np.isfinite(h))
+    outside = ok & (~color if color is not None else np.ones_like(ok))
+    if not outside.any():
+        outside = ok
+    base = float(np.median(h[outside])) if outside.any() else 0.0
+    h = np.where(ok, h - base, 0.0)
+    if height_threshold_mm is None:
+        top = float(h[color].max()) if color is not None and color.any() else float(h.max())
+        height_threshold_mm = max(height_fraction * top, 0.0)
+    return ok & (h > height_threshold_mm)
+
+
+def _confirmed_outline(raised, color, change, evidence, grow_px) -> np.ndarray:
+    """Raised regions the colour confirms (they meet the colour mask, or their mean change
+    stands out from the noise); within ``grow_px`` of them the colour gives the outline, except
+    where a region has hardly any colour (a faint touch): there the height does."""
+    from scipy import ndimage
+
+    hlab, hn = ndimage.label(raised)
+    idx = np.arange(1, hn + 1)
+    hit = np.asarray(ndimage.mean(color, hlab, idx)) if hn else np.zeros(0)
+    mean = np.asarray(ndimage.mean(change, hlab, idx)) if hn else np.zeros(0)
+    confirmed = np.isin(hlab, idx[(hit > 0) | (mean > evidence)])
+    faint = np.isin(hlab, idx[(hit < 0.3) & (mean > evidence)])
+    near = ndimage.binary_dilation(confirmed, iterations=grow_px) if grow_px > 0 else confirmed
+    return (color & near) | faint
+
+
+def _without_small_regions(touch: np.ndarray, min_area_px: int) -> np.ndarray:
+    """``touch`` without its connected regions smaller than ``min_area_px`` pixels."""
+    from scipy import ndimage
+
     if min_area_px > 1 and touch.any():
         labels, n = ndimage.label(touch)
         sizes = ndimage.sum_labels(touch, labels, index=np.arange(1, n + 1))

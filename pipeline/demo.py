@@ -95,7 +95,7 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
         Receives the progress lines instead of stderr.
     scene : str or path
         The virtual sensor's optics (a shipped scene's name or a scene file), e.g.
-        ``"default-v1"`` for the lens before issue 16.
+        ``"default-v1"`` for the lens before the optimized one.
 
     Returns
     -------
@@ -103,13 +103,9 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
         The content of ``report.json``: per-stage seconds, calibration figures, and per mode and
         solver the normal and depth errors and times.
     """
-    from pipeline.base.capture import write_capture
-    from pipeline.base.store import Record, StageStore, write_record
-    from pipeline.compare import add_to_report, compare_captures, lut_calibrations, render_mode_captures
-    from pipeline.report import Report
-    from pipeline.stages import calibrate as calibrate_stage
+    from pipeline.base.store import StageStore
+    from pipeline.compare import compare_captures, render_mode_captures
     from pipeline.stages import synthesize as synthesize_stage
-    from sim.rendered_capture import press_ring, render_capture, sphere_presses
     from sim.uniformity import uniformity_report
 
     t_start = time.perf_counter()
@@ -120,7 +116,6 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     say = log or ((lambda m: print(f"[demo {time.perf_counter() - t_start:6.1f}s] {m}", file=sys.stderr))
                   if progress else (lambda m: None))
     stages: dict[str, dict[str, Any]] = {}
-
     # 1. synthesize -------------------------------------------------------------------------
     t0 = time.perf_counter()
     say(f"synthesize: tracing the {scene} scene, {settings.rays:,} rays per LED onto {settings.shape}")
@@ -133,32 +128,7 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     uniformity = uniformity_report(model, list(settings.modes))
 
     # 2. calibrate --------------------------------------------------------------------------
-    t0 = time.perf_counter()
-    depths, centres = press_ring(settings.shape, settings.mm_per_px, settings.presses)
-    presses = sphere_presses(settings.shape, settings.mm_per_px, settings.ball_radius_mm, depths, centres)
-    say(f"calibrate: {len(presses)} rendered ball presses under every LED in turn")
-    cal_cap = render_capture(model, "point", presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
-                             seed=11)
-    write_capture(out / "calibration_capture.h5", Record(cal_cap.schema, cal_cap.data, cal_cap.meta))
-    # Centre refinement votes with the traced model (refine_model="auto" with an illumination
-    # model): on the quick demo with the pre-issue-16 lens (scene default-v1) traced CV 0.69 deg
-    # refined vs 1.01 deg unrefined; the polynomial near field (15 deg there: it cannot follow that
-    # lens's sharp LED footprints) made it 2.9 deg. With the current default: traced 0.18 deg.
-    cal, _, cal_cached = calibrate_stage.run(store, cal_cap, ball_radius_mm=settings.ball_radius_mm,
-                                             models=["far", "near", "traced"], illumination=model,
-                                             illumination_key=ill_key)
-    write_record(out / "calibration.h5", Record(cal.schema, cal.data, cal.meta))
-    cal_summary = cal.meta["summary"]
-    say("calibrate: colour lookup tables for the single-frame modes")
-    lut_skipped: dict[str, str] = {}
-    luts = lut_calibrations(store, model, settings.modes, out, ball_radius_mm=settings.ball_radius_mm,
-                            presses=presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
-                            skipped=lut_skipped)
-    for m, why in lut_skipped.items():
-        say(f"calibrate: no lookup table for {m}: {why}")
-    stages["calibrate"] = {"seconds": time.perf_counter() - t0, "presses": len(presses), "cached": cal_cached,
-                           "accepted": int(cal_summary.get("accepted", 0)),
-                           "models": cal_summary.get("models", {}), "lut_skipped": lut_skipped}
+    stages["calibrate"], cal_summary, luts, presses = _demo_calibrate(store, model, ill_key, settings, out, say)
 
     # 3. capture ----------------------------------------------------------------------------
     t0 = time.perf_counter()
@@ -184,9 +154,61 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
                          "noise_dn": settings.noise_dn, "bit_depth": settings.bit_depth, "quick": quick},
             "stages": stages, "uniformity": {m: r["channels"] for m, r in uniformity.items()}, "comparison": comp.to_json(), "seconds": total,
             "calibration": {k: v for k, v in cal_summary.items() if k != "circles"}}
+    _write_demo_report(out, data, scene, settings, stages, cal_summary, uniformity, comp, ill_cached, len(presses))
+    say(f"done in {total:.1f} s: open {out / 'report.html'}")
+    return data
+
+
+def _demo_calibrate(store, model, ill_key, settings: DemoSettings, out: Path, say):
+    """Stage 2 of the demo: a rendered ball-press capture calibrated with the far, near and traced
+    models (``calibration.h5`` in ``out``), and a colour lookup table per single-frame mode.
+    ``(stage entry of report.json, calibration summary, LUT calibrations, presses)``."""
+    from pipeline.base.capture import write_capture
+    from pipeline.base.store import Record, write_record
+    from pipeline.compare import lut_calibrations
+    from pipeline.stages import calibrate as calibrate_stage
+    from sim.rendered_capture import press_ring, render_capture, sphere_presses
+
+    t0 = time.perf_counter()
+    depths, centres = press_ring(settings.shape, settings.mm_per_px, settings.presses)
+    presses = sphere_presses(settings.shape, settings.mm_per_px, settings.ball_radius_mm, depths, centres)
+    say(f"calibrate: {len(presses)} rendered ball presses under every LED in turn")
+    cal_cap = render_capture(model, "point", presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
+                             seed=11)
+    write_capture(out / "calibration_capture.h5", Record(cal_cap.schema, cal_cap.data, cal_cap.meta))
+    # Centre refinement votes with the traced model (refine_model="auto" with an illumination
+    # model): on the quick demo with the previous default lens (scene default-v1) traced CV 0.69 deg
+    # refined vs 1.01 deg unrefined; the polynomial near field (15 deg there: it cannot follow that
+    # lens's sharp LED footprints) made it 2.9 deg. With the current default: traced 0.18 deg.
+    cal, _, cal_cached = calibrate_stage.run(store, cal_cap, ball_radius_mm=settings.ball_radius_mm,
+                                             models=["far", "near", "traced"], illumination=model,
+                                             illumination_key=ill_key)
+    write_record(out / "calibration.h5", Record(cal.schema, cal.data, cal.meta))
+    cal_summary = cal.meta["summary"]
+    say("calibrate: colour lookup tables for the single-frame modes")
+    lut_skipped: dict[str, str] = {}
+    luts = lut_calibrations(store, model, settings.modes, out, ball_radius_mm=settings.ball_radius_mm,
+                            presses=presses, noise_dn=settings.noise_dn, bit_depth=settings.bit_depth,
+                            skipped=lut_skipped)
+    for m, why in lut_skipped.items():
+        say(f"calibrate: no lookup table for {m}: {why}")
+    stage = {"seconds": time.perf_counter() - t0, "presses": len(presses), "cached": cal_cached,
+             "accepted": int(cal_summary.get("accepted", 0)),
+             "models": cal_summary.get("models", {}), "lut_skipped": lut_skipped}
+    return stage, cal_summary, luts, presses
+
+
+def _write_demo_report(out: Path, data: dict, scene, settings: DemoSettings, stages: dict, cal_summary: dict,
+                       uniformity: dict, comp, ill_cached: bool, presses: int) -> None:
+    """``report.html`` and ``report.json`` (``data``, plus the summary figure) in ``out``: the
+    stages, the calibration's CV, the flat-gel uniformity per mode and the comparison."""
+    from pipeline.compare import add_to_report
+    from pipeline.report import Report
+
+    total = data["seconds"]
     report = Report("IrisTac demo: a virtual sensor end to end",
                     f"Scene {scene} traced onto {settings.shape[1]}x{settings.shape[0]} pixels at "
-                    f"{settings.mm_per_px} mm/px; calibrated from {len(presses)} rendered ball presses; a test "
+                    f"{settings.mm_per_px} mm/px; calibrated from {presses} rendered ball presses; a test "
                     f"object captured under {len(settings.modes)} lighting modes (8-bit, 1 DN read noise) and "
                     f"reconstructed with every applicable solver. Total {total:.1f} s.")
     s = report.section("Stages")
@@ -194,7 +216,7 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
             [["synthesize", stages["synthesize"]["seconds"],
               ("cached" if ill_cached else f"{settings.rays:,} Sobol rays per LED, hit rotation")],
              ["calibrate", stages["calibrate"]["seconds"],
-              f"{stages['calibrate']['accepted']}/{len(presses)} presses accepted"],
+              f"{stages['calibrate']['accepted']}/{presses} presses accepted"],
              ["capture", stages["capture"]["seconds"],
               f"ring emulator on a pty ({settings.faults}) + virtual camera at {settings.camera_fps:g} fps"],
              ["normals + depth", stages["reconstruct"]["seconds"], f"{len(comp.runs)} reconstructions"]])
@@ -211,5 +233,3 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
     add_to_report(report, comp)
     data["summary_figure"] = _summary_figure(comp, out / "summary.png")
     report.write(out, data=data)
-    say(f"done in {total:.1f} s: open {out / 'report.html'}")
-    return data

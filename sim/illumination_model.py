@@ -1,7 +1,7 @@
 """The per-pixel illumination model every later stage consumes.
 
 ``IlluminationModel`` is the contract between the ray tracer / calibration (which produce it)
-and the renderer / normal solvers (which consume it). Per DESIGN.md, camera channel ``j`` of
+and the renderer / normal solvers (which consume it). Per ``docs/design.md``, camera channel ``j`` of
 pattern ``p`` sees
 
     I_pj(x) = mu * sum_i sigma_i W_p[i, j] * rho_j(x) / pi * max(0, n(x) . V_i(x))

@@ -1,4 +1,4 @@
-"""The core image-formation formula (DESIGN.md, "Physics"), without any camera effects.
+"""The core image-formation formula (``docs/design.md``, "Physics"), without any camera effects.
 
     I_pj(x) = mu * sum_i sigma_i W_p[i, j] * rho_j(x) / pi * max(0, n(x) . V_i(x))
 

@@ -9,6 +9,8 @@ tolerance analysis, trajectory figure) and confirms the winner as ``sim trace`` 
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from typing import Any, Callable
 
 import numpy as np
 
@@ -159,16 +161,12 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
     >>> r["evaluations"], sorted(k for k in OPTIMIZE_KEYS if k not in r)
     (3, [])
     """
-    import os
-
-    from sim.lensopt.brief import DesignBrief
-    from sim.lensopt.constraints import Manufacturing, violations
-    from sim.lensopt.objectives import CONSTRAINTS, Evaluator, Metrics, bare_limit
-    from sim.lensopt.search import Problem, run_search
-    from sim.lensopt.space import DesignSpace, apply_design, design_of
-
     say = log or (lambda m: None)
     base = _scene(scene)
+    from sim.lensopt.brief import DesignBrief
+    from sim.lensopt.constraints import Manufacturing
+    from sim.lensopt.space import design_of
+
     design_of(base)  # a clear error for a scene without a swept-arc lens
     brief = DesignBrief.from_scene(
         base, objective=objective, modes=modes, constraints=constraints, vary=vary, start=start,
@@ -178,6 +176,66 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
         tolerance_rays=tolerance_rays)
     trace_kw = dict(device=device, engine=engine, threads=threads)
     t_all = time.perf_counter()
+    search = _prepare_search(base, brief, trace_kw, say)
+    outcome = _search_rounds(search, progress, say)
+    result = _optimize_result(search, outcome, threads)
+    if tolerance:
+        from sim.lensopt.objectives import Evaluator
+        from sim.lensopt.tolerance import tolerance_table
+
+        say(f"tolerance: every dimension +-0.1 mm, {brief.tolerance_rays:,} rays per design")
+        tol_ev = Evaluator(rays=brief.tolerance_rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid,
+                           **trace_kw)
+        result["tolerance"] = tolerance_table(outcome.best_scene, tol_ev, names=search.space.names)
+    else:
+        result["tolerance"] = None
+    result["files"] = _write_outputs(result, outcome.traj, base, outcome.best_scene, search.start_scene, out, plot)
+    result["total_seconds"] = time.perf_counter() - t_all
+    result["scene_object"] = outcome.best_scene
+    return result
+
+
+@dataclass
+class _LensSearch:
+    """What the search rounds share: the brief, the design space and problem, the limits, the
+    confirmed figures of the start and the bare LEDs, and ``figures`` (a design as `sim trace`
+    measures it)."""
+
+    base: Any
+    brief: Any
+    space: Any
+    problem: Any
+    search_limits: dict
+    confirm_limits: dict
+    figures: Callable[[Any], dict]
+    first: dict
+    start_scene: Any
+    bare_fig: dict
+    start_fig: dict
+
+
+@dataclass
+class _SearchOutcome:
+    """The rounds' result: the joined trajectory, one entry per round, the best candidate, the
+    winner's design, scene and confirmed figures, and the start's candidate."""
+
+    traj: Any
+    rounds: list
+    best: Any
+    winner: dict
+    best_scene: Any
+    win: dict
+    first_candidate: Any
+
+
+def _prepare_search(base, brief, trace_kw: dict, say) -> _LensSearch:
+    """The evaluators, the design space and problem, the limits (``"bare"`` resolved against the
+    bare LEDs, as the search and as ``sim trace`` measure them) and the confirmed figures of the
+    starting design and the bare LEDs."""
+    from sim.lensopt.objectives import Evaluator, Metrics, bare_limit
+    from sim.lensopt.search import Problem
+    from sim.lensopt.space import DesignSpace, apply_design, design_of
+
     ev = Evaluator(rays=brief.rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid, modes=brief.modes,
                    max_condition=brief.max_condition, region=brief.region, **trace_kw)
     first = {**design_of(base), **brief.start}
@@ -211,9 +269,21 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
     # The constraints as `sim trace` measures them: "bare" from the bare LEDs' confirmed figures.
     confirm_limits = {k: (bare_limit(k, Metrics(**{m: bare_fig[m] for m in _METRIC_KEYS})) if v == "bare"
                           else float(v)) for k, v in brief.constraints.items() if v is not None}
+    return _LensSearch(base, brief, space, problem, limits, confirm_limits, figures, first, start_scene,
+                       bare_fig, start_fig)
+
+
+def _search_rounds(s: _LensSearch, progress: bool, say) -> _SearchOutcome:
+    """Search, confirm the winner as `sim trace` measures it, and search on (at most
+    :data:`_ROUNDS` rounds) while it misses a constraint there."""
+    from sim.lensopt.objectives import CONSTRAINTS
+    from sim.lensopt.search import run_search
+    from sim.lensopt.space import apply_design
+
+    base, brief, space, problem = s.base, s.brief, s.space, s.problem
     say(f"searching {len(space.names)} parameters ({', '.join(space.names)}) by {brief.method}: "
         f"{brief.evaluations} designs of {brief.rays:,} {brief.sampler} rays on a {brief.grid}-row grid")
-    traj, rounds, here, best, first_c = None, [], first, None, None
+    traj, rounds, here, best, first_c = None, [], s.first, None, None
     name = f"{base.name}-optimized"
     for round_no in range(_ROUNDS):
         budget = brief.evaluations if round_no == 0 else max(brief.evaluations // 2, 1)
@@ -231,10 +301,10 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
         best_scene = apply_design(base, winner, name=name, description=(
             f"Scene {base.name} with its lens optimised by `iristac sim optimize-lens` (objective "
             f"{brief.objective}" + (f" for {', '.join(brief.modes)}" if brief.modes else "")
-            + f"; constraints {confirm_limits or 'none'})."))
+            + f"; constraints {s.confirm_limits or 'none'})."))
         say(f"round {round_no + 1}: confirming the winner with {brief.confirm_rays:,} rays")
-        win = figures(best_scene)
-        misses = _confirm_misses(win, confirm_limits)
+        win = s.figures(best_scene)
+        misses = _confirm_misses(win, s.confirm_limits)
         rounds.append({"evaluations": budget, "search_limits": dict(problem.limits), "confirmed": win,
                        "misses": misses})
         if not best.feasible or not misses:
@@ -246,49 +316,46 @@ def optimize_lens(scene, *, objective: str | None = None, modes=None, constraint
             metric, kind = CONSTRAINTS[k]
             searched = getattr(best.metrics, metric)
             ratio = searched / win[metric] if win[metric] else 1.0
-            problem.limits[k] = confirm_limits[k] * ratio * (1.005 if kind == "min" else 0.995)
+            problem.limits[k] = s.confirm_limits[k] * ratio * (1.005 if kind == "min" else 0.995)
         say(f"round {round_no + 1}: the winner misses {', '.join(misses)} as `sim trace` measures it; "
             f"searching on with search limits {problem.limits}")
         here = winner
-    search_seconds = traj.seconds[-1] if traj.seconds else 0.0
-    confirmed_ok = bool(best.feasible) and not rounds[-1]["misses"]
+    return _SearchOutcome(traj, rounds, best, winner, best_scene, win, first_c)
 
-    result = {
-        "scene": base.name, "objective": brief.objective, "modes": list(brief.modes), "method": brief.method,
-        "constraints": confirm_limits, "constraints_requested": dict(brief.constraints),
-        "search_constraints": limits,
-        "manufacturing": problem.manufacturing.as_dict(), "varied": space.names,
+
+def _optimize_result(s: _LensSearch, o: _SearchOutcome, threads: int | None) -> dict:
+    """The result's figures (every key of :data:`OPTIMIZE_KEYS` but ``tolerance``, ``files`` and
+    ``total_seconds``): the winner's, the start's, the bare LEDs' and the winner's without its lens."""
+    import os
+
+    from sim.lensopt.constraints import violations
+
+    brief, problem, win, best, traj, first_c = s.brief, s.problem, o.win, o.best, o.traj, o.first_candidate
+    return {
+        "scene": s.base.name, "objective": brief.objective, "modes": list(brief.modes), "method": brief.method,
+        "constraints": s.confirm_limits, "constraints_requested": dict(brief.constraints),
+        "search_constraints": s.search_limits,
+        "manufacturing": problem.manufacturing.as_dict(), "varied": s.space.names,
         "fraction_on_screen": win["fraction_on_screen"], "uniformity_cv": win["uniformity_cv"],
         "valid_fraction": win["valid_fraction"], "median_condition": win["median_condition"],
         "channel_cv": win["channel_cv"], "min_max": win["min_max"],
-        "design": winner, "feasible": confirmed_ok, "search_feasible": bool(best.feasible),
-        "rounds": rounds,
-        "geometry": violations(best_scene, problem.manufacturing),
-        "evaluations": len(traj.loss), "traced": problem.traced, "seconds": search_seconds,
+        "design": o.winner, "feasible": bool(best.feasible) and not o.rounds[-1]["misses"],
+        "search_feasible": bool(best.feasible),
+        "rounds": o.rounds,
+        "geometry": violations(o.best_scene, problem.manufacturing),
+        "evaluations": len(traj.loss), "traced": problem.traced,
+        "seconds": traj.seconds[-1] if traj.seconds else 0.0,
         "search": {"rays": brief.rays, "sampler": brief.sampler, "grid": brief.grid, "seed": brief.seed,
                    "metrics": best.metrics.as_dict() if best.metrics else None, "note": best.note},
-        "start": {"design": {k: first[k] for k in winner}, **start_fig,
+        "start": {"design": {k: s.first[k] for k in o.winner}, **s.start_fig,
                   "feasible": bool(first_c.feasible), "note": first_c.note},
-        "bare": {**bare_fig, "reference": dict(brief.reference)},
+        "bare": {**s.bare_fig, "reference": dict(brief.reference)},
         # The winner's own LEDs without its lens: what the lens itself adds.
-        "lens_off": figures(best_scene.with_effects(remove=["lens"])),
+        "lens_off": s.figures(o.best_scene.with_effects(remove=["lens"])),
         "confirm_rays": brief.confirm_rays,
         "threads": threads,
         "load_average": list(os.getloadavg()) if hasattr(os, "getloadavg") else None,
     }
-    if tolerance:
-        from sim.lensopt.tolerance import tolerance_table
-
-        say(f"tolerance: every dimension +-0.1 mm, {brief.tolerance_rays:,} rays per design")
-        tol_ev = Evaluator(rays=brief.tolerance_rays, sampler=brief.sampler, seed=brief.seed, grid=brief.grid,
-                           **trace_kw)
-        result["tolerance"] = tolerance_table(best_scene, tol_ev, names=space.names)
-    else:
-        result["tolerance"] = None
-    result["files"] = _write_outputs(result, traj, base, best_scene, start_scene, out, plot)
-    result["total_seconds"] = time.perf_counter() - t_all
-    result["scene_object"] = best_scene
-    return result
 
 
 #: Search rounds at most: a winner that misses a constraint as `sim trace` measures it sends the

@@ -1,6 +1,6 @@
 """Tactile image formation: illumination model + surface + lighting pattern -> camera frames.
 
-The noiseless core is DESIGN.md's formula (the same as :func:`sim.lambertian.shade`)::
+The noiseless core is the image-formation formula of ``docs/design.md`` (the same as :func:`sim.lambertian.shade`)::
 
     I_pj(x) = mu * sum_i sigma_i W_p[i, j] * rho_j(x) / pi * max(0, n(x) . V_i(x))
 

@@ -1,4 +1,4 @@
-"""Stage 2, synthesize: ray-trace a scene into the per-pixel illumination model.
+"""Stage 1, synthesize: ray-trace a scene into the per-pixel illumination model.
 
 For a scene, LED gains and a set of lighting patterns, trace every LED onto the camera's
 pixel grid (on the gel plane) and produce :class:`sim.illumination_model.IlluminationModel`:

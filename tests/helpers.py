@@ -48,3 +48,15 @@ def wait_until(cond, timeout: float = 10.0) -> None:
     while not cond():
         assert time.monotonic() < t, "timed out"
         time.sleep(0.002)
+
+
+#: Files left out of the house-rule checks (function length, issue numbers in the product) for
+#: now: being rewritten by the batch work; this set is emptied when that work lands.
+BEING_REWRITTEN_BY_BATCH_WORK = frozenset({
+    "pipeline/reconstruct.py", "pipeline/batch.py", "pipeline/batch_reconstruct.py", "pipeline/cli/batch.py",
+    "pipeline/cli/reconstruct.py", "pipeline/cli/_common.py", "pipeline/stages/normals.py",
+    "pipeline/stages/depth.py", "pipeline/stages/fast_solvers.py", "pipeline/normals/cpu_batch.py",
+    "pipeline/normals/gpu_stream.py", "pipeline/normals/batched.py", "pipeline/live/session.py",
+    "pipeline/base/h5frames.py", "pipeline/base/store.py", "pipeline/base/capture.py", "pipeline/bench/live.py",
+    "pipeline/bench/live_scaling.py",
+})

@@ -1,7 +1,7 @@
 """Lighting modes: named sets of LED patterns, stored as data files (``pipeline/base/modes/*.yaml``).
 
 A mode is a list of frames; each frame drives the ``L`` LEDs with an ``(L, 3)`` matrix of RGB
-levels in ``[0, 1]`` (``W_p[i, j]`` in DESIGN.md) and has a global brightness. The built-in
+levels in ``[0, 1]`` (``W_p[i, j]`` in ``docs/design.md``) and has a global brightness. The built-in
 modes follow the paper's Fig. 5:
 
 ``point``

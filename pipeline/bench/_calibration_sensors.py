@@ -1,6 +1,6 @@
 """``iristac bench calibration --sensors``: the user's workflow on every sensor on hand.
 
-Per sensor, calibrate on some presses and judge on the others (issue 22, item 8):
+Per sensor, calibrate on some presses and judge on the others:
 
 - the shared **GelSight** frames (``../shared/data/gelsight_ball_presses.npz``): presses 0-19
   calibrate, 20-29 test (:mod:`calibration.split`); also with every press drifted (per press

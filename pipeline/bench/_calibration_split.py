@@ -3,7 +3,7 @@
 Per model, calibrated on the detected circles (the default) and on the hand labels
 (``--circles labels``): leave-presses-out CV on the training presses beside the error on the
 test presses against both truths (the detector's circles and the labels) and the ball fit
-(:func:`calibration.split.four_way`); issue 13's targets as met or not, with the setting that
+(:func:`calibration.split.four_way`); the fixed-split targets as met or not, with the setting that
 meets them (:func:`calibration.split.split_targets`). Then which truth: the same calibrations
 judged against test circles refined by each light-model family (the audit behind
 :data:`calibration.evaluate.TEST_TRUTH`). Then the levers, each a row of error against time;
@@ -163,7 +163,7 @@ def format_split(case: dict[str, Any]) -> list[str]:
                      f"{f(lab.get('cv_mean_deg')):>6s} {f(lab.get('labels_mean_deg')):>8s} "
                      f"{f(lab.get('test_mean_deg')):>8s} {pct(lab.get('ball_radius_error')):>7s} "
                      f"{pct(lab.get('ball_depth_error')):>7s} {f(lab.get('seconds'), '.1f'):>6s}")
-    lines.append("  targets (issue 13; best model by CV of each setting, on the test presses):")
+    lines.append("  fixed-split targets (best model by CV of each setting, on the test presses):")
     for t in case["targets"]:
         if t["target"] == "cv_gap":
             gaps = ", ".join(f"{g['model']} ({g['setting']}) {g['gap_deg']:+.2f} deg{'' if g['reported'] else ' NOT noted'}"

@@ -5,7 +5,7 @@ With ``--sensors``: every sensor on hand instead (:mod:`pipeline.bench._calibrat
 Three cases: the shared real GelSight frames (30 presses, one RGB pattern; skipped when
 ``../shared/data`` is absent) with the hand-label comparison; the same frames split, presses
 0-19 calibrating and 20-29 testing (:mod:`pipeline.bench._calibration_split`: CV beside test
-error, detected and label truth, the ball fit, and the levers of issue 13); and a synthetic
+error, detected and label truth, the ball fit, and the levers behind the fixed-split targets); and a synthetic
 point-lit ring capture (bare-LED near field, 8-bit, noise 1 DN) with the gain and direction
 errors against the exact truth.
 

@@ -4,7 +4,7 @@ Sections (``--only``):
 
 ``targets``
     ``optimize-lens paper`` and ``optimize-lens default`` with their scenes' design briefs, as a
-    user runs them: the winner's figures as ``sim trace`` measures them against issue 16's
+    user runs them: the winner's figures as ``sim trace`` measures them against the lens
     targets (paper: >= 78 % on screen with 24-LED CV <= 0.25; default: more flux and a lower CV
     than the bare LEDs, >= 90 % well-conditioned pixels for the photometric-stereo modes), with
     the search's wall time.

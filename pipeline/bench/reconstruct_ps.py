@@ -15,7 +15,7 @@ angles to the rendered truth over the mask. The end-to-end row times ``pipeline.
 the specular sphere written as ``capture.h5``: read, solve, integrate (DST on the bounding box),
 write ``normals.h5`` and ``depth.h5``.
 
-Targets (issue 18, this 2-core CPU, one torch thread): lstsq <= 50 ms and robust <= 1 s on the
+Targets (this 2-core CPU, one torch thread): lstsq <= 50 ms and robust <= 1 s on the
 masked 15.8k-pixel object, robust error <= 1.0 deg on the specular sphere, and no solver
 slower on the masked object than on its bounding box.
 """
@@ -30,7 +30,7 @@ import numpy as np
 
 __all__ = ["measure_ps", "ps_rows", "format_ps", "TARGETS"]
 
-#: Issue 18's targets: seconds per solve on the masked object, error of robust (deg).
+#: The photometric-stereo targets: seconds per solve on the masked object, error of robust (deg).
 TARGETS = {"lstsq_seconds": 0.050, "robust_seconds": 1.0, "robust_error_deg": 1.0}
 SOLVERS = ("lstsq", "robust", "cauchy", "trimmed")
 OBJECTS = {  # name: (object, specular F0)
@@ -157,7 +157,7 @@ def ps_rows(ps: dict) -> list[dict]:
 
 
 def targets(ps: dict) -> list[tuple[str, bool]]:
-    """Each target of issue 18 with whether it is met."""
+    """Each of :data:`TARGETS` with whether it is met."""
     spec = ps["objects"]["specular sphere"]["solvers"]
     out = []
     if "lstsq" in spec:

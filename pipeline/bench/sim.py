@@ -44,7 +44,7 @@ __all__ = ["add_arguments", "run", "format_table", "TARGETS"]
 
 # The scene these figures are measured on: the shipped default (what `iristac sim trace default`
 # traces: most rays enter through the lens's flat bottom, one in eight leaves through its rounded
-# edge, so the swept arc's exit solve is on the hot path), and the pre-issue-16 default for the
+# edge, so the swept arc's exit solve is on the hot path), and the previous default (default-v1) for the
 # newton section (its LEDs sit beside the lens: their rays enter through the swept-arc side,
 # which that section's intersection errors need) and as a second column of the targets' rates.
 SCENE = "default"
@@ -397,7 +397,7 @@ def _bench_targets(scene, quick, reps, device, do_memory, threads=None):
     best = _interleaved({"one": lambda: engine.trace_led(scene, [one], **kw),
                          "all24": lambda: engine.trace_led(scene, [all24], **kw),
                          "kernel": lambda: engine.trace_led(scene, [], **kw),
-                         # the same 24-LED trace of the pre-issue-16 default, for comparison
+                         # the same 24-LED trace of the previous default, for comparison
                          "all24_" + NEWTON_SCENE: lambda: engine.trace_led(v1, [all24], **kw)}, reps)
     out["rays"] = n
     out["one_led_seconds"], out["all24_seconds"], out["kernel_only_seconds"] = best["one"], best["all24"], best["kernel"]

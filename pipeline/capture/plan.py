@@ -460,8 +460,6 @@ def run_capture(
     UserError
         The journal belongs to another capture, or the patterns do not fit the ring.
     """
-    from pipeline.base.capture import write_capture
-
     settings = settings or CaptureSettings()
     out = Path(out)
     if ring.info is not None and ring.info.led_count != patterns.num_leds:
@@ -472,79 +470,109 @@ def run_capture(
     journal = _Journal(jpath, _fingerprint(patterns, settings, shape, scene), out)
     steps = plan_steps(len(patterns.frames), settings)
     resumed = sum(journal.done(s) is not None for s in steps)
-    settle = _settle_time(camera, settings)
-    counters = {"stale": 0}
+    runner = _StepRunner(patterns, ring, camera, settings, shape, truth, on_contact)
     retries0 = ring.stats.retries
     t_start = time.monotonic()
 
     def flush_totals() -> None:
         journal.add_totals(runs=1, retries=ring.stats.retries - retries0,
                            seconds=time.monotonic() - t_start,
-                           stale_frames_dropped=counters["stale"])
+                           stale_frames_dropped=runner.counters["stale"])
 
-    reports_contact = bool(getattr(camera, "reports_contact", False))
     bar = _progress(len(steps), resumed, progress, out)
-    step = None
-    pressed = None  # the contact instance this run has asked for
     try:
         for step in steps:
             if journal.done(step) is not None:
                 continue
-            if step.kind == "contact" and step.k != pressed:
-                if on_contact is not None:
-                    on_contact(step.k)
-                pressed = step.k
-            if step.kind == "dark":
-                ring.off()
-                levels, b = np.zeros((patterns.num_leds, 3), np.uint8), 0
-            else:
-                levels, b = _levels(patterns, step.p)
-                ring.show_pattern(patterns.drive[step.p], float(patterns.brightness[step.p]))
-            t_ack = time.monotonic()
-            image, windows, contacts = _grab(camera, settings.frames_per_pattern, t_ack, settle,
-                                             settings, counters)
-            if image.shape[:2] != shape:
-                raise UserError(f"camera frame has shape {image.shape}, expected {shape} + (3,)")
-            bad = None
-            if truth is not None:
-                # A frame is mislabeled if its exposure saw another LED state, or (for a camera
-                # that reports it) another contact than the step's.
-                want = step.k if step.kind == "contact" else -1
-                bad = _mislabeled(truth, windows, levels, b) or (
-                    reports_contact and any(c != want for c in contacts))
-            journal.record(step, {"mislabeled": bad}, image, windows, t_ack, time.time())
+            runner.capture(step, journal)
             bar.update(1)
     except UserError as exc:  # ring or camera failed mid-capture
         flush_totals()
-        done = sum(journal.done(s) is not None for s in steps)
-        msg = (f"{exc}; {done} of {len(steps)} steps are saved in {jpath}: rerun the same "
-               "command to resume")
-        try:
-            err = type(exc)(msg)
-        except TypeError:  # an error class with another constructor
-            err = UserError(msg)
-        raise err from None
+        raise _resume_error(exc, sum(journal.done(s) is not None for s in steps), len(steps), jpath) from None
     except BaseException:
         flush_totals()
         raise
     finally:
         bar.close()
     flush_totals()
-    try:
-        ring.off()
-    except RingError:
-        pass  # the capture is complete; leaving the LEDs on is not worth failing it
-
+    _leds_off(ring)
     record = _assemble(patterns, settings, journal, steps, shape, source, camera, ring,
                        device_info)
     record.data.update(extra_data or {})
     record.meta.update(extra_meta or {})
+    return _write_capture_file(out, record, journal, steps, len(patterns.frames), resumed)
+
+
+
+def _leds_off(ring: RingClient) -> None:
+    """Turn the ring's LEDs off after a complete capture (a failure there is not worth failing it)."""
+    try:
+        ring.off()
+    except RingError:
+        pass
+
+class _StepRunner:
+    """Captures one step of the plan: asks for its contact, shows its pattern (or turns the ring
+    off for ``dark``), grabs its frames after the settle time and journals them with whether
+    they are mislabeled (with the emulator's ``truth``)."""
+
+    def __init__(self, patterns: LightingMode, ring: RingClient, camera: Camera, settings: CaptureSettings,
+                 shape: tuple, truth, on_contact: Callable[[int], None] | None) -> None:
+        self.patterns, self.ring, self.camera, self.settings = patterns, ring, camera, settings
+        self.shape, self.truth, self.on_contact = shape, truth, on_contact
+        self.settle = _settle_time(camera, settings)
+        self.counters = {"stale": 0}
+        self.reports_contact = bool(getattr(camera, "reports_contact", False))
+        self.pressed: int | None = None  # the contact instance this run has asked for
+
+    def capture(self, step: Step, journal: _Journal) -> None:
+        patterns, ring, settings = self.patterns, self.ring, self.settings
+        if step.kind == "contact" and step.k != self.pressed:
+            if self.on_contact is not None:
+                self.on_contact(step.k)
+            self.pressed = step.k
+        if step.kind == "dark":
+            ring.off()
+            levels, b = np.zeros((patterns.num_leds, 3), np.uint8), 0
+        else:
+            levels, b = _levels(patterns, step.p)
+            ring.show_pattern(patterns.drive[step.p], float(patterns.brightness[step.p]))
+        t_ack = time.monotonic()
+        image, windows, contacts = _grab(self.camera, settings.frames_per_pattern, t_ack, self.settle,
+                                         settings, self.counters)
+        if image.shape[:2] != self.shape:
+            raise UserError(f"camera frame has shape {image.shape}, expected {self.shape} + (3,)")
+        bad = None
+        if self.truth is not None:
+            # A frame is mislabeled if its exposure saw another LED state, or (for a camera
+            # that reports it) another contact than the step's.
+            want = step.k if step.kind == "contact" else -1
+            bad = _mislabeled(self.truth, windows, levels, b) or (
+                self.reports_contact and any(c != want for c in contacts))
+        journal.record(step, {"mislabeled": bad}, image, windows, t_ack, time.time())
+
+
+def _resume_error(exc: UserError, done: int, total: int, jpath: Path) -> UserError:
+    """``exc`` (of its own class where it can be) with how many steps are saved and that rerunning resumes."""
+    msg = (f"{exc}; {done} of {total} steps are saved in {jpath}: rerun the same "
+           "command to resume")
+    try:
+        return type(exc)(msg)
+    except TypeError:  # an error class with another constructor
+        return UserError(msg)
+
+
+def _write_capture_file(out: Path, record, journal: _Journal, steps: list[Step], patterns: int,
+                        resumed: int) -> CaptureResult:
+    """Write the capture file, then remove the journal; the run's :class:`CaptureResult`."""
+    from pipeline.base.capture import write_capture
+
     write_capture(out, record)
     flags = [journal.done(s).get("mislabeled") for s in steps]
     result = CaptureResult(
         path=out,
         frames=len(steps),
-        patterns=len(patterns.frames),
+        patterns=patterns,
         retries=int(journal.state["retries"]),
         seconds=float(journal.state["seconds"]),
         mislabeled=None if any(f is None for f in flags) else int(sum(flags)),
@@ -552,7 +580,7 @@ def run_capture(
         stale_frames_dropped=int(journal.state["stale_frames_dropped"]),
         record=record,
     )
-    jpath.unlink()  # only now that capture.h5 is safely in place
+    journal.path.unlink()  # only now that capture.h5 is safely in place
     return result
 
 

@@ -31,6 +31,7 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 
 from pipeline.base.errors import UserError
+from pipeline.base.modes import load_mode
 from pipeline.capture.client import RingClient
 from pipeline.capture.emulator import parse_faults
 from pipeline.capture.firmware_host import ring_emulator
@@ -117,6 +118,37 @@ def capture(
     CaptureResult
         ``mislabeled`` is counted when the ring is emulated.
     """
+    _check_sources(port, emulate, camera, virtual_camera, faults, ring_firmware)
+    spec, contacts, mm_per_px = (_virtual_spec(virtual_camera, contacts, mm_per_px, seed)
+                                 if virtual_camera is not False else (None, contacts, mm_per_px))
+    settings = CaptureSettings(frames_per_pattern=frames_per_pattern,
+                               contacts=1 if contacts is None else contacts, settle_s=settle_s,
+                               mm_per_px=0.1 if mm_per_px is None else mm_per_px)
+    patterns = load_mode(mode)
+    emulator = None
+    if emulate:
+        emulator = ring_emulator(ring_firmware or None, led_count=patterns.num_leds, faults=parse_faults(faults),
+                                 baudrate=baudrate if emulate_baud else None, seed=seed)
+        port = emulator.start()
+    try:
+        with RingClient(port, baudrate=baudrate, timeout=timeout, retries=retries) as ring:  # type: ignore[arg-type]
+            cam, extra, on_contact = (_open_virtual(spec, emulator, patterns, exposure, on_contact) if spec is not None
+                                      else (open_camera(camera, exposure), {}, on_contact))
+            try:
+                return run_capture(patterns, ring, cam, out, settings, truth=emulator, on_contact=on_contact,
+                                   source="virtual" if spec is not None else "camera",
+                                   device_info={"emulated_ring": bool(emulate), "faults": faults or ""},
+                                   progress=progress, **extra)
+            finally:
+                cam.close()
+    finally:
+        if emulator is not None:
+            emulator.stop()
+
+
+def _check_sources(port, emulate: bool, camera, virtual_camera, faults, ring_firmware) -> None:
+    """A UserError unless exactly one ring (port or emulator) and one camera (real or virtual)
+    are given, and the emulator's options come with the emulator."""
     if bool(port) == bool(emulate):
         raise UserError("capture: give exactly one of --port PORT and --emulate")
     if (camera is None) == (virtual_camera is False):
@@ -128,69 +160,44 @@ def capture(
         raise UserError("capture: --faults applies to the emulator; it needs --emulate")
     if ring_firmware and not emulate:
         raise UserError("capture: --ring-firmware serves the emulated ring; it needs --emulate")
-    spec = None
-    if virtual_camera is not False:
-        from pipeline.capture.virtual import VirtualSensorSpec  # loads torch: only when needed
 
-        if virtual_camera is True:
-            spec = virtual_sensor(contacts=contacts, mm_per_px=mm_per_px, seed=seed)
-        elif isinstance(virtual_camera, VirtualSensorSpec):
-            spec = virtual_camera
-        else:
-            raise UserError(f"capture: virtual_camera must be True or a VirtualSensorSpec, got "
-                            f"{type(virtual_camera).__name__}")
-        n = len(spec.contacts)
-        if contacts is not None and contacts != n:
-            raise UserError(f"capture: --contacts {contacts} but the virtual sensor has {n} contacts")
-        contacts = n
-        model_pitch = spec.model().mm_per_px
-        if mm_per_px is not None and not np.isclose(mm_per_px, model_pitch):
-            raise UserError(f"capture: --mm-per-px {mm_per_px} differs from the illumination "
-                            f"model's {model_pitch}")
-        mm_per_px = model_pitch
-    settings = CaptureSettings(frames_per_pattern=frames_per_pattern,
-                               contacts=1 if contacts is None else contacts, settle_s=settle_s,
-                               mm_per_px=0.1 if mm_per_px is None else mm_per_px)
-    from pipeline.base.modes import load_mode
 
-    patterns = load_mode(mode)
-    emulator = None
-    if emulate:
-        emulator = ring_emulator(ring_firmware or None, led_count=patterns.num_leds, faults=parse_faults(faults),
-                                 baudrate=baudrate if emulate_baud else None, seed=seed)
-        port = emulator.start()
-    extra: dict = {}
-    try:
-        with RingClient(port, baudrate=baudrate, timeout=timeout, retries=retries) as ring:  # type: ignore[arg-type]
-            if spec is not None:
-                from pipeline.capture.virtual import open_virtual_camera, truth_data
+def _virtual_spec(virtual_camera, contacts: int | None, mm_per_px: float | None, seed: int):
+    """``(spec, contacts, mm_per_px)`` of the virtual sensor: the given spec or :func:`virtual_sensor`'s,
+    its number of contacts and its illumination model's scale (a UserError where they disagree
+    with the ones given)."""
+    from pipeline.capture.virtual import VirtualSensorSpec  # loads torch: only when needed
 
-                cam = open_virtual_camera(spec, emulator, patterns.drive, patterns.brightness,
-                                          exposure)
-                extra = dict(
-                    extra_data=truth_data(spec), scene=spec.fingerprint(),
-                    extra_meta={"render_settings": cam.settings.to_dict(),
-                                "illumination": _scalars(spec.model().meta)},
-                )
-                on_contact = _then(cam.set_contact, on_contact)
-            else:
-                cam = open_camera(camera, exposure)
-            try:
-                return run_capture(
-                    patterns, ring, cam, out, settings,
-                    truth=emulator,
-                    on_contact=on_contact,
-                    source="virtual" if spec is not None else "camera",
-                    device_info={"emulated_ring": bool(emulate),
-                                 "faults": faults or ""},
-                    progress=progress,
-                    **extra,
-                )
-            finally:
-                cam.close()
-    finally:
-        if emulator is not None:
-            emulator.stop()
+    if virtual_camera is True:
+        spec = virtual_sensor(contacts=contacts, mm_per_px=mm_per_px, seed=seed)
+    elif isinstance(virtual_camera, VirtualSensorSpec):
+        spec = virtual_camera
+    else:
+        raise UserError(f"capture: virtual_camera must be True or a VirtualSensorSpec, got "
+                        f"{type(virtual_camera).__name__}")
+    n = len(spec.contacts)
+    if contacts is not None and contacts != n:
+        raise UserError(f"capture: --contacts {contacts} but the virtual sensor has {n} contacts")
+    model_pitch = spec.model().mm_per_px
+    if mm_per_px is not None and not np.isclose(mm_per_px, model_pitch):
+        raise UserError(f"capture: --mm-per-px {mm_per_px} differs from the illumination "
+                        f"model's {model_pitch}")
+    return spec, n, model_pitch
+
+
+def _open_virtual(spec, emulator, patterns, exposure, on_contact):
+    """``(camera, run_capture's extra arguments, on_contact)`` of a virtual sensor: the camera
+    that renders the gel under the emulated ring, the truth and render settings the capture
+    carries, and ``on_contact`` after the camera's own contact is set."""
+    from pipeline.capture.virtual import open_virtual_camera, truth_data
+
+    cam = open_virtual_camera(spec, emulator, patterns.drive, patterns.brightness, exposure)
+    extra = dict(
+        extra_data=truth_data(spec), scene=spec.fingerprint(),
+        extra_meta={"render_settings": cam.settings.to_dict(),
+                    "illumination": _scalars(spec.model().meta)},
+    )
+    return cam, extra, _then(cam.set_contact, on_contact)
 
 
 def virtual_sensor(

@@ -24,7 +24,7 @@ BENCHMARKS = [
     ("reconstruct", "normals and depth: time and error per solver, integrator and size"),
     ("calibration", "calibration: time and cross-validated error per model"),
     ("live", "live paths: uint8 frames to heights per solver, size and thread count, fast vs eager"),
-    ("lens", "lens optimizer: issue 16's targets, CMA-ES against random search and Nelder-Mead"),
+    ("lens", "lens optimizer: the lens targets, CMA-ES against random search and Nelder-Mead"),
     ("modes", "lighting modes: normal error against capture and reconstruction time per mode and solver"),
     ("all", "every benchmark; writes docs/benchmarks.md, .json, .html (the charts) and .png (their summary)"),
     ("report", "the charts of a saved run: an offline interactive page (and the summary figure)"),

@@ -11,40 +11,44 @@ from pipeline.cli._common import add_json_flag, mode_help, object_help, print_js
 def register(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text + ". Rerunning an "
                        "interrupted capture with the same arguments resumes it.")
-    ring = p.add_mutually_exclusive_group(required=True)
+    r = p.add_argument_group("ring (one of --port and --emulate)")
+    ring = r.add_mutually_exclusive_group(required=True)
     ring.add_argument("--port", help="serial port of the LED ring (e.g. /dev/ttyACM0)")
     ring.add_argument("--emulate", action="store_true", help="use a ring emulator behind a pty")
-    p.add_argument("--faults", help="emulator faults, e.g. drop=0.05,corrupt=0.05,delay=0.02,"
+    r.add_argument("--faults", help="emulator faults, e.g. drop=0.05,corrupt=0.05,delay=0.02,"
                    "delay-s=0.05,disconnect-after=N")
-    p.add_argument("--ring-firmware", metavar="BIN",
+    r.add_argument("--ring-firmware", metavar="BIN",
                    help="with --emulate: serve the ring with this host build of the C firmware "
                    "(make -C firmware host: firmware/build/host/iristac-ring-host) instead of "
                    "the Python emulator")
-    cam = p.add_mutually_exclusive_group(required=True)
+    c = p.add_argument_group("camera (one of --camera and --virtual-camera)")
+    cam = c.add_mutually_exclusive_group(required=True)
     cam.add_argument("--camera", help="OpenCV camera index, device path or video file")
     cam.add_argument("--virtual-camera", action="store_true",
                      help="render the gel under the emulated ring's LEDs (needs --emulate); the "
                      "capture then carries truth/height, truth/normals, truth/albedo")
-    p.add_argument("--mode", required=True, help=mode_help())
-    p.add_argument("--frames-per-pattern", type=int, default=1, metavar="N",
+    w = p.add_argument_group("what to capture")
+    w.add_argument("--mode", required=True, help=mode_help())
+    w.add_argument("--frames-per-pattern", type=int, default=1, metavar="N",
                    help="frames averaged per stored frame (default 1)")
-    p.add_argument("--contacts", type=int, default=None, metavar="K",
+    w.add_argument("--contacts", type=int, default=None, metavar="K",
                    help="contact instances (presses) after the references (default 1, or the "
                    "number of maps in an --object stack)")
-    p.add_argument("--settle", type=float, default=None, metavar="S",
+    w.add_argument("--settle", type=float, default=None, metavar="S",
                    help="seconds to wait after a pattern change before flushing the camera")
-    p.add_argument("--exposure", type=float, default=None,
+    w.add_argument("--exposure", type=float, default=None,
                    help="camera exposure (virtual: gain mu in DN per unit radiance, default "
                    "fitted to the mode; OpenCV: backend units)")
-    p.add_argument("--mm-per-px", type=float, default=None,
+    w.add_argument("--mm-per-px", type=float, default=None,
                    help="image scale (default 0.1, or the --illumination file's)")
-    p.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
-    p.add_argument("--timeout", type=float, default=0.1,
+    link = p.add_argument_group("serial link and emulator")
+    link.add_argument("--baud", type=int, default=115200, help="serial baud rate (default 115200)")
+    link.add_argument("--timeout", type=float, default=0.1,
                    help="seconds to wait for the ring's first reply (default 0.1)")
-    p.add_argument("--retries", type=int, default=8, help="retransmissions per command")
-    p.add_argument("--emulate-baud", action="store_true",
+    link.add_argument("--retries", type=int, default=8, help="retransmissions per command")
+    link.add_argument("--emulate-baud", action="store_true",
                    help="the emulator models the wire time at --baud")
-    p.add_argument("--seed", type=int, default=0, help="seed of the emulator's faults")
+    link.add_argument("--seed", type=int, default=0, help="seed of the emulator's faults")
     v = p.add_argument_group("virtual camera (--virtual-camera)")
     v.add_argument("--object", default="sphere", metavar="OBJ", help=object_help("sphere"))
     v.add_argument("--illumination", metavar="FILE",
@@ -57,10 +61,11 @@ def register(sub, name, help_text):
                    help="read noise in DN (default 1)")
     v.add_argument("--bit-depth", type=int, default=8, choices=(0, 8, 10, 12, 16),
                    help="frame bit depth; 0 = float32 (default 8)")
-    p.add_argument("--no-prompt", action="store_true",
+    o = p.add_argument_group("output")
+    o.add_argument("--no-prompt", action="store_true",
                    help="do not wait for Enter before each contact with a real camera")
-    p.add_argument("--out", required=True, help="capture file to write (.h5)")
-    add_json_flag(p)
+    o.add_argument("--out", required=True, help="capture file to write (.h5)")
+    add_json_flag(o)
     p.set_defaults(func=run)
     return p
 

@@ -16,6 +16,14 @@ METHODS = ("hits", "image", "trace")
 
 
 def register(group):
+    _add_trace(group)
+    _add_section(group)
+    _add_optimize_lens(group)
+    _add_synthesize(group)
+
+
+def _add_trace(group) -> None:
+    """``sim trace``: flux on screen and uniformity of a scene."""
     p = group.add_parser("trace", help="trace a scene and report flux on screen and uniformity",
                          description="Trace every LED of a scene onto its imaging plane; print the fraction of "
                                      "light on screen, mean intensity and uniformity (the paper's figures).")
@@ -29,6 +37,9 @@ def register(group):
     add_json_flag(p)
     p.set_defaults(func=_trace)
 
+
+def _add_section(group) -> None:
+    """``sim section``: the radial section of a scene to a PNG."""
     p = group.add_parser("section", help="draw the radial section of a scene with sample rays to a PNG",
                          description="Draw the radial section (lens profile, LED, gel, sample rays) and the "
                                      "24-LED image, like the paper's Fig. 2.")
@@ -39,6 +50,9 @@ def register(group):
     add_json_flag(p)
     p.set_defaults(func=_section)
 
+
+def _add_optimize_lens(group) -> None:
+    """``sim optimize-lens``: the lens optimizer's options, grouped by what they set."""
     p = group.add_parser("optimize-lens", help="optimise a scene's lens for flux, uniformity or photometric stereo",
                          description="Optimise the lens of a scene: Nelder-Mead (or CMA-ES) over the lens dimensions "
                                      "(and optionally "
@@ -110,7 +124,10 @@ def register(group):
     add_json_flag(p)
     p.set_defaults(func=_optimize)
 
-    p = group.add_parser("synthesize", help="stage 2: trace a scene into illumination.h5 (cached in the store)",
+
+def _add_synthesize(group) -> None:
+    """``sim synthesize``: stage 1, a scene's illumination model through the store."""
+    p = group.add_parser("synthesize", help="stage 1: trace a scene into illumination.h5 (cached in the store)",
                          description="Trace every LED onto the camera pixel grid and write the illumination model "
                                      "(per-LED V, per-pattern light matrices) through the stage store.")
     p.add_argument("scene")
@@ -125,7 +142,6 @@ def register(group):
     p.add_argument("--cache", default=None, help="stage store folder (default $IRISTAC_CACHE or ./iristac-cache)")
     add_json_flag(p)
     p.set_defaults(func=_synthesize)
-
 
 def _trace_options(p):
     p.add_argument("--rays", type=int, default=None, help="rays per traced LED (default: the scene's, 1e6)")

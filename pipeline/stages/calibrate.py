@@ -1,4 +1,4 @@
-"""Stage 1, calibrate: light models fitted to a sphere-indentation capture (``calibration.h5``).
+"""Stage 2, calibrate: light models fitted to a sphere-indentation capture (``calibration.h5``).
 
 :func:`calibration.calibrate.calibrate` on a sphere capture: a file (its content hash is
 the stage's input), or one rendered from the synthesized illumination (the synthesize
@@ -22,12 +22,12 @@ from pipeline.stages.base import StageSpec, config_path, file_input_key, record_
 __all__ = ["SPEC", "RENDER_DEFAULTS", "params", "compute", "run", "rendered", "run_rendered", "node", "resolve"]
 
 # Version 2: every model's tilt gain and clip, the LUT's per-bin position correction, the MLP's
-# 400 steps at 2e-2 (issue 13): a calibration cached by version 1 holds other models.
+# 400 steps at 2e-2: a calibration cached by version 1 holds other models.
 # Version 3: the detector scaled from the ball, per-press drift removed, the tilt gain from the
-# out-of-fold ball fit, the quality gate (issue 22): other circles, other models.
+# out-of-fold ball fit, the quality gate: other circles, other models.
 # Version 4: the near-field model divides by the reference's flat field, light-field models leave
 # dark reference pixels out, the ball fit skips caps that are not round, every model carries its
-# own verdict and the best model is a usable one (issue 22, accuracy): other models, other choice.
+# own verdict and the best model is a usable one: other models, other choice.
 SPEC = StageSpec("calibrate", version=4, schema="calibration",
                  defaults={"ball_radius_mm": 4.0, "model": "far", "folds": 5})
 

@@ -1,4 +1,4 @@
-"""Stage 2, synthesize: the sensor's per-pixel illumination model (``illumination.h5``).
+"""Stage 1, synthesize: the sensor's per-pixel illumination model (``illumination.h5``).
 
 Two models: ``traced`` (:func:`sim.synthesize.synthesize_record`, the ray tracer on a scene)
 and ``bare_ring`` (:func:`sim.render.bare_ring_illumination`, the LED ring without a lens in

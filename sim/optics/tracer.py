@@ -264,6 +264,17 @@ def trace_source(scene, accumulators=(), *, led: int = 0, rays: int | None = Non
         for acc, img in zip(accumulators, images):
             acc.add_binned(img)
         return res
+    return _trace_torch(scene, accumulators, led=led, rays=rays, sampler=sampler, seed=seed, device=device,
+                        dtype=dtype, chunk=chunk, refractive_index=refractive_index, method=method,
+                        newton_iterations=newton_iterations, body=body)
+
+
+def _trace_torch(scene, accumulators, *, led: int, rays: int | None, sampler: str | None, seed: int | None,
+                 device, dtype, chunk: int, refractive_index: float | None, method: str,
+                 newton_iterations: int | None, body: LensBody | None) -> SourceTrace:
+    """:func:`trace_source` on the eager torch engine: rays drawn and traced through the lens in
+    chunks of ``chunk``, each chunk's rays leaving the optics fed to ``accumulators``."""
+    tr = scene.trace
     t0 = time.perf_counter()
     kind = sampler or tr.sampler
     n = actual_rays(int(rays if rays is not None else tr.rays), kind)

@@ -46,7 +46,7 @@ def test_best_model_meets_the_test_split_targets(four):
 
     assert four["best"] == {"detected": "mlp", "labels": "mlp"}, four["rows"]
     targets = {t["target"]: t for t in split_targets(four)}
-    # Issue 13's targets on presses the calibration never saw. Detected truth and ball fit: met
+    # The fixed-split targets on presses the calibration never saw. Detected truth and ball fit: met
     # by the default (calibrated on detected circles).
     assert targets["test_detected"]["default"]["value"] <= 7.0, targets["test_detected"]
     assert targets["ball_radius"]["default"]["value"] <= 0.03, targets["ball_radius"]

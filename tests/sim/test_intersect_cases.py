@@ -22,7 +22,7 @@ from sim.scene import load_scene
 torch.set_num_threads(1)
 
 # These tests exercise the swept-arc side through which the LEDs' rays enter the lens of the
-# pre-issue-16 default scene (default-v1); the current default's LEDs sit under its bottom face.
+# previous default scene (default-v1); the current default's LEDs sit under its bottom face.
 
 LENS = load_scene("default-v1").lens
 

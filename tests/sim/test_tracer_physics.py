@@ -25,7 +25,7 @@ ENGINES = ["torch", "kernel"]
 
 
 # These tests exercise the swept-arc side through which the LEDs' rays enter the lens of the
-# pre-issue-16 default scene (default-v1); the current default's LEDs sit under its bottom face.
+# previous default scene (default-v1); the current default's LEDs sit under its bottom face.
 
 def bare_scene(count=3, radius=10.0, m=1.0, cone=60.0, z=20.0, tilt=0.0):
     d = scene_to_dict(load_scene("default-v1"))
