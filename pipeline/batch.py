@@ -40,6 +40,10 @@ class BatchItem:
     worker: str = ""
     #: How the frames were solved: ``fast``, ``eager``, or ``cached`` (read from the store).
     method: str = ""
+    #: Frames solved, and the seconds from the first frame read to the last result on disk
+    #: (planning and start-up, in ``seconds``, excluded; a cluster's wall time shared by frames).
+    frames_solved: int = 0
+    solve_seconds: float = 0.0
 
     def to_json(self) -> dict:
         return {"recording": self.recording, "ok": self.ok, "seconds": round(self.seconds, 4),

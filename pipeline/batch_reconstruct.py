@@ -217,10 +217,11 @@ def _run_here(p: dict, threads, bar) -> None:
     t0 = time.perf_counter()
     try:
         r = run_frames(job, threads=threads, progress=bar.update, cap=p["cap"], lights=p["lights"], pipe=p["pipe"])
-        p["method"] = r["method"]
+        p["method"], p["workers"], p["frames_solved"] = r["method"], {r["worker"]}, r["frames"]
     except Exception as exc:  # noqa: BLE001 - this recording fails, the others go on
         p["error"] = _message(exc)
-    p["seconds"] += time.perf_counter() - t0
+    p["solve_seconds"] = time.perf_counter() - t0
+    p["seconds"] += p["solve_seconds"]
 
 
 def _run_distributed(planned: list[dict], threads, workers: int, scheduler, connect_timeout: float, bar) -> None:
@@ -252,12 +253,16 @@ def _run_distributed(planned: list[dict], threads, workers: int, scheduler, conn
         p = planned[owners[k]]
         if ok:
             p["method"] = value["method"]
+            p.setdefault("workers", set()).add(value["worker"])
+            p["frames_solved"] = p.get("frames_solved", 0) + value["frames"]
         elif not p["error"]:
             p["error"] = value
     seconds = time.perf_counter() - t0
+    total = max(1, sum(q.get("frames_solved", 0) for q in planned))
     for p in planned:
-        if p.get("job") is not None and not p["job"].cached:
-            p["seconds"] += seconds * p["frames"] / max(1, sum(q["frames"] for q in planned))
+        share = seconds * p.get("frames_solved", 0) / total
+        p["seconds"] += share
+        p["solve_seconds"] = share
 
 
 def _finish(p: dict, out, images: bool, t0: float) -> BatchItem:
@@ -275,7 +280,8 @@ def _finish(p: dict, out, images: bool, t0: float) -> BatchItem:
         n_meta, d_meta = recs["normals"].meta, recs["depth"].meta
         result: dict[str, Any] = {
             "normals_key": job.entries["normals"]["key"].digest, "depth_key": job.entries["depth"]["key"].digest,
-            "normals_sha256": n_meta.get("content_digest", ""), "depth_sha256": d_meta.get("content_digest", ""),
+            "normals_sha256": str(n_meta.get("stream_digest") or _content_digest(recs["normals"], "normals")),
+            "depth_sha256": str(d_meta.get("stream_digest") or _content_digest(recs["depth"], "height")),
             "contacts": job.frames, "frames": job.frames, "valid_fraction": float(n_meta.get("valid_fraction", 0.0)),
             "outputs": []}
         for k, meta in (("normal_mean_error_deg", n_meta), ("depth_rmse_mm", d_meta)):
@@ -292,22 +298,39 @@ def _finish(p: dict, out, images: bool, t0: float) -> BatchItem:
                 files += write_pictures(dest, recs["normals"], recs["depth"], job.mm_per_px,
                                         recs["contact"].data["contact"] if "contact" in recs else None)
             result["outputs"] = [str(f) for f in files]
-        return BatchItem(p["recording"], True, p["seconds"], result, None, method=p["method"])
+        return BatchItem(p["recording"], True, p["seconds"], result, None, worker=",".join(sorted(p.get("workers", ()))),
+                         method=p["method"], frames_solved=int(p.get("frames_solved", 0)),
+                         solve_seconds=float(p.get("solve_seconds", 0.0)))
     except Exception as exc:  # noqa: BLE001
         return BatchItem(p["recording"], False, p["seconds"], None, _message(exc))
 
 
+def _content_digest(rec, name: str) -> str:
+    """A digest of an entry's dataset that was not streamed (written whole by ``iristac run``)."""
+    import hashlib
+
+    import numpy as np
+
+    a = np.ascontiguousarray(np.asarray(rec.data[name]))
+    return hashlib.sha256(str((a.dtype.str, a.shape)).encode() + a.tobytes()).hexdigest()[:32]
+
+
 def summary_json(items: Sequence[BatchItem], seconds: float) -> dict:
-    """The ``--json`` summary: the items, counts, frames, frames per second (solved frames over the
-    run's wall time, planning and writing included) and the process's peak memory."""
+    """The ``--json`` summary: the items, counts, frames, the run's wall time (``seconds``), the
+    frames solved per second from the first frame read to the last result on disk
+    (``frames_per_second``; start-up apart: ``startup_seconds``, loading the light model, planning,
+    the solvers' precomputation and their compiled code from the disk cache) and the peak resident
+    memory of this process (``peak_rss_mb``; of its worker processes: ``peak_rss_workers_mb``)."""
     failed = sum(not i.ok for i in items)
-    solved = sum(i.result["frames"] for i in items if i.ok and i.method != "cached")
+    solved = sum(i.frames_solved for i in items)
+    solving = sum(i.solve_seconds for i in items)
     frames = sum(i.result["frames"] for i in items if i.ok)
-    usage = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
     return {"items": [i.to_json() for i in items], "processed": len(items) - failed, "failed": failed,
             "frames": frames, "frames_solved": solved, "seconds": round(seconds, 3),
-            "frames_per_second": round(solved / seconds, 2) if seconds > 0 and solved else 0.0,
-            "peak_rss_mb": round(usage / 1024.0, 1)}
+            "solve_seconds": round(solving, 3), "startup_seconds": round(max(0.0, seconds - solving), 3),
+            "frames_per_second": round(solved / solving, 2) if solving > 0 and solved else 0.0,
+            "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0, 1),
+            "peak_rss_workers_mb": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0, 1)}
 
 
 def _bar(total: int, enabled: bool):

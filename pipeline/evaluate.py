@@ -14,7 +14,7 @@ import numpy as np
 
 from pipeline.base.errors import UserError
 
-__all__ = ["angular_error_deg", "normal_error_stats", "truth_errors", "load_normals", "load_mask", "evaluate_normals"]
+__all__ = ["angular_error_deg", "mean_angular_error_deg", "normal_error_stats", "truth_errors", "load_normals", "load_mask", "evaluate_normals"]
 
 
 def angular_error_deg(a, b) -> np.ndarray:
@@ -35,6 +35,62 @@ def angular_error_deg(a, b) -> np.ndarray:
     dot = np.sum(a * b, axis=-1)
     zero = (np.linalg.norm(a, axis=-1) == 0) | (np.linalg.norm(b, axis=-1) == 0)
     return np.where(zero, 90.0, np.degrees(np.arctan2(cross, dot)))
+
+
+def mean_angular_error_deg(pred, gt, mask=None) -> float:
+    """The mean of :func:`angular_error_deg` over ``mask`` ``(H, W)`` (every pixel: None), as
+    :func:`normal_error_stats` gives it (non-finite normals count 90 deg, no pixel gives 0), in
+    one compiled pass: about 10x faster, for per-frame errors of long recordings.
+
+    Examples
+    --------
+    >>> gt = np.zeros((2, 2, 3)); gt[..., 2] = 1
+    >>> pred = gt.copy(); pred[0, 0] = (1, 0, 1)
+    >>> mean_angular_error_deg(pred, gt)
+    11.25
+    """
+    p = np.ascontiguousarray(pred, np.float32).reshape(-1, 3)
+    g = np.ascontiguousarray(gt, np.float32).reshape(-1, 3)
+    if p.shape != g.shape:
+        raise ValueError(f"mean_angular_error_deg: prediction {np.shape(pred)} and truth {np.shape(gt)} differ")
+    m = (np.ones(len(p), np.bool_) if mask is None else np.ascontiguousarray(mask, np.bool_).reshape(-1))
+    total, n = _angle_sum(p, g, m)
+    return float(total / n) if n else 0.0
+
+
+def _angle_sum(p, g, m):
+    from numba import njit
+
+    global _angle_kernel
+    if _angle_kernel is None:
+        @njit(cache=True, nogil=True)
+        def kernel(p, g, m):  # pragma: no cover - compiled
+            total = 0.0
+            n = 0
+            for i in range(p.shape[0]):
+                if not m[i]:
+                    continue
+                n += 1
+                a0, a1, a2 = np.float64(p[i, 0]), np.float64(p[i, 1]), np.float64(p[i, 2])
+                b0, b1, b2 = np.float64(g[i, 0]), np.float64(g[i, 1]), np.float64(g[i, 2])
+                fin = np.isfinite(a0) and np.isfinite(a1) and np.isfinite(a2)
+                if not fin:
+                    a0 = a1 = a2 = 0.0
+                if not (np.isfinite(b0) and np.isfinite(b1) and np.isfinite(b2)):
+                    b0 = b1 = b2 = 0.0
+                    a0 = a1 = a2 = 0.0
+                if (a0 == 0.0 and a1 == 0.0 and a2 == 0.0) or (b0 == 0.0 and b1 == 0.0 and b2 == 0.0):
+                    total += 90.0
+                    continue
+                c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+                total += np.degrees(np.arctan2(np.sqrt(c0 * c0 + c1 * c1 + c2 * c2), a0 * b0 + a1 * b1 + a2 * b2))
+            return total, n
+
+        _angle_kernel = kernel
+    return _angle_kernel(p, g, m)
+
+
+_angle_kernel = None
 
 
 def normal_error_stats(pred, gt, mask=None) -> dict:

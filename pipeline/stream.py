@@ -26,6 +26,7 @@ never a second copy (:func:`link_outputs`).
 
 from __future__ import annotations
 
+import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
@@ -52,6 +53,9 @@ CHUNK_BYTES = 48 << 20
 
 #: What is written is made durable (fsync) and recorded as done at least this often.
 COMMIT_SECONDS = 1.0
+
+#: Finished entries up to this size are read whole to be checked before they are trusted.
+VERIFY_BYTES = 256 << 20
 
 #: A capture's datasets above this many bytes stay on disk until a chunk of them is read.
 LAZY_BYTES = 8 << 20
@@ -146,6 +150,9 @@ def plan_stream(capture, *, calibration=None, illumination=None, solver: str = "
     cal = _load_light_record(calibration, "calibration")
     ill = _load_light_record(illumination, "illumination")
     lights = normals_stage.capture_lights(cap, cal, ill)
+    from pipeline.normals.lights import check_lights
+
+    check_lights(solver, lights, cap.data["frames"].shape[1], cap.data["frames"].shape[-1])
     if ratio and normals_stage.reference_frames(cap) is None:
         raise UserError(f"{cap.path}: --ratio needs no-contact reference frames (dataset 'reference'); this "
                         f"capture has none (source {cap.meta.get('source')!r})")
@@ -164,7 +171,11 @@ def plan_stream(capture, *, calibration=None, illumination=None, solver: str = "
         keys["contact"] = CONTACT_SPEC.key(store, {}, [d_key, cap_key])
     entries = {}
     for name, key in keys.items():
-        done = not force and store.get(key, recompute_bad=heal, load=False) is not None
+        # Entries up to VERIFY_BYTES are read whole (their checksums verified, a bad one healed);
+        # larger ones (a long recording's, written unfiltered) by their structure.
+        path = store.path_for(key)
+        load = path.is_file() and path.stat().st_size <= VERIFY_BYTES
+        done = not force and store.get(key, recompute_bad=heal, load=load) is not None
         entries[name] = {"key": key, "path": str(store.path_for(key)), "done": done}
     K, P, H, W, C = cap.data["frames"].shape
     frame_bytes = P * H * W * C * np.dtype(cap.data["frames"].dtype).itemsize + 32 * H * W  # frames, results
@@ -239,10 +250,13 @@ def prepare(job: StreamJob, cap, lights, threads: int | None = 1):
     albedo groups, whether the solver rates its normals): one frame solved once, set in
     ``job.meta``. Returns the pipeline."""
     pipe = _pipeline(job, cap, lights, threads)
-    if "groups" not in job.meta and job.frames:
+    if "groups" not in job.meta and job.frames and not job.entries["normals"]["done"]:
         probe = pipe.run(np.asarray(cap.data["frames"][0:1]))
         job.meta["groups"] = int(probe.extras["albedo"].shape[-1])
         job.meta["confidence"] = probe.confidence is not None
+        # What the solver says of itself (its method, what its confidence measures): the record's.
+        skip = ("drift", "drift_before_dn", "drift_residual_dn", "solver", "max_condition", "ratio")
+        job.meta["solver_meta"] = {k: v for k, v in probe.meta[0].items() if k not in skip}
     job.meta.setdefault("lights", lights.source)
     return pipe
 
@@ -253,8 +267,9 @@ def open_files(job: StreamJob) -> dict:
     from pipeline.base.streamed import StreamedFile
 
     H, W = job.shape
-    meta_n = {"solver": job.options["solver"], "mm_per_px": job.mm_per_px, "ratio": job.options["ratio"],
-              "max_condition": job.options["max_condition"], "lights": job.meta.get("lights", "")}
+    meta_n = {**job.meta.get("solver_meta", {}), "solver": job.options["solver"], "mm_per_px": job.mm_per_px,
+              "ratio": job.options["ratio"], "max_condition": job.options["max_condition"],
+              "lights": job.meta.get("lights", "")}
     layouts = {"normals": ("normals", job.outputs.normals_datasets((H, W), job.meta.get("groups", 1),
                                                                    job.meta.get("confidence", False)), meta_n),
                "depth": ("depth", OutputSpec.depth_datasets((H, W)),
@@ -298,14 +313,19 @@ def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None
     written = 0
     # One BLAS thread per caller (the frame pipeline's threads are the parallelism; OpenBLAS
     # workers on top would fight them for the cores), as live does.
-    with pipe, limit_threads(blas=1), H5Frames(job.capture, "frames", threads=max(2, pipe.threads)) as reader, \
-            _Writer(files) as writer:
+    frames = cap.data["frames"]
+    source = ArrayFrames(frames) if isinstance(frames, np.ndarray) else H5Frames(job.capture, "frames",
+                                                                                   threads=max(2, pipe.threads))
+    with pipe, limit_threads(blas=1), source as reader, _Writer(files) as writer:
         truth = _Truth(cap, job.region)
         for a, b in ranges:
             writer.begin(a, b)
             written += _run_range(job, pipe, reader, writer, truth, a, b, progress)
             writer.end()
-    return {"frames": written, "seconds": time.perf_counter() - t0, "method": pipe.method}
+    import socket
+
+    return {"frames": written, "seconds": time.perf_counter() - t0, "method": pipe.method,
+            "worker": f"{socket.gethostname()}:{os.getpid()}"}
 
 
 def _ranges(files: dict, start, stop) -> list[tuple[int, int]]:
@@ -321,6 +341,7 @@ def _ranges(files: dict, start, stop) -> list[tuple[int, int]]:
 def _run_range(job: StreamJob, pipe, reader, writer, truth, a: int, b: int, progress) -> int:
     """Frames ``a:b`` chunk by chunk, the next chunk read while this one is solved."""
     frames = job.frames
+    stored = _Stored(job)
     shape = (job.chunk,) + tuple(reader.shape[1:])
     bufs = [np.empty(shape, reader.dtype), np.empty(shape, reader.dtype)]
     starts = list(range(a, b, job.chunk))
@@ -336,13 +357,51 @@ def _run_range(job: StreamJob, pipe, reader, writer, truth, a: int, b: int, prog
             chunk = nxt.result()
             # The next chunk's buffer is the one the last write no longer needs (written synchronously below).
             nxt = pool.submit(read, i + 1) if i + 1 < len(starts) else None
-            out = pipe.run(chunk)
+            out = pipe.run(chunk, *stored.read(s, s + len(chunk)))
             arrays = _arrays(out, job.outputs)
             writer.write(s, arrays, _frame_stats(out, arrays, truth, s))
             if progress is not None:
                 progress(len(out))
     assert frames >= b
     return b - a
+
+
+class ArrayFrames:
+    """Frames already in memory (a capture record that was never a file) behind the reader
+    interface of :class:`pipeline.base.h5frames.H5Frames`."""
+
+    def __init__(self, frames: np.ndarray):
+        self.frames = frames
+        self.shape, self.dtype = frames.shape, frames.dtype
+
+    def read_into(self, dst: np.ndarray, start: int, stop: int) -> None:
+        dst[...] = self.frames[start:stop]
+
+    def __enter__(self) -> ArrayFrames:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+
+class _Stored:
+    """The normals and heights a finished entry already holds (results of another command), read a
+    chunk at a time so the frames are not solved again; None where they are to be computed."""
+
+    def __init__(self, job: StreamJob):
+        from pipeline.base.store import read_record
+
+        self.normals = self.depth = None
+        e = job.entries
+        if e["normals"]["done"]:
+            self.normals = read_record(e["normals"]["path"], "normals", lazy_bytes=0).data
+            if e["depth"]["done"]:
+                self.depth = read_record(e["depth"]["path"], "depth", lazy_bytes=0).data
+
+    def read(self, a: int, b: int) -> tuple:
+        n = None if self.normals is None else (self.normals["normals"][a:b], self.normals["mask"][a:b])
+        d = None if self.depth is None else (self.depth["height"][a:b], self.depth["mask"][a:b])
+        return n, d
 
 
 def _arrays(out, outputs: OutputSpec) -> dict:
@@ -363,13 +422,10 @@ def _arrays(out, outputs: OutputSpec) -> dict:
 def _frame_stats(out, arrays: dict, truth, start: int) -> dict[int, dict]:
     """Per frame: valid pixels, drift facts, contact pixels, errors against truth, and checksums
     of the normals and heights written (the entries' content digests: :func:`_digest`)."""
-    import zlib
-
     stats = {}
     errs = truth.errors(out, start)
     for k in range(len(out)):
-        st = {"valid": int(out.mask[k].sum()), "crc_n": zlib.crc32(arrays["normals"]["normals"][k]),
-              "crc_h": zlib.crc32(arrays["depth"]["height"][k])}
+        st = {"valid": int(out.mask[k].sum())}
         st.update({m: out.meta[k][m] for m in ("drift", "drift_before_dn", "drift_residual_dn") if m in out.meta[k]})
         if out.contact is not None:
             st["contact"] = int(out.contact[k].sum())
@@ -388,7 +444,7 @@ class _Truth:
         self.region = None if region is None else np.asarray(region, bool)
 
     def errors(self, out, start: int) -> list[dict]:
-        from pipeline.evaluate import normal_error_stats
+        from pipeline.evaluate import mean_angular_error_deg
 
         n = len(out)
         res: list[dict] = [{} for _ in range(n)]
@@ -398,7 +454,7 @@ class _Truth:
                 m = np.einsum("hwc,hwc->hw", gt[k], gt[k]) > 0
                 if self.region is not None:
                     m &= self.region
-                res[k]["normal_error_deg"] = normal_error_stats(out.normals[k], gt[k], m)["mean_deg"]
+                res[k]["normal_error_deg"] = mean_angular_error_deg(out.normals[k], gt[k], m)
         if self.height is not None:
             gt = np.asarray(self.height[start:start + n])
             for k in range(n):
@@ -480,6 +536,9 @@ def finish_stream(job: StreamJob, files_meta: dict | None = None) -> dict:
     summary: dict[str, Any] = {}
     stats: dict[int, dict] = {}
     todo = {}
+    for name, e in job.entries.items():  # finished meanwhile by another job of the same work
+        if not e["done"] and Path(e["path"]).is_file() and not _partial_exists(e["path"]):
+            e["done"] = True
     for name, sf in open_files(job).items():
         todo[name] = sf
         for k, v in sf.stats().items():
@@ -487,17 +546,15 @@ def finish_stream(job: StreamJob, files_meta: dict | None = None) -> dict:
     if todo and len(stats) < job.frames:
         raise UserError(f"{job.capture}: {job.frames - len(stats)} of {job.frames} frames have no results yet")
     summary.update(_summary(job, stats))
-    meta_n = {"valid_fraction": summary.get("valid_fraction", 0.0), "method": (files_meta or {}).get("method", ""),
-              "content_digest": _digest(stats, "crc_n")}
+    meta_n = {"valid_fraction": summary.get("valid_fraction", 0.0), "method": (files_meta or {}).get("method", "")}
     for k in ("drift", "drift_before_dn", "drift_residual_dn", "normal_mean_error_deg"):
         if k in summary:
             meta_n[k] = summary[k]
-    if job.region is not None and job.user_region:
+    if job.region is not None:
         meta_n["region_pixels"] = int(job.region.sum())
     if job.markers is not None:
         meta_n["markers"] = int(job.markers.sum())
-    metas = {"normals": meta_n, "depth": {"content_digest": _digest(stats, "crc_h"),
-                                          **{k: summary[k] for k in ("depth_rmse_mm",) if k in summary}},
+    metas = {"normals": meta_n, "depth": {k: summary[k] for k in ("depth_rmse_mm",) if k in summary},
              "contact": {k: summary[k] for k in ("contact_fraction",) if k in summary}}
     for name, sf in todo.items():
         sf.finish(metas[name])
@@ -505,13 +562,10 @@ def finish_stream(job: StreamJob, files_meta: dict | None = None) -> dict:
     return summary
 
 
-def _digest(stats: dict[int, dict], name: str) -> str:
-    """A digest of the per-frame checksums ``name`` in frame order: equal results, equal digests,
-    whichever process wrote which frames."""
-    import hashlib
+def _partial_exists(path) -> bool:
+    from pipeline.base.streamed import partial_path
 
-    crcs = [int(stats[k].get(name, 0)) for k in sorted(stats)]
-    return hashlib.sha256(np.asarray(crcs, np.uint32).tobytes()).hexdigest()[:32]
+    return partial_path(path).is_file()
 
 
 def _summary(job: StreamJob, stats: dict[int, dict]) -> dict:
@@ -549,11 +603,12 @@ def reconstruct_stream(capture, *, threads: int | None = 1, progress=None, **opt
     """Plan, run every missing frame in this process, finish: ``(job, summary)`` (see the module
     docstring; ``options`` as :func:`plan_stream`)."""
     job, cap, lights = plan_stream(capture, **options)
+    solves = not (job.entries["normals"]["done"] and job.entries["depth"]["done"])
     run = {"frames": 0, "method": "cached"}
     if not job.cached:
         pipe = prepare(job, cap, lights, threads)
         run = run_frames(job, threads=threads, progress=progress, cap=cap, lights=lights, pipe=pipe)
     summary = finish_stream(job, run) if any(not e["done"] for e in job.entries.values()) else {}
-    summary["frames_solved"] = run["frames"]
-    summary["method"] = run["method"]
+    summary["frames_solved"] = run["frames"] if solves else 0
+    summary["method"] = run["method"] if solves else "cached"
     return job, summary

@@ -29,10 +29,11 @@ LAYERS = [
     ("base", ["pipeline.base", "pipeline"]),
     ("physics and numerics", ["sim", "pipeline.normals", "pipeline.depth", "pipeline.evaluate", "pipeline.outputs",
                               "pipeline.report", "pipeline.charts", "pipeline.batch",
-                              "pipeline.contact"]),
+                              "pipeline.contact", "pipeline.frame_pipeline"]),
     ("calibration and capture", ["calibration", "pipeline.capture"]),
     ("stage registry", ["pipeline.stages"]),
-    ("entry points", ["pipeline.run", "pipeline.reconstruct", "pipeline.batch_reconstruct", "pipeline.compare",
+    ("entry points", ["pipeline.run", "pipeline.reconstruct", "pipeline.batch_reconstruct", "pipeline.stream",
+                      "pipeline.compare",
                       "pipeline.demo", "pipeline.diligent", "pipeline.live"]),
     ("command line and benchmarks", ["pipeline.cli", "pipeline.bench", "pipeline.__main__"]),
 ]

@@ -25,11 +25,13 @@ True
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import logging
 import os
 import re
 import secrets
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Callable, Iterator, Mapping, Sequence
@@ -56,6 +58,9 @@ __all__ = [
     "create_dataset",
     "write_attrs",
     "LazyDataset",
+    "DIGEST_ATTR",
+    "crc_digest",
+    "check_digest",
 ]
 
 _log = logging.getLogger("iristac")
@@ -434,6 +439,39 @@ def _check_provenance(path: Path, provenance: Mapping[str, Any]) -> None:
         raise StoreError(path, "not an IrisTac store file: " + "; ".join(e.message for e in errors[:3]))
 
 
+#: The attribute holding a streamed file's content digest (:mod:`pipeline.base.streamed`: per-frame
+#: CRC-32s of its per-frame datasets): its data are unfiltered, so this, not a Fletcher-32 filter,
+#: finds a flipped bit.
+DIGEST_ATTR = "stream_digest"
+
+
+def crc_digest(crcs: list[int]) -> str:
+    """The content digest of per-frame CRC-32s, in frame order (:data:`DIGEST_ATTR`)."""
+    return hashlib.sha256(np.asarray(crcs, np.uint32).tobytes()).hexdigest()[:32]
+
+
+def check_digest(path, data: Mapping[str, Any], meta: Mapping[str, Any]) -> None:
+    """A finished streamed file's datasets against its :data:`DIGEST_ATTR` (the per-frame CRC-32s
+    of its per-frame datasets, in name order); a mismatch is a :class:`StoreError`
+    naming the file. Files without the attribute (not streamed) pass: their datasets carry
+    Fletcher-32 checksums that HDF5 checks on reading."""
+    want = meta.get(DIGEST_ATTR)
+    layout = meta.get("stream_datasets")
+    if not want or not layout:
+        return
+    names = sorted(layout)
+    frames = len(np.asarray(data[names[0]])) if names else 0
+    crcs = []
+    for k in range(frames):
+        crc = 0
+        for name in names:
+            crc = zlib.crc32(np.ascontiguousarray(np.asarray(data[name][k])).view(np.uint8).reshape(-1), crc)
+        crcs.append(crc)
+    if crc_digest(crcs) != want:
+        raise StoreError(path, f"its data do not match its {DIGEST_ATTR} (a bit flipped on disk?)")
+
+
+
 class LazyDataset:
     """A dataset of a store file read only where it is indexed: ``shape``, ``dtype``, ``ndim``,
     ``len()``, ``ds[a:b]`` (reads those rows; the file is opened for each read) and
@@ -623,6 +661,8 @@ class StageStore:
             return None
         try:
             rec = read_record(path, key.schema, load=load)
+            if load:
+                check_digest(path, rec.data, rec.meta)
             if rec.provenance.get("iristac_key") != key.digest:
                 raise StoreError(path, f"file records key {rec.provenance.get('iristac_key')!r}, "
                                        f"expected {key.digest!r} (file renamed or copied by hand?)")

@@ -51,6 +51,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import zlib
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -68,6 +69,8 @@ CHUNK_BYTES = 1 << 20
 
 #: The progress files' format version (a file of another is ignored: its frames are written again).
 _PROGRESS_VERSION = 1
+
+
 
 
 def partial_path(final: str | os.PathLike) -> Path:
@@ -200,7 +203,7 @@ class StreamedFile:
                                  dcpl=dcpl, fill_time="never")
             for name, value in static.items():
                 create_dataset(f, name, value)
-            write_attrs(f, meta, self.provenance)
+            write_attrs(f, {**meta, "stream_datasets": sorted(self.layout)}, self.provenance)
             f.attrs["iristac_stream_layout"] = json.dumps(self.layout, sort_keys=True)
         from pipeline.base.store import fsync_dir, fsync_file
 
@@ -270,14 +273,24 @@ class StreamedFile:
         import h5py
 
         import data_schemas
-        from pipeline.base.store import StoreError, describe_file, fsync_dir, fsync_file, write_attrs
+        from pipeline.base.store import (
+            DIGEST_ATTR,
+            StoreError,
+            crc_digest,
+            describe_file,
+            fsync_dir,
+            fsync_file,
+            write_attrs,
+        )
 
         gaps = self.missing()
         if gaps:
             raise UserError(f"{self.final}: frames {', '.join(f'{a}:{b}' for a, b in gaps)} of {self.frames} not "
                             f"written yet; nothing renamed")
+        crcs = self.stats()
+        digest = crc_digest([int(crcs.get(k, {}).get("crc", 0)) for k in range(self.frames)])
         with h5py.File(self.partial, "r+") as f:
-            write_attrs(f, meta or {}, None, merge=True)
+            write_attrs(f, {**(meta or {}), DIGEST_ATTR: digest}, None, merge=True)
             del f.attrs["iristac_stream_layout"]
         description, _ = describe_file(self.partial)
         try:
@@ -318,7 +331,9 @@ class RangeWriter:
 
     def write(self, at: int, arrays: Mapping[str, np.ndarray]) -> None:
         """Frames ``at : at + n`` of every per-frame dataset (``arrays[name]`` of shape ``(n, *frame
-        shape)``; each name of the layout, in its dtype)."""
+        shape)``; each name of the layout, in its dtype). Each frame's CRC-32 over its datasets is
+        kept for the file's :data:`pipeline.base.store.DIGEST_ATTR` (what guards unfiltered data against a flipped bit)."""
+        self._crcs(at, arrays)
         n = None
         for name, (offsets, chunk, frame_bytes, dt) in self._places.items():
             a = arrays[name]
@@ -338,11 +353,19 @@ class RangeWriter:
                         int(offsets[f // chunk]) + (f % chunk) * frame_bytes)
                 k += run
 
+    def _crcs(self, at: int, arrays: Mapping[str, np.ndarray]) -> None:
+        n = len(next(iter(arrays.values()))) if arrays else 0
+        for k in range(n):
+            crc = 0
+            for name in sorted(self._places):
+                crc = zlib.crc32(np.ascontiguousarray(arrays[name][k]).view(np.uint8).reshape(-1), crc)
+            self._stats.setdefault(str(at + k), {})["crc"] = crc
+
     def commit(self, done_until: int, stats: Mapping[int, Mapping[str, Any]] | None = None) -> None:
         """Frames ``start : done_until`` are written: fsync them, then record it (with per-frame
         ``stats``, frame -> JSON-able dict, kept for :meth:`StreamedFile.finish`'s summary)."""
-        if stats:
-            self._stats.update({str(int(k)): dict(v) for k, v in stats.items()})
+        for k, v in (stats or {}).items():
+            self._stats.setdefault(str(int(k)), {}).update(v)
         os.fsync(self._fd)
         data = {"version": _PROGRESS_VERSION, "key": self.sf.provenance["iristac_key"], "start": self.start,
                 "stop": self.stop, "done": int(done_until), "stats": self._stats}

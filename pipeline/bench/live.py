@@ -135,7 +135,7 @@ def _fast_rows(label: str, size: str, solve, dst, repeats: int, threads_all: int
     return rows
 
 
-def _virtual_calibration(store, w: int, h: int, solver: str):
+def sensor_calibration(store, w: int, h: int, solver: str):
     from pipeline.base.hashing import digest
     from pipeline.live import virtual_calibration
     from sim.render import bare_ring_illumination
@@ -156,7 +156,7 @@ def measure_model(solver: str, width: int, height: int, repeats: int, store, thr
     from sim.contacts import contact_surfaces
     from sim.rendered_capture import render_capture
 
-    model, cal = _virtual_calibration(store, width, height, solver)
+    model, cal = sensor_calibration(store, width, height, solver)
     models, _ = calibration_from_record(cal)
     m = models[solver]
     mm = model.mm_per_px

@@ -1,10 +1,13 @@
-"""``iristac batch RECORDINGS... --calibration CAL | --illumination ILL [--workers N | --scheduler ADDRESS]``.
+"""``iristac batch RECORDINGS... --calibration CAL | --illumination ILL [--threads N | --workers N | --scheduler ADDRESS]``.
 
 Calls :func:`pipeline.batch_reconstruct.batch_reconstruct` and prints
-:func:`pipeline.batch.format_summary`.
+:func:`pipeline.batch.format_summary` (``--json``: :func:`pipeline.batch_reconstruct.summary_json`).
 """
 
 from __future__ import annotations
+
+import sys
+import time
 
 from pipeline.cli._common import (
     add_drift_flag,
@@ -13,54 +16,74 @@ from pipeline.cli._common import (
     add_markers_flag,
     add_mask_flag,
     add_solver_flags,
-    add_threads_flag,
     print_json,
-    threads_arg,
 )
 
 
 def register(sub, name, help_text):
+    from pipeline.frame_pipeline.outputs import DEFAULT_BATCH, OUTPUT_CHOICES, PRECISIONS
+
     p = sub.add_parser(name, help=help_text, description=help_text)
     p.add_argument("recordings", nargs="+", metavar="RECORDING", help="capture.h5 files or folders of them")
-    src = p.add_mutually_exclusive_group()
+    light = p.add_argument_group("light model")
+    src = light.add_mutually_exclusive_group()
     src.add_argument("--calibration", metavar="CAL", help="shared calibration.h5")
     src.add_argument("--illumination", metavar="ILL", help="shared illumination.h5")
-    add_solver_flags(p)
-    add_mask_flag(p)
-    add_markers_flag(p)
-    add_drift_flag(p)
-    where = p.add_mutually_exclusive_group()
-    where.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
-    where.add_argument("--scheduler", metavar="ADDRESS",
-                       help="Dask scheduler, e.g. tcp://host:8786 (workers must see the same files)")
-    p.add_argument("--connect-timeout", type=float, default=10.0, help="seconds to wait for the scheduler")
-    p.add_argument("--out", metavar="DIR", help="write OUT/<recording>/normals.h5, depth.h5 (and pictures)")
-    p.add_argument("--images", action="store_true", help="also write PNG/PLY pictures to --out")
-    p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda)")
-    add_threads_flag(p, "threads within each recording: torch's while solving; "
-                   "with more than one, nearfield/lstsq on integer frames and dst depth take their batch fast paths, "
-                   "every contact instance at once (default 1; 0: every core)")
-    add_heal_flag(p)
-    add_json_flag(p)
+    solve = p.add_argument_group("solving")
+    add_solver_flags(solve)
+    add_mask_flag(solve)
+    add_markers_flag(solve)
+    add_drift_flag(solve)
+    solve.add_argument("--device", default="cpu", help="torch device of the eager solvers (cpu, cuda)")
+    where = p.add_argument_group("where it runs")
+    where.add_argument("--threads", type=int, default=0,
+                       help="threads of the frame pipeline in each process: frames in parallel (default 0: every "
+                            "core)")
+    procs = where.add_mutually_exclusive_group()
+    procs.add_argument("--workers", type=int, default=1,
+                       help="local worker processes, each a range of frames (default 1: this process)")
+    procs.add_argument("--scheduler", metavar="ADDRESS",
+                       help="Dask scheduler, e.g. tcp://host:8786: frame ranges over its workers (they must see "
+                            "the same files and store)")
+    where.add_argument("--connect-timeout", type=float, default=10.0, help="seconds to wait for the scheduler")
+    outs = p.add_argument_group("what is written")
+    outs.add_argument("--save", default=DEFAULT_BATCH, metavar="{" + ",".join(OUTPUT_CHOICES) + ",all,none}",
+                      help=f"outputs beside the normals, heights and masks, comma-separated (default {DEFAULT_BATCH}; "
+                           f"contact costs about 10 ms a 320 x 240 frame); docs/reconstruction.md, 'Batch'")
+    outs.add_argument("--precision", choices=list(PRECISIONS), default="single",
+                      help="normals and confidence as float32 (single, default) or float16 (half)")
+    outs.add_argument("--out", metavar="DIR", help="OUT/<recording>/normals.h5, depth.h5 (links to the store's "
+                                                   "files, not copies)")
+    outs.add_argument("--images", action="store_true", help="also write PNG/PLY pictures to --out")
+    outs.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
+    outs.add_argument("--force", action="store_true", help="recompute even if the store has the results")
+    add_heal_flag(outs)
+    add_json_flag(outs)
     p.set_defaults(func=_run)
 
 
 def _run(args) -> int:
+    from pipeline.base.errors import UserError
     from pipeline.batch import format_summary
-    from pipeline.batch_reconstruct import SUMMARY_COLUMNS, batch_reconstruct
+    from pipeline.batch_reconstruct import SUMMARY_COLUMNS, batch_reconstruct, summary_json
 
-    threads = threads_arg(args)
+    if args.threads < 0:
+        raise UserError(f"--threads must be 0 (every core) or more, got {args.threads}")
+    t0 = time.perf_counter()
     items = batch_reconstruct(args.recordings, calibration=args.calibration, illumination=args.illumination,
                               solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                               images=args.images, device=args.device, workers=args.workers,
-                              scheduler=args.scheduler, progress=not args.json,
+                              scheduler=args.scheduler, progress=not args.json and sys.stderr.isatty(),
                               connect_timeout=args.connect_timeout, heal=not args.no_heal, mask=args.mask,
-                              markers=args.markers, threads=threads, drift=args.drift)
-    failed = sum(not i.ok for i in items)
+                              markers=args.markers, threads=args.threads or None, drift=args.drift, save=args.save,
+                              precision=args.precision, force=args.force)
+    summary = summary_json(items, time.perf_counter() - t0)
     if args.json:
-        print_json({"items": [i.to_json() for i in items], "processed": len(items) - failed, "failed": failed})
+        print_json(summary)
     else:
         print(format_summary(items, SUMMARY_COLUMNS))
+        print(f"{summary['frames_solved']} frames solved at {summary['frames_per_second']:.1f} frames/s "
+              f"({summary['solve_seconds']:.2f} s; start-up {summary['startup_seconds']:.2f} s), peak memory "
+              f"{summary['peak_rss_mb']:.0f} MB")
     # Bad recordings are reported and skipped; the exit status says some were.
-    return 1 if failed else 0
+    return 1 if summary["failed"] else 0

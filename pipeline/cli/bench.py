@@ -24,6 +24,8 @@ BENCHMARKS = [
     ("reconstruct", "normals and depth: time and error per solver, integrator and size"),
     ("calibration", "calibration: time and cross-validated error per model"),
     ("live", "live paths: uint8 frames to heights per solver, size and thread count, fast vs eager"),
+    ("batch", "batch processing: recordings on disk to results on disk, frames/s and peak memory against length, "
+              "beside the live path"),
     ("lens", "lens optimizer: the lens targets, CMA-ES against random search and Nelder-Mead"),
     ("modes", "lighting modes: normal error against capture and reconstruction time per mode and solver"),
     ("all", "every benchmark; writes docs/benchmarks.md, .json, .html (the charts) and .png (their summary)"),

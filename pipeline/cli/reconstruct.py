@@ -38,7 +38,14 @@ def register(sub, name, help_text):
     add_threads_flag(p, "threads: torch's while solving (BLAS's for lstsq on the cpu); with more than one, "
                    "nearfield/lstsq on integer frames and dst depth take their batch fast paths, every contact "
                    "instance at once (default 1; 0: every core)")
-    p.add_argument("--no-images", action="store_true", help="write only normals.h5 and depth.h5")
+    from pipeline.frame_pipeline.outputs import DEFAULT_RECONSTRUCT, OUTPUT_CHOICES, PRECISIONS
+
+    p.add_argument("--save", default=DEFAULT_RECONSTRUCT, metavar="{" + ",".join(OUTPUT_CHOICES) + ",all,none}",
+                   help=f"outputs beside the normals, heights and masks, comma-separated (default "
+                        f"{DEFAULT_RECONSTRUCT}); docs/reconstruction.md")
+    p.add_argument("--precision", choices=list(PRECISIONS), default="single",
+                   help="normals and confidence as float32 (single, default) or float16 (half)")
+    p.add_argument("--no-images", action="store_true", help="write only normals.h5, depth.h5 and contact.h5")
     p.add_argument("--force", action="store_true", help="recompute even if the store has the result")
     p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
     add_heal_flag(p)
@@ -55,7 +62,8 @@ def _run(args) -> int:
                       solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
                       images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
-                      markers=args.markers, threads=threads, drift=args.drift)
+                      markers=args.markers, threads=threads, drift=args.drift, save=args.save,
+                      precision=args.precision, progress=_bar(args))
     s = res.summary
     if args.json:
         print_json(s)
@@ -70,3 +78,17 @@ def _run(args) -> int:
     print(line)
     print(f"wrote {len(res.files)} files to {args.out}")
     return 0
+
+
+def _bar(args):
+    """A frames progress bar on a terminal (None with --json or when stderr is not one)."""
+    import sys
+
+    if args.json or not sys.stderr.isatty():
+        return None
+    from pipeline.batch import progress_bar
+    from pipeline.stream import read_capture
+
+    bar = progress_bar(int(read_capture(args.capture).data["frames"].shape[0]), True, unit="frame",
+                       desc="reconstruct")
+    return bar.update

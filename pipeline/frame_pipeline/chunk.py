@@ -3,7 +3,7 @@
 ``iristac live`` runs it on one frame set at a time, ``reconstruct`` and ``batch`` on chunks of
 a recording's frames (:mod:`pipeline.stream`); every path is the same code:
 
-1. **normals**: the solver built by :func:`pipeline.stages.fast_solvers.frame_solver`:
+- the normals: the solver built by :func:`pipeline.stages.fast_solvers.frame_solver`:
    - a fast path that solves many frames in one call (``solve_batch``: the near-field and
      far-field paths, :class:`pipeline.normals.fast.NearFieldFast`): every frame of the chunk
      at once, each thread a run of pixels of every frame;
@@ -12,10 +12,10 @@ a recording's frames (:mod:`pipeline.stream`); every path is the same code:
      its pixels split over the threads, as live does);
    - the eager solve (:class:`pipeline.normals.solve.FrameSolver`), where no fast path applies:
      the chunk in one call, its own threads (torch's or BLAS's);
-2. **heights**: the integrator's fast path (``dst``: :meth:`pipeline.depth.fast.FastDST.integrate_batch`,
+- the heights: the integrator's fast path (``dst``: :meth:`pipeline.depth.fast.FastDST.integrate_batch`,
    a run of frames per thread) on the whole frame, else the eager integrator per frame (on the
    region's bounding box where one is given, :func:`pipeline.depth.integrate`), frames in parallel;
-3. **contact** (when asked): :func:`pipeline.contact.contact_mask` per frame, frames in parallel.
+- the contact masks (when asked): :func:`pipeline.contact.contact_mask` per frame, frames in parallel.
 
 Filled-in marker pixels (``filled``) are integrated through, as the depth stage does.
 
@@ -146,11 +146,23 @@ class FramePipeline:
         return res, self._integrate_one(res.normals, usable)
 
     # -- a chunk of frame sets (reconstruct, batch) ----------------------------------------------
-    def run(self, frames) -> FrameBatch:
-        """The :class:`FrameBatch` of frame sets ``(n, P, H, W, C)`` (integers for the fast paths)."""
+    def run(self, frames, normals=None, heights=None) -> FrameBatch:
+        """The :class:`FrameBatch` of frame sets ``(n, P, H, W, C)`` (integers for the fast paths).
+
+        ``normals``: ``(normals (n, H, W, 3), mask (n, H, W))`` already solved (read back from a
+        store entry): the frames are not solved again; ``heights``: ``(height, valid)`` likewise
+        (then only the contact masks are computed)."""
         f = np.asarray(frames)
-        out = self._normals(f)
-        self._heights(out)
+        if normals is None:
+            out = self._normals(f)
+        else:
+            n, m = (np.asarray(a) for a in normals)
+            out = FrameBatch(n.astype(np.float32, copy=False), m.astype(bool, copy=False),
+                             np.empty(m.shape, np.float32), np.empty(m.shape, np.bool_), meta=[{} for _ in m])
+        if heights is None:
+            self._heights(out)
+        else:
+            out.height, out.height_mask = (np.asarray(a) for a in heights)
         if self.contact_fn is not None:
             out.contact = np.empty(out.height.shape, np.bool_)
 

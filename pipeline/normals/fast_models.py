@@ -146,6 +146,8 @@ class _Base:
         self.shape = (int(shape[0]), int(shape[1]))
         self.drift, self.dark_hwc = drift, None if dark is None else np.asarray(dark, np.float32)
         self.last_drift = None
+        #: What the confidence measures (the model's own words, ``meta["confidence"]`` of the eager path).
+        self.confidence_meaning: str | None = None
         self.gain = float(tilt_gain)
         self.limit = 0.999 if max_tilt is None else min(float(max_tilt), 0.999)
         self.apply_tilt = self.gain != 1.0 or max_tilt is not None  # as CalibrationModel.predict_with_confidence
@@ -186,6 +188,8 @@ class _Base:
 
     def _meta(self, solver: str, drift=None) -> dict:
         meta = {"solver": solver, "method": "fast"}
+        if self.confidence_meaning:
+            meta["confidence"] = self.confidence_meaning
         if drift is not None and self.drift is not None and self.drift.model != "none":
             meta.update(drift.result_meta())
         return meta

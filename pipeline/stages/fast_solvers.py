@@ -104,8 +104,10 @@ def fast_lut(lights, prep, *, reference=None, **_):
         rows, cols = (a.ravel() for a in np.mgrid[:H, :W])
         coef, phi = model.position_coef, poly_terms(rows, cols, (H, W), model.position_degree)
     ref = _reference(model, reference, prep)
-    return FastLUT(t.lo, t.hi, t.table, t.filled, t.support, ref, coef=coef, phi=phi, tilt_gain=model.tilt_gain,
-                   max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers, drift=_drift(prep, "lut", ref))
+    out = FastLUT(t.lo, t.hi, t.table, t.filled, t.support, ref, coef=coef, phi=phi, tilt_gain=model.tilt_gain,
+                  max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers, drift=_drift(prep, "lut", ref))
+    out.confidence_meaning = getattr(model, "confidence_meaning", None)
+    return out
 
 
 def fast_mlp(lights, prep, *, reference=None, **_):
@@ -124,9 +126,11 @@ def fast_mlp(lights, prep, *, reference=None, **_):
         rows, cols = (a.ravel() for a in np.mgrid[:H, :W])
         uv = poly_terms(rows, cols, (H, W), model.position_degree)[:, 1:]
     ref = _reference(model, reference, prep)
-    return FastMLP(members, ref, uv, input_scale=model.input_scale, features=model.features,
-                   tilt_gain=model.tilt_gain, max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers,
-                   drift=_drift(prep, "mlp", ref))
+    out = FastMLP(members, ref, uv, input_scale=model.input_scale, features=model.features,
+                  tilt_gain=model.tilt_gain, max_tilt=model.max_tilt, dark=prep.dark, markers=prep.markers,
+                  drift=_drift(prep, "mlp", ref))
+    out.confidence_meaning = getattr(model, "confidence_meaning", None)
+    return out
 
 
 def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=None, dark=None, markers=None,

@@ -72,7 +72,8 @@ def test_local_cluster_matches_serial_exactly_with_concurrent_writers(recordings
                                   store=str(store), scheduler=cluster.scheduler_address)
     assert outcome(items[:20]) == outcome(serial[0])
     assert items[20].result == items[0].result
-    assert len({i.worker for i in items}) == 2  # really spread over both workers
+    # Really spread over both workers (a recording that fails to open fails in the planning process).
+    assert len({w for i in items if i.ok for w in i.worker.split(",")}) == 2
     assert StageStore(store).verify() == []
     entries = [e for e in StageStore(store).entries() if e.kind == "entry"]
     assert len(entries) == 2 * 19  # normals + depth per good recording, the duplicate stored once

@@ -63,7 +63,7 @@ def test_reconstruct_writes_the_contact_mask(tmp_path):
     write_record(tmp_path / "ill.h5", ill)
     res = reconstruct(tmp_path / "cap.h5", illumination=tmp_path / "ill.h5", solver="nearfield", out=tmp_path / "out",
                       store=tmp_path / "cache")
-    d = read_record(tmp_path / "out" / "depth.h5", schema="depth")
+    d = read_record(tmp_path / "out" / "contact.h5", schema="contact")
     truth = cap.data["truth/height"][0] > 0
     assert d.data["contact"].shape == (1, 30, 40) and _iou(d.data["contact"][0], truth) > 0.8
     np.testing.assert_array_equal(res.contact, d.data["contact"])

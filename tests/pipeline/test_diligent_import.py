@@ -71,7 +71,7 @@ def test_import_reconstruct_and_eval(folder, tmp_path):
     cap = read_record(tmp_path / "capture.h5", schema="capture")
     assert cap.data["frames"].shape == (1, 8, H, W, 3) and cap.meta["source"] == "diligent"
     res = reconstruct(tmp_path / "capture.h5", solver="lstsq", integrator="sparse", out=tmp_path / "out",
-                      store=tmp_path / "cache", images=False)
+                      store=tmp_path / "cache", images=False, save="confidence,albedo")
     # 16-bit data without shadows inside the mask: least squares is essentially exact.
     assert res.summary["normal_mean_error_deg"] < 0.05
     r = evaluate_normals(tmp_path / "out" / "normals.h5", d / "Normal_gt.mat", d / "mask.png")

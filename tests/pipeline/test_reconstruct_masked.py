@@ -35,7 +35,7 @@ def test_only_the_mask_is_solved_and_robust_beats_least_squares(capture, tmp_pat
     m = rec.data["mask"]
     res = {}
     for solver in ("lstsq", "robust", "cauchy"):
-        r = reconstruct(path, solver=solver, integrator="dst", store=tmp_path / "c", images=False)
+        r = reconstruct(path, solver=solver, integrator="dst", store=tmp_path / "c", images=False, save="all")
         n, d = r.normals.data, r.depth.data
         assert not n["mask"][0][~m].any() and (n["count"][0][~m] == 0).all()
         assert (n["normals"][0][~m] == [0, 0, 1]).all() and np.isfinite(n["residual"]).all()

@@ -32,7 +32,7 @@ def files(tmp_path_factory):
 def test_nearfield_from_illumination_writes_everything(files, tmp_path):
     store = StageStore(tmp_path / "cache")
     res = reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield", integrator="dst",
-                      out=tmp_path / "out", store=store)
+                      out=tmp_path / "out", store=store, save="all")
     s = res.summary
     assert set(s) >= {"solver", "integrator", "seconds", "valid_fraction", "normal_mean_error_deg", "depth_rmse_mm"}
     assert s["valid_fraction"] == 1.0 and s["normal_mean_error_deg"] < 1.0 and s["depth_rmse_mm"] < 0.02
@@ -49,7 +49,7 @@ def test_nearfield_from_illumination_writes_everything(files, tmp_path):
     assert ply["vertex"].count == 30 * 40
     # Second call: both stages come from the store.
     again = reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield", integrator="dst",
-                        store=store)
+                        store=store, save="all")
     assert again.summary["cached"] and not res.summary["cached"]
     np.testing.assert_array_equal(again.depth.data["height"], d.data["height"])
 
@@ -70,20 +70,22 @@ def test_cli_json(files, tmp_path, solver="robust", integrator="sparse"):
     out = json.loads(r.stdout)
     assert out["solver"] == solver and out["integrator"] == integrator
     assert out["normal_mean_error_deg"] < 1.0 and 0 <= out["valid_fraction"] <= 1
-    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["depth.h5", "normals.h5"]
+    assert sorted(p.name for p in (tmp_path / "o").iterdir()) == ["contact.h5", "depth.h5", "normals.h5"]
+    # Links to the store's entries, not copies.
+    assert all((tmp_path / "o" / f).stat().st_nlink == 2 for f in ("contact.h5", "depth.h5", "normals.h5"))
 
 
 def test_threads_take_the_batch_fast_paths(files, tmp_path):
-    """``--threads 0`` (every core): nearfield by the batch kernel, dst by FastDST.integrate_batch;
-    the results of one thread to float32 rounding."""
+    """``--threads 0`` (every core): nearfield by the batch kernel, frames in parallel, dst by
+    FastDST.integrate_batch; the results of one thread, bit for bit (the same kernels)."""
     from pipeline.cli import build_parser
 
     assert build_parser().parse_args(["reconstruct", "c.h5", "--out", "o", "--threads", "0"]).threads == 0
     one = reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield", store=tmp_path / "a")
     every = reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield",
                         store=tmp_path / "b", threads=None)
-    assert every.normals.meta["method"] == "fast" and every.depth.meta["method"] == "fast"
-    assert one.normals.meta.get("method") != "fast" and "method" not in one.depth.meta
+    assert every.normals.meta["method"] == "fast" and one.normals.meta["method"] == "fast"
+    assert every.summary["method"] == "fast"
     np.testing.assert_array_equal(every.normals.data["mask"], one.normals.data["mask"])
     np.testing.assert_allclose(every.normals.data["normals"], one.normals.data["normals"], atol=3e-5)
     np.testing.assert_allclose(every.depth.data["height"], one.depth.data["height"], atol=1e-5)

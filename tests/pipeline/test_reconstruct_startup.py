@@ -1,5 +1,6 @@
-"""What ``reconstruct --solver lstsq`` imports: the far-field solve runs on numpy on the CPU, so a
-one-shot reconstruction never pays torch's import (1-3 s, most of the command's start)."""
+"""What ``reconstruct --solver lstsq`` imports: the far-field solve runs on its compiled fast path
+on the CPU (numpy and Numba), so a one-shot reconstruction never pays torch's import (1-3 s, most
+of the command's start)."""
 
 from __future__ import annotations
 
@@ -16,7 +17,7 @@ _PROBE = """
 import json, sys
 from pipeline.cli import main
 rc = main(sys.argv[1:])
-print(json.dumps({"rc": rc, "loaded": sorted(m for m in ("torch", "pipeline.normals.farfield") if m in sys.modules)}))
+print(json.dumps({"rc": rc, "loaded": sorted(m for m in ("torch", "pipeline.normals.fast") if m in sys.modules)}))
 """
 
 
@@ -43,5 +44,5 @@ def test_lstsq_reconstruct_runs_without_torch(capture, tmp_path):
     """The whole command (CLI, capture, far-field solve, DST depth, PNG/PLY outputs) on the CPU."""
     report, probe = _run(capture, tmp_path, "--solver", "lstsq")
     assert probe["rc"] == 0 and not report["cached"]
-    assert probe["loaded"] == ["pipeline.normals.farfield"], "torch was imported on the lstsq CPU path"
+    assert probe["loaded"] == ["pipeline.normals.fast"], "torch was imported on the lstsq CPU path"
     assert report["valid_fraction"] > 0.3 and report["normal_mean_error_deg"] < 5.0  # it did solve the sphere

@@ -25,6 +25,11 @@ def capture_and_lights():
     return cap, capture_lights(cap, None, illumination_record(model))
 
 
+from pipeline.frame_pipeline.outputs import OutputSpec  # noqa: E402
+
+ALL = OutputSpec.parse("all")  # every dataset, albedo and count included
+
+
 def _compare(a, b):
     both = a.data["mask"] & b.data["mask"]
     assert (a.data["mask"] == b.data["mask"]).mean() > 0.999 and both.mean() > 0.5
@@ -36,8 +41,8 @@ def test_batched_normals_and_device_depth_equal_the_stages(capture_and_lights):
     from pipeline.stages import depth, normals
 
     cap, lights = capture_and_lights
-    eager = normals.compute(cap, lights, solver="nearfield", batched=False)
-    batch = normals.compute(cap, lights, solver="nearfield", batched=True)
+    eager = normals.compute(cap, lights, outputs=ALL, solver="nearfield", batched=False)
+    batch = normals.compute(cap, lights, outputs=ALL, solver="nearfield", batched=True)
     assert batch.meta["method"] == "batched" and eager.meta.get("method") != "batched"
     _compare(batch, eager)
     d_ref = depth.compute(eager, "dst", region=None)
@@ -60,12 +65,12 @@ def test_threads_take_the_batch_fast_path(capture_and_lights):
     from pipeline.stages import normals
 
     cap, lights = capture_and_lights
-    eager = normals.compute(cap, lights, solver="nearfield")
-    fast = normals.compute(cap, lights, solver="nearfield", threads=2)
+    eager = normals.compute(cap, lights, outputs=ALL, solver="nearfield")
+    fast = normals.compute(cap, lights, outputs=ALL, solver="nearfield", threads=2)
     assert fast.meta["method"] == "fast" and eager.meta.get("method") != "fast"
     assert fast.data["normals"].shape == eager.data["normals"].shape and fast.data["count"].dtype == np.int32
     _compare(fast, eager)
-    assert normals.compute(cap, lights, solver="nearfield", threads=2, dtype="float64").meta.get("method") != "fast"
+    assert normals.compute(cap, lights, outputs=ALL, solver="nearfield", threads=2, dtype="float64").meta.get("method") != "fast"
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device: the CUDA-vs-CPU check needs a GPU")
