@@ -47,7 +47,7 @@ class BatchItem:
 
     def to_json(self) -> dict:
         return {"recording": self.recording, "ok": self.ok, "seconds": round(self.seconds, 4),
-                "result": self.result, "error": self.error}
+                "result": self.result, "error": self.error, "worker": self.worker, "method": self.method}
 
 
 def _guarded(task: Callable[[str], Any], recording: str) -> BatchItem:

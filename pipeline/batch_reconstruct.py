@@ -48,6 +48,9 @@ from pipeline.batch import BatchItem, map_tasks
 
 __all__ = ["batch_reconstruct", "expand_recordings", "summary_json", "SUMMARY_COLUMNS", "frame_ranges"]
 
+#: The fewest frames a worker's range holds (each range pays the solver's set-up once).
+MIN_RANGE = 16
+
 #: Result keys shown in the summary table.
 SUMMARY_COLUMNS = ("frames", "valid_fraction", "normal_mean_error_deg", "depth_rmse_mm")
 
@@ -217,7 +220,7 @@ def _run_here(p: dict, threads, bar) -> None:
     t0 = time.perf_counter()
     try:
         r = run_frames(job, threads=threads, progress=bar.update, cap=p["cap"], lights=p["lights"], pipe=p["pipe"])
-        p["method"], p["workers"], p["frames_solved"] = r["method"], {r["worker"]}, r["frames"]
+        p["method"], p["workers"], p["frames_solved"] = r["method"], {r["worker"]}, r["solved"]
     except Exception as exc:  # noqa: BLE001 - this recording fails, the others go on
         p["error"] = _message(exc)
     p["solve_seconds"] = time.perf_counter() - t0
@@ -243,7 +246,7 @@ def _run_distributed(planned: list[dict], threads, workers: int, scheduler, conn
         from pipeline.base.streamed import merge_ranges
 
         missing = merge_ranges(r for sf in files.values() for r in sf.missing())
-        for a, b in frame_ranges(missing, parts, max(job.chunk, 16)):
+        for a, b in frame_ranges(missing, parts, MIN_RANGE):
             tasks.append((job, a, b, threads))
             owners.append(i)
     t0 = time.perf_counter()
@@ -254,7 +257,7 @@ def _run_distributed(planned: list[dict], threads, workers: int, scheduler, conn
         if ok:
             p["method"] = value["method"]
             p.setdefault("workers", set()).add(value["worker"])
-            p["frames_solved"] = p.get("frames_solved", 0) + value["frames"]
+            p["frames_solved"] = p.get("frames_solved", 0) + value["solved"]
         elif not p["error"]:
             p["error"] = value
     seconds = time.perf_counter() - t0

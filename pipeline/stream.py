@@ -199,7 +199,7 @@ def _pipeline(job: StreamJob, cap, lights, threads):
     """The :class:`~pipeline.frame_pipeline.FramePipeline` of ``job`` on ``threads`` threads."""
     from pipeline.depth import frame_integrator
     from pipeline.frame_pipeline import FramePipeline
-    from pipeline.normals.drift import SAMPLES
+    from pipeline.normals.drift import STREAM_SAMPLES
     from pipeline.stages.fast_solvers import frame_solver
     from pipeline.stages.normals import reference_frames
 
@@ -209,7 +209,7 @@ def _pipeline(job: StreamJob, cap, lights, threads):
     solver = frame_solver(o["solver"], lights, shape=(H, W), channels=frames.shape[-1],
                           reference=reference_frames(cap), dark=cap.data.get("dark"), markers=job.markers,
                           max_condition=o["max_condition"], region=job.region, drift=o["drift"],
-                          drift_samples=SAMPLES, drift_every=1, raw_dtype=frames.dtype,
+                          drift_samples=STREAM_SAMPLES, drift_every=1, raw_dtype=frames.dtype,
                           bit_depth=cap.meta.get("bit_depth"), name=str(cap.path or "capture"), ratio=o["ratio"],
                           device=o["device"], dtype=o["dtype"], compile=o["compile"])
     integ = frame_integrator(o["integrator"], (H, W), job.mm_per_px)
@@ -290,7 +290,8 @@ def open_files(job: StreamJob) -> dict:
 def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None, *, threads: int | None = 1,
                progress: Callable[[int], None] | None = None, cap=None, lights=None, pipe=None) -> dict:
     """Write the frames ``start:stop`` (default: every frame no progress file claims) of the job's
-    unfinished entries; returns ``{"frames": written, "seconds": ..., "method": ...}``.
+    unfinished entries; returns ``{"frames": written, "solved": frames solved (0 where the normals
+    and heights were read back), "seconds", "method", "worker"}``.
 
     A worker process or a Dask worker calls it with its frame range (``cap`` and ``lights`` None:
     read again from the job's files). ``progress(n)`` is called after every chunk with its frames.
@@ -324,8 +325,9 @@ def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None
             writer.end()
     import socket
 
-    return {"frames": written, "seconds": time.perf_counter() - t0, "method": pipe.method,
-            "worker": f"{socket.gethostname()}:{os.getpid()}"}
+    solved = written if not (job.entries["normals"]["done"] and job.entries["depth"]["done"]) else 0
+    return {"frames": written, "solved": solved, "seconds": time.perf_counter() - t0,
+            "method": pipe.method if solved else "cached", "worker": f"{socket.gethostname()}:{os.getpid()}"}
 
 
 def _ranges(files: dict, start, stop) -> list[tuple[int, int]]:
@@ -603,12 +605,11 @@ def reconstruct_stream(capture, *, threads: int | None = 1, progress=None, **opt
     """Plan, run every missing frame in this process, finish: ``(job, summary)`` (see the module
     docstring; ``options`` as :func:`plan_stream`)."""
     job, cap, lights = plan_stream(capture, **options)
-    solves = not (job.entries["normals"]["done"] and job.entries["depth"]["done"])
-    run = {"frames": 0, "method": "cached"}
+    run = {"frames": 0, "solved": 0, "method": "cached"}
     if not job.cached:
         pipe = prepare(job, cap, lights, threads)
         run = run_frames(job, threads=threads, progress=progress, cap=cap, lights=lights, pipe=pipe)
     summary = finish_stream(job, run) if any(not e["done"] for e in job.entries.values()) else {}
-    summary["frames_solved"] = run["frames"] if solves else 0
-    summary["method"] = run["method"] if solves else "cached"
+    summary["frames_solved"] = run["solved"]
+    summary["method"] = run["method"]
     return job, summary

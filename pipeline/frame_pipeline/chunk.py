@@ -199,6 +199,8 @@ class FramePipeline:
             out = self._empty(1, H, W, r)
             self._put(out, 0, r)
             return out
+        if hasattr(self.solver, "solve_into") and not self.extras:
+            return self._solve_into(f)
         first = self.solver.solve(f[0], threads=1)
         out = self._empty(n, H, W, first)
         self._put(out, 0, first)
@@ -206,6 +208,23 @@ class FramePipeline:
         def solve(a: int, b: int) -> None:
             for k in range(max(a, 1), b):  # each result copied into the chunk's arrays and dropped
                 self._put(out, k, self.solver.solve(f[k], threads=1))
+
+        self.pool.split(solve, n)
+        return out
+
+    def _solve_into(self, f: np.ndarray) -> FrameBatch:
+        """Frames in parallel, each solved straight into the chunk's arrays (the LUT's and the MLP's
+        fast paths: nothing allocated per frame)."""
+        n, H, W = f.shape[0], f.shape[2], f.shape[3]
+        M = H * W
+        out = FrameBatch(np.empty((n, H, W, 3), np.float32), np.empty((n, H, W), np.bool_),
+                         np.empty((n, H, W), np.float32), np.empty((n, H, W), np.bool_),
+                         confidence=np.empty((n, H, W), np.float32), meta=[{} for _ in range(n)])
+        normals, mask, conf = out.normals.reshape(n, M, 3), out.mask.reshape(n, M), out.confidence.reshape(n, M)
+
+        def solve(a: int, b: int) -> None:
+            for k in range(a, b):
+                out.meta[k] = _scalars(self.solver.solve_into(f[k], normals[k], mask[k], conf[k], threads=1))
 
         self.pool.split(solve, n)
         return out

@@ -35,7 +35,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DRIFT_MODELS", "DRIFT_CHOICES", "AUTO_DRIFT", "GAIN_PIVOT", "SAMPLES", "LIVE_SAMPLES", "LIVE_REFIT_EVERY", "Drift", "DriftEstimator", "contact_exclusion",
+__all__ = ["DRIFT_MODELS", "DRIFT_CHOICES", "AUTO_DRIFT", "GAIN_PIVOT", "SAMPLES", "LIVE_SAMPLES", "STREAM_SAMPLES", "LIVE_REFIT_EVERY", "Drift", "DriftEstimator", "contact_exclusion",
            "drift_terms", "drifted_capture", "fit_drift", "remove_drift", "resolve_drift", "check_drift"]
 
 #: The gain is trusted as far as the reference spans more than this fraction of its own level
@@ -53,6 +53,11 @@ SAMPLES = 4000
 #: cost grows with them (320 x 240, one loaded core: 4.7 ms for 4000, 1.3 ms for 1000, 0.8 ms for 500)
 #: and a gain and an offset per channel need few (1000 moved them by 0.0002 and 0.03 DN).
 LIVE_SAMPLES = 1000
+
+#: Pixels the per-frame fits of a capture or a recording use (the normals stage, ``reconstruct``,
+#: ``batch``: every frame fitted, fast and eager paths alike): as live's, since a gain and an offset
+#: per channel need few (:data:`LIVE_SAMPLES`), and a recording's frames are many.
+STREAM_SAMPLES = LIVE_SAMPLES
 
 #: Live use fits the drift on every N-th frame and reuses it in between: the light drifts over
 #: seconds, one fit costs about a millisecond (see :data:`LIVE_SAMPLES`) and a LUT frame at 320 x 240

@@ -267,18 +267,26 @@ class FastLUT(_Base):
 
     def solve(self, frames, threads: int = 1):
         """Normals, mask and confidence of one RGB frame ``(H, W, 3)`` or ``(1, H, W, 3)`` (integer)."""
-        f = self._check(frames)
-        planes = frame_planes_np(f)
-        dg, do, drift = self._drift_planes(f)
         H, W = self.shape
         M = H * W
         normals = np.empty((M, 3), np.float32)
         mask = np.empty(M, np.bool_)
         conf = np.empty(M, np.float32)
+        meta = self.solve_into(frames, normals, mask, conf, threads)
+        return self._result(normals, mask, conf, meta)
+
+    def solve_into(self, frames, normals, mask, conf, threads: int = 1) -> dict:
+        """:meth:`solve` into the caller's arrays (``normals (H * W, 3)`` float32, ``mask (H * W,)``
+        bool, ``conf (H * W,)`` float32, C-contiguous: views of a chunk's arrays), nothing else
+        allocated per frame; returns the result's meta (a recording's frames in parallel)."""
+        f = self._check(frames)
+        planes = frame_planes_np(f)
+        dg, do, drift = self._drift_planes(f)
+        M = self.shape[0] * self.shape[1]
         run_split(lambda a, b: _lut_kernel(planes, self.dark, self.ref, self.lo, self.width, self.bins, self.filled,
                                            self.support, self.table, self.coef, self.phi, self.apply_tilt, self.gain,
                                            self.limit, dg, do, a, b, normals, mask, conf), M, threads)
-        return self._result(normals, mask, conf, self._meta("lut", drift))
+        return self._meta("lut", drift)
 
 
 # Eigen's float tanh (generic_fast_tanh_float): a (13, 6) rational approximation on [-7.9, 7.9],
@@ -551,14 +559,27 @@ class FastMLP(_Base):
     def solve(self, frames, threads: int = 1):
         """Normals, mask and confidence of one frame set ``(P, H, W, C)`` (integer); as
         ``MLPModel._predict_features`` then the output correction."""
-        raw, drift = self._outputs(frames, threads)
-        outs = np.ascontiguousarray(raw.transpose(0, 2, 1))  # (members, 2, M): no copy
-        H, W = self.shape
-        M = H * W
+        M = self.shape[0] * self.shape[1]
         planes = np.empty((3, M), np.float32)
         mask = np.empty(M, np.bool_)
         conf = np.empty(M, np.float32)
+        meta = self._solve_planes(frames, planes, mask, conf, threads)
+        # (M, 3) view of the planes (FastDST reads them back without a split).
+        return self._result(planes.T, mask, conf, meta)
+
+    def _solve_planes(self, frames, planes, mask, conf, threads: int = 1) -> dict:
+        raw, drift = self._outputs(frames, threads)
+        outs = np.ascontiguousarray(raw.transpose(0, 2, 1))  # (members, 2, M): no copy
+        M = self.shape[0] * self.shape[1]
         run_split(lambda a, b: _mlp_finish(outs, self.apply_tilt, self.gain, self.limit, a, b, planes, mask, conf),
                   M, threads)
-        # (M, 3) view of the planes (FastDST reads them back without a split).
-        return self._result(planes.T, mask, conf, self._meta("mlp", drift))
+        return self._meta("mlp", drift)
+
+    def solve_into(self, frames, normals, mask, conf, threads: int = 1) -> dict:
+        """:meth:`solve` into the caller's arrays (``normals (H * W, 3)`` float32, ``mask (H * W,)``,
+        ``conf (H * W,)``: views of a chunk's arrays); returns the result's meta."""
+        M = self.shape[0] * self.shape[1]
+        planes = np.empty((3, M), np.float32)
+        meta = self._solve_planes(frames, planes, mask, conf, threads)
+        normals[...] = planes.T
+        return meta

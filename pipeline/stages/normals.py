@@ -359,9 +359,11 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         if res is not None:
             return _select(_record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition,
                                    region=region, markers=None), outputs)
+    from pipeline.normals.drift import STREAM_SAMPLES
+
     prep = FrameSolver.prep_for(solver, raw.shape[2:4], raw_dtype=raw.dtype, bit_depth=cap.meta.get("bit_depth"),
                                 dark=cap.data.get("dark"), markers=markers, region=region,
-                                name=str(cap.path or "capture"), drift=drift)
+                                name=str(cap.path or "capture"), drift=drift, drift_samples=STREAM_SAMPLES)
     res = FrameSolver(solver, lights, prep, reference=reference, ratio=ratio, max_condition=max_condition,
                       device=device, dtype=dtype, compile=compile).solve_stack(raw, threads)
     return _select(_record(res, cap, lights, solver=solver, ratio=ratio, max_condition=max_condition, region=region,

@@ -86,11 +86,11 @@ def test_every_model_reconstructs_real_frames_as_the_model_predicts(real_split, 
     assert (d_rec.data["height"].reshape(3, -1).max(axis=1) > 0.05).all()
     # By default each press's drift against the reference (fitted on the whole frame, trimmed) is
     # removed first: the model's prediction for the frames so corrected.
-    from pipeline.normals.drift import fit_drift
+    from pipeline.normals.drift import STREAM_SAMPLES, fit_drift
     from pipeline.reconstruct import reconstruct
 
     res = reconstruct(test_path, calibration=cal, solver=solver, store=tmp_path / "auto", images=False)
-    fixed = np.stack([fit_drift(f, ref).remove(f) for f in frames])
+    fixed = np.stack([fit_drift(f, ref, max_samples=STREAM_SAMPLES).remove(f) for f in frames])
     maps = load_models(cal)[solver].normal_maps(fixed, ref)
     assert res.summary["drift"] == res.normals.meta["drift"] == "gain_offset"
     np.testing.assert_array_equal(res.normals.data["mask"], maps.mask)
