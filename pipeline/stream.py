@@ -257,6 +257,7 @@ def prepare(job: StreamJob, cap, lights, threads: int | None = 1):
         # What the solver says of itself (its method, what its confidence measures): the record's.
         skip = ("drift", "drift_before_dn", "drift_residual_dn", "solver", "max_condition", "ratio")
         job.meta["solver_meta"] = {k: v for k, v in probe.meta[0].items() if k not in skip}
+    pipe.extras = job.outputs.normal_extras  # the probe's albedo was only to learn its groups
     job.meta.setdefault("lights", lights.source)
     return pipe
 

@@ -461,6 +461,21 @@ class DriftEstimator:
         if A is None:  # the "none" model
             ident.residual_dn, ident.pixels = ident.before_dn, y.shape[1]
             return ident
+        if model in ("offset", "gain_offset") and nt == 1:  # one compiled pass (pipeline.normals._drift_kernel)
+            from pipeline.normals._drift_kernel import fit_constant
+
+            g, o, res, keep = fit_constant(np.ascontiguousarray(x, np.float64), np.ascontiguousarray(y, np.float64),
+                                           model == "gain_offset", float(self.trim), float(GAIN_PIVOT))
+            return Drift(model, g.reshape(p, c, 1), o.reshape(p, c, 1), self.degree,
+                         residual_dn=float(np.sqrt(np.mean(res[keep] ** 2))), before_dn=ident.before_dn,
+                         pixels=int(keep.all(axis=0).sum()))
+        return self._fit_numpy(y, ident)
+
+    def _fit_numpy(self, y: np.ndarray, ident: Drift) -> Drift:
+        """:meth:`_fit_samples` with numpy: every model (the reference the constant models' kernel
+        is checked against)."""
+        x, A, model, nt = self.x, self.A, self.model, self.terms_count
+        p, c = self.reference.shape[0], self.reference.shape[3]
         keep = np.ones(y.shape, bool)
         target = y - x if model == "offset" else y
         # The gain is pulled toward 1 as far as the reference lacks spread: a gain is told from an
