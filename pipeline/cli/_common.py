@@ -13,27 +13,47 @@ EXIT_NOT_IMPLEMENTED = 3
 ARGV: list[str] = []
 
 
-def add_solver_flags(parser, *, solver: bool = True, integrator: bool = True, default_solver: str = "lstsq") -> None:
+def add_solver_flags(parser, *, solver: bool = True, integrator: bool = True, default_solver: str = "lstsq",
+                     short_help: bool = False) -> None:
     """``--solver`` and ``--integrator``, with the choices of their registries
-    (:mod:`pipeline.base.registry`)."""
+    (:mod:`pipeline.base.registry`).
+
+    ``parser`` is a parser or one of its argument groups (``parser.add_argument_group``).
+    ``short_help``: show the choices in the usage line (``--solver {lstsq,nearfield,...}``) and a
+    one-line help pointing to docs/reconstruction.md, instead of a ``SOLVER`` metavar and the
+    registry's paragraph (the default)."""
     from pipeline.base.registry import INTEGRATORS, SOLVERS
 
     if solver:
-        parser.add_argument("--solver", choices=SOLVERS.names(), default=default_solver, metavar="SOLVER",
-                            help=f"photometric-stereo solver (default {default_solver}): {SOLVERS.help()}")
+        if short_help:
+            parser.add_argument("--solver", choices=SOLVERS.names(), default=default_solver,
+                                help=f"photometric-stereo solver (default {default_solver}; what each one does: "
+                                     "docs/reconstruction.md, Normal solvers)")
+        else:
+            parser.add_argument("--solver", choices=SOLVERS.names(), default=default_solver, metavar="SOLVER",
+                                help=f"photometric-stereo solver (default {default_solver}): {SOLVERS.help()}")
     if integrator:
-        parser.add_argument("--integrator", choices=INTEGRATORS.names(), default="dst", metavar="INTEGRATOR",
-                            help=f"depth integrator (default dst): {INTEGRATORS.help()}")
+        if short_help:
+            parser.add_argument("--integrator", choices=INTEGRATORS.names(), default="dst",
+                                help="depth integrator (default dst; what each one does: docs/reconstruction.md, "
+                                     "Depth integrators)")
+        else:
+            parser.add_argument("--integrator", choices=INTEGRATORS.names(), default="dst", metavar="INTEGRATOR",
+                                help=f"depth integrator (default dst): {INTEGRATORS.help()}")
 
 
 def add_mask_flag(parser) -> None:
-    """``--mask FILE``: the pixels to reconstruct (``reconstruct``, ``batch``)."""
+    """``--mask FILE``: the pixels to reconstruct (``reconstruct``, ``batch``).
+
+    ``parser`` is a parser or one of its argument groups (``parser.add_argument_group``)."""
     parser.add_argument("--mask", metavar="FILE.png",
                         help="reconstruct only these pixels (PNG/NPY, non-zero inside; replaces the capture's mask)")
 
 
 def add_markers_flag(parser) -> None:
-    """``--markers auto|none|MASK.png``: printed gel markers to fill in (``reconstruct``, ``batch``, ``live``)."""
+    """``--markers auto|none|MASK.png``: printed gel markers to fill in (``reconstruct``, ``batch``, ``live``).
+
+    ``parser`` is a parser or one of its argument groups (``parser.add_argument_group``)."""
     parser.add_argument("--markers", default=None, metavar="auto|none|MASK.png",
                         help="printed gel markers: filled in before normals are solved, invalid in the mask, "
                              "integrated through (auto: found in the reference; default: the capture's own, else "
@@ -42,7 +62,9 @@ def add_markers_flag(parser) -> None:
 
 def add_drift_flag(parser) -> None:
     """``--drift auto|none|offset|gain_offset|field``: the illumination drift removed before the
-    solve (``reconstruct``, ``batch``, ``live``; :mod:`pipeline.normals.drift`)."""
+    solve (``reconstruct``, ``batch``, ``live``; :mod:`pipeline.normals.drift`).
+
+    ``parser`` is a parser or one of its argument groups (``parser.add_argument_group``)."""
     from pipeline.normals.drift import DRIFT_CHOICES
 
     parser.add_argument("--drift", choices=DRIFT_CHOICES, default="auto",
@@ -55,7 +77,9 @@ def add_drift_flag(parser) -> None:
 def add_calibration_drift_flag(parser, help_text: str) -> None:
     """``--drift none|offset|gain_offset|field`` of ``calibrate`` and ``eval calibration``: the drift
     removed from each press outside its contact (:class:`calibration.detect.DetectOptions`);
-    read it back with :func:`drift_options`."""
+    read it back with :func:`drift_options`.
+
+    ``parser`` is a parser or one of its argument groups (``parser.add_argument_group``)."""
     from pipeline.normals.drift import DRIFT_MODELS
 
     parser.add_argument("--drift", choices=DRIFT_MODELS, default=None, help=help_text)
@@ -71,7 +95,9 @@ def drift_options(drift: str | None):
 
 
 def add_threads_flag(parser, help_text: str) -> None:
-    """``--threads N`` (default 1; 0: every core); read it back with :func:`threads_arg`."""
+    """``--threads N`` (default 1; 0: every core); read it back with :func:`threads_arg`.
+
+    ``parser`` is a parser or one of its argument groups (``parser.add_argument_group``)."""
     parser.add_argument("--threads", type=int, default=1, help=help_text)
 
 
@@ -91,6 +117,22 @@ def mode_help(what: str = "lighting mode") -> str:
     return f"{what}: a built-in name ({', '.join(list_modes())}) or a mode file"
 
 
+def mode_metavar() -> str:
+    """Metavar of a ``--mode`` that takes a built-in name or a file: ``{monochromatic,...}|FILE``
+    (:func:`pipeline.base.registry.list_modes`), so the usage line shows the names."""
+    from pipeline.base.registry import list_modes
+
+    return "{" + ",".join(list_modes()) + "}|FILE"
+
+
+def profile_metavar() -> str:
+    """Metavar of a ``--profile`` that takes a built-in sensor profile or a file:
+    ``{digit,gelsight-mini,iristac-ring}|FILE`` (:func:`pipeline.capture.sensor_profiles.list_profiles`)."""
+    from pipeline.capture.sensor_profiles import list_profiles
+
+    return "{" + ",".join(list_profiles()) + "}|FILE"
+
+
 def object_help(default: str) -> str:
     """Help text naming the contact objects (:data:`sim.contacts.OBJECTS`)."""
     from sim.contacts import OBJECTS
@@ -100,7 +142,9 @@ def object_help(default: str) -> str:
 
 
 def add_heal_flag(parser) -> None:
-    """``--no-heal``: stop on a corrupt cache entry instead of quarantining and recomputing it."""
+    """``--no-heal``: stop on a corrupt cache entry instead of quarantining and recomputing it.
+
+    ``parser`` is a parser or one of its argument groups (``parser.add_argument_group``)."""
     parser.add_argument("--no-heal", action="store_true",
                         help="stop on a corrupt or schema-violating cache entry instead of quarantining it "
                              "(moved aside, never deleted) and recomputing it")
@@ -119,6 +163,7 @@ def warnings_to_stderr() -> None:
 
 
 def add_json_flag(parser) -> None:
+    """``--json``; ``parser`` is a parser or one of its argument groups (``parser.add_argument_group``)."""
     parser.add_argument("--json", action="store_true", help="print results as JSON (stable keys)")
 
 

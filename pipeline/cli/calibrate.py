@@ -3,7 +3,13 @@
 Calls :func:`calibration.calibrate.calibrate` and :meth:`CalibrationResult.save`.
 """
 
-from pipeline.cli._common import add_calibration_drift_flag, add_json_flag, drift_options, print_json
+from pipeline.cli._common import (
+    add_calibration_drift_flag,
+    add_json_flag,
+    drift_options,
+    print_json,
+    profile_metavar,
+)
 
 MODEL_CHOICES = ["far", "near", "traced", "lut", "mlp", "all"]
 
@@ -11,48 +17,54 @@ MODEL_CHOICES = ["far", "near", "traced", "lut", "mlp", "all"]
 def register(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text)
     p.add_argument("capture", help="sphere-indentation capture.h5")
-    p.add_argument("--ball-radius", type=float, default=None,
-                   help="ball radius in mm (default: the capture's ball_radius_mm, from import images --ball-radius)")
-    p.add_argument("--mm-per-px", type=float, default=None, help="pixel pitch (default: the capture's)")
-    p.add_argument("--profile", default=None, metavar="NAME|FILE",
-                   help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): its ball radius, pixel "
-                        "pitch, drift model and MLP ensemble size where --ball-radius / --mm-per-px / --drift / "
-                        "--mlp-members are not given (a capture imported with --profile calibrates with that "
-                        "profile's settings anyway)")
-    p.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
-    p.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
-    p.add_argument("--mlp-members", type=int, default=None, metavar="N",
-                   help="fit the MLP as an ensemble of N nets (mean prediction; their agreement is the per-pixel "
-                        "confidence): steadier on new presses than one net, whose figures move with its seed; "
-                        "costs about 1.6x the calibration time with 3, and N times the MLP's time per frame in "
-                        "reconstruct and live (default: the sensor profile's calibration_mlp_members, 3 for the "
-                        "DIGIT, else 1; docs/calibration.md, step 3)")
-    p.add_argument("--out", required=True, help="calibration.h5 to write")
-    p.add_argument("--illumination", default=None,
-                   help="illumination.h5 (LED fields V from iristac sim trace) for the traced model")
-    p.add_argument("--correct-led-geometry", action="store_true",
-                   help="traced model: also fit small LED position and tilt corrections")
-    p.add_argument("--circles", choices=["auto", "detected", "labels"], default="auto",
-                   help="contact circles the models are fitted to: detected (the edge detector's), labels (the "
-                        "capture's hand labels, from import images --labels; radius clamped below the ball's), "
-                        "auto = detected (default)")
-    p.add_argument("--no-refine", action="store_true",
-                   help="keep the edge detector's centres (no photometric centre refinement)")
-    p.add_argument("--refine-model", choices=["auto", "far", "near", "traced", "mlp"], default="auto",
-                   help="light model whose normals vote for the detected centres (auto: traced with --illumination, "
-                        "else none: the detector's centres; see docs/calibration.md)")
-    p.add_argument("--markers", default=None, metavar="auto|none|MASK.png",
-                   help="printed gel markers: detect dark dots in the reference (auto), none, or a mask image "
-                        "(default: the capture's own marker mask, if it has one)")
-    p.add_argument("--overlay", default=None,
-                   help="also write an overlay PNG: every press with its circle and why it was accepted or rejected "
-                        "(written even when the calibration is refused)")
-    add_calibration_drift_flag(p, "illumination drift removed from each press, fitted outside its contact (default: the "
-                               "--profile's, else gain_offset: a gain and an offset per channel; field: both quadratic "
-                               "in the image position)")
-    p.add_argument("--force", action="store_true",
-                   help="write the calibration even when the quality gate refuses it (its verdict is kept in the file)")
-    add_json_flag(p)
+    sensor = p.add_argument_group("sensor and ball")
+    sensor.add_argument("--profile", default=None, metavar=profile_metavar(),
+                        help="sensor profile (a built-in name or a .yaml): its ball radius, pixel pitch, drift model "
+                             "and MLP ensemble size where --ball-radius / --mm-per-px / --drift / --mlp-members are "
+                             "not given (a capture imported with --profile calibrates with that profile's settings "
+                             "anyway)")
+    sensor.add_argument("--ball-radius", type=float, default=None,
+                        help="ball radius in mm (default: the capture's ball_radius_mm, from import images "
+                             "--ball-radius)")
+    sensor.add_argument("--mm-per-px", type=float, default=None, help="pixel pitch (default: the capture's)")
+    presses = p.add_argument_group("presses and their circles")
+    presses.add_argument("--circles", choices=["auto", "detected", "labels"], default="auto",
+                         help="contact circles the models are fitted to: detected (the edge detector's), labels (the "
+                              "capture's hand labels, from import images --labels; radius clamped below the ball's), "
+                              "auto = detected (default)")
+    presses.add_argument("--no-refine", action="store_true",
+                         help="keep the edge detector's centres (no photometric centre refinement)")
+    presses.add_argument("--refine-model", choices=["auto", "far", "near", "traced", "mlp"], default="auto",
+                         help="light model whose normals vote for the detected centres (auto: traced with "
+                              "--illumination, else none: the detector's centres; see docs/calibration.md)")
+    presses.add_argument("--markers", default=None, metavar="auto|none|MASK.png",
+                         help="printed gel markers: detect dark dots in the reference (auto), none, or a mask image "
+                              "(default: the capture's own marker mask, if it has one)")
+    add_calibration_drift_flag(presses, "illumination drift removed from each press, fitted outside its contact "
+                               "(default: the --profile's, else gain_offset: a gain and an offset per channel; "
+                               "field: both quadratic in the image position)")
+    models = p.add_argument_group("models")
+    models.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
+    models.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
+    models.add_argument("--mlp-members", type=int, default=None, metavar="N",
+                        help="fit the MLP as an ensemble of N nets (mean prediction; their agreement is the "
+                             "per-pixel confidence): steadier on new presses than one net, whose figures move with "
+                             "its seed; costs about 1.6x the calibration time with 3, and N times the MLP's time per "
+                             "frame in reconstruct and live (default: the sensor profile's calibration_mlp_members, "
+                             "3 for the DIGIT, else 1; docs/calibration.md, step 3)")
+    models.add_argument("--illumination", default=None,
+                        help="illumination.h5 (LED fields V from iristac sim trace) for the traced model")
+    models.add_argument("--correct-led-geometry", action="store_true",
+                        help="traced model: also fit small LED position and tilt corrections")
+    outs = p.add_argument_group("what is written")
+    outs.add_argument("--out", required=True, help="calibration.h5 to write")
+    outs.add_argument("--overlay", default=None,
+                      help="also write an overlay PNG: every press with its circle and why it was accepted or "
+                           "rejected (written even when the calibration is refused)")
+    outs.add_argument("--force", action="store_true",
+                      help="write the calibration even when the quality gate refuses it (its verdict is kept in the "
+                           "file)")
+    add_json_flag(outs)
     p.set_defaults(func=_run)
 
 

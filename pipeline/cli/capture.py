@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import sys
 
-from pipeline.cli._common import add_json_flag, mode_help, object_help, print_json
+from pipeline.cli._common import add_json_flag, mode_metavar, object_help, print_json
 
 
 def register(sub, name, help_text):
@@ -28,7 +28,7 @@ def register(sub, name, help_text):
                      help="render the gel under the emulated ring's LEDs (needs --emulate); the "
                      "capture then carries truth/height, truth/normals, truth/albedo")
     w = p.add_argument_group("what to capture")
-    w.add_argument("--mode", required=True, help=mode_help())
+    w.add_argument("--mode", required=True, metavar=mode_metavar(), help="lighting mode: a built-in name or a mode file")
     w.add_argument("--frames-per-pattern", type=int, default=1, metavar="N",
                    help="frames averaged per stored frame (default 1)")
     w.add_argument("--contacts", type=int, default=None, metavar="K",

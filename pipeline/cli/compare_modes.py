@@ -9,25 +9,34 @@ from pipeline.cli._common import add_json_flag, add_solver_flags, mode_help, obj
 def register(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text + ". Renders a test object under each mode "
                        "with the virtual sensor, or compares your own captures (each with truth/* datasets).")
-    p.add_argument("--out", required=True, help="folder for report.html, report.json and the captures")
-    p.add_argument("--modes", nargs="+", metavar="MODE", help=mode_help("lighting modes (default: every built-in)"))
-    src = p.add_mutually_exclusive_group()
+    what = p.add_argument_group("what is compared")
+    what.add_argument("--modes", nargs="+", metavar="MODE",
+                      help=mode_help("lighting modes (default: every built-in)"))
+    what.add_argument("--object", default="test-object",
+                      help=object_help("test-object: the demo's ball, rod and punch"))
+    what.add_argument("--captures", nargs="+", metavar="MODE=CAPTURE",
+                      help="compare these captures instead of rendering")
+    light = p.add_argument_group("light model (one of --scene and --illumination)")
+    src = light.add_mutually_exclusive_group()
     src.add_argument("--scene", default="default", help="scene to trace (default: default)")
     src.add_argument("--illumination", metavar="ILL", help="use this illumination.h5 instead of tracing")
-    p.add_argument("--object", default="test-object", help=object_help("test-object: the demo's ball, rod and punch"))
-    p.add_argument("--captures", nargs="+", metavar="MODE=CAPTURE", help="compare these captures instead of rendering")
-    p.add_argument("--calibration", nargs="+", metavar="MODE=CAL", help="calibrations with a lookup table per mode")
-    p.add_argument("--size", nargs=2, type=int, metavar=("H", "W"), default=(120, 160))
-    p.add_argument("--mm-per-px", type=float, default=0.15)
-    p.add_argument("--rays", type=int, default=2_000_000, help="rays per LED when tracing")
-    add_solver_flags(p, solver=False)
-    p.add_argument("--no-lut", action="store_true", help="do not calibrate lookup tables for single-frame modes")
-    p.add_argument("--render-only", action="store_true",
-                   help="render frames directly instead of capturing through the ring emulator and virtual camera")
-    p.add_argument("--faults", help="fault spec for the emulated ring, e.g. drop=0.05,corrupt=0.05")
-    p.add_argument("--fps", type=float, default=30.0, help="virtual camera frame rate (default 30)")
-    p.add_argument("--cache", help="stage store folder (default: OUT/cache)")
-    add_json_flag(p)
+    light.add_argument("--rays", type=int, default=2_000_000, help="rays per LED when tracing")
+    virt = p.add_argument_group("virtual sensor")
+    virt.add_argument("--size", nargs=2, type=int, metavar=("H", "W"), default=(120, 160),
+                      help="image size (default 120 160)")
+    virt.add_argument("--mm-per-px", type=float, default=0.15, help="pixel pitch on the gel, mm (default 0.15)")
+    virt.add_argument("--render-only", action="store_true",
+                      help="render frames directly instead of capturing through the ring emulator and virtual camera")
+    virt.add_argument("--faults", help="fault spec for the emulated ring, e.g. drop=0.05,corrupt=0.05")
+    virt.add_argument("--fps", type=float, default=30.0, help="virtual camera frame rate (default 30)")
+    solve = p.add_argument_group("solving")
+    solve.add_argument("--calibration", nargs="+", metavar="MODE=CAL", help="calibrations with a lookup table per mode")
+    solve.add_argument("--no-lut", action="store_true", help="do not calibrate lookup tables for single-frame modes")
+    add_solver_flags(solve, solver=False, short_help=True)
+    outs = p.add_argument_group("what is written")
+    outs.add_argument("--out", required=True, help="folder for report.html, report.json and the captures")
+    outs.add_argument("--cache", help="stage store folder (default: OUT/cache)")
+    add_json_flag(outs)
     p.set_defaults(func=_run)
 
 

@@ -2,7 +2,7 @@
 
 import sys
 
-from pipeline.cli._common import add_json_flag, print_json
+from pipeline.cli._common import add_json_flag, print_json, profile_metavar
 
 
 def register(group):
@@ -14,9 +14,9 @@ def register(group):
     p.add_argument("--out", required=True, help="capture.h5 to write")
     p.add_argument("--mm-per-px", type=float, default=None,
                    help="pixel pitch on the gel (mm per pixel); required unless --profile gives it")
-    p.add_argument("--profile", default=None, metavar="NAME|FILE",
-                   help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): pixel pitch, ball radius, and "
-                        "the camera stream's crop/rotation/size")
+    p.add_argument("--profile", default=None, metavar=profile_metavar(),
+                   help="sensor profile (a built-in name or a .yaml): pixel pitch, ball radius, and the camera "
+                        "stream's crop/rotation/size")
     p.add_argument("--reference", default=None, metavar="NAME",
                    help="the no-contact frame: file name or stem (with --pattern: a press id; video: a frame index), "
                         "or 'build' (no clean frame: build it from the presses, needs --ball-radius); default: the "

@@ -9,8 +9,9 @@ from pipeline.cli._common import (
     add_json_flag,
     add_markers_flag,
     add_solver_flags,
-    mode_help,
+    mode_metavar,
     print_json,
+    profile_metavar,
 )
 
 
@@ -28,49 +29,58 @@ def _size(text: str) -> tuple[int, int]:
 
 def register(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text)
-    src = p.add_mutually_exclusive_group()
+    where = p.add_argument_group("source (one of --camera and --virtual)")
+    src = where.add_mutually_exclusive_group()
     src.add_argument("--camera", metavar="SOURCE", help="OpenCV camera index, device, URL or video file, or a camera "
                                                         "name (found in /dev/v4l/by-id, e.g. \"GelSight Mini\")")
     src.add_argument("--virtual", action="store_true",
                      help="the virtual sensor: rendered gel under the emulated ring, scripted ball presses")
-    p.add_argument("--profile", default=None, metavar="NAME|FILE",
-                   help="sensor profile (digit, gelsight-mini, iristac-ring or a .yaml): its camera (when --camera is "
-                        "not given), crop, rotation, size, pixel pitch and lighting mode")
-    p.add_argument("--mode", default=None, help=mode_help() + " (default: the profile's, else trichromatic)")
-    add_solver_flags(p, default_solver="lut")
-    lights = p.add_mutually_exclusive_group()
+    where.add_argument("--profile", default=None, metavar=profile_metavar(),
+                       help="sensor profile (a built-in name or a .yaml): its camera (when --camera is not given), "
+                            "crop, rotation, size, pixel pitch and lighting mode")
+    where.add_argument("--mode", default=None, metavar=mode_metavar(),
+                       help="lighting mode: a built-in name or a mode file (default: the profile's, else "
+                            "trichromatic)")
+    ring = p.add_argument_group("LED ring (multi-pattern modes; one of --port and --emulate)")
+    one = ring.add_mutually_exclusive_group()
+    one.add_argument("--port", help="serial port of the LED ring (multi-pattern modes)")
+    one.add_argument("--emulate", action="store_true", help="drive the ring emulator instead (pty)")
+    ring.add_argument("--ring-firmware", metavar="PROGRAM",
+                      help="with --emulate/--virtual: serve the ring with the C firmware's host build")
+    virt = p.add_argument_group("virtual sensor (--virtual)")
+    virt.add_argument("--size", type=_size, default=(120, 160), metavar="WxH", help="virtual sensor image size")
+    virt.add_argument("--mm-per-px", type=float, default=0.15, help="virtual sensor pixel pitch")
+    virt.add_argument("--fps", type=float, default=None,
+                      help="virtual camera frame rate (default 120; 1000 in multi-pattern modes)")
+    light = p.add_argument_group("light model (one of --calibration and --illumination)")
+    lights = light.add_mutually_exclusive_group()
     lights.add_argument("--calibration", metavar="CAL.h5", help="calibration.h5 (with --virtual: default, calibrate "
                                                                 "the virtual sensor first, cached)")
     lights.add_argument("--illumination", metavar="ILL.h5", help="illumination.h5 (per-pixel light matrices)")
-    ring = p.add_mutually_exclusive_group()
-    ring.add_argument("--port", help="serial port of the LED ring (multi-pattern modes)")
-    ring.add_argument("--emulate", action="store_true", help="drive the ring emulator instead (pty)")
-    p.add_argument("--ring-firmware", metavar="PROGRAM",
-                   help="with --emulate/--virtual: serve the ring with the C firmware's host build")
-    p.add_argument("--frames", type=int, default=None, metavar="N", help="stop after N results")
-    p.add_argument("--seconds", type=float, default=None, help="stop after this many seconds")
-    p.add_argument("--record", metavar="FILE.h5", help="record frames, normals, depth, timestamps and drops "
-                                                       "(valid HDF5 even if the process is killed)")
-    p.add_argument("--view", action="store_true", help="serve a live page on 127.0.0.1 (depth, normals, contact)")
-    p.add_argument("--view-port", type=int, default=8765, help="port of the live page (0: any free port)")
-    p.add_argument("--queue", type=int, default=4, help="samples waiting before the oldest is dropped (default 4)")
-    p.add_argument("--threads", type=int, default=1, help="threads of the per-frame solver and transforms")
-    p.add_argument("--size", type=_size, default=(120, 160), metavar="WxH", help="virtual sensor image size")
-    p.add_argument("--mm-per-px", type=float, default=0.15, help="virtual sensor pixel pitch")
-    p.add_argument("--fps", type=float, default=None,
-                   help="virtual camera frame rate (default 120; 1000 in multi-pattern modes)")
-    p.add_argument("--reference", choices=["start", "calibration"], default=None,
-                   help="no-contact frame of the LUT/MLP: the first one (start with no contact; default with "
-                        "--virtual) or the calibration's (default with --camera)")
-    p.add_argument("--eager", action="store_true", help="the eager solver even where a fast path exists")
-    p.add_argument("--contact", action="store_true",
-                   help="also compute each result's contact mask (colour change against the no-contact frame, drift "
-                        "removed, and height): recorded with --record, its mean share of the image in --json "
-                        "(contact_fraction)")
-    add_markers_flag(p)
-    add_drift_flag(p)
-    p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
-    add_json_flag(p)
+    light.add_argument("--reference", choices=["start", "calibration"], default=None,
+                       help="no-contact frame of the LUT/MLP: the first one (start with no contact; default with "
+                            "--virtual) or the calibration's (default with --camera)")
+    solve = p.add_argument_group("solving")
+    add_solver_flags(solve, default_solver="lut", short_help=True)
+    add_markers_flag(solve)
+    add_drift_flag(solve)
+    solve.add_argument("--contact", action="store_true",
+                       help="also compute each result's contact mask (colour change against the no-contact frame, "
+                            "drift removed, and height): recorded with --record, its mean share of the image in "
+                            "--json (contact_fraction)")
+    run = p.add_argument_group("how it runs")
+    run.add_argument("--frames", type=int, default=None, metavar="N", help="stop after N results")
+    run.add_argument("--seconds", type=float, default=None, help="stop after this many seconds")
+    run.add_argument("--threads", type=int, default=1, help="threads of the per-frame solver and transforms")
+    run.add_argument("--queue", type=int, default=4, help="samples waiting before the oldest is dropped (default 4)")
+    run.add_argument("--eager", action="store_true", help="the eager solver even where a fast path exists")
+    outs = p.add_argument_group("what is written")
+    outs.add_argument("--record", metavar="FILE.h5", help="record frames, normals, depth, timestamps and drops "
+                                                          "(valid HDF5 even if the process is killed)")
+    outs.add_argument("--view", action="store_true", help="serve a live page on 127.0.0.1 (depth, normals, contact)")
+    outs.add_argument("--view-port", type=int, default=8765, help="port of the live page (0: any free port)")
+    outs.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
+    add_json_flag(outs)
     p.set_defaults(func=_run)
 
 

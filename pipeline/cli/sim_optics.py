@@ -28,13 +28,16 @@ def _add_trace(group) -> None:
                          description="Trace every LED of a scene onto its imaging plane; print the fraction of "
                                      "light on screen, mean intensity and uniformity (the paper's figures).")
     p.add_argument("scene", help="shipped scene name (default, plano-sphere) or a YAML path")
-    _trace_options(p)
-    p.add_argument("--no-lens", action="store_true", help="trace without the lens (the paper's comparison)")
-    p.add_argument("--intersection", choices=("robust", "paper"), default=None,
-                   help="lens intersections: robust (default) or the paper's cases 1-3 with counted fallbacks")
-    p.add_argument("--image", metavar="PNG", help="also save the 24-LED flat-gel image")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads of the kernel (default: every core)")
-    add_json_flag(p)
+    rays = p.add_argument_group("rays and lens")
+    run = p.add_argument_group("where it runs")
+    _trace_options(rays, run)
+    rays.add_argument("--no-lens", action="store_true", help="trace without the lens (the paper's comparison)")
+    rays.add_argument("--intersection", choices=("robust", "paper"), default=None,
+                      help="lens intersections: robust (default) or the paper's cases 1-3 with counted fallbacks")
+    run.add_argument("--threads", type=int, default=None, help="CPU threads of the kernel (default: every core)")
+    outs = p.add_argument_group("what is written")
+    outs.add_argument("--image", metavar="PNG", help="also save the 24-LED flat-gel image")
+    add_json_flag(outs)
     p.set_defaults(func=_trace)
 
 
@@ -112,16 +115,18 @@ def _add_optimize_lens(group) -> None:
     g.add_argument("--confirm-rays", type=int, default=None, help="rays of the confirming trace (default 1e6)")
     g.add_argument("--tolerance-rays", type=int, default=None, help="rays per design of the tolerance analysis")
     g.add_argument("--no-tolerance", action="store_true", help="skip the tolerance analysis")
-    p.add_argument("--out", default=None, metavar="DIR",
-                   help="folder for the winner's scene file, trajectory.json/png and section drawings")
-    p.add_argument("--plot", default=None, metavar="PNG", help="write the trajectory figure here")
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--threads", type=int, default=None, help="CPU threads of every trace (default: the engine's)")
-    p.add_argument("--engine", choices=("kernel", "torch"), default=None,
+    g = p.add_argument_group("where it runs")
+    g.add_argument("--device", default="cpu", help="cpu, or a CUDA device (cuda, cuda:1) (default cpu)")
+    g.add_argument("--threads", type=int, default=None, help="CPU threads of every trace (default: the engine's)")
+    g.add_argument("--engine", choices=("kernel", "torch"), default=None,
                    help="tracer of every candidate: the compiled kernel (default) or the eager torch reference "
                         "(a conic top needs it)")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_json_flag(p)
+    g = p.add_argument_group("what is written")
+    g.add_argument("--out", default=None, metavar="DIR",
+                   help="folder for the winner's scene file, trajectory.json/png and section drawings")
+    g.add_argument("--plot", default=None, metavar="PNG", help="write the trajectory figure here")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_json_flag(g)
     p.set_defaults(func=_optimize)
 
 
@@ -131,29 +136,39 @@ def _add_synthesize(group) -> None:
                          description="Trace every LED onto the camera pixel grid and write the illumination model "
                                      "(per-LED V, per-pattern light matrices) through the stage store.")
     p.add_argument("scene")
-    p.add_argument("--shape", type=int, nargs=2, metavar=("H", "W"), required=True, help="camera image size")
-    p.add_argument("--mm-per-px", type=float, required=True, help="pixel pitch on the gel (mm)")
-    p.add_argument("--out", required=True, help="illumination.h5 to write")
-    _trace_options(p)
-    p.add_argument("--drive", metavar="NPY", help="lighting patterns: a .npy array (P, L, 3) of LED drives")
-    p.add_argument("--brightness", metavar="NPY", help="a .npy array (P,) of pattern brightnesses")
-    p.add_argument("--gains", metavar="NPY", help="a .npy array (L,) or (L, 3) of calibrated LED gains")
-    p.add_argument("--exposure", type=float, default=1.0, help="camera exposure mu of the light matrices")
-    p.add_argument("--cache", default=None, help="stage store folder (default $IRISTAC_CACHE or ./iristac-cache)")
-    add_json_flag(p)
+    grid = p.add_argument_group("camera grid")
+    grid.add_argument("--shape", type=int, nargs=2, metavar=("H", "W"), required=True, help="camera image size")
+    grid.add_argument("--mm-per-px", type=float, required=True, help="pixel pitch on the gel (mm)")
+    rays = p.add_argument_group("rays")
+    run = p.add_argument_group("where it runs")
+    _trace_options(rays, run)
+    pat = p.add_argument_group("lighting patterns")
+    pat.add_argument("--drive", metavar="NPY", help="lighting patterns: a .npy array (P, L, 3) of LED drives")
+    pat.add_argument("--brightness", metavar="NPY", help="a .npy array (P,) of pattern brightnesses")
+    pat.add_argument("--gains", metavar="NPY", help="a .npy array (L,) or (L, 3) of calibrated LED gains")
+    pat.add_argument("--exposure", type=float, default=1.0, help="camera exposure mu of the light matrices")
+    outs = p.add_argument_group("what is written")
+    outs.add_argument("--out", required=True, help="illumination.h5 to write")
+    outs.add_argument("--cache", default=None,
+                      help="stage store folder (default $IRISTAC_CACHE or ./iristac-cache)")
+    add_json_flag(outs)
     p.set_defaults(func=_synthesize)
 
-def _trace_options(p):
-    p.add_argument("--rays", type=int, default=None, help="rays per traced LED (default: the scene's, 1e6)")
-    p.add_argument("--sampler", choices=SAMPLERS, default=None, help="ray sampler (default: the scene's)")
-    p.add_argument("--seed", type=int, default=None, help="sampler seed (default: the scene's)")
-    p.add_argument("--method", choices=METHODS, default="hits",
-                   help="every LED by hit rotation (exact, default), image rotation (the paper's) or tracing each")
-    p.add_argument("--device", default="cpu", help="cpu, or a CUDA device (cuda, cuda:1): the kernel on the GPU")
-    p.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    p.add_argument("--engine", choices=("kernel", "torch"), default=None,
-                   help="the compiled kernel (default; compiles once, then cached on disk) or the eager torch "
-                        "reference (the only one for --intersection paper)")
+
+
+def _trace_options(rays, run):
+    """The tracing options of ``trace`` and ``synthesize``: the rays to ``rays``, the device,
+    precision and engine to ``run`` (argument groups, or the same parser twice)."""
+    rays.add_argument("--rays", type=int, default=None, help="rays per traced LED (default: the scene's, 1e6)")
+    rays.add_argument("--sampler", choices=SAMPLERS, default=None, help="ray sampler (default: the scene's)")
+    rays.add_argument("--seed", type=int, default=None, help="sampler seed (default: the scene's)")
+    rays.add_argument("--method", choices=METHODS, default="hits",
+                      help="every LED by hit rotation (exact, default), image rotation (the paper's) or tracing each")
+    run.add_argument("--device", default="cpu", help="cpu, or a CUDA device (cuda, cuda:1): the kernel on the GPU")
+    run.add_argument("--dtype", choices=("float32", "float64"), default="float32")
+    run.add_argument("--engine", choices=("kernel", "torch"), default=None,
+                     help="the compiled kernel (default; compiles once, then cached on disk) or the eager torch "
+                          "reference (the only one for --intersection paper)")
 
 
 def _device(name: str, engine: str | None = None, intersection: str | None = None) -> str:

@@ -7,7 +7,7 @@ Each calls one documented function: :func:`pipeline.base.modes.describe_modes`,
 
 from __future__ import annotations
 
-from pipeline.cli._common import add_json_flag, mode_help, print_json
+from pipeline.cli._common import add_json_flag, mode_metavar, print_json
 
 
 def register(group):
@@ -18,24 +18,29 @@ def register(group):
 
     text = "render a height map (file or sphere) under a lighting mode to PNGs and a capture file"
     p = group.add_parser("render", help=text, description=text)
-    p.add_argument("--mode", default="monochromatic", help=mode_help("lighting mode (default monochromatic)"))
-    src = p.add_mutually_exclusive_group()
+    what = p.add_argument_group("what presses the gel (one of --height and --sphere)")
+    src = what.add_mutually_exclusive_group()
     src.add_argument("--height", metavar="FILE", help="height map: .npy or 16-bit .png")
     src.add_argument("--sphere", nargs=2, type=float, metavar=("RADIUS", "DEPTH"), help="a ball press (mm)")
-    p.add_argument("--height-scale", type=float, default=1.0, help="mm per stored unit of --height (default 1)")
-    p.add_argument("--center", nargs=2, type=float, default=(0.0, 0.0), metavar=("X", "Y"),
-                   help="sphere centre, mm, reconstruction frame")
-    p.add_argument("--shape", nargs=2, type=int, metavar=("H", "W"), help="image size (default 240 320)")
-    p.add_argument("--mm-per-px", type=float, default=0.0625, help="pixel pitch on the gel (default 0.0625)")
-    p.add_argument("--gel-z", type=float, default=35.0, help="LED plane to gel distance, mm (default 35)")
-    p.add_argument("--illumination", metavar="ILL", help="illumination.h5 from `iristac sim synthesize` "
-                   "(default: the closed-form bare LED ring at --gel-z); its grid sets the size and pitch")
-    p.add_argument("--settings", metavar="FILE", help="render settings YAML (effects); see docs/renderer.md")
-    p.add_argument("--noise", type=float, default=1.0, help="read noise sigma in DN without --settings (default 1)")
-    p.add_argument("--bit-depth", type=int, default=8, choices=[8, 10, 12, 16], help="without --settings (default 8)")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", required=True, metavar="DIR", help="output folder")
-    add_json_flag(p)
+    what.add_argument("--height-scale", type=float, default=1.0, help="mm per stored unit of --height (default 1)")
+    what.add_argument("--center", nargs=2, type=float, default=(0.0, 0.0), metavar=("X", "Y"),
+                      help="sphere centre, mm, reconstruction frame")
+    light = p.add_argument_group("lighting and image grid")
+    light.add_argument("--mode", default="monochromatic", metavar=mode_metavar(),
+                       help="lighting mode: a built-in name or a mode file (default monochromatic)")
+    light.add_argument("--illumination", metavar="ILL", help="illumination.h5 from `iristac sim synthesize` "
+                       "(default: the closed-form bare LED ring at --gel-z); its grid sets the size and pitch")
+    light.add_argument("--gel-z", type=float, default=35.0, help="LED plane to gel distance, mm (default 35)")
+    light.add_argument("--shape", nargs=2, type=int, metavar=("H", "W"), help="image size (default 240 320)")
+    light.add_argument("--mm-per-px", type=float, default=0.0625, help="pixel pitch on the gel (default 0.0625)")
+    cam = p.add_argument_group("camera effects")
+    cam.add_argument("--settings", metavar="FILE", help="render settings YAML (effects); see docs/renderer.md")
+    cam.add_argument("--noise", type=float, default=1.0, help="read noise sigma in DN without --settings (default 1)")
+    cam.add_argument("--bit-depth", type=int, default=8, choices=[8, 10, 12, 16], help="without --settings (default 8)")
+    cam.add_argument("--seed", type=int, default=0, help="seed of the noise and effects (default 0)")
+    outs = p.add_argument_group("what is written")
+    outs.add_argument("--out", required=True, metavar="DIR", help="output folder")
+    add_json_flag(outs)
     p.set_defaults(func=_render)
 
     text = "per-channel uniformity of each lighting mode on a flat gel (numbers and a figure)"

@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+from pipeline.base.registry import list_modes
 from pipeline.cli._common import add_json_flag, print_json
 
 
@@ -11,18 +12,21 @@ def register(group):
     text = ("render a randomised virtual GelSight-type sensor's ball presses (drift, printed markers, JPEG, "
             "vignetting, column stripes; exact truth) as a capture file and/or a folder of images")
     p = group.add_parser("sensor", help=text, description=text)
-    p.add_argument("--seed", type=int, default=0, help="which sensor (same seed, same sensor and frames)")
-    p.add_argument("--out", metavar="capture.h5", help="write a capture file (calibrate reads it)")
-    p.add_argument("--images", metavar="DIR", help="write frame_*.jpg|png and labels.csv (import images reads it)")
-    p.add_argument("--shape", nargs=2, type=int, metavar=("H", "W"), help="image size (default: drawn)")
-    p.add_argument("--presses", type=int, default=8, help="number of presses (default 8)")
-    p.add_argument("--lights", default="gelsight", help="gelsight (default) or a lighting mode of the 24-LED ring")
-    p.add_argument("--effects", default="all", metavar="all|none|E1,E2",
-                   help="markers, vignetting, drift_gain, drift_offset, drift_field, column_stripes, read_noise, "
-                        "jpeg (default all)")
-    p.add_argument("--border-fraction", type=float, default=0.15, help="presses cut by the image border")
-    p.add_argument("--labels", action="store_true", help="also store the true circles as hand labels (--out)")
-    add_json_flag(p)
+    sensor = p.add_argument_group("sensor and presses")
+    sensor.add_argument("--seed", type=int, default=0, help="which sensor (same seed, same sensor and frames)")
+    sensor.add_argument("--shape", nargs=2, type=int, metavar=("H", "W"), help="image size (default: drawn)")
+    sensor.add_argument("--presses", type=int, default=8, help="number of presses (default 8)")
+    sensor.add_argument("--lights", default="gelsight", metavar="{" + ",".join(["gelsight", *list_modes()]) + "}",
+                        help="gelsight (default) or a lighting mode of the 24-LED ring")
+    sensor.add_argument("--effects", default="all", metavar="all|none|E1,E2",
+                        help="markers, vignetting, drift_gain, drift_offset, drift_field, column_stripes, read_noise, "
+                             "jpeg (default all)")
+    sensor.add_argument("--border-fraction", type=float, default=0.15, help="presses cut by the image border")
+    outs = p.add_argument_group("what is written (--out, --images or both)")
+    outs.add_argument("--out", metavar="capture.h5", help="write a capture file (calibrate reads it)")
+    outs.add_argument("--images", metavar="DIR", help="write frame_*.jpg|png and labels.csv (import images reads it)")
+    outs.add_argument("--labels", action="store_true", help="also store the true circles as hand labels (--out)")
+    add_json_flag(outs)
     p.set_defaults(func=_run)
 
 
