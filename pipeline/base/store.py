@@ -465,7 +465,7 @@ def check_digest(path, data: Mapping[str, Any], meta: Mapping[str, Any]) -> None
     for k in range(frames):
         crc = 0
         for name in names:
-            crc = zlib.crc32(np.ascontiguousarray(np.asarray(data[name][k])).view(np.uint8).reshape(-1), crc)
+            crc = zlib.crc32(np.ascontiguousarray(np.asarray(data[name][k])).view(np.uint8).reshape(-1).data, crc)
         crcs.append(crc)
     if crc_digest(crcs) != want:
         raise StoreError(path, f"its data do not match its {DIGEST_ATTR} (a bit flipped on disk?)")

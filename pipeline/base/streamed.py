@@ -344,7 +344,7 @@ class RangeWriter:
             if len(a) != n or not (self.start <= at and at + n <= self.stop):
                 raise ValueError(f"{self.sf.final}: frames {at}:{at + len(a)} outside this writer's "
                                  f"{self.start}:{self.stop}")
-            buf = memoryview(np.ascontiguousarray(a).reshape(-1).view(np.uint8))
+            buf = memoryview(np.ascontiguousarray(a).reshape(-1).view(np.uint8).data)
             k = 0
             while k < n:  # one write per run of frames inside one chunk
                 f = at + k
@@ -358,7 +358,7 @@ class RangeWriter:
         for k in range(n):
             crc = 0
             for name in sorted(self._places):
-                crc = zlib.crc32(np.ascontiguousarray(arrays[name][k]).view(np.uint8).reshape(-1), crc)
+                crc = zlib.crc32(np.ascontiguousarray(arrays[name][k]).view(np.uint8).reshape(-1).data, crc)
             self._stats.setdefault(str(at + k), {})["crc"] = crc
 
     def commit(self, done_until: int, stats: Mapping[int, Mapping[str, Any]] | None = None) -> None:

@@ -30,7 +30,7 @@ def register(sub, name, help_text):
     src.add_argument("--calibration", metavar="CAL", help="shared calibration.h5")
     src.add_argument("--illumination", metavar="ILL", help="shared illumination.h5")
     solve = p.add_argument_group("solving")
-    add_solver_flags(solve)
+    add_solver_flags(solve, short_help=True)
     add_mask_flag(solve)
     add_markers_flag(solve)
     add_drift_flag(solve)

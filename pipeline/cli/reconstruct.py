@@ -20,37 +20,39 @@ JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "mar
 
 
 def register(sub, name, help_text):
-    p = sub.add_parser(name, help=help_text, description=help_text)
-    p.add_argument("capture", metavar="CAPTURE", help="capture.h5")
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--calibration", metavar="CAL", help="calibration.h5 (light_field / light_vectors / LUT)")
-    src.add_argument("--illumination", metavar="ILL", help="illumination.h5 (V or light_matrices)")
-    add_solver_flags(p)
-    add_mask_flag(p)
-    add_markers_flag(p)
-    add_drift_flag(p)
-    p.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
-    p.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
-    p.add_argument("--device", default="cpu", help="torch device (cpu, cuda); lstsq on the cpu computes with numpy "
-                   "and does not import torch")
-    p.add_argument("--compile", action="store_true",
-                   help="lstsq: torch.compile the far-field solver (a few seconds once; ~4x faster per frame)")
-    add_threads_flag(p, "threads: torch's while solving (BLAS's for lstsq on the cpu); with more than one, "
-                   "nearfield/lstsq on integer frames and dst depth take their batch fast paths, every contact "
-                   "instance at once (default 1; 0: every core)")
     from pipeline.frame_pipeline.outputs import DEFAULT_RECONSTRUCT, OUTPUT_CHOICES, PRECISIONS
 
-    p.add_argument("--save", default=DEFAULT_RECONSTRUCT, metavar="{" + ",".join(OUTPUT_CHOICES) + ",all,none}",
-                   help=f"outputs beside the normals, heights and masks, comma-separated (default "
-                        f"{DEFAULT_RECONSTRUCT}); docs/reconstruction.md")
-    p.add_argument("--precision", choices=list(PRECISIONS), default="single",
-                   help="normals and confidence as float32 (single, default) or float16 (half)")
-    p.add_argument("--no-images", action="store_true", help="write only normals.h5, depth.h5 and contact.h5")
-    p.add_argument("--force", action="store_true", help="recompute even if the store has the result")
-    p.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
-    add_heal_flag(p)
-    p.add_argument("--out", metavar="DIR", required=True, help="output folder")
-    add_json_flag(p)
+    p = sub.add_parser(name, help=help_text, description=help_text)
+    p.add_argument("capture", metavar="CAPTURE", help="capture.h5")
+    light = p.add_argument_group("light model (one of --calibration and --illumination)")
+    src = light.add_mutually_exclusive_group()
+    src.add_argument("--calibration", metavar="CAL", help="calibration.h5 (light_field / light_vectors / LUT)")
+    src.add_argument("--illumination", metavar="ILL", help="illumination.h5 (V or light_matrices)")
+    solve = p.add_argument_group("solving")
+    add_solver_flags(solve, short_help=True)
+    add_mask_flag(solve)
+    add_markers_flag(solve)
+    add_drift_flag(solve)
+    solve.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
+    solve.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
+    run = p.add_argument_group("where it runs")
+    run.add_argument("--device", default="cpu", help="torch device of the eager solvers (cpu, cuda)")
+    run.add_argument("--compile", action="store_true",
+                     help="lstsq: torch.compile the far-field solver (a few seconds once; ~4x faster per frame)")
+    add_threads_flag(run, "threads of the frame pipeline: frames in parallel on the fast paths, torch's or BLAS's "
+                     "threads on the eager ones (default 1; 0: every core)")
+    outs = p.add_argument_group("what is written")
+    outs.add_argument("--save", default=DEFAULT_RECONSTRUCT, metavar="{" + ",".join(OUTPUT_CHOICES) + ",all,none}",
+                      help=f"outputs beside the normals, heights and masks, comma-separated (default "
+                           f"{DEFAULT_RECONSTRUCT}); docs/reconstruction.md")
+    outs.add_argument("--precision", choices=list(PRECISIONS), default="single",
+                      help="normals and confidence as float32 (single, default) or float16 (half)")
+    outs.add_argument("--out", metavar="DIR", required=True, help="output folder (links to the store's files)")
+    outs.add_argument("--no-images", action="store_true", help="write only normals.h5, depth.h5 and contact.h5")
+    outs.add_argument("--force", action="store_true", help="recompute even if the store has the result")
+    outs.add_argument("--cache", metavar="DIR", help="store folder (default: $IRISTAC_CACHE or ./iristac-cache)")
+    add_heal_flag(outs)
+    add_json_flag(outs)
     p.set_defaults(func=_run)
 
 

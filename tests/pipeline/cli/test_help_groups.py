@@ -16,7 +16,7 @@ MAX_UNGROUPED = 12
 #: Commands whose options are not grouped on this branch yet: ``reconstruct`` and ``batch`` are
 #: grouped, and use ``add_solver_flags(..., short_help=True)``, on the branch that owns them.
 #: Remove a name here once it is.
-NOT_YET = {"reconstruct", "batch"}
+NOT_YET: set[str] = set()
 
 
 def _commands():
