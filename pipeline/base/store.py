@@ -39,6 +39,7 @@ import numpy as np
 import data_schemas
 from pipeline import __version__
 from pipeline.base.errors import UserError
+from pipeline.base.frame_codec import h5py_with_filters, write_frames
 from pipeline.base.hashing import canonical, canonical_json, digest
 
 __all__ = [
@@ -64,6 +65,10 @@ _TEMP_RE = re.compile(r"^\.(?P<name>[^.]+)\.(?P<pid>\d+)\.(?P<rand>[0-9a-f]+)\.t
 _QUARANTINE_RE = re.compile(r"^[0-9a-f]{32}\.bad-\d+\.h5$")
 # Datasets at least this large get compressed (and chunked); small ones stay contiguous.
 _COMPRESS_MIN_ELEMENTS = 4096
+#: Schemas whose ``frames`` stack is written in the frames layout (:mod:`pipeline.base.frame_codec`:
+#: Zstandard chunks of one frame set, checksummed, decoded on many threads by ``H5Frames``);
+#: every other large dataset is LZF, shuffle and Fletcher-32 (docs/storage.md says why).
+FRAME_SCHEMAS = ("capture", "recording")
 
 
 class StoreError(UserError):
@@ -180,7 +185,7 @@ def _chunks_for(shape: tuple[int, ...]) -> tuple[int, ...] | bool:
 
 def _create_dataset(f, name: str, value) -> None:
     """One dataset as every store file holds it: strings as UTF-8, checksummed, large ones compressed."""
-    import h5py
+    h5py = h5py_with_filters()
 
     arr = np.asarray(value)
     if arr.dtype.kind == "U" or arr.dtype == object:
@@ -195,11 +200,15 @@ def _create_dataset(f, name: str, value) -> None:
 
 
 def _write_h5(path: Path, record: Record, provenance: Mapping[str, str | int]) -> None:
-    import h5py
+    h5py = h5py_with_filters()
 
     with h5py.File(path, "w", libver="latest") as f:
         for name, value in record.data.items():
-            _create_dataset(f, name, value)
+            arr = np.asarray(value)
+            if name == "frames" and record.schema in FRAME_SCHEMAS and arr.dtype.kind in "biuf" and arr.ndim >= 2:
+                write_frames(f, name, arr)
+            else:
+                _create_dataset(f, name, value)
         json_keys = []
         for k, v in _jsonable(record.meta).items():
             if k.startswith(_PROV):
@@ -326,7 +335,7 @@ def replace_datasets(path: str | os.PathLike, updates: Mapping[str, Any]) -> Pat
     """
     import shutil
 
-    import h5py
+    h5py = h5py_with_filters()
 
     final = Path(path)
     _, provenance = describe_file(final)
@@ -358,7 +367,7 @@ def describe_file(path: str | os.PathLike) -> tuple[dict, dict]:
 
     Raises :class:`StoreError` if the file cannot be opened or parsed.
     """
-    import h5py
+    h5py = h5py_with_filters()
 
     path = Path(path)
     if not path.is_file():
@@ -435,7 +444,7 @@ def read_record(path: str | os.PathLike, schema: str | None = None, *, load: boo
         Naming the file and the problem: missing, not HDF5, truncated, checksum mismatch,
         wrong schema, schema violation, newer layout version than this package knows.
     """
-    import h5py
+    h5py = h5py_with_filters()
 
     path = Path(path)
     description, provenance = describe_file(path)

@@ -1,0 +1,141 @@
+"""How frame stacks are stored in HDF5: the ``frames`` of captures and finished live recordings.
+
+One place for the choice (``docs/storage.md`` has the figures of ``iristac bench codec``
+behind it) and for the one thing every HDF5 reader needs first:
+
+- :func:`h5py_with_filters`: h5py after ``hdf5plugin`` has registered its filters (Zstd,
+  Blosc2, LZ4 ...), so that HDF5 itself (``read_record``, h5py, ``h5dump`` with the plugin
+  path) decodes files written with them. Every module of the project that opens HDF5 files
+  imports h5py through it.
+- :func:`write_frames`: a stack ``(K, ...)`` as chunks of one frame set each (runs of whole
+  frames), each chunk one Zstandard frame at level :data:`ZSTD_LEVEL` with its content size
+  and an XXH64 checksum of the decoded bytes, compressed on several threads by ``zstandard``
+  and written with ``write_direct_chunk``; the dataset carries the Zstd filter of
+  ``hdf5plugin`` (HDF5 filter id 32015), so any HDF5 reader with that plugin decodes it.
+  The checksum, verified by zstd on every decode (the plugin's and ours), replaces the
+  store's Fletcher-32 for these datasets.
+- :func:`decode_chunk`: one stored chunk into a caller's buffer (``zstandard`` releases the
+  GIL, so :class:`pipeline.base.h5frames.H5Frames` decodes on several threads).
+
+Examples
+--------
+>>> import tempfile, os, numpy as np
+>>> h5py = h5py_with_filters()
+>>> path = os.path.join(tempfile.mkdtemp(), "f.h5")
+>>> frames = np.arange(5 * 2 * 8 * 3, dtype=np.uint8).reshape(5, 2, 8, 3)
+>>> with h5py.File(path, "w") as f:
+...     _ = write_frames(f, "frames", frames)
+...     ds = f["frames"]
+...     ds.chunks, layout_of(ds), bool((ds[1:3] == frames[1:3]).all())
+((1, 2, 8, 3), 'zstd', True)
+"""
+
+from __future__ import annotations
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+
+__all__ = ["FRAMES_CODEC", "ZSTD_FILTER", "ZSTD_LEVEL", "decode_chunk", "h5py_with_filters", "layout_of",
+           "write_frames"]
+
+#: The layout :func:`write_frames` writes (the name :func:`layout_of` gives it).
+FRAMES_CODEC = "zstd"
+#: HDF5's registered filter id of Zstandard (what ``hdf5plugin.Zstd`` writes).
+ZSTD_FILTER = 32015
+#: Zstandard level of :func:`write_frames` (``iristac bench codec``: level 3 costs about
+#: twice the write time of level 1 for a few per cent of size; decoding is as fast).
+ZSTD_LEVEL = 1
+#: Threads that compress chunks in :func:`write_frames`.
+WRITE_THREADS = 4
+
+
+def h5py_with_filters():
+    """The h5py module, after ``hdf5plugin`` registered its filters with HDF5 (once a process)."""
+    import h5py
+    import hdf5plugin  # noqa: F401  (registers Zstd, Blosc2, LZ4 ... with the HDF5 library)
+
+    return h5py
+
+
+def layout_of(ds) -> str:
+    """How a dataset's bytes are stored: ``raw`` (no filter), ``zstd`` (only the Zstd filter),
+    ``lzf`` (LZF with or without shuffle and Fletcher-32, the stage store's), else the
+    filters' names joined by ``+`` (HDF5 decodes them, on one thread)."""
+    plist = ds.id.get_create_plist()
+    names = []
+    for i in range(plist.get_nfilters()):
+        code = plist.get_filter(i)[0]
+        names.append({1: "deflate", 2: "shuffle", 3: "fletcher32", 32000: "lzf", ZSTD_FILTER: "zstd",
+                      32001: "blosc", 32026: "blosc2", 32004: "lz4", 32008: "bitshuffle"}.get(code, str(code)))
+    if not names:
+        return "raw"
+    if names == ["zstd"]:
+        return "zstd"
+    if "lzf" in names and set(names) <= {"lzf", "shuffle", "fletcher32"}:
+        return "lzf"
+    return "+".join(names)
+
+
+def write_frames(f, name: str, frames, *, level: int = ZSTD_LEVEL, threads: int = WRITE_THREADS):
+    """Create dataset ``name`` of ``f`` holding ``frames`` ``(K, ...)`` in the frames layout
+    (one Zstandard frame per frame set, checksummed); returns the dataset."""
+    import zstandard
+
+    h5py_with_filters()
+    arr = np.ascontiguousarray(frames)
+    if arr.ndim < 2 or arr.shape[0] == 0 or arr.size == 0:
+        return f.create_dataset(name, data=arr)
+    ds = f.create_dataset(name, shape=arr.shape, dtype=arr.dtype, chunks=(1,) + arr.shape[1:],
+                          compression=ZSTD_FILTER, compression_opts=(int(level),))
+    zero = (0,) * (arr.ndim - 1)
+
+    def pack(k: int) -> bytes:
+        # a compressor per call: zstandard's are not thread-safe; creating one costs microseconds
+        c = zstandard.ZstdCompressor(level=int(level), write_checksum=True, write_content_size=True)
+        return c.compress(arr[k].data)
+
+    n = max(1, min(int(threads), len(arr)))
+    if n == 1:
+        for k in range(len(arr)):
+            ds.id.write_direct_chunk((k,) + zero, pack(k))
+        return ds
+    with ThreadPoolExecutor(n, thread_name_prefix="iristac-zstd") as pool:
+        # in order, a window at a time: compression runs ahead of the (serialised) HDF5 writes
+        window = 4 * n
+        pending: dict[int, Any] = {}
+        for k in range(len(arr)):
+            pending[k] = pool.submit(pack, k)
+            if k >= window:
+                ds.id.write_direct_chunk((k - window,) + zero, pending.pop(k - window).result())
+        for k in sorted(pending):
+            ds.id.write_direct_chunk((k,) + zero, pending.pop(k).result())
+    return ds
+
+
+_LOCAL = threading.local()  # a decompressor per thread: zstandard's must not be shared by threads at once
+
+
+def decode_chunk(codec: str, data, dst: memoryview) -> None:
+    """Decode one stored chunk of layout ``codec`` (``zstd``, or ``raw`` for a chunk stored
+    unfiltered) into ``dst`` (exactly its decoded size). Raises ``ValueError`` saying what is
+    wrong (a checksum mismatch, a truncated frame, the wrong size)."""
+    if codec == "raw":
+        if len(data) != len(dst):
+            raise ValueError(f"{len(data)} bytes stored, {len(dst)} expected")
+        dst[:] = data
+        return
+    import zstandard
+
+    dctx = getattr(_LOCAL, "dctx", None)
+    if dctx is None:
+        dctx = _LOCAL.dctx = zstandard.ZstdDecompressor()
+    try:
+        out = dctx.decompress(data, max_output_size=len(dst))
+    except zstandard.ZstdError as exc:
+        raise ValueError(f"zstd: {exc}") from None
+    if len(out) != len(dst):
+        raise ValueError(f"{len(out)} bytes decoded, {len(dst)} expected")
+    dst[:] = out
