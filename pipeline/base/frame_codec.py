@@ -133,9 +133,11 @@ def decode_chunk(codec: str, data, dst: memoryview) -> None:
     if dctx is None:
         dctx = _LOCAL.dctx = zstandard.ZstdDecompressor()
     try:
-        out = dctx.decompress(data, max_output_size=len(dst))
+        # straight into the caller's memory (no copy); zstd checks the frame's checksum at its end
+        with dctx.stream_reader(data, read_across_frames=False) as reader:
+            n = reader.readinto(dst)
+            more = reader.read(1)
     except zstandard.ZstdError as exc:
         raise ValueError(f"zstd: {exc}") from None
-    if len(out) != len(dst):
-        raise ValueError(f"{len(out)} bytes decoded, {len(dst)} expected")
-    dst[:] = out
+    if n != len(dst) or more:
+        raise ValueError(f"{n}{'+' if more else ''} bytes decoded, {len(dst)} expected")

@@ -80,7 +80,8 @@ class H5Frames:
 
         self.path = Path(path)
         try:
-            self._file = h5py.File(self.path, "r")
+            # no chunk cache: frames are read once, in order (a cache only copies them once more)
+            self._file = h5py.File(self.path, "r", rdcc_nbytes=0)
         except FileNotFoundError:
             raise StoreError(self.path, "no such file") from None
         except OSError as exc:

@@ -24,6 +24,7 @@ BENCHMARKS = [
     ("reconstruct", "normals and depth: time and error per solver, integrator and size"),
     ("calibration", "calibration: time and cross-validated error per model"),
     ("live", "live paths: uint8 frames to heights per solver, size and thread count, fast vs eager"),
+    ("codec", "frames storage: size, write and decode speed of each candidate codec on real and virtual frames"),
     ("lens", "lens optimizer: issue 16's targets, CMA-ES against random search and Nelder-Mead"),
     ("modes", "lighting modes: normal error against capture and reconstruction time per mode and solver"),
     ("all", "every benchmark; writes docs/benchmarks.md, .json, .html (the charts) and .png (their summary)"),
