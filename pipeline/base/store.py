@@ -39,7 +39,7 @@ import numpy as np
 import data_schemas
 from pipeline import __version__
 from pipeline.base.errors import UserError
-from pipeline.base.frame_codec import h5py_with_filters, write_frames
+from pipeline.base.frame_codec import h5py_with_filters, read_frames, write_frames
 from pipeline.base.hashing import canonical, canonical_json, digest
 
 __all__ = [
@@ -474,7 +474,7 @@ def read_record(path: str | os.PathLike, schema: str | None = None, *, load: boo
                     if info["dtype"] == "str":
                         data[name] = np.asarray(ds.asstr()[()], dtype=str)
                     else:
-                        data[name] = ds[()]
+                        data[name] = read_frames(ds)  # zstd chunks: checksums verified; else ds[()]
         except Exception as exc:
             raise StoreError(path, f"cannot read dataset data (truncated or corrupt?): {exc}") from None
     return Record(schema=found, data=data, meta=description["attrs"], provenance=provenance, path=path)

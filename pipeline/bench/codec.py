@@ -42,7 +42,7 @@ DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data"
 def add_arguments(parser) -> None:
     parser.add_argument("--data", default=str(DATA), help="folder of the real frames (default: shared/data)")
     parser.add_argument("--presses", type=int, default=200, help="virtual sensor presses (frame sets; default 200)")
-    parser.add_argument("--repeats", type=int, default=3, help="timed repeats of each read and write (best kept)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed repeats of each read and write (best kept)")
     parser.add_argument("--threads", type=int, default=0, help="reader threads of the many-thread column "
                                                                "(default: every core)")
     parser.add_argument("--codecs", default="", help="comma-separated subset of the candidates (default: all)")
