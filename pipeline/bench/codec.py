@@ -53,13 +53,15 @@ def _candidates() -> dict[str, tuple[Callable[[Any, np.ndarray], None], str]]:
     import hdf5plugin
 
     from pipeline.base.frame_codec import write_frames
-    from pipeline.base.store import _create_dataset
 
     def chunked(**kw):
         return lambda f, a: f.create_dataset("frames", data=a, chunks=(1,) + a.shape[1:], **kw)
 
     return {
-        "lzf": (lambda f, a: _create_dataset(f, "frames", a), "LZF + shuffle + Fletcher-32, an image a chunk (before)"),
+        # the stage store's settings for a large dataset (pipeline.base.store: one image a chunk)
+        "lzf": (lambda f, a: f.create_dataset("frames", data=a, chunks=(1,) * (a.ndim - 3) + a.shape[-3:],
+                                              compression="lzf", shuffle=True, fletcher32=True),
+                "LZF + shuffle + Fletcher-32, an image a chunk (before)"),
         "raw": (chunked(), "unfiltered chunks, read by file offsets"),
         "zstd-1": (lambda f, a: write_frames(f, "frames", a, level=1), "Zstandard level 1 + XXH64, threads (frames layout)"),
         "zstd-3": (lambda f, a: write_frames(f, "frames", a, level=3), "Zstandard level 3 + XXH64, threads"),
