@@ -107,6 +107,8 @@ class H5Frames:
                 from None
         self._extents = extents
         self.direct = extents is not None or self._chunks is not None
+        if self._chunks is not None:
+            self._fd(str(self.path))  # opened here, not by the reader threads at once
         self.threads = max(1, int(threads))
         self._pool: ThreadPoolExecutor | None = None
 
@@ -173,18 +175,18 @@ class H5Frames:
             fd = self._fds[file] = os.open(file, os.O_RDONLY)
         return fd
 
-    def _chunk_jobs(self, start: int, stop: int) -> list[tuple[int, int, int, int, int]]:
-        """``(chunk, first frame in it, frames, offset in the destination, raw)`` of the chunks
-        holding frames ``start:stop``."""
+    def _chunk_jobs(self, start: int, stop: int) -> list[tuple[int, int, int, int]]:
+        """``(chunk, its first frame wanted, frames wanted, byte in the destination)`` of the
+        chunks holding frames ``start:stop``."""
         assert self._chunks is not None
         per = self._chunks.frames
         out = []
         for c in range(start // per, (stop - 1) // per + 1):
             lo, hi = max(start, c * per), min(stop, (c + 1) * per)
-            out.append((c, lo - c * per, hi - lo, (lo - start) * self.frame_bytes, 0))
+            out.append((c, lo - c * per, hi - lo, (lo - start) * self.frame_bytes))
         return out
 
-    def _decode(self, buf: memoryview, c: int, first: int, n: int, at: int, _: int) -> None:
+    def _decode(self, buf: memoryview, c: int, first: int, n: int, at: int) -> None:
         assert self._chunks is not None
         offset, size, raw = self._chunks.table[c]
         data = os.pread(self._fd(str(self.path)), size, offset)  # releases the GIL
