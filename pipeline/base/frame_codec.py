@@ -8,8 +8,8 @@ behind it) and for the one thing every HDF5 reader needs first:
   path) decodes files written with them. Every module of the project that opens HDF5 files
   imports h5py through it.
 - :func:`write_frames`: a stack ``(K, ...)`` as chunks of one frame set each (runs of whole
-  frames), each chunk one Zstandard frame at level :data:`ZSTD_LEVEL` with its content size
-  and an XXH64 checksum of the decoded bytes, compressed on several threads by ``zstandard``
+  frames), each chunk one Zstandard frame at level :data:`ZSTD_LEVEL` (-1, a "fast" level)
+  with its content size and an XXH64 checksum of the decoded bytes, compressed on several threads by ``zstandard``
   and written with ``write_direct_chunk``; the dataset carries the Zstd filter of
   ``hdf5plugin`` (HDF5 filter id 32015), so any HDF5 reader with that plugin decodes it.
   The checksum, verified by zstd on every decode (the plugin's and ours), replaces the
@@ -49,9 +49,11 @@ __all__ = ["FRAMES_CODEC", "ZSTD_FILTER", "ZSTD_LEVEL", "decode_chunk", "h5py_wi
 FRAMES_CODEC = "zstd"
 #: HDF5's registered filter id of Zstandard (what ``hdf5plugin.Zstd`` writes).
 ZSTD_FILTER = 32015
-#: Zstandard level of :func:`write_frames` (``iristac bench codec``: level 3 costs about
-#: twice the write time of level 1 for a few per cent of size; decoding is as fast).
-ZSTD_LEVEL = 1
+#: Zstandard level of :func:`write_frames`. ``iristac bench codec`` (docs/storage.md): level -1
+#: (literals left without entropy coding) decodes 1.4-2.2x faster than level 1 for 6-11 % more
+#: size, and is about the size of the LZF it replaces; level -3 is faster still but larger
+#: than LZF on the real frames.
+ZSTD_LEVEL = -1
 #: Threads that compress chunks in :func:`write_frames`.
 WRITE_THREADS = 4
 
@@ -93,7 +95,9 @@ def write_frames(f, name: str, frames, *, level: int = ZSTD_LEVEL, threads: int 
     if arr.ndim < 2 or arr.shape[0] == 0 or arr.size == 0:
         return f.create_dataset(name, data=arr)
     ds = f.create_dataset(name, shape=arr.shape, dtype=arr.dtype, chunks=(1,) + arr.shape[1:],
-                          compression=ZSTD_FILTER, compression_opts=(int(level),))
+                          compression=ZSTD_FILTER,
+                          # the level as the filter's unsigned parameter (hdf5plugin.Zstd's way for negative levels)
+                          compression_opts=(int(level) & 0xFFFFFFFF,))
     zero = (0,) * (arr.ndim - 1)
 
     def pack(k: int) -> bytes:

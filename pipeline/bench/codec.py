@@ -5,8 +5,10 @@ For each candidate layout of a ``frames (K, P, H, W, C)`` stack (chunks of one f
 - ``lzf`` (the stage store's LZF, shuffle and Fletcher-32, one image a chunk: how captures were
   written before the frames layout),
 - ``raw`` (unfiltered chunks, read by file offsets),
-- ``zstd-1``, ``zstd-3`` (the frames layout of :mod:`pipeline.base.frame_codec`: one Zstandard
-  frame per chunk with its checksum, compressed on several threads, decoded on the reader's),
+- ``zstd:3``, ``zstd:1``, ``zstd:-1``, ``zstd:-3`` (the frames layout of
+  :mod:`pipeline.base.frame_codec` at four levels: one Zstandard frame per chunk with its
+  checksum, compressed on several threads, decoded on the reader's; the negative ("fast")
+  levels leave literals without entropy coding: larger, faster to decode),
 - ``hdf5plugin-zstd`` (the same filter written through HDF5: one thread, no checksum),
 - ``blosc2-lz4``, ``blosc2-zstd`` (Blosc2 through ``hdf5plugin``, byte shuffle and bit shuffle),
 - ``lz4`` (``hdf5plugin``'s LZ4 filter),
@@ -63,8 +65,9 @@ def _candidates() -> dict[str, tuple[Callable[[Any, np.ndarray], None], str]]:
                                               compression="lzf", shuffle=True, fletcher32=True),
                 "LZF + shuffle + Fletcher-32, an image a chunk (before)"),
         "raw": (chunked(), "unfiltered chunks, read by file offsets"),
-        "zstd-1": (lambda f, a: write_frames(f, "frames", a, level=1), "Zstandard level 1 + XXH64, threads (frames layout)"),
-        "zstd-3": (lambda f, a: write_frames(f, "frames", a, level=3), "Zstandard level 3 + XXH64, threads"),
+        **{f"zstd:{lvl}": (lambda f, a, lvl=lvl: write_frames(f, "frames", a, level=lvl),
+                           f"Zstandard level {lvl} + XXH64, one frame set a chunk, decoded on threads")
+           for lvl in (3, 1, -1, -3)},
         "hdf5plugin-zstd": (chunked(**hdf5plugin.Zstd(clevel=1)), "hdf5plugin.Zstd level 1 written by HDF5"),
         "blosc2-lz4": (chunked(**hdf5plugin.Blosc2(cname="lz4", clevel=5, filters=hdf5plugin.Blosc2.SHUFFLE)),
                        "Blosc2 LZ4 level 5, byte shuffle"),
@@ -178,7 +181,7 @@ def run(args) -> dict:
                                 **measure(name, writer, frames, Path(d), threads, repeats)})
     from pipeline.base.frame_codec import FRAMES_CODEC, ZSTD_LEVEL
 
-    chosen = f"{FRAMES_CODEC}-{ZSTD_LEVEL}" if FRAMES_CODEC == "zstd" else FRAMES_CODEC
+    chosen = f"{FRAMES_CODEC}:{ZSTD_LEVEL}" if FRAMES_CODEC == "zstd" else FRAMES_CODEC
     rows = [{"knob": f"frames codec: decode a frame set ({r['frames_of']}, {threads} threads)", "setting": r["codec"],
              # the size as the "error" (lower is better): the charts then show size against decode time
              "seconds": r["us_per_frame_n"] * 1e-6, "error": r["ratio"], "error_unit": "stored / raw size",
