@@ -50,7 +50,7 @@ FRAMES_CODEC = "zstd"
 #: HDF5's registered filter id of Zstandard (what ``hdf5plugin.Zstd`` writes).
 ZSTD_FILTER = 32015
 #: Zstandard level of :func:`write_frames`. ``iristac bench codec`` (docs/storage.md): level -1
-#: (literals left without entropy coding) decodes 1.4-2.2x faster than level 1 for 6-11 % more
+#: (literals left without entropy coding) decodes 1.4-2.2x faster than level 1 for 6-12 % more
 #: size, and is about the size of the LZF it replaces; level -3 is faster still but larger
 #: than LZF on the real frames.
 ZSTD_LEVEL = -1
