@@ -9,11 +9,11 @@ behind it) and for the one thing every HDF5 reader needs first:
   imports h5py through it.
 - :func:`write_frames`: a stack ``(K, ...)`` as chunks of one frame set each (runs of whole
   frames), each chunk one Zstandard frame at level :data:`ZSTD_LEVEL` (-1, a "fast" level)
-  with its content size and an XXH64 checksum of the decoded bytes, compressed on several threads by ``zstandard``
-  and written with ``write_direct_chunk``; the dataset carries the Zstd filter of
-  ``hdf5plugin`` (HDF5 filter id 32015), so any HDF5 reader with that plugin decodes it.
-  The checksum, verified by zstd on every decode (the plugin's and ours), replaces the
-  store's Fletcher-32 for these datasets.
+  with its content size and an XXH64 checksum of the decoded bytes, compressed on several
+  threads by ``zstandard`` and written with ``write_direct_chunk``; the dataset carries the
+  Zstd filter of ``hdf5plugin`` (HDF5 filter id 32015), so any HDF5 reader with that plugin
+  decodes it. The checksum, verified by our decoders below, replaces the store's Fletcher-32
+  for these datasets.
 - :func:`decode_chunk`: one stored chunk into a caller's buffer (``zstandard`` releases the
   GIL, so :class:`pipeline.base.h5frames.H5Frames` decodes on several threads);
   :func:`read_frames`: a whole dataset so (what ``read_record`` reads these datasets with).
