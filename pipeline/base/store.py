@@ -199,16 +199,22 @@ def _create_dataset(f, name: str, value) -> None:
     f.create_dataset(name, data=arr, **kwargs)
 
 
+def _write_dataset(f, schema: str, name: str, value) -> None:
+    """One dataset of a file of ``schema``: ``frames`` of :data:`FRAME_SCHEMAS` in the frames
+    layout, everything else as :func:`_create_dataset` writes it."""
+    arr = np.asarray(value)
+    if name == "frames" and schema in FRAME_SCHEMAS and arr.dtype.kind in "biuf" and arr.ndim >= 2:
+        write_frames(f, name, arr)
+    else:
+        _create_dataset(f, name, value)
+
+
 def _write_h5(path: Path, record: Record, provenance: Mapping[str, str | int]) -> None:
     h5py = h5py_with_filters()
 
     with h5py.File(path, "w", libver="latest") as f:
         for name, value in record.data.items():
-            arr = np.asarray(value)
-            if name == "frames" and record.schema in FRAME_SCHEMAS and arr.dtype.kind in "biuf" and arr.ndim >= 2:
-                write_frames(f, name, arr)
-            else:
-                _create_dataset(f, name, value)
+            _write_dataset(f, record.schema, name, value)
         json_keys = []
         for k, v in _jsonable(record.meta).items():
             if k.startswith(_PROV):
@@ -349,7 +355,7 @@ def replace_datasets(path: str | os.PathLike, updates: Mapping[str, Any]) -> Pat
                 if name in f:
                     del f[name]
                 if value is not None:
-                    _create_dataset(f, name, value)
+                    _write_dataset(f, schema, name, value)
             f.flush()
         description, _ = describe_file(tmp)
         try:
