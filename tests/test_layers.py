@@ -39,7 +39,7 @@ LAYERS = [
 ]
 
 #: Third-party libraries the base layer may import (besides the standard library).
-BASE_LIBRARIES = {"numpy", "torch", "h5py", "yaml", "jsonschema", "threadpoolctl"}
+BASE_LIBRARIES = {"numpy", "torch", "h5py", "hdf5plugin", "zstandard", "yaml", "jsonschema", "threadpoolctl"}
 
 
 def module_files(root: Path) -> dict[str, Path]:

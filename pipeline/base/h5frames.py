@@ -9,10 +9,18 @@ capture, a live recording) into a C-contiguous array the caller owns, with no co
   ``chunk_iter``/``get_chunk_info``, ``Dataset.virtual_sources``), then the frames are read with
   ``os.preadv`` on several threads at once, into the buffer (the reads release the GIL, so
   page-cache copies run on several cores);
-- **filtered data** (compressed or checksummed, as the stage store writes large datasets:
-  LZF, shuffle, Fletcher-32): ``Dataset.read_direct`` into the buffer, through HDF5's filter
-  pipeline on one thread (h5py serialises HDF5 calls). Decompression bounds it (measured
-  0.09-0.18 GB/s: 50-100 frame sets of 8 x 320 x 240 x 3 a second on one core).
+- **Zstandard chunks of whole frames** (what captures and finished recordings hold,
+  :mod:`pipeline.base.frame_codec`): the chunks' places and sizes are read once
+  (``chunk_iter``), then each chunk is read with ``os.pread`` and decoded by ``zstandard``
+  straight into the buffer, chunks on several threads at once (both release the GIL; zstd
+  verifies each chunk's checksum);
+- **other filtered data** (the stage store's LZF, shuffle and Fletcher-32, as captures were
+  written before; any other filter): ``Dataset.read_direct`` into the buffer, through HDF5's
+  filter pipeline on one thread (h5py serialises HDF5 calls). Decompression bounds it
+  (measured 0.09-0.18 GB/s for LZF: 50-100 frame sets of 8 x 320 x 240 x 3 a second on one core).
+
+A file that cannot be read (truncated, a corrupt chunk) raises
+:class:`pipeline.base.store.StoreError` naming the file and the frames.
 
 Examples
 --------
@@ -36,6 +44,9 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.base.frame_codec import decode_chunk, h5py_with_filters, layout_of
+from pipeline.base.store import StoreError
+
 __all__ = ["H5Frames"]
 
 #: Bytes per read call on the direct path (a few per thread and batch).
@@ -57,15 +68,24 @@ class H5Frames:
     ----------
     shape, dtype : the dataset's
     direct : bool
-        True when the frames are read by file offsets (unfiltered data), False when through
-        HDF5's filter pipeline.
+        True when the frames are read by file offsets on the reader threads (unfiltered data,
+        Zstandard chunks decoded on those threads), False when through HDF5's filter pipeline.
+    codec : str
+        How the dataset is stored (:func:`pipeline.base.frame_codec.layout_of`: ``raw``,
+        ``zstd``, ``lzf``, ...; ``virtual`` for a virtual dataset).
     """
 
     def __init__(self, path, name: str = "frames", threads: int = 8):
-        import h5py
+        h5py = h5py_with_filters()
 
         self.path = Path(path)
-        self._file = h5py.File(self.path, "r")
+        try:
+            # no chunk cache: frames are read once, in order (a cache only copies them once more)
+            self._file = h5py.File(self.path, "r", rdcc_nbytes=0)
+        except FileNotFoundError:
+            raise StoreError(self.path, "no such file") from None
+        except OSError as exc:
+            raise StoreError(self.path, f"not a readable HDF5 file (truncated or corrupt?): {exc}") from None
         if name not in self._file:
             self._file.close()
             raise KeyError(f"{self.path}: no dataset {name!r}")
@@ -74,12 +94,21 @@ class H5Frames:
         self.dtype = np.dtype(self._ds.dtype)
         self.frame_bytes = int(np.prod(self.shape[1:], dtype=np.int64)) * self.dtype.itemsize
         self._fds: dict[str, int] = {}
-        extents = _extents(self._ds, self.path)
-        total = self.frame_bytes * (self.shape[0] if self.shape else 0)
-        if extents is not None and sum(e[1] for e in extents) != total:
-            extents = None  # a part not written yet (fill values): HDF5 knows what to return
+        try:
+            self.codec = "virtual" if self._ds.is_virtual else layout_of(self._ds)
+            extents = _extents(self._ds, self.path)
+            total = self.frame_bytes * (self.shape[0] if self.shape else 0)
+            if extents is not None and sum(e[1] for e in extents) != total:
+                extents = None  # a part not written yet (fill values): HDF5 knows what to return
+            self._chunks = _zstd_chunks(self._ds, self.frame_bytes) if extents is None and self.codec == "zstd" else None
+        except Exception as exc:
+            self._file.close()
+            raise StoreError(self.path, f"dataset {name!r}: cannot read its layout (truncated or corrupt?): {exc}") \
+                from None
         self._extents = extents
-        self.direct = extents is not None
+        self.direct = extents is not None or self._chunks is not None
+        if self._chunks is not None:
+            self._fd(str(self.path))  # opened here, not by the reader threads at once
         self.threads = max(1, int(threads))
         self._pool: ThreadPoolExecutor | None = None
 
@@ -112,19 +141,70 @@ class H5Frames:
                              f"got {dst.dtype} {dst.shape}")
         if stop == start:
             return
-        if self._extents is None:
+        try:
+            self._read(dst, start, stop)
+        except StoreError:
+            raise
+        except Exception as exc:  # h5py's OSError/RuntimeError, a short read, a corrupt zstd chunk
+            raise StoreError(self.path, f"frames {start}:{stop} of {self._ds.name.lstrip('/')!r}: cannot be read "
+                                        f"(truncated or corrupt?): {exc}") from None
+
+    def _read(self, dst: np.ndarray, start: int, stop: int) -> None:
+        buf = dst.reshape(-1).view(np.uint8).data  # a memoryview of the caller's memory
+        if self._chunks is not None:
+            jobs: list[tuple[Any, ...]] = [(buf, *c) for c in self._chunk_jobs(start, stop)]
+            work: Any = self._decode
+        elif self._extents is not None:
+            jobs = [(buf, *p) for p in self._pieces(start * self.frame_bytes, stop * self.frame_bytes)]
+            work = _pread
+        else:
             self._ds.read_direct(dst, np.s_[start:stop], np.s_[0:stop - start])
             return
-        pieces = self._pieces(start * self.frame_bytes, stop * self.frame_bytes)
-        buf = dst.reshape(-1).view(np.uint8).data  # a memoryview of the caller's memory
-        if self.threads == 1 or len(pieces) == 1:
-            for p in pieces:
-                _pread(buf, *p)
+        if self.threads == 1 or len(jobs) == 1:
+            for j in jobs:
+                work(*j)
             return
         if self._pool is None:
             self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="iristac-h5read")
-        for f in [self._pool.submit(_pread, buf, *p) for p in pieces]:
+        for f in [self._pool.submit(work, *j) for j in jobs]:
             f.result()
+
+    def _fd(self, file: str) -> int:
+        fd = self._fds.get(file)
+        if fd is None:
+            fd = self._fds[file] = os.open(file, os.O_RDONLY)
+        return fd
+
+    def _chunk_jobs(self, start: int, stop: int) -> list[tuple[int, int, int, int]]:
+        """``(chunk, its first frame wanted, frames wanted, byte in the destination)`` of the
+        chunks holding frames ``start:stop``."""
+        assert self._chunks is not None
+        per = self._chunks.frames
+        out = []
+        for c in range(start // per, (stop - 1) // per + 1):
+            lo, hi = max(start, c * per), min(stop, (c + 1) * per)
+            out.append((c, lo - c * per, hi - lo, (lo - start) * self.frame_bytes))
+        return out
+
+    def _decode(self, buf: memoryview, c: int, first: int, n: int, at: int) -> None:
+        assert self._chunks is not None
+        offset, size, raw = self._chunks.table[c]
+        data = os.pread(self._fd(str(self.path)), size, offset)  # releases the GIL
+        if len(data) != size:
+            raise StoreError(self.path, f"chunk at byte {offset}: {len(data)} of {size} bytes in the file (truncated?)")
+        whole = min(self._chunks.frames, len(self) - c * self._chunks.frames) * self.frame_bytes
+        codec = "raw" if raw else "zstd"
+        try:
+            if first == 0 and n * self.frame_bytes == whole:
+                decode_chunk(codec, data, buf[at:at + whole])
+            else:  # a chunk in part: decoded aside, its frames copied
+                tmp = bytearray(self._chunks.frames * self.frame_bytes)
+                decode_chunk(codec, data, memoryview(tmp)[:whole])
+                buf[at:at + n * self.frame_bytes] = memoryview(tmp)[first * self.frame_bytes:(first + n) * self.frame_bytes]
+        except ValueError as exc:
+            raise StoreError(self.path, f"frames {c * self._chunks.frames}:{c * self._chunks.frames + whole // self.frame_bytes} "
+                                        f"of {self._ds.name.lstrip('/')!r} (chunk at byte {offset}, {size} bytes): "
+                                        f"corrupt: {exc}") from None
 
     def _pieces(self, a: int, b: int) -> list[tuple[int, int, int, int]]:
         """``(fd, file offset, offset in the destination, bytes)`` covering dataset bytes ``a:b``."""
@@ -134,9 +214,7 @@ class H5Frames:
             lo, hi = max(a, start), min(b, start + n)
             if lo >= hi:
                 continue
-            fd = self._fds.get(file)
-            if fd is None:
-                fd = self._fds[file] = os.open(file, os.O_RDONLY)
+            fd = self._fd(file)
             for p in range(lo, hi, PIECE):
                 q = min(hi, p + PIECE)
                 out.append((fd, offset + (p - start), p - a, q - p))
@@ -219,3 +297,34 @@ def _virtual_extents(ds, path: Path):
             return None
         out += [(lo[0] * frame + at, n, file, offset) for at, n, file, offset in parts]
     return sorted(out)
+
+
+class _Chunks:
+    """Where each chunk of a Zstandard dataset is: ``table[c] = (byte in the file, bytes,
+    stored unfiltered)``; ``frames`` per chunk."""
+
+    def __init__(self, frames: int, table: list[tuple[int, int, bool]]):
+        self.frames = frames
+        self.table = table
+
+
+def _zstd_chunks(ds, frame_bytes: int) -> _Chunks | None:
+    """The chunk table of a dataset in Zstandard chunks of whole frames; None when its chunks
+    are not runs of whole frames, when a chunk is missing (fill values) or the file is external."""
+    shape, chunks = tuple(ds.shape), ds.chunks
+    if chunks is None or ds.external or len(shape) == 0 or tuple(chunks[1:]) != shape[1:] or frame_bytes == 0:
+        return None
+    dt = np.dtype(ds.dtype)
+    if dt.kind not in "biuf" or not dt.isnative:
+        return None
+    per = int(chunks[0])
+    count = -(-shape[0] // per)
+    table: list[Any] = [None] * count
+    infos: list[Any] = []
+    ds.id.chunk_iter(infos.append)
+    for info in infos:
+        c = int(info.chunk_offset[0]) // per
+        table[c] = (int(info.byte_offset), int(info.size), bool(info.filter_mask & 1))
+    if any(t is None for t in table):
+        return None
+    return _Chunks(per, table)

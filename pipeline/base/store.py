@@ -41,6 +41,7 @@ import numpy as np
 import data_schemas
 from pipeline import __version__
 from pipeline.base.errors import UserError
+from pipeline.base.frame_codec import h5py_with_filters, read_frames, write_frames
 from pipeline.base.hashing import canonical, canonical_json, digest
 
 __all__ = [
@@ -72,6 +73,10 @@ _TEMP_RE = re.compile(r"^\.(?P<name>[^.]+)\.(?P<pid>\d+)\.(?P<rand>[0-9a-f]+)\.t
 _QUARANTINE_RE = re.compile(r"^[0-9a-f]{32}\.bad-\d+\.h5$")
 # Datasets at least this large get compressed (and chunked); small ones stay contiguous.
 _COMPRESS_MIN_ELEMENTS = 4096
+#: Schemas whose ``frames`` stack is written in the frames layout (:mod:`pipeline.base.frame_codec`:
+#: Zstandard chunks of one frame set, checksummed, decoded on many threads by ``H5Frames``);
+#: every other large dataset is LZF, shuffle and Fletcher-32 (docs/storage.md says why).
+FRAME_SCHEMAS = ("capture", "recording")
 
 
 class StoreError(UserError):
@@ -188,7 +193,7 @@ def _chunks_for(shape: tuple[int, ...]) -> tuple[int, ...] | bool:
 
 def _create_dataset(f, name: str, value) -> None:
     """One dataset as every store file holds it: strings as UTF-8, checksummed, large ones compressed."""
-    import h5py
+    h5py = h5py_with_filters()
 
     arr = np.asarray(value)
     if arr.dtype.kind == "U" or arr.dtype == object:
@@ -228,12 +233,22 @@ def write_attrs(f, meta: Mapping[str, Any], provenance: Mapping[str, str | int] 
     f.attrs[_JSON_ATTRS] = json.dumps(sorted(json_keys))
 
 
+def _write_dataset(f, schema: str, name: str, value) -> None:
+    """One dataset of a file of ``schema``: ``frames`` of :data:`FRAME_SCHEMAS` in the frames
+    layout, everything else as :func:`_create_dataset` writes it."""
+    arr = np.asarray(value)
+    if name == "frames" and schema in FRAME_SCHEMAS and arr.dtype.kind in "biuf" and arr.ndim >= 2:
+        write_frames(f, name, arr)
+    else:
+        _create_dataset(f, name, value)
+
+
 def _write_h5(path: Path, record: Record, provenance: Mapping[str, str | int]) -> None:
-    import h5py
+    h5py = h5py_with_filters()
 
     with h5py.File(path, "w", libver="latest") as f:
         for name, value in record.data.items():
-            _create_dataset(f, name, value)
+            _write_dataset(f, record.schema, name, value)
         write_attrs(f, record.meta, provenance)
         f.flush()
 
@@ -349,7 +364,7 @@ def replace_datasets(path: str | os.PathLike, updates: Mapping[str, Any]) -> Pat
     """
     import shutil
 
-    import h5py
+    h5py = h5py_with_filters()
 
     final = Path(path)
     _, provenance = describe_file(final)
@@ -363,7 +378,7 @@ def replace_datasets(path: str | os.PathLike, updates: Mapping[str, Any]) -> Pat
                 if name in f:
                     del f[name]
                 if value is not None:
-                    _create_dataset(f, name, value)
+                    _write_dataset(f, schema, name, value)
             f.flush()
         description, _ = describe_file(tmp)
         try:
@@ -381,7 +396,7 @@ def describe_file(path: str | os.PathLike) -> tuple[dict, dict]:
 
     Raises :class:`StoreError` if the file cannot be opened or parsed.
     """
-    import h5py
+    h5py = h5py_with_filters()
 
     path = Path(path)
     if not path.is_file():
@@ -500,8 +515,7 @@ class LazyDataset:
         return self.shape[0] if self.shape else 0
 
     def __getitem__(self, index):
-        import h5py
-
+        h5py = h5py_with_filters()
         try:
             with h5py.File(self.path, "r") as f:
                 return f[self.name][index]
@@ -537,7 +551,7 @@ def read_record(path: str | os.PathLike, schema: str | None = None, *, load: boo
         Naming the file and the problem: missing, not HDF5, truncated, checksum mismatch,
         wrong schema, schema violation, newer layout version than this package knows.
     """
-    import h5py
+    h5py = h5py_with_filters()
 
     path = Path(path)
     description, provenance = describe_file(path)
@@ -571,7 +585,7 @@ def read_record(path: str | os.PathLike, schema: str | None = None, *, load: boo
                     if info["dtype"] == "str":
                         data[name] = np.asarray(ds.asstr()[()], dtype=str)
                     else:
-                        data[name] = ds[()]
+                        data[name] = read_frames(ds)  # zstd chunks: checksums verified; else ds[()]
         except Exception as exc:
             raise StoreError(path, f"cannot read dataset data (truncated or corrupt?): {exc}") from None
     return Record(schema=found, data=data, meta=description["attrs"], provenance=provenance, path=path)

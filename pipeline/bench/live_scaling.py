@@ -243,18 +243,20 @@ def _from_files(pipe, host: np.ndarray, repeats: int, upload_fps: float, h_cpu: 
     """The whole pipeline from HDF5 files read straight into its pinned buffers
     (:class:`pipeline.base.h5frames.H5Frames`): an unfiltered file of every frame (as
     ``iristac live --record`` writes; read by offsets on 8 threads), and ``lzf_frames`` of them
-    in the stage store's format (LZF, shuffle, Fletcher-32 chunks of one image: HDF5's
-    filters on one thread). Each with the read alone into pinned memory (its bound). Files in
+    written as a capture (before the frames layout: LZF, shuffle, Fletcher-32 chunks of one
+    image through HDF5's filters on one thread; now Zstandard chunks decoded on 8 threads,
+    :mod:`pipeline.base.frame_codec`). Each with the read alone into pinned memory (its bound). Files in
     a temporary folder under ``where`` (just written: in the page cache)."""
     import tempfile
     from pathlib import Path
 
-    import h5py
     import torch
 
+    from pipeline.base.frame_codec import h5py_with_filters
     from pipeline.base.h5frames import H5Frames
     from pipeline.base.store import Record, write_record
 
+    h5py = h5py_with_filters()
     K, H, W = len(host), host.shape[2], host.shape[3]
     out: dict = {}
     with tempfile.TemporaryDirectory(prefix="iristac-h5-", dir=where) as d:

@@ -26,6 +26,7 @@ BENCHMARKS = [
     ("live", "live paths: uint8 frames to heights per solver, size and thread count, fast vs eager"),
     ("batch", "batch processing: recordings on disk to results on disk, frames/s and peak memory against length, "
               "beside the live path"),
+    ("codec", "frames storage: size, write and decode speed of each candidate codec on real and virtual frames"),
     ("lens", "lens optimizer: the lens targets, CMA-ES against random search and Nelder-Mead"),
     ("modes", "lighting modes: normal error against capture and reconstruction time per mode and solver"),
     ("all", "every benchmark; writes docs/benchmarks.md, .json, .html (the charts) and .png (their summary)"),

@@ -101,7 +101,9 @@ class LiveRecorder:
                 self._flush_segment()
 
     def _flush_segment(self) -> None:
-        import h5py
+        from pipeline.base.frame_codec import h5py_with_filters
+
+        h5py = h5py_with_filters()
 
         n = len(self._buf["frames"])
         self._since = time.monotonic()
@@ -130,9 +132,10 @@ class LiveRecorder:
 
     def _write_index(self) -> None:
         """Atomically replace FILE.h5 with virtual datasets over the complete segments."""
-        import h5py
-
+        from pipeline.base.frame_codec import h5py_with_filters
         from pipeline.base.store import provenance_attrs
+
+        h5py = h5py_with_filters()
 
         tmp = self.path.with_name(f".{self.path.name}.{os.getpid()}.tmp.h5")
         with h5py.File(tmp, "w", libver="latest") as f:

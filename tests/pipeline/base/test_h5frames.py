@@ -43,17 +43,17 @@ def test_uint16_and_the_store_format(tmp_path):
     with h5py.File(tmp_path / "w.h5", "w") as f:
         f.create_dataset("frames", data=wide)
     _check(tmp_path / "w.h5", True, wide)
-    big = np.repeat(FRAMES, 30, axis=2)  # large enough that the store compresses it (LZF, shuffle, Fletcher-32)
+    big = np.repeat(FRAMES, 30, axis=2)  # large enough that the store compresses it (the frames layout: zstd)
     P = big.shape[1]
     write_record(tmp_path / "capture.h5", Record("capture", {
         "frames": big, "reference": big[0], "drive": np.zeros((P, 24, 3), np.float32),
         "brightness": np.ones(P, np.float32)}, {"mm_per_px": 0.1, "pattern_names": ["a", "b", "c"], "source": "test"}))
-    _check(tmp_path / "capture.h5", False, big)
+    _check(tmp_path / "capture.h5", True, big)
 
 
 def test_a_live_recording_while_and_after_recording(tmp_path):
     """While recording, FILE.h5 is virtual datasets over uncompressed segment files: read by
-    offsets; once closed, one store-format file: through the filters."""
+    offsets; once closed, one store-format file: its frames in Zstandard chunks, decoded on the threads."""
     from pipeline.live.recorder import LiveRecorder
 
     path = tmp_path / "rec.h5"
@@ -63,7 +63,9 @@ def test_a_live_recording_while_and_after_recording(tmp_path):
                 height=np.zeros((10, 12)), timestamp=float(k), latency_ms=1.0, index=k, dropped=0)
     _check(path, True, FRAMES[:6])  # three complete segments of two
     rec.close()
-    _check(path, False)
+    _check(path, True)
+    with H5Frames(path) as src:
+        assert src.codec == "zstd"
 
 
 def test_bad_destination_and_range_are_clear_errors(tmp_path):

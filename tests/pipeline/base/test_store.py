@@ -15,6 +15,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from helpers import REPO
+from pipeline.base.frame_codec import layout_of
 from pipeline.base.store import StageStore, StoreError, read_record, write_record
 from schema_examples import example_record
 
@@ -128,8 +129,12 @@ def test_image_stacks_are_compressed_and_chunked(tmp_path):
         del rec.data[k]
     path = write_record(tmp_path / "c.h5", rec)
     with h5py.File(path) as f:
-        assert f["frames"].compression == "lzf" and f["frames"].chunks == (1, 1, 64, 80, 3)
-        assert f["frames"].fletcher32
+        # frames: the frames layout (Zstandard chunks of one frame set, checksummed by zstd)
+        assert layout_of(f["frames"]) == "zstd" and f["frames"].chunks == (1, 3, 64, 80, 3)
+        # other image stacks: LZF, shuffle, Fletcher-32, one image a chunk
+        assert f["reference"].compression == "lzf" and f["reference"].chunks == (1, 64, 80, 3)
+        assert f["reference"].fletcher32
+    np.testing.assert_array_equal(read_record(path).data["frames"], rec.data["frames"])
 
 
 # -- crashes ----------------------------------------------------------------------------
