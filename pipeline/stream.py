@@ -27,7 +27,6 @@ never a second copy (:func:`link_outputs`).
 from __future__ import annotations
 
 import os
-import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -470,18 +469,19 @@ class _Truth:
 
 
 class _Writer:
-    """Writes chunks on a thread of its own, makes them durable and records them at most every
-    :data:`COMMIT_SECONDS` (and at the end of a range)."""
+    """Writes chunks on a thread of its own; on another, at most every :data:`COMMIT_SECONDS` (and at
+    the end of a range), makes what is written durable (fsync) and records it, so the solving
+    never waits for the disk to catch up, only for the page cache to take a chunk."""
 
     def __init__(self, files: dict):
         self.files = files
         self.pool = ThreadPoolExecutor(1, thread_name_prefix="iristac-write")
-        self.pending = None
+        self.syncer = ThreadPoolExecutor(1, thread_name_prefix="iristac-sync")
+        self.pending = self.syncing = None
         self.writers: dict = {}
         self.stats: dict[int, dict] = {}
         self.done = 0
         self.last_commit = time.monotonic()
-        self.lock = threading.Lock()
 
     def begin(self, a: int, b: int) -> None:
         self.writers = {name: sf.writer(a, b) for name, sf in self.files.items()}
@@ -496,23 +496,32 @@ class _Writer:
             w.write(at, arrays[name])
         self.stats.update(stats)
         self.done = at + len(next(iter(arrays["depth"].values())))
-        if time.monotonic() - self.last_commit >= COMMIT_SECONDS:
-            self._commit()
+        if time.monotonic() - self.last_commit >= COMMIT_SECONDS and (self.syncing is None or self.syncing.done()):
+            if self.syncing is not None:
+                self.syncing.result()  # raise what the last commit raised
+            done, st, self.stats = self.done, self.stats, {}
+            self.last_commit = time.monotonic()
+            self.syncing = self.syncer.submit(self._commit, done, st)
 
-    def _commit(self) -> None:
+    def _commit(self, done: int, stats: dict) -> None:
         for w in self.writers.values():
-            w.commit(self.done, self.stats)
-        self.stats = {}
-        self.last_commit = time.monotonic()
+            w.commit(done, stats)
 
     def _wait(self) -> None:
         if self.pending is not None:
             p, self.pending = self.pending, None
             p.result()
 
+    def _wait_sync(self) -> None:
+        if self.syncing is not None:
+            s, self.syncing = self.syncing, None
+            s.result()
+
     def end(self) -> None:
         self._wait()
-        self._commit()
+        self._wait_sync()
+        self._commit(self.done, self.stats)
+        self.stats = {}
         for w in self.writers.values():
             w.close()
         self.writers = {}
@@ -523,10 +532,12 @@ class _Writer:
     def __exit__(self, *exc) -> None:
         try:
             self._wait()
+            self._wait_sync()
         finally:
             for w in self.writers.values():
                 w.close()
             self.pool.shutdown()
+            self.syncer.shutdown()
 
 
 # ----------------------------------------------------------------------------------------------

@@ -51,6 +51,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import threading
 import zlib
 from pathlib import Path
 from typing import Any, Iterable, Mapping
@@ -315,6 +316,7 @@ class RangeWriter:
         self.sf, self.start, self.stop = sf, int(start), int(stop)
         self.progress = sf.final.with_name(f".{sf.final.stem}.progress-{self.start:010d}.json")
         self._stats: dict[str, Any] = {}
+        self._lock = threading.Lock()  # the writing thread adds CRCs while a committing one records
         self._places: dict[str, tuple[np.ndarray, int, int, np.dtype]] = {}
         with h5py.File(sf.partial, "r") as f:
             for name, info in sf.layout.items():
@@ -359,16 +361,19 @@ class RangeWriter:
             crc = 0
             for name in sorted(self._places):
                 crc = zlib.crc32(np.ascontiguousarray(arrays[name][k]).view(np.uint8).reshape(-1).data, crc)
-            self._stats.setdefault(str(at + k), {})["crc"] = crc
+            with self._lock:
+                self._stats.setdefault(str(at + k), {})["crc"] = crc
 
     def commit(self, done_until: int, stats: Mapping[int, Mapping[str, Any]] | None = None) -> None:
         """Frames ``start : done_until`` are written: fsync them, then record it (with per-frame
         ``stats``, frame -> JSON-able dict, kept for :meth:`StreamedFile.finish`'s summary)."""
-        for k, v in (stats or {}).items():
-            self._stats.setdefault(str(int(k)), {}).update(v)
+        with self._lock:
+            for k, v in (stats or {}).items():
+                self._stats.setdefault(str(int(k)), {}).update(v)
         os.fsync(self._fd)
-        data = {"version": _PROGRESS_VERSION, "key": self.sf.provenance["iristac_key"], "start": self.start,
-                "stop": self.stop, "done": int(done_until), "stats": self._stats}
+        with self._lock:
+            data = {"version": _PROGRESS_VERSION, "key": self.sf.provenance["iristac_key"], "start": self.start,
+                    "stop": self.stop, "done": int(done_until), "stats": {k: dict(v) for k, v in self._stats.items()}}
         tmp = self.progress.with_name(self.progress.name + f".{os.getpid()}.tmp")
         tmp.write_text(json.dumps(data), encoding="utf-8")
         os.replace(tmp, self.progress)
