@@ -132,7 +132,8 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
         The frame pipeline's threads in each process (None: every core).
     save, precision : str
         What is written (:class:`pipeline.frame_pipeline.outputs.OutputSpec`; default
-        ``confidence``: no contact mask, about 10 ms a 320 x 240 frame), float type.
+        :data:`~pipeline.frame_pipeline.outputs.DEFAULT_BATCH`: the normals and heights with their
+        masks), float type.
     progress : bool
         A progress bar of frames on stderr (frames, frames/s, time left).
 

@@ -50,8 +50,9 @@ CONTACT_SPEC = StageSpec("contact", version=1, schema="contact")
 #: 256 frames): 24 frames of 320 x 240, whose results are about 8 times their 8-bit frames.
 CHUNK_BYTES = 48 << 20
 
-#: What is written is made durable (fsync) and recorded as done at least this often.
-COMMIT_SECONDS = 1.0
+#: What is written is made durable (fsync) and recorded as done about this often (a kill loses at
+#: most this much work; fsync more often cost the solving threads CPU time on a 2-core machine).
+COMMIT_SECONDS = 2.0
 
 #: Finished entries up to this size are read whole to be checked before they are trusted.
 VERIFY_BYTES = 256 << 20

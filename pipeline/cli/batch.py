@@ -49,7 +49,7 @@ def register(sub, name, help_text):
     outs = p.add_argument_group("what is written")
     outs.add_argument("--save", default=DEFAULT_BATCH, metavar="{" + ",".join(OUTPUT_CHOICES) + ",all,none}",
                       help=f"outputs beside the normals, heights and masks, comma-separated (default {DEFAULT_BATCH}; "
-                           f"contact costs about 10 ms a 320 x 240 frame); docs/reconstruction.md, 'Batch'")
+                           f"contact costs about 10 ms a 320 x 240 frame, confidence 0.3 MB); docs/reconstruction.md")
     outs.add_argument("--precision", choices=list(PRECISIONS), default="single",
                       help="normals and confidence as float32 (single, default) or float16 (half)")
     outs.add_argument("--out", metavar="DIR", help="OUT/<recording>/normals.h5, depth.h5 (links to the store's "

@@ -116,6 +116,19 @@ class FramePipeline:
         self.eager_solver = getattr(solver, "method", "") == "eager"
         self.fast_depth = (integrator is not None and hasattr(integrator, "integrate_batch") and self.region is None)
         self._planes = None
+        # Two sets of chunk arrays, used in turn: a chunk's results stay valid while the next one
+        # is solved (a writer thread has them meanwhile), and a stream of chunks touches no new
+        # memory (a new array per chunk cost a page fault per 4 KB of results).
+        self._buffers: list[dict] = [{}, {}]
+        self._slot = 0
+
+    def _buf(self, name: str, shape: tuple, dtype) -> np.ndarray:
+        """The current slot's array ``name`` of ``shape`` and ``dtype`` (kept between chunks)."""
+        cache = self._buffers[self._slot]
+        a = cache.get(name)
+        if a is None or a.shape != tuple(shape) or a.dtype != np.dtype(dtype):
+            a = cache[name] = np.empty(shape, dtype)
+        return a
 
     @property
     def method(self) -> str:
@@ -151,20 +164,23 @@ class FramePipeline:
 
         ``normals``: ``(normals (n, H, W, 3), mask (n, H, W))`` already solved (read back from a
         store entry): the frames are not solved again; ``heights``: ``(height, valid)`` likewise
-        (then only the contact masks are computed)."""
+        (then only the contact masks are computed). The batch's arrays are the pipeline's own:
+        valid until the call after next (copy what you keep longer)."""
         f = np.asarray(frames)
+        self._slot ^= 1
         if normals is None:
             out = self._normals(f)
         else:
             n, m = (np.asarray(a) for a in normals)
             out = FrameBatch(n.astype(np.float32, copy=False), m.astype(bool, copy=False),
-                             np.empty(m.shape, np.float32), np.empty(m.shape, np.bool_), meta=[{} for _ in m])
+                             self._buf("height", m.shape, np.float32), self._buf("height_mask", m.shape, np.bool_),
+                             meta=[{} for _ in m])
         if heights is None:
             self._heights(out)
         else:
             out.height, out.height_mask = (np.asarray(a) for a in heights)
         if self.contact_fn is not None:
-            out.contact = np.empty(out.height.shape, np.bool_)
+            out.contact = self._buf("contact", out.height.shape, np.bool_)
 
             def touch(a: int, b: int) -> None:
                 for k in range(a, b):
@@ -178,7 +194,7 @@ class FramePipeline:
         H, W = f.shape[2:4]
         if self.batch_normals:
             p = self.solver.solve_batch(f, self.pool, out=self._plane_buffer(n))
-            normals = np.empty((n, H, W, 3), np.float32)
+            normals = self._buf("normals", (n, H, W, 3), np.float32)
 
             def transpose(a: int, b: int) -> None:
                 normals[a:b] = p.normals[a:b].transpose(0, 2, 3, 1)
@@ -186,8 +202,11 @@ class FramePipeline:
             self.pool.split(transpose, n)
             extras = {"albedo": p.albedo.transpose(0, 2, 3, 1), "residual": p.residual,
                       "condition": np.broadcast_to(p.condition, (n, H, W)), "count": np.broadcast_to(p.count, (n, H, W))}
-            return FrameBatch(normals, p.mask.copy(), np.empty((n, H, W), np.float32), np.empty((n, H, W), np.bool_),
-                              extras=extras, meta=[dict(_scalars(p.meta)) for _ in range(n)])
+            mask = self._buf("mask", (n, H, W), np.bool_)
+            mask[...] = p.mask
+            return FrameBatch(normals, mask, self._buf("height", (n, H, W), np.float32),
+                              self._buf("height_mask", (n, H, W), np.bool_), extras=extras,
+                              meta=[dict(_scalars(p.meta)) for _ in range(n)])
         if self.eager_solver:
             results = self.solver.solve_stack(f, self.threads)
             out = self._empty(n, H, W, results[0])
@@ -217,9 +236,9 @@ class FramePipeline:
         fast paths: nothing allocated per frame)."""
         n, H, W = f.shape[0], f.shape[2], f.shape[3]
         M = H * W
-        out = FrameBatch(np.empty((n, H, W, 3), np.float32), np.empty((n, H, W), np.bool_),
-                         np.empty((n, H, W), np.float32), np.empty((n, H, W), np.bool_),
-                         confidence=np.empty((n, H, W), np.float32), meta=[{} for _ in range(n)])
+        out = FrameBatch(self._buf("normals", (n, H, W, 3), np.float32), self._buf("mask", (n, H, W), np.bool_),
+                         self._buf("height", (n, H, W), np.float32), self._buf("height_mask", (n, H, W), np.bool_),
+                         confidence=self._buf("confidence", (n, H, W), np.float32), meta=[{} for _ in range(n)])
         normals, mask, conf = out.normals.reshape(n, M, 3), out.mask.reshape(n, M), out.confidence.reshape(n, M)
 
         def solve(a: int, b: int) -> None:
@@ -236,12 +255,12 @@ class FramePipeline:
 
     def _empty(self, n: int, H: int, W: int, like) -> FrameBatch:
         """A chunk's arrays, shaped as the first result ``like`` says (its confidence, albedo groups)."""
-        conf = None if like.confidence is None else np.empty((n, H, W), np.float32)
-        extras = {name: np.empty((n,) + np.shape(getattr(like, name)), np.asarray(getattr(like, name)).dtype)
+        conf = None if like.confidence is None else self._buf("confidence", (n, H, W), np.float32)
+        extras = {name: self._buf(name, (n,) + np.shape(getattr(like, name)), np.asarray(getattr(like, name)).dtype)
                   for name in self.extras}
-        return FrameBatch(np.empty((n, H, W, 3), np.float32), np.empty((n, H, W), np.bool_),
-                          np.empty((n, H, W), np.float32), np.empty((n, H, W), np.bool_), confidence=conf,
-                          extras=extras, meta=[{} for _ in range(n)])
+        return FrameBatch(self._buf("normals", (n, H, W, 3), np.float32), self._buf("mask", (n, H, W), np.bool_),
+                          self._buf("height", (n, H, W), np.float32), self._buf("height_mask", (n, H, W), np.bool_),
+                          confidence=conf, extras=extras, meta=[{} for _ in range(n)])
 
     @staticmethod
     def _put(out: FrameBatch, k: int, r) -> None:

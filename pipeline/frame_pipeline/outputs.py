@@ -6,8 +6,8 @@ theirs (the ``depth`` entry). The rest is a choice (:data:`OUTPUT_CHOICES`, ``--
 ========== ============================== ==================== =================================
 name       what                           bytes a pixel        default
 ========== ============================== ==================== =================================
-confidence the calibration models' own    4 (2 at half)        written where the solver gives it
-           rating of each normal
+confidence the calibration models' own    4 (2 at half)        ``reconstruct`` yes (where the solver
+           rating of each normal                               gives one), ``batch`` no
 contact    where the object touches the   1                    ``reconstruct`` yes, ``batch`` no
            gel (its own ``contact`` entry)                     (about 10 ms a 320 x 240 frame)
 albedo     per-channel albedo             4 a channel          no
@@ -55,9 +55,12 @@ OUTPUT_CHOICES = ("confidence", "contact", *NORMAL_EXTRAS)
 #: ``--precision`` choices: the normals' and the confidence's float type.
 PRECISIONS = {"single": np.dtype(np.float32), "half": np.dtype(np.float16)}
 
-#: ``--save`` defaults of the two commands that write results.
+#: ``--save`` defaults of the two commands that write results: a one-off reconstruction gets the
+#: contact mask and the models' confidence; a recording, where disk bandwidth bounds the run (two
+#: threads at 320 x 240 on a 2-core machine: 263 frames/s with neither, 193 with the confidence,
+#: docs/reconstruction.md "Batch"), the normals and heights with their masks.
 DEFAULT_RECONSTRUCT = "confidence,contact"
-DEFAULT_BATCH = "confidence"
+DEFAULT_BATCH = "none"
 
 
 @dataclass(frozen=True)
@@ -100,7 +103,8 @@ class OutputSpec:
         return PRECISIONS[self.precision]
 
     def key_params(self) -> dict:
-        """What enters the normals key (the contact mask is an entry of its own)."""
+        """What enters the normals key (the contact mask is an entry of its own; the normals stage
+        drops ``confidence`` for solvers that give none)."""
         return {"save": list(self.normal_extras) + (["confidence"] if self.confidence else []),
                 "precision": self.precision}
 

@@ -274,13 +274,20 @@ def params(section: Mapping[str, Any]) -> dict:
     s = {**SPEC.defaults, **section}
     p = {"solver": SOLVERS.check(s["solver"]), "ratio": bool(s["ratio"]), "max_condition": float(s["max_condition"]),
          "dtype": str(s["dtype"]), "lights": str(s["lights"]), "drift": check_drift(s["drift"]),
-         "save": sorted(str(x) for x in s["save"]), "precision": str(s["precision"])}
+         "save": sorted(str(x) for x in s["save"] if x != "confidence" or _rates_itself(s["solver"])),
+         "precision": str(s["precision"])}
     for name in ("mask", "markers"):
         if s.get(name) is not None:
             from pipeline.base.hashing import digest
 
             p[name] = digest(np.asarray(s[name], bool))
     return p
+
+
+def _rates_itself(solver: str) -> bool:
+    """Whether ``solver`` gives a confidence (the calibration's models do): for the others asking
+    for one changes nothing, so it stays out of the key."""
+    return str(SOLVERS.get(solver).info.get("needs", "")).startswith("model:")
 
 
 def resolve(section: dict, config: Mapping[str, Any], base: Path, source: str) -> None:
