@@ -54,6 +54,9 @@ CHUNK_BYTES = 48 << 20
 #: most this much work; fsync more often cost the solving threads CPU time on a 2-core machine).
 COMMIT_SECONDS = 2.0
 
+#: Frames a chunk holds at least on a GPU (one upload, one launch per chunk).
+DEVICE_CHUNK = 512
+
 #: Finished entries up to this size are read whole to be checked before they are trusted.
 VERIFY_BYTES = 256 << 20
 
@@ -206,6 +209,14 @@ def _pipeline(job: StreamJob, cap, lights, threads):
     o = job.options
     frames = cap.data["frames"]
     H, W = job.shape
+    if _on_device(job, lights, frames):
+        from pipeline.frame_pipeline.device import DeviceFramePipeline
+        from pipeline.normals.gpu_stream import GPUFramePipeline
+
+        cuda = str(o["device"]).startswith("cuda")
+        return DeviceFramePipeline(GPUFramePipeline(
+            lights.field, job.mm_per_px, dark=cap.data.get("dark"), flat_field=lights.flat_field,
+            max_condition=o["max_condition"], solver="fused" if cuda else "torch", device=o["device"], host_threads=1))
     solver = frame_solver(o["solver"], lights, shape=(H, W), channels=frames.shape[-1],
                           reference=reference_frames(cap), dark=cap.data.get("dark"), markers=job.markers,
                           max_condition=o["max_condition"], region=job.region, drift=o["drift"],
@@ -217,6 +228,18 @@ def _pipeline(job: StreamJob, cap, lights, threads):
     filled = None if job.markers is None else job.markers & (job.region if job.region is not None else True)
     return FramePipeline(solver, integ, threads=threads, region=job.region, filled=filled, contact=contact,
                          extras=job.outputs.normal_extras + (() if "groups" in job.meta else ("albedo",)))
+
+
+def _on_device(job: StreamJob, lights, frames) -> bool:
+    """Whether the job runs the fused device pipeline: ``nearfield`` and ``dst`` on the whole frame of
+    integer frames on a device other than the CPU, with nothing the device pipeline does not do
+    (a region, markers, a ratio, a drift, float64, the contact mask)."""
+    o = job.options
+    return (str(o["device"]) != "cpu" and o["solver"] == "nearfield" and o["integrator"] == "dst"
+            and job.region is None and job.markers is None and not o["ratio"] and o["dtype"] == "float32"
+            and o["drift"] in ("auto", "none") and lights.field is not None and np.dtype(frames.dtype).kind in "ui"
+            and not (job.outputs.contact and not job.entries.get("contact", {}).get("done", True))
+            and not job.outputs.normal_extras)
 
 
 def _contact_fn(job: StreamJob, cap, lights):
@@ -250,9 +273,11 @@ def prepare(job: StreamJob, cap, lights, threads: int | None = 1):
     albedo groups, whether the solver rates its normals): one frame solved once, set in
     ``job.meta``. Returns the pipeline."""
     pipe = _pipeline(job, cap, lights, threads)
+    if pipe.method.startswith("device"):
+        job.chunk = max(job.chunk, DEVICE_CHUNK)
     if "groups" not in job.meta and job.frames and not job.entries["normals"]["done"]:
         probe = pipe.run(np.asarray(cap.data["frames"][0:1]))
-        job.meta["groups"] = int(probe.extras["albedo"].shape[-1])
+        job.meta["groups"] = int(probe.extras["albedo"].shape[-1]) if "albedo" in probe.extras else 1
         job.meta["confidence"] = probe.confidence is not None
         # What the solver says of itself (its method, what its confidence measures): the record's.
         skip = ("drift", "drift_before_dn", "drift_residual_dn", "solver", "max_condition", "ratio")
@@ -316,8 +341,10 @@ def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None
     # One BLAS thread per caller (the frame pipeline's threads are the parallelism; OpenBLAS
     # workers on top would fight them for the cores), as live does.
     frames = cap.data["frames"]
+    # A device's pipeline leaves the CPU's cores to decoding the frames.
+    readers = (os.cpu_count() or 2) if pipe.method.startswith("device") else max(2, pipe.threads)
     source = ArrayFrames(frames) if isinstance(frames, np.ndarray) else H5Frames(job.capture, "frames",
-                                                                                   threads=max(2, pipe.threads))
+                                                                                   threads=readers)
     with pipe, limit_threads(blas=1), source as reader, _Writer(files) as writer:
         truth = _Truth(cap, job.region)
         for a, b in ranges:

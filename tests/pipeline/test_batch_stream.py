@@ -134,3 +134,38 @@ def test_a_truncated_recording_fails_alone(recording, tmp_path):
     assert [i["ok"] for i in out["items"]] == [True, False] and str(bad) in out["items"][1]["error"]
     assert out["frames_per_second"] > 0 and out["peak_rss_mb"] > 0
     assert partial_path(bad).exists() is False
+
+
+def test_the_device_pipeline_equals_the_cpu_fast_path_on_its_torch_variant(recording):
+    """``--device cuda`` runs GPUFramePipeline.solve_device a chunk at a time
+    (pipeline.frame_pipeline.device); its torch variant runs on the CPU, so the path is checked here
+    against the CPU frame pipeline (the fused CUDA kernel itself: tests/pipeline/normals/test_gpu_nearfield.py,
+    on a GPU)."""
+    from types import SimpleNamespace
+
+    from pipeline.depth.fast import FastDST
+    from pipeline.frame_pipeline import FramePipeline
+    from pipeline.frame_pipeline.device import DeviceFramePipeline
+    from pipeline.normals.gpu_stream import GPUFramePipeline
+    from pipeline.stages.fast_solvers import fast_nearfield
+    from pipeline.stages.normals import capture_lights
+    from pipeline.stream import _on_device, plan_stream, read_capture
+
+    cap = read_capture(recording["rec"])
+    lights = capture_lights(cap, None, read_record(recording["ill"], "illumination"))
+    frames = np.asarray(cap.data["frames"][:8])
+    dark = cap.data.get("dark")
+    gpu = DeviceFramePipeline(GPUFramePipeline(lights.field, PX, dark=dark, solver="torch", device="cpu",
+                                               host_threads=1)).run(frames)
+    prep = SimpleNamespace(region=None, dark=dark, shape=SHAPE)
+    with FramePipeline(fast_nearfield(lights, prep), FastDST(SHAPE, PX), threads=1) as pipe:
+        cpu = pipe.run(frames)
+    both = gpu.mask & cpu.mask
+    assert both.mean() > 0.9 and (gpu.mask == cpu.mask).mean() > 0.999
+    np.testing.assert_allclose(gpu.normals[both], cpu.normals[both], atol=2e-4)
+    np.testing.assert_allclose(gpu.height, cpu.height, atol=2e-3 * np.abs(cpu.height).max())
+    job, _, _ = plan_stream(recording["rec"], illumination=recording["ill"], solver="nearfield", device="cuda",
+                            store=recording["dir"] / "plan-only")
+    assert _on_device(job, lights, cap.data["frames"])  # what --device cuda would run
+    job.options["solver"] = "lut"
+    assert not _on_device(job, lights, cap.data["frames"])
