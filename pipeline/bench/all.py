@@ -25,7 +25,7 @@ from typing import Any
 
 from pipeline.bench.report import write_docs
 
-BENCHES = ["sim", "render", "capture", "codec", "reconstruct", "calibration", "live", "modes"]
+BENCHES = ["sim", "render", "capture", "codec", "reconstruct", "calibration", "live", "batch", "modes"]
 
 
 def add_arguments(parser) -> None:

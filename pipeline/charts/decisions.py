@@ -149,6 +149,13 @@ VIEWS: list[View] = [
          budget=(1.0 / LIVE_FPS, f"{LIVE_FPS:g} fps camera"), sentence=say.within_budget,
          note="Errors: near field on the bench's 8-sector sphere (point: 24 LEDs), LUT and MLP on rendered "
               "trichromatic presses they were not calibrated on (iristac bench live)."),
+    View("batch", "Batch processing", "What does a recording cost a frame, by solver, length and threads?",
+         match=lambda r: r.get("bench") == "batch", series=lambda r: _group_of(r, r"^batch (.+?) @"),
+         label=lambda r: str(r["setting"]).replace(" thread(s)", " thr").replace(" frames", " fr"),
+         x_label="seconds per frame (a recording on disk to results on disk)", front="none",
+         sentence=lambda c: say.front(c),
+         note="iristac bench batch: the batch command in a new process on recordings of each length, beside "
+              "the live path's figure for the same solver and threads (docs/reconstruction.md, Batch processing)."),
     View("rays-flux", "Ray tracer", "How many rays does the lens designer need for 1 % flux error?",
          match=_knob(r"^lens design: flux error"), series=lambda r: str(r.get("sampler", "")),
          label=lambda r: _short_rays(r.get("rays", 0)), x_label="seconds per design evaluation (24 LEDs)",

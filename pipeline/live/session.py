@@ -13,8 +13,9 @@ Set-up (:meth:`LiveSession.open`), each step one method:
    virtual sensor's scripted presses;
 4. the per-frame solver and integrator, both from their registries: the registered fast path
    (:func:`pipeline.stages.fast_solvers.frame_solver`,
-   :func:`pipeline.depth.frame_integrator`), else the eager one, warmed up before the camera
-   runs.
+   :func:`pipeline.depth.frame_integrator`), else the eager one, in the frame pipeline
+   ``reconstruct`` and ``batch`` run (:class:`pipeline.frame_pipeline.FramePipeline`), warmed up
+   before the camera runs.
 
 The loop (:meth:`LiveSession.run`)::
 
@@ -116,7 +117,7 @@ patterns (use a single-frame mode such as trichromatic)
         self.say = log or (lambda m: None)
         self.source_name = "virtual" if virtual else str(camera)
         self.emulator = self.ring = self.spec = self.cam = self.lights = self.source = None
-        self.reference = self.solve_frames = self.depth = None
+        self.reference = self.solve_frames = self.depth = self.pipe = None
         #: The no-contact frames the solver's model stores (the LUT's and the MLP's), or None.
         self.model_reference: np.ndarray | None = None
         self._contact_drift: tuple | None = None
@@ -232,6 +233,12 @@ patterns (use a single-frame mode such as trichromatic)
                                          reference=self.reference, markers=self._markers((H, W)),
                                          max_condition=self.max_condition, fast=self.fast, drift=self.drift)
         self.depth = frame_integrator(self.integrator, (H, W), self.pitch, workers=self.threads)
+        from pipeline.frame_pipeline import FramePipeline
+
+        # The frame pipeline reconstruct and batch run, a frame set at a time (its pixels split
+        # over the threads: live wants each result soon, not many at once).
+        self.pipe = FramePipeline(self.solve_frames, self.depth, threads=self.threads)
+        self._cleanup.append(self.pipe.close)
         if self.solve_frames.method == "fast":
             # Warm up on a dark frame before the capture thread starts: loading the compiled
             # kernels from the disk cache takes ~0.5 s, and the camera's frames of that time
@@ -258,9 +265,9 @@ patterns (use a single-frame mode such as trichromatic)
         return self.reference if self.reference is not None else self.model_reference
 
     def process(self, frames):
-        """``(NormalResult, DepthResult)`` of one sample's frames ``(P, H, W, C)``."""
-        res = self.solve_frames.solve(frames, threads=self.threads)
-        return res, self.depth.integrate(res.normals, res.mask)
+        """``(NormalResult, DepthResult)`` of one sample's frames ``(P, H, W, C)``
+        (:meth:`pipeline.frame_pipeline.FramePipeline.one`)."""
+        return self.pipe.one(frames)
 
     def close(self) -> None:
         """Close what :meth:`open` opened, last first (errors there are not the ones to see)."""
