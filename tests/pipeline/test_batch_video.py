@@ -133,3 +133,12 @@ def test_a_video_needs_a_pixel_pitch(video, tmp_path):
 
     with pytest.raises(UserError, match="rec.avi: a video needs the pixel pitch"):
         read_capture(video["avi"], {"reference": 0})
+
+
+def test_with_workers_a_video_runs_in_the_planning_process_and_equals_a_serial_run(video, tmp_path):
+    serial = _batch([video["avi"], video["h5"]], video, tmp_path / "a")
+    spread = _batch([video["avi"], video["h5"]], video, tmp_path / "b", "--workers", "2")
+    assert spread["failed"] == 0, spread
+    for s, w in zip(serial["items"], spread["items"]):
+        assert s["result"]["normals_sha256"] == w["result"]["normals_sha256"]
+    assert spread["items"][0]["ok"] and spread["frames_solved"] == 2 * FRAMES
