@@ -7,7 +7,8 @@ frames are reconstructed by the one frame pipeline a chunk at a time (:func:`pip
 - in this process, frames in parallel on ``threads`` threads (the default);
 - on ``workers`` local processes or a Dask cluster (``scheduler``): every recording's missing
   frames cut into frame ranges (a long recording is many tasks, not one), each range written
-  straight into the recording's partial store files by the worker that solved it.
+  straight into the recording's partial store files by the worker that solved it. Video files
+  (:mod:`pipeline.capture.video_frames`: decoded in order from their start) run in this process.
 
 Memory does not grow with a recording's length; a run killed at any moment resumes from the
 chunks its progress files record; a rerun of finished work is read from the store. Results
@@ -56,21 +57,23 @@ SUMMARY_COLUMNS = ("frames", "valid_fraction", "normal_mean_error_deg", "depth_r
 
 
 def expand_recordings(paths: Sequence[str]) -> list[str]:
-    """Files as given; folders become their ``*.h5`` files, sorted.
+    """Files as given; folders become their ``*.h5`` files and videos (by suffix), sorted.
 
     Raises
     ------
     UserError
         A path that does not exist, or nothing to process.
     """
+    from pipeline.capture.video_frames import is_video
+
     out: list[str] = []
     for p in map(Path, paths):
         if p.is_dir():
-            out += [str(f) for f in sorted(p.glob("*.h5"))]
+            out += [str(f) for f in sorted(p.iterdir()) if f.is_file() and (f.suffix == ".h5" or is_video(f))]
         elif p.exists():
             out.append(str(p))
         else:
-            raise UserError(f"{p}: no such recording (expected a capture.h5 or a folder of them)")
+            raise UserError(f"{p}: no such recording (expected a capture.h5, a video or a folder of them)")
     if not out:
         raise UserError(f"no recordings to process in {', '.join(map(str, paths)) or '(none given)'}")
     return out
@@ -107,13 +110,14 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
                       scheduler: str | None = None, progress: bool = False, connect_timeout: float = 10.0,
                       heal: bool = True, mask: str | None = None, markers: str | None = None,
                       threads: int | None = 1, drift: str = "auto", save: str | None = None,
-                      precision: str = "single", force: bool = False) -> list[BatchItem]:
+                      precision: str = "single", force: bool = False, reference=None,
+                      mm_per_px: float | None = None) -> list[BatchItem]:
     """Reconstruct every recording with a shared calibration or illumination model.
 
     Parameters
     ----------
     recordings : sequence of str
-        ``capture.h5`` files or folders of them (:func:`expand_recordings`).
+        ``capture.h5`` files, video files or folders of them (:func:`expand_recordings`).
     calibration, illumination : str, optional
         The shared light model (at most one).
     solver, integrator, device, heal, mask, markers, drift, force
@@ -136,6 +140,11 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
         masks), float type.
     progress : bool
         A progress bar of frames on stderr (frames, frames/s, time left).
+    reference, mm_per_px : optional
+        Videos' no-contact frame (an index, default 0, or ``"build"``) and pixel pitch (default:
+        the light model's): :func:`pipeline.capture.video_frames.video_capture`. A video's frames
+        are decoded in order, so a video runs in this process even with ``workers`` or
+        ``scheduler`` (frames in parallel on ``threads``).
 
     Returns
     -------
@@ -163,7 +172,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     options = dict(calibration=_absolute(calibration), illumination=_absolute(illumination), solver=solver,
                    integrator=integrator, store=store, device=device, mask=_absolute(mask),
                    markers=_absolute(marker_file) if marker_file else markers, drift=drift, outputs=outputs,
-                   heal=heal, force=force)
+                   heal=heal, force=force, video={"reference": reference, "mm_per_px": mm_per_px})
     t0 = time.perf_counter()
     planned = [_plan(r, options, threads) for r in recs]
     todo = sum(p["frames"] for p in planned if p.get("job") is not None and not p["job"].cached)
@@ -238,6 +247,9 @@ def _run_distributed(planned: list[dict], threads, workers: int, scheduler, conn
         job = p["job"]
         if job is None or job.cached or p["error"]:
             continue
+        if job.video is not None:  # decoded in order from its start: run here, not cut into ranges
+            _run_here(p, threads, bar)
+            continue
         p.pop("pipe", None)  # the workers build their own
         try:
             files = open_files(job)  # created here once, so the workers only attach to them
@@ -262,8 +274,9 @@ def _run_distributed(planned: list[dict], threads, workers: int, scheduler, conn
         elif not p["error"]:
             p["error"] = value
     seconds = time.perf_counter() - t0
-    total = max(1, sum(q.get("frames_solved", 0) for q in planned))
-    for p in planned:
+    ranged = [q for q in planned if q["job"] is not None and q["job"].video is None]  # videos timed by _run_here
+    total = max(1, sum(q.get("frames_solved", 0) for q in ranged))
+    for p in ranged:
         share = seconds * p.get("frames_solved", 0) / total
         p["seconds"] += share
         p["solve_seconds"] = share

@@ -67,13 +67,14 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
                 out=None, store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu",
                 dtype="float32", threads: int | None = 1, images: bool = True, force: bool = False,
                 compile: bool = False, heal: bool = True, mask=None, markers=None, drift: str = "auto",
-                save: str | None = None, precision: str = "single", progress=None) -> ReconstructResult:
+                save: str | None = None, precision: str = "single", progress=None, reference=None,
+                mm_per_px: float | None = None) -> ReconstructResult:
     """Normals and depth of a capture, through the stage store, a chunk of frames at a time.
 
     Parameters
     ----------
     capture : path or Record
-        ``capture.h5`` (a record in memory must carry its path).
+        ``capture.h5`` (a record in memory must carry its path), or a video file (``.mp4``, ``.avi``, ...).
     calibration, illumination : path or Record, optional
         The light model (at most one; see :func:`pipeline.stages.normals.capture_lights`).
     solver : str
@@ -121,6 +122,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         ``single``). Part of the keys.
     progress : callable, optional
         ``progress(frames)`` after every chunk.
+    reference, mm_per_px : optional
+        A video file's no-contact frame (an index, default 0, or ``"build"``) and pixel pitch
+        (default: the light model's): :func:`pipeline.capture.video_frames.video_capture`.
 
     Returns
     -------
@@ -135,7 +139,8 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     job, streamed = reconstruct_stream(
         capture, threads=threads, progress=progress, calibration=calibration, illumination=illumination, solver=solver,
         integrator=integrator, store=store, ratio=ratio, max_condition=max_condition, device=device, dtype=dtype,
-        compile=compile, mask=mask, markers=markers, drift=drift, outputs=outputs, force=force, heal=heal)
+        compile=compile, mask=mask, markers=markers, drift=drift, outputs=outputs, force=force, heal=heal,
+        video={"reference": reference, "mm_per_px": mm_per_px})
     recs = {name: read_record(e["path"], e["key"].schema, lazy_bytes=LAZY_BYTES) for name, e in job.entries.items()}
     n_rec, d_rec = recs["normals"], recs["depth"]
     summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": 0.0,
@@ -168,7 +173,7 @@ def _truth(job, n_rec, d_rec, streamed: dict) -> dict:
     for k, rec in (("normal_mean_error_deg", n_rec), ("depth_rmse_mm", d_rec)):
         if k not in out and k in rec.meta:
             out[k] = float(rec.meta[k])
-    if len(out) < 2:
+    if len(out) < 2 and job.video is None:  # a video has no truth
         from pipeline.evaluate import truth_errors
         from pipeline.stream import read_capture
 

@@ -40,7 +40,7 @@ from pipeline.frame_pipeline.outputs import OutputSpec
 from pipeline.stages.base import StageSpec
 
 __all__ = ["StreamJob", "plan_stream", "prepare", "open_files", "run_frames", "finish_stream", "reconstruct_stream", "link_outputs",
-           "CONTACT_SPEC", "read_capture", "CHUNK_BYTES", "COMMIT_SECONDS"]
+           "CONTACT_SPEC", "read_capture", "video_options", "CHUNK_BYTES", "COMMIT_SECONDS"]
 
 #: The contact mask's entry: keyed on the depth entry and the capture (the colour change is the
 #: capture's, the height the depth's).
@@ -64,13 +64,20 @@ VERIFY_BYTES = 256 << 20
 LAZY_BYTES = 8 << 20
 
 
-def read_capture(path) -> Any:
+def read_capture(path, video: dict | None = None) -> Any:
     """The ``capture`` record of ``path`` with its large datasets (frames, per-frame truth) left on
-    disk (:class:`pipeline.base.store.LazyDataset`); a record in memory is returned as it is."""
+    disk (:class:`pipeline.base.store.LazyDataset`); a record in memory is returned as it is.
+
+    A video file (by its suffix) is read as a capture without converting it
+    (:func:`pipeline.capture.video_frames.video_capture`; ``video``: its ``reference``,
+    ``mm_per_px`` and ``ball_radius_mm``)."""
     from pipeline.base.store import Record, read_record
+    from pipeline.capture.video_frames import is_video, video_capture
 
     if isinstance(path, Record):
         return path
+    if is_video(path):
+        return video_capture(path, **(video or {}))
     p = Path(path)
     if not p.is_file():
         raise UserError(f"{p}: capture file not found")
@@ -89,7 +96,7 @@ class StreamJob:
     Attributes
     ----------
     capture : str
-        The capture file.
+        The capture file (or video file).
     light_files : dict
         ``calibration`` / ``illumination`` path (or None: the capture's own lights).
     options : dict
@@ -103,6 +110,8 @@ class StreamJob:
     frames : int
     shape : (H, W)
     mm_per_px : float
+    video : dict or None
+        A video's ``reference``, ``mm_per_px``, ``ball_radius_mm`` (:func:`read_capture`); None for a capture file.
     """
 
     capture: str
@@ -118,6 +127,7 @@ class StreamJob:
     user_region: bool = False
     chunk: int = 64
     meta: dict = field(default_factory=dict)
+    video: dict | None = None
 
     @property
     def cached(self) -> bool:
@@ -137,9 +147,10 @@ def _load_light_record(path, schema):
 def plan_stream(capture, *, calibration=None, illumination=None, solver: str = "lstsq", integrator: str = "dst",
                 store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu", dtype="float32",
                 compile: bool = False, mask=None, markers=None, drift: str = "auto", outputs: OutputSpec | None = None,
-                force: bool = False, heal: bool = True) -> tuple[StreamJob, Any, Any]:
+                force: bool = False, heal: bool = True, video: dict | None = None) -> tuple[StreamJob, Any, Any]:
     """``(job, capture record, lights)``: the keys of the results, and which of them the store has
-    (see the module docstring; arguments as :func:`pipeline.reconstruct.reconstruct`)."""
+    (see the module docstring; arguments as :func:`pipeline.reconstruct.reconstruct`; ``video``:
+    ``reference`` and ``mm_per_px`` of a video file, :func:`video_options`)."""
     from pipeline.base.registry import INTEGRATORS, SOLVERS
     from pipeline.base.store import StageStore
     from pipeline.stages import capture as capture_stage
@@ -149,9 +160,10 @@ def plan_stream(capture, *, calibration=None, illumination=None, solver: str = "
     SOLVERS.check(solver)
     INTEGRATORS.check(integrator)
     outputs = outputs or OutputSpec()
-    cap = read_capture(capture)
     cal = _load_light_record(calibration, "calibration")
     ill = _load_light_record(illumination, "illumination")
+    video = video_options(capture, video, cal, ill)
+    cap = read_capture(capture, video)
     lights = normals_stage.capture_lights(cap, cal, ill)
     from pipeline.normals.lights import check_lights
 
@@ -190,8 +202,26 @@ def plan_stream(capture, *, calibration=None, illumination=None, solver: str = "
                              "compile": bool(compile), "drift": drift},
                     outputs=outputs, region=region, markers=marks, entries=entries, frames=int(K), shape=(H, W),
                     mm_per_px=mm, user_region=mask is not None,
-                    chunk=int(min(256, max(4, CHUNK_BYTES // frame_bytes))))
+                    chunk=int(min(256, max(4, CHUNK_BYTES // frame_bytes))), video=video)
     return job, cap, lights
+
+
+def video_options(capture, video: dict | None, cal, ill) -> dict | None:
+    """A video file's options for :func:`read_capture` (None for anything else): ``reference``
+    (default 0), ``mm_per_px`` (given, else the calibration's or the illumination's attribute) and
+    ``ball_radius_mm`` (the calibration's, for a built reference)."""
+    from pipeline.capture.video_frames import is_video, parse_reference
+
+    if not is_video(capture):
+        return None
+    v = dict(video or {})
+    v["reference"] = parse_reference(v.get("reference"))
+    for rec in (cal, ill):
+        if v.get("mm_per_px") is None and rec is not None and rec.meta.get("mm_per_px") is not None:
+            v["mm_per_px"] = float(rec.meta["mm_per_px"])
+    if v.get("ball_radius_mm") is None and cal is not None and cal.meta.get("ball_radius_mm") is not None:
+        v["ball_radius_mm"] = float(cal.meta["ball_radius_mm"])
+    return v
 
 
 # ----------------------------------------------------------------------------------------------
@@ -324,10 +354,11 @@ def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None
     """
     from pipeline.base.h5frames import H5Frames
     from pipeline.base.threads import limit_threads
+    from pipeline.capture.video_frames import VideoFrames
 
     t0 = time.perf_counter()
     if cap is None:
-        cap = read_capture(job.capture)
+        cap = read_capture(job.capture, job.video)
     if lights is None:
         from pipeline.stages.normals import capture_lights
 
@@ -343,8 +374,13 @@ def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None
     frames = cap.data["frames"]
     # A device's pipeline leaves the CPU's cores to decoding the frames.
     readers = (os.cpu_count() or 2) if pipe.method.startswith("device") else max(2, pipe.threads)
-    source = ArrayFrames(frames) if isinstance(frames, np.ndarray) else H5Frames(job.capture, "frames",
-                                                                                   threads=readers)
+    source: Any
+    if isinstance(frames, np.ndarray):
+        source = ArrayFrames(frames)
+    elif isinstance(frames, VideoFrames):
+        source = frames.reader()  # a decoder of its own
+    else:
+        source = H5Frames(job.capture, "frames", threads=readers)
     with pipe, limit_threads(blas=1), source as reader, _Writer(files) as writer:
         truth = _Truth(cap, job.region)
         for a, b in ranges:

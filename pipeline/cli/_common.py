@@ -60,6 +60,16 @@ def add_markers_flag(parser) -> None:
                              "the calibration's)")
 
 
+def add_video_flags(parser) -> None:
+    """``--reference N|build`` and ``--mm-per-px MM`` of a video recording (``reconstruct``, ``batch``;
+    :mod:`pipeline.capture.video_frames`); a parser or one of its argument groups."""
+    parser.add_argument("--reference", metavar="N|build",
+                        help="videos: the no-contact frame's index (default 0, the first frame; it is not a frame "
+                             "of the results), or 'build' it from a sample of the frames")
+    parser.add_argument("--mm-per-px", type=float, metavar="MM",
+                        help="videos: the pixel pitch (default: the calibration's or illumination's)")
+
+
 def add_drift_flag(parser) -> None:
     """``--drift auto|none|offset|gain_offset|field``: the illumination drift removed before the
     solve (``reconstruct``, ``batch``, ``live``; :mod:`pipeline.normals.drift`).

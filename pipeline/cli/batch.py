@@ -16,6 +16,7 @@ from pipeline.cli._common import (
     add_markers_flag,
     add_mask_flag,
     add_solver_flags,
+    add_video_flags,
     print_json,
 )
 
@@ -24,7 +25,7 @@ def register(sub, name, help_text):
     from pipeline.frame_pipeline.outputs import DEFAULT_BATCH, OUTPUT_CHOICES, PRECISIONS
 
     p = sub.add_parser(name, help=help_text, description=help_text)
-    p.add_argument("recordings", nargs="+", metavar="RECORDING", help="capture.h5 files or folders of them")
+    p.add_argument("recordings", nargs="+", metavar="RECORDING", help="capture.h5 files, videos (.mp4, .avi, ...) or folders of them")
     light = p.add_argument_group("light model")
     src = light.add_mutually_exclusive_group()
     src.add_argument("--calibration", metavar="CAL", help="shared calibration.h5")
@@ -34,6 +35,7 @@ def register(sub, name, help_text):
     add_mask_flag(solve)
     add_markers_flag(solve)
     add_drift_flag(solve)
+    add_video_flags(solve)
     solve.add_argument("--device", default="cpu", help="torch device of the eager solvers (cpu, cuda)")
     where = p.add_argument_group("where it runs")
     where.add_argument("--threads", type=int, default=0,
@@ -76,7 +78,8 @@ def _run(args) -> int:
                               scheduler=args.scheduler, progress=not args.json and sys.stderr.isatty(),
                               connect_timeout=args.connect_timeout, heal=not args.no_heal, mask=args.mask,
                               markers=args.markers, threads=args.threads or None, drift=args.drift, save=args.save,
-                              precision=args.precision, force=args.force)
+                              precision=args.precision, force=args.force, reference=args.reference,
+                              mm_per_px=args.mm_per_px)
     summary = summary_json(items, time.perf_counter() - t0)
     if args.json:
         print_json(summary)

@@ -10,6 +10,7 @@ from pipeline.cli._common import (
     add_mask_flag,
     add_solver_flags,
     add_threads_flag,
+    add_video_flags,
     print_json,
     threads_arg,
 )
@@ -23,7 +24,7 @@ def register(sub, name, help_text):
     from pipeline.frame_pipeline.outputs import DEFAULT_RECONSTRUCT, OUTPUT_CHOICES, PRECISIONS
 
     p = sub.add_parser(name, help=help_text, description=help_text)
-    p.add_argument("capture", metavar="CAPTURE", help="capture.h5")
+    p.add_argument("capture", metavar="CAPTURE", help="capture.h5 or a video (.mp4, .avi, ...)")
     light = p.add_argument_group("light model (one of --calibration and --illumination)")
     src = light.add_mutually_exclusive_group()
     src.add_argument("--calibration", metavar="CAL", help="calibration.h5 (light_field / light_vectors / LUT)")
@@ -33,6 +34,7 @@ def register(sub, name, help_text):
     add_mask_flag(solve)
     add_markers_flag(solve)
     add_drift_flag(solve)
+    add_video_flags(solve)
     solve.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
     solve.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
     run = p.add_argument_group("where it runs")
@@ -65,7 +67,8 @@ def _run(args) -> int:
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
                       images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
                       markers=args.markers, threads=threads, drift=args.drift, save=args.save,
-                      precision=args.precision, progress=_bar(args))
+                      precision=args.precision, progress=_bar(args), reference=args.reference,
+                      mm_per_px=args.mm_per_px)
     s = res.summary
     if args.json:
         print_json(s)
@@ -89,8 +92,12 @@ def _bar(args):
     if args.json or not sys.stderr.isatty():
         return None
     from pipeline.batch import progress_bar
+    from pipeline.capture.video_frames import is_video, video_frame_count
     from pipeline.stream import read_capture
 
-    bar = progress_bar(int(read_capture(args.capture).data["frames"].shape[0]), True, unit="frame",
-                       desc="reconstruct")
+    if is_video(args.capture):  # the frames but the reference
+        frames = video_frame_count(args.capture)[0] - (args.reference != "build")
+    else:
+        frames = int(read_capture(args.capture).data["frames"].shape[0])
+    bar = progress_bar(frames, True, unit="frame", desc="reconstruct")
     return bar.update

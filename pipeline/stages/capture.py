@@ -74,9 +74,14 @@ def params(p: Mapping[str, Any]) -> dict:
 def capture_key(store, rec) -> str:
     """The identity of a capture record as an input: its stage key when it is a store entry,
     else this stage's key over a file (what ``capture: {file: ...}`` in a run config keys),
-    else the digest of its content."""
+    else the digest of its content. A video read as a capture
+    (:func:`pipeline.capture.video_frames.video_capture`) is keyed on its content, its reference
+    choice and its pixel pitch."""
     if not is_entry(rec) and rec.path is not None:
-        return SPEC.key(store, params({"file": str(rec.path)}), [file_input_key(rec.path)]).digest
+        p = params({"file": str(rec.path)})
+        if rec.meta.get("source") == "video":
+            p = {**p, "video_reference": str(rec.meta["video_reference"]), "mm_per_px": float(rec.meta["mm_per_px"])}
+        return SPEC.key(store, p, [file_input_key(rec.path)]).digest
     return record_key(rec)
 
 
