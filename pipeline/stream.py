@@ -241,7 +241,7 @@ def _pipeline(job: StreamJob, cap, lights, threads):
     H, W = job.shape
     if _on_device(job, lights, frames):
         from pipeline.frame_pipeline.device import DeviceFramePipeline
-        from pipeline.normals.gpu_stream import GPUFramePipeline
+        from pipeline.frame_pipeline.gpu_stream import GPUFramePipeline
 
         cuda = str(o["device"]).startswith("cuda")
         return DeviceFramePipeline(GPUFramePipeline(

@@ -55,8 +55,9 @@ def wait_until(cond, timeout: float = 10.0) -> None:
 BEING_REWRITTEN_BY_BATCH_WORK = frozenset({
     "pipeline/reconstruct.py", "pipeline/batch.py", "pipeline/batch_reconstruct.py", "pipeline/cli/batch.py",
     "pipeline/cli/reconstruct.py", "pipeline/cli/_common.py", "pipeline/stages/normals.py",
-    "pipeline/stages/depth.py", "pipeline/stages/fast_solvers.py", "pipeline/normals/cpu_batch.py",
-    "pipeline/normals/gpu_stream.py", "pipeline/normals/batched.py", "pipeline/live/session.py",
+    "pipeline/stages/depth.py", "pipeline/stages/fast_solvers.py", "pipeline/frame_pipeline/cpu_batch.py",
+    "pipeline/frame_pipeline/gpu_stream.py", "pipeline/normals/batched.py", "pipeline/depth/batched.py",
+    "pipeline/live/session.py",
     "pipeline/base/h5frames.py", "pipeline/base/store.py", "pipeline/base/capture.py", "pipeline/bench/live.py",
     "pipeline/bench/live_scaling.py",
 })

@@ -38,6 +38,12 @@ LAYERS = [
     ("command line and benchmarks", ["pipeline.cli", "pipeline.bench", "pipeline.__main__"]),
 ]
 
+#: Packages of one layer that import nothing of each other, in either direction: the normals
+#: solvers and the depth integrators. What does both (normals, then heights, of many frames)
+#: is a frame pipeline (``pipeline.frame_pipeline``); what both need sits below them
+#: (``pipeline.base.pixel_mask``).
+APART = [("pipeline.normals", "pipeline.depth")]
+
 #: Third-party libraries the base layer may import (besides the standard library).
 BASE_LIBRARIES = {"numpy", "torch", "h5py", "hdf5plugin", "zstandard", "yaml", "jsonschema", "threadpoolctl"}
 
@@ -124,6 +130,26 @@ def check(root: Path) -> list[str]:
     for cycle in _cycles(graph):
         steps = " -> ".join(f"{a} ({where[(a, b)]})" for a, b in zip(cycle, cycle[1:] + cycle[:1]))
         problems.append(f"import cycle: {steps} -> {cycle[0]}")
+    return problems
+
+
+def _inside(module: str, package: str) -> bool:
+    return module == package or module.startswith(package + ".")
+
+
+def apart_imports(root: Path, pairs=APART) -> list[str]:
+    """Every import (function-level ones too) of a module of one package of a pair in
+    :data:`APART` from a module of the other, one line each."""
+    modules = module_files(root)
+    problems = []
+    for name, path in modules.items():
+        for one, other in [(a, b) for a, b in pairs] + [(b, a) for a, b in pairs]:
+            if not _inside(name, one):
+                continue
+            for target, line, stmt in imports_of(name, path, modules):
+                if _inside(target, other):
+                    problems.append(f"{path.relative_to(root)}:{line}: {name} imports {target}, but {one} and "
+                                    f"{other} import nothing of each other (tests/test_layers.py APART): {stmt}")
     return problems
 
 
@@ -222,6 +248,33 @@ def _cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 def test_the_layers_point_down_and_nothing_imports_in_a_circle():
     problems = check(REPO)
     assert not problems, "\n".join(problems)
+
+
+def test_normals_and_depth_do_not_import_each_other():
+    problems = apart_imports(REPO)
+    assert not problems, "\n".join(problems)
+
+
+@pytest.mark.parametrize("files, expected", [
+    ({"pipeline/normals/solve.py": "def f():\n    from pipeline.depth.fast import FastDST\n",
+      "pipeline/depth/fast.py": "FastDST = 1\n"},
+     "pipeline.normals.solve imports pipeline.depth.fast, but pipeline.normals and pipeline.depth"),
+    ({"pipeline/depth/__init__.py": "from pipeline.normals import masking\n", "pipeline/normals/masking.py": ""},
+     "pipeline.depth imports pipeline.normals.masking, but pipeline.depth and pipeline.normals"),
+    ({"pipeline/depth/poisson.py": "from ..normals import result\n", "pipeline/normals/result.py": ""},
+     "pipeline.depth.poisson imports pipeline.normals.result"),
+])
+def test_the_apart_check_catches_an_import_either_way(tmp_path, files, expected):
+    problems = apart_imports(_tree(tmp_path, files))
+    assert any(expected in p for p in problems), problems
+
+
+def test_the_apart_check_passes_a_pipeline_that_imports_both(tmp_path):
+    files = {"pipeline/frame_pipeline/cpu_batch.py": "from pipeline.depth.fast import F\nfrom pipeline.normals.fast import N\n",
+             "pipeline/depth/fast.py": "from pipeline.base.pixel_mask import PixelMask\n",
+             "pipeline/normals/fast.py": "from pipeline.base.pixel_mask import PixelMask\n",
+             "pipeline/base/pixel_mask.py": ""}
+    assert apart_imports(_tree(tmp_path, files)) == []
 
 
 @pytest.mark.parametrize("what, target", registry_targets())

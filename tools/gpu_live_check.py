@@ -1,7 +1,7 @@
 """GPU and many-core check of the live near-field path (tools/gpu_check.sh runs it).
 
 The near-field fast path at 320 x 240 on this machine's cores: one frame split over threads,
-frames in parallel on 1, 2, 4, 8, 16 threads (:class:`pipeline.normals.cpu_batch.CPUFramePipeline`:
+frames in parallel on 1, 2, 4, 8, 16 threads (:class:`pipeline.frame_pipeline.cpu_batch.CPUFramePipeline`:
 normals alone, depth alone, the Python time a frame that holds the GIL) beside the earlier one
 Python task per frame (``pool`` rows), and the 16-core target; then the GPU pipeline
 (:func:`pipeline.bench.live_scaling.measure_device`): upload alone, solve alone, whole from

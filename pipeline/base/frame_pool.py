@@ -8,7 +8,7 @@ instead hands threads many frames at once. Two ways:
 - :meth:`FramePool.split`: ``fn(start, stop)`` over a few contiguous parts of a range (pixels
   or frames of a whole batch), each part one call into compiled code that releases the GIL:
   Python and its lock are entered a few times per thread and batch, not per frame (the
-  near-field batch path, :class:`pipeline.normals.cpu_batch.CPUFramePipeline`);
+  near-field batch path, :class:`pipeline.frame_pipeline.cpu_batch.CPUFramePipeline`);
 - :meth:`FramePool.map`: one Python call per item, in input order (the depth stage's other
   integrators, one contact instance each).
 

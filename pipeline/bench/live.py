@@ -25,8 +25,8 @@ within 0.05 deg of the eager near-field solver; LUT and MLP single-frame >= 200 
 
 Start-up: a fresh process imports, precomputes and reconstructs its first frame (Numba's
 compiled code cached on disk); the compile itself (an empty cache, once per machine) is
-timed separately. ``--device cuda``: the batched torch path (:mod:`pipeline.normals.batched`,
-normals and FFT depth on the device, ``--batch`` frames per upload) is timed too.
+timed separately. ``--device cuda``: the batched torch path (:mod:`pipeline.normals.batched`
+normals and :mod:`pipeline.depth.batched` FFT depth on the device, ``--batch`` frames per upload) is timed too.
 """
 
 from __future__ import annotations
@@ -112,7 +112,7 @@ def measure_nearfield(width: int, height: int, repeats: int, patterns: int = 8, 
     rows += _fast_rows(label, size, lambda th: fast.solve(frames, threads=th), dst, repeats, threads_all,
                        s.normals, re_.normals, re_.mask,
                        {"eager_error_deg": e_eager, "prepare_seconds": prep, "observations": P * 3})
-    if frame_rows:  # throughput: frames in parallel (pipeline.normals.cpu_batch)
+    if frame_rows:  # throughput: frames in parallel (pipeline.frame_pipeline.cpu_batch)
         rows += frame_parallel_rows(label, size, fast, dst, frames, s.normals, threads_all, repeats,
                                     per_frame=frame_rows == "compare")
     return rows

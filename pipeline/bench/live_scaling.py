@@ -1,12 +1,12 @@
 """``iristac bench live``'s throughput measurements: frames in parallel on the CPU, and the GPU pipeline.
 
 CPU (:func:`frame_parallel_rows`): ``K`` distinct copies of a frame set through
-:class:`pipeline.normals.cpu_batch.CPUFramePipeline` (normals by the batch kernel, each thread
+:class:`pipeline.frame_pipeline.cpu_batch.CPUFramePipeline` (normals by the batch kernel, each thread
 a run of pixel blocks of every frame; then heights, each thread a run of frames) on ``N`` =
 1, 2, 4, 8, 16 threads up to the cores; frames per second of the whole batch, the normals and
 the depth alone, and the Python time a frame (what holds the GIL).
 
-GPU (:func:`measure_device`): :class:`pipeline.normals.gpu_stream.GPUFramePipeline` with the
+GPU (:func:`measure_device`): :class:`pipeline.frame_pipeline.gpu_stream.GPUFramePipeline` with the
 fused kernel and with the torch einsum solver; the pinned upload alone, the solve alone on
 frames already on the device (CUDA events), the whole from pinned host frames and from plain
 numpy frames; each with its bound: the whole against the upload alone (PCIe), the solve
@@ -51,14 +51,14 @@ def thread_counts(cores: int) -> list[int]:
 def frame_parallel_rows(label: str, size: str, fast, dst, frames: np.ndarray, truth: np.ndarray, cores: int,
                         repeats: int, count: int = 128, per_frame: bool = False) -> list[dict]:
     """Rows ``path = "frames"``: ``count`` distinct frame sets through
-    :class:`pipeline.normals.cpu_batch.CPUFramePipeline` on ``N`` threads (the normals and the
+    :class:`pipeline.frame_pipeline.cpu_batch.CPUFramePipeline` on ``N`` threads (the normals and the
     depth also timed alone); ``seconds`` is per frame (the batch's time over ``count``).
     ``serial_us``: the pipeline's Python time a frame (the same batch of 8 x 8 frames, whose
     compute is nil: all of it holds the GIL), and ``gil_busy`` its share of the batch's wall
     time (on one thread: of a frame's time; the lock is a bound once it nears 1). ``per_frame``: also rows ``path = "pool"``, one Python task per frame
     on :class:`pipeline.base.frame_pool.FramePool` (``fast.solve`` then ``dst.integrate``: the
     earlier design), for comparison."""
-    from pipeline.normals.cpu_batch import CPUFramePipeline
+    from pipeline.frame_pipeline.cpu_batch import CPUFramePipeline
 
     batch = np.repeat(frames[None], count, axis=0)  # distinct memory per frame, as a recording has
     r0 = fast.solve(frames, 1)
@@ -104,7 +104,7 @@ def _serial_seconds(count: int, runs: int, threads: int) -> float:
     plus handing out the other normals parts (one a thread) of a larger frame (no-op parts)."""
     from pipeline.bench.recon_scene import render_sphere_scene
     from pipeline.depth.fast import FastDST
-    from pipeline.normals.cpu_batch import CPUFramePipeline
+    from pipeline.frame_pipeline.cpu_batch import CPUFramePipeline
     from pipeline.normals.fast import NearFieldFast
 
     s = render_sphere_scene((8, 8), 1.0, radius=3.0, depth=0.5, num_patterns=8, noise=1.0, bits=8, seed=0)
@@ -174,8 +174,8 @@ def measure_device(width: int, height: int, device: str, batch: int, repeats: in
     import torch
 
     from pipeline.bench.recon_scene import render_sphere_scene
+    from pipeline.frame_pipeline.gpu_stream import GPUFramePipeline
     from pipeline.normals.fast import NearFieldFast
-    from pipeline.normals.gpu_stream import GPUFramePipeline
 
     dev = torch.device(device)
     if dev.index is None:
@@ -290,7 +290,7 @@ def _from_files(pipe, host: np.ndarray, repeats: int, upload_fps: float, h_cpu: 
 
 def _split_ms(pipe, d_frames, r, repeats: int) -> tuple[float, float]:
     """Milliseconds per batch of the normals alone and of the depth alone (its input kept)."""
-    from pipeline.normals.batched import dst_divergence_torch, dst_heights
+    from pipeline.depth.batched import dst_divergence_torch, dst_heights
 
     if pipe.solver_name == "fused":
         normals = _events_ms(lambda: pipe.solver.solve_planes(d_frames), repeats)

@@ -62,8 +62,8 @@ def integrate(normals, mm_per_px: float, mask=None, method: str = "dst", *, regi
         return func(normals, mm_per_px, mask, **kwargs)
     import numpy as np
 
+    from pipeline.base.pixel_mask import PixelMask
     from pipeline.depth._common import check_mask
-    from pipeline.normals.masking import PixelMask
 
     n = np.asarray(normals)
     shape = n.shape[:2]

@@ -1,8 +1,8 @@
 """DST Poisson heights of a batch of normal planes on a CUDA device: one kernel, then the batched FFT.
 
-:func:`pipeline.normals.batched.dst_divergence_torch` builds the Poisson right-hand side from
+:func:`pipeline.depth.batched.dst_divergence_torch` builds the Poisson right-hand side from
 normals in about twenty elementwise torch operations (each a pass over the batch), and
-:func:`~pipeline.normals.batched.dst_heights` copies it twice more into its antisymmetric
+:func:`~pipeline.depth.batched.dst_heights` copies it twice more into its antisymmetric
 ``(2H, 2W)`` extension. Here one thread per pixel computes the slopes of the pixel and its four
 neighbours from the normal planes (the same clamping and masks, in the same float32 order), the
 divergence ``f``, and writes ``f`` straight into the four quadrants of the extension; the

@@ -1,7 +1,7 @@
 """The frame pipeline on a GPU: a chunk's normals and heights by the fused device pipeline.
 
 ``iristac batch --device cuda`` and ``reconstruct --device cuda`` with ``nearfield`` and ``dst``
-on the whole frame solve each chunk with :meth:`pipeline.normals.gpu_stream.GPUFramePipeline.solve_device`
+on the whole frame solve each chunk with :meth:`pipeline.frame_pipeline.gpu_stream.GPUFramePipeline.solve_device`
 (one fused kernel for the normals, the divergence and a batched FFT for the heights, on the
 device; its ``torch`` variant, :class:`pipeline.normals.batched.NearFieldBatched`, anywhere torch
 runs, the CPU included, which is how the path is tested without a GPU), then copy the normals,
@@ -10,7 +10,7 @@ heights and masks back for the store. The frames of a chunk go up in one copy.
 Examples
 --------
 >>> import numpy as np
->>> from pipeline.normals.gpu_stream import GPUFramePipeline
+>>> from pipeline.frame_pipeline.gpu_stream import GPUFramePipeline
 >>> rng = np.random.default_rng(0)
 >>> L = rng.normal(size=(3, 3, 8, 8, 3)); L[..., 2] = np.abs(L[..., 2]) + 2   # (P, C, H, W, 3)
 >>> gpu = GPUFramePipeline(L, 0.1, solver="torch", device="cpu", host_threads=1)
@@ -30,7 +30,7 @@ __all__ = ["DeviceFramePipeline"]
 
 class DeviceFramePipeline:
     """:meth:`~pipeline.frame_pipeline.FramePipeline.run`'s interface over a
-    :class:`~pipeline.normals.gpu_stream.GPUFramePipeline` (its ``fused`` or ``torch`` solve)."""
+    :class:`~pipeline.frame_pipeline.gpu_stream.GPUFramePipeline` (its ``fused`` or ``torch`` solve)."""
 
     def __init__(self, gpu):
         self.gpu = gpu

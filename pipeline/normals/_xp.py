@@ -30,18 +30,13 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.base.pixel_mask import is_tensor  # the one definition, below the solvers and the integrators
+
 __all__ = ["Array", "is_tensor", "namespace", "solve_device", "float_dtype", "numpy_dtype", "asarray", "integers",
            "astype", "to_numpy", "pixels_first", "full", "contiguous", "index_like"]
 
 #: A numpy array or a torch tensor (the functions written against both take either).
 Array = Any
-
-
-def is_tensor(x) -> bool:
-    """Whether ``x`` is a torch tensor, without importing torch (a tensor exists only once torch
-    is imported)."""
-    torch = sys.modules.get("torch")
-    return torch is not None and isinstance(x, torch.Tensor)
 
 
 def namespace(x):

@@ -18,7 +18,7 @@ them in well under a second. They work on blocks of 512 pixels with pixel-contig
 (each block's observations de-interleaved from the camera's frames in the kernel, the light
 field stored in blocks), so the inner loops run over pixels and vectorise. One frame
 (:meth:`NearFieldFast.solve`, live) and a stack of frames (:meth:`NearFieldFast.solve_batch`,
-throughput: :mod:`pipeline.normals.cpu_batch`) go through the same kernel.
+throughput: :mod:`pipeline.frame_pipeline.cpu_batch`) go through the same kernel.
 
 Integer frames only (uint8/uint16: no NaN can reach the moments); float frames with NaN/Inf
 go to the eager solver. Lights that are not finite at a pixel make that pixel invalid here

@@ -13,8 +13,8 @@ numba's CUDA simulator on a CPU; ``tools/gpu_check.sh`` on a GPU).
 
 Outputs are pixel-planar ``(B, 3, M)``, ``(B, C, M)``, ``(B, M)`` (coalesced writes) and
 :meth:`NearFieldGPU.solve` returns torch views ``(B, H, W, 3)`` etc. of them, so depth
-(:func:`pipeline.normals.batched.dst_divergence_torch`, :func:`~pipeline.normals.batched.dst_heights`)
-follows on the same stream. :mod:`pipeline.normals.gpu_stream` overlaps the uploads with this.
+(:func:`pipeline.depth.batched.dst_divergence_torch`, :func:`~pipeline.depth.batched.dst_heights`)
+follows on the same stream. :mod:`pipeline.frame_pipeline.gpu_stream` overlaps the uploads with this.
 
 The kernel compiles in about a second on first use (in memory); :func:`compile_ptx` builds it
 to PTX with no GPU (CI does).

@@ -60,7 +60,7 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
         It is decided by the normals stage's inputs, so it needs no key of its own.
     device : str
         ``dst`` on the whole frame with a device other than the CPU: every instance at once by
-        FFT on the device (:func:`pipeline.normals.batched.dst_heights`; equal to the DST to
+        FFT on the device (:func:`pipeline.depth.batched.dst_heights`; equal to the DST to
         float rounding, so the device stays out of the key).
     threads : int, optional
         Instances integrated at once, one per thread (:class:`pipeline.base.frame_pool.FramePool`;
@@ -123,7 +123,7 @@ def _compute_on_device(n_rec, pitch: float, filled, device):
     import torch
 
     from pipeline.base.store import Record
-    from pipeline.normals.batched import dst_divergence_torch, dst_heights
+    from pipeline.depth.batched import dst_divergence_torch, dst_heights
 
     n = torch.as_tensor(np.asarray(n_rec.data["normals"], np.float32), device=device)
     m = np.asarray(n_rec.data["mask"], bool)

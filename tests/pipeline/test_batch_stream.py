@@ -146,7 +146,7 @@ def test_the_device_pipeline_equals_the_cpu_fast_path_on_its_torch_variant(recor
     from pipeline.depth.fast import FastDST
     from pipeline.frame_pipeline import FramePipeline
     from pipeline.frame_pipeline.device import DeviceFramePipeline
-    from pipeline.normals.gpu_stream import GPUFramePipeline
+    from pipeline.frame_pipeline.gpu_stream import GPUFramePipeline
     from pipeline.stages.fast_solvers import fast_nearfield
     from pipeline.stages.normals import capture_lights
     from pipeline.stream import _on_device, plan_stream, read_capture

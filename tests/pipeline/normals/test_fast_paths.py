@@ -5,7 +5,7 @@
   :class:`pipeline.normals.nearfield.NearFieldSolver` in float64; white sectors (channels
   sharing their lights: the compressed layout) and coloured lights (per-channel albedo
   alternation), with a mask, a dark frame and a flat field;
-- depth: :class:`pipeline.depth.fast.FastDST` and :func:`pipeline.normals.batched.dst_heights`
+- depth: :class:`pipeline.depth.fast.FastDST` and :func:`pipeline.depth.batched.dst_heights`
   against :func:`pipeline.depth.poisson.poisson_dst`;
 - the calibration's LUT and MLP: :class:`pipeline.normals.fast_models.FastLUT` /
   ``FastMLP`` against the models' own ``normal_maps``;
@@ -67,7 +67,7 @@ def test_frames_in_parallel_equal_one_at_a_time(coloured):
     runs of frames per thread for the depth) gives each frame exactly what the per-frame path
     gives; with a region (scattered in the kernel), a dark frame, 52 x 36 (a short last block)."""
     from pipeline.depth.fast import FastDST
-    from pipeline.normals.cpu_batch import CPUFramePipeline
+    from pipeline.frame_pipeline.cpu_batch import CPUFramePipeline
     from pipeline.normals.fast import NearFieldFast
 
     frames, lights, _ = _uint8_scene(coloured=coloured)
@@ -127,9 +127,9 @@ def test_nearfield_batched_equals_fast(device):
 
 
 def test_fast_dst_equals_poisson_dst(device):
+    from pipeline.depth.batched import dst_divergence_torch, dst_heights
     from pipeline.depth.fast import FastDST
     from pipeline.depth.poisson import poisson_dst
-    from pipeline.normals.batched import dst_divergence_torch, dst_heights
 
     _, _, scene = _uint8_scene(shape=(40, 56))
     n = scene.normals.astype(np.float32)
@@ -221,7 +221,8 @@ def test_model_fast_paths_equal_normal_maps(real_models, case):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device: the CUDA-vs-CPU check needs a GPU")
 def test_batched_cuda_equals_cpu():
-    from pipeline.normals.batched import NearFieldBatched, dst_divergence_torch, dst_heights
+    from pipeline.depth.batched import dst_divergence_torch, dst_heights
+    from pipeline.normals.batched import NearFieldBatched
 
     frames, lights, scene = _uint8_scene(shape=(48, 64), coloured=True)
     batch = np.stack([frames] * 4)

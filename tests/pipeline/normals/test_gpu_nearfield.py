@@ -99,7 +99,7 @@ def test_nearfield_kernel_logic_in_the_simulator(tmp_path):
     np.testing.assert_allclose(rho, want["albedo"].numpy(), rtol=1e-4, atol=1e-6)
     np.testing.assert_allclose(np.array(got["res"]).reshape(2, H, W), want["residual"].numpy(), rtol=1e-3, atol=1e-3)
     # the divergence kernel on the simulated normals: dst_divergence_torch's right-hand side, extended
-    from pipeline.normals.batched import dst_divergence_torch
+    from pipeline.depth.batched import dst_divergence_torch
 
     f, valid = dst_divergence_torch(torch.as_tensor(n, dtype=torch.float32), torch.as_tensor(ok), 0.1)
     ext = torch.cat([f, -f.flip(-1)], dim=-1)
@@ -125,8 +125,8 @@ def test_doctor_cpu_only_reports_the_stack():
 def test_gpu_pipeline_heights_equal_the_cpu():
     from pipeline.bench.recon_scene import render_sphere_scene
     from pipeline.depth.fast import FastDST
+    from pipeline.frame_pipeline.gpu_stream import GPUFramePipeline
     from pipeline.normals.fast import NearFieldFast
-    from pipeline.normals.gpu_stream import GPUFramePipeline
 
     s = render_sphere_scene((48, 64), 0.1, radius=1.5, depth=0.4, num_patterns=8, noise=1.0, bits=8, seed=0)
     one = s.frames.astype(np.uint8)
@@ -153,7 +153,7 @@ def test_gpu_pipeline_reads_hdf5_frames_into_pinned_buffers(tmp_path):
 
     from pipeline.base.h5frames import H5Frames
     from pipeline.bench.recon_scene import render_sphere_scene
-    from pipeline.normals.gpu_stream import GPUFramePipeline
+    from pipeline.frame_pipeline.gpu_stream import GPUFramePipeline
 
     s = render_sphere_scene((48, 64), 0.1, radius=1.5, depth=0.4, num_patterns=8, noise=1.0, bits=8, seed=0)
     rng = np.random.default_rng(0)

@@ -4,8 +4,8 @@ A batch of 320 x 240 frames under 8 patterns is 1.8 MB a frame: at 20,000 frames
 37 GB/s over PCIe, so the upload, not the solve, sets the pace. :class:`GPUFramePipeline`
 keeps it busy: two pinned host buffers and two device buffers, a copy stream and a compute
 stream. While batch ``k`` is solved (:class:`pipeline.normals.gpu_nearfield.NearFieldGPU`,
-one fused kernel; then :func:`~pipeline.normals.batched.dst_divergence_torch` and the batched
-FFT :func:`~pipeline.normals.batched.dst_heights`), batch ``k + 1`` is staged into pinned memory
+one fused kernel; then :func:`~pipeline.depth.batched.dst_divergence_torch` and the batched
+FFT :func:`~pipeline.depth.batched.dst_heights`), batch ``k + 1`` is staged into pinned memory
 by host threads (or read there straight from an HDF5 file: :class:`pipeline.base.h5frames.H5Frames`)
 and uploaded on the copy stream, and batch ``k - 1``'s heights come back on
 the compute stream (PCIe is full duplex). Events order the reuse of each buffer.
@@ -92,7 +92,7 @@ class GPUFramePipeline:
     def solve_device(self, frames) -> dict:
         """Normals and heights of a batch already on the device (torch uint8 ``(B, P, H, W, C)``), on
         torch's current stream: the solve alone. Returns device tensors (``height (B, H, W)`` added)."""
-        from pipeline.normals.batched import dst_divergence_torch, dst_heights
+        from pipeline.depth.batched import dst_divergence_torch, dst_heights
 
         if self.solver_name == "fused":  # two kernels (normals; divergence into the FFT's input), cuFFT
             n, _, _, ok = self.solver.solve_planes(frames)

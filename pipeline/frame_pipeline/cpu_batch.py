@@ -1,6 +1,6 @@
 """Many uint8 frames to near-field normals and DST heights on every CPU core, a batch at a time.
 
-The CPU counterpart of :class:`pipeline.normals.gpu_stream.GPUFramePipeline`, for throughput
+The CPU counterpart of :class:`pipeline.frame_pipeline.gpu_stream.GPUFramePipeline`, for throughput
 (recordings, captures of many contact instances, ``iristac bench live``'s frames rows). A batch
 of ``K`` frame sets goes through two phases on the threads of one
 :class:`pipeline.base.frame_pool.FramePool`:
