@@ -169,7 +169,8 @@ def run(args) -> dict:
             lens = [n for n in lengths if solver != "nearfield" or n <= 2000 or getattr(args, "lengths", None)]
             for i, n in enumerate(lens):
                 rec = work / f"{solver}-{n}.h5"
-                write_s = _recording(rec, model, mode, n, truth=i == 0, seed=11 + i)
+                # The shortest of several carries the rendered truth (its error column).
+                write_s = _recording(rec, model, mode, n, truth=i == 0 and len(lens) > 1, seed=11 + i)
                 for th in threads:
                     r = _batch(rec, flag, light, solver, th, work / "store")
                     lv = live[solver].get(th, {})

@@ -71,6 +71,8 @@ class FrameBatch:
     extras: dict[str, np.ndarray] = field(default_factory=dict)
     contact: np.ndarray | None = None
     meta: list[dict] = field(default_factory=list)
+    #: The near-field fast path's normal planes ``(n, 3, H, W)`` (what the DST reads fastest), or None.
+    planes: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.normals.shape[0])
@@ -206,7 +208,7 @@ class FramePipeline:
             mask[...] = p.mask
             return FrameBatch(normals, mask, self._buf("height", (n, H, W), np.float32),
                               self._buf("height_mask", (n, H, W), np.bool_), extras=extras,
-                              meta=[dict(_scalars(p.meta)) for _ in range(n)])
+                              meta=[dict(_scalars(p.meta)) for _ in range(n)], planes=p.normals)
         if self.eager_solver:
             results = self.solver.solve_stack(f, self.threads)
             out = self._empty(n, H, W, results[0])
@@ -279,7 +281,8 @@ class FramePipeline:
             out.height[...] = 0.0
             out.height_mask[...] = False
         elif self.fast_depth:
-            self.integrator.integrate_batch(out.normals, usable, self.pool, out=(out.height, out.height_mask))
+            src = out.normals if out.planes is None else out.planes  # planes: contiguous reads, the same sums
+            self.integrator.integrate_batch(src, usable, self.pool, out=(out.height, out.height_mask))
         else:
             def integrate(a: int, b: int) -> None:
                 for k in range(a, b):
