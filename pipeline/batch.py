@@ -25,7 +25,7 @@ from typing import Any, Callable, Sequence
 from pipeline.base.errors import UserError
 from pipeline.report import format_number
 
-__all__ = ["BatchItem", "run_batch", "map_tasks", "progress_bar", "format_summary"]
+__all__ = ["BatchItem", "run_batch", "map_tasks", "progress_bar", "format_summary", "error_message"]
 
 
 @dataclass
@@ -61,7 +61,7 @@ def _guarded(task: Callable[[str], Any], recording: str) -> BatchItem:
         result = task(recording)
         return BatchItem(recording, True, time.perf_counter() - t0, result, None, worker)
     except Exception as exc:  # noqa: BLE001 - one bad recording must not stop the batch
-        return BatchItem(recording, False, time.perf_counter() - t0, None, _error_message(exc), worker)
+        return BatchItem(recording, False, time.perf_counter() - t0, None, error_message(exc), worker)
 
 
 def run_batch(recordings: Sequence[str], task: Callable[[str], Any], *, workers: int = 1,
@@ -163,10 +163,12 @@ def _call_guarded(fn: Callable, task: tuple) -> tuple[bool, Any]:
     try:
         return True, fn(*task)
     except Exception as exc:  # noqa: BLE001 - reported in its result
-        return False, _error_message(exc)
+        return False, error_message(exc)
 
 
-def _error_message(exc: BaseException) -> str:
+def error_message(exc: BaseException) -> str:
+    """One line for a failed recording or task: a UserError's message, else the exception's type,
+    message and where it was raised."""
     msg = str(exc) or type(exc).__name__
     if not isinstance(exc, UserError):
         last = traceback.extract_tb(exc.__traceback__)[-1:]

@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from pipeline.base.errors import UserError
-from pipeline.batch import BatchItem, map_tasks
+from pipeline.batch import BatchItem, error_message, map_tasks
 
 __all__ = ["batch_reconstruct", "expand_recordings", "summary_json", "SUMMARY_COLUMNS", "frame_ranges"]
 
@@ -205,20 +205,9 @@ def _plan(recording: str, options: dict, threads) -> dict:
         if not job.cached:
             entry["pipe"] = prepare(job, cap, lights, threads)
     except Exception as exc:  # noqa: BLE001 - reported in its item
-        entry["error"] = _message(exc)
+        entry["error"] = error_message(exc)
     entry["seconds"] = time.perf_counter() - t0
     return entry
-
-
-def _message(exc: BaseException) -> str:
-    import traceback
-
-    msg = str(exc) or type(exc).__name__
-    if not isinstance(exc, UserError):
-        last = traceback.extract_tb(exc.__traceback__)[-1:]
-        where = f" (at {last[0].filename}:{last[0].lineno})" if last else ""
-        msg = f"{type(exc).__name__}: {msg}{where}"
-    return msg
 
 
 def _run_here(p: dict, threads, bar) -> None:
@@ -232,7 +221,7 @@ def _run_here(p: dict, threads, bar) -> None:
         r = run_frames(job, threads=threads, progress=bar.update, cap=p["cap"], lights=p["lights"], pipe=p["pipe"])
         p["method"], p["workers"], p["frames_solved"] = r["method"], {r["worker"]}, r["solved"]
     except Exception as exc:  # noqa: BLE001 - this recording fails, the others go on
-        p["error"] = _message(exc)
+        p["error"] = error_message(exc)
     p["solve_seconds"] = time.perf_counter() - t0
     p["seconds"] += p["solve_seconds"]
 
@@ -254,7 +243,7 @@ def _run_distributed(planned: list[dict], threads, workers: int, scheduler, conn
         try:
             files = open_files(job)  # created here once, so the workers only attach to them
         except Exception as exc:  # noqa: BLE001
-            p["error"] = _message(exc)
+            p["error"] = error_message(exc)
             continue
         from pipeline.base.streamed import merge_ranges
 
@@ -319,7 +308,7 @@ def _finish(p: dict, out, images: bool, t0: float) -> BatchItem:
                          method=p["method"], frames_solved=int(p.get("frames_solved", 0)),
                          solve_seconds=float(p.get("solve_seconds", 0.0)))
     except Exception as exc:  # noqa: BLE001
-        return BatchItem(p["recording"], False, p["seconds"], None, _message(exc))
+        return BatchItem(p["recording"], False, p["seconds"], None, error_message(exc))
 
 
 def _content_digest(rec, name: str) -> str:

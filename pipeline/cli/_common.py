@@ -216,3 +216,37 @@ def make_group(sub, name: str, help_text: str):
     p = sub.add_parser(name, help=help_text, description=help_text)
     p.set_defaults(group_parser=p)
     return p, p.add_subparsers(dest=f"{name}_command", metavar="SUBCOMMAND")
+
+
+def add_output_flags(parser, default_save: str) -> None:
+    """``--save`` and ``--precision``: what ``reconstruct`` and ``batch`` write beside the normals,
+    heights and masks (:class:`pipeline.frame_pipeline.outputs.OutputSpec`); a parser or a group."""
+    from pipeline.frame_pipeline.outputs import OUTPUT_CHOICES, PRECISIONS
+
+    parser.add_argument("--save", default=default_save, metavar="{" + ",".join(OUTPUT_CHOICES) + ",all,none}",
+                        help=f"outputs beside the normals, heights and masks, comma-separated (default "
+                             f"{default_save}; contact costs about 10 ms a 320 x 240 frame, confidence 0.3 MB); "
+                             f"docs/reconstruction.md")
+    parser.add_argument("--precision", choices=list(PRECISIONS), default="single",
+                        help="normals and confidence as float32 (single, default) or float16 (half)")
+
+
+def add_light_flags(parser, calibration_help: str, illumination_help: str):
+    """``--calibration CAL | --illumination ILL`` in a group of their own; returns the group."""
+    light = parser.add_argument_group("light model (one of --calibration and --illumination)")
+    src = light.add_mutually_exclusive_group()
+    src.add_argument("--calibration", metavar="CAL", help=calibration_help)
+    src.add_argument("--illumination", metavar="ILL", help=illumination_help)
+    return light
+
+
+def add_solving_group(parser):
+    """The ``solving`` group ``reconstruct`` and ``batch`` share: solver, integrator, mask, markers,
+    drift and the video flags; returns the group."""
+    solve = parser.add_argument_group("solving")
+    add_solver_flags(solve, short_help=True)
+    add_mask_flag(solve)
+    add_markers_flag(solve)
+    add_drift_flag(solve)
+    add_video_flags(solve)
+    return solve

@@ -10,32 +10,22 @@ import sys
 import time
 
 from pipeline.cli._common import (
-    add_drift_flag,
     add_heal_flag,
     add_json_flag,
-    add_markers_flag,
-    add_mask_flag,
-    add_solver_flags,
-    add_video_flags,
+    add_light_flags,
+    add_output_flags,
+    add_solving_group,
     print_json,
 )
 
 
 def register(sub, name, help_text):
-    from pipeline.frame_pipeline.outputs import DEFAULT_BATCH, OUTPUT_CHOICES, PRECISIONS
+    from pipeline.frame_pipeline.outputs import DEFAULT_BATCH
 
     p = sub.add_parser(name, help=help_text, description=help_text)
     p.add_argument("recordings", nargs="+", metavar="RECORDING", help="capture.h5 files, videos (.mp4, .avi, ...) or folders of them")
-    light = p.add_argument_group("light model")
-    src = light.add_mutually_exclusive_group()
-    src.add_argument("--calibration", metavar="CAL", help="shared calibration.h5")
-    src.add_argument("--illumination", metavar="ILL", help="shared illumination.h5")
-    solve = p.add_argument_group("solving")
-    add_solver_flags(solve, short_help=True)
-    add_mask_flag(solve)
-    add_markers_flag(solve)
-    add_drift_flag(solve)
-    add_video_flags(solve)
+    add_light_flags(p, "shared calibration.h5", "shared illumination.h5")
+    solve = add_solving_group(p)
     solve.add_argument("--device", default="cpu", help="torch device of the eager solvers (cpu, cuda)")
     where = p.add_argument_group("where it runs")
     where.add_argument("--threads", type=int, default=0,
@@ -49,11 +39,7 @@ def register(sub, name, help_text):
                             "the same files and store)")
     where.add_argument("--connect-timeout", type=float, default=10.0, help="seconds to wait for the scheduler")
     outs = p.add_argument_group("what is written")
-    outs.add_argument("--save", default=DEFAULT_BATCH, metavar="{" + ",".join(OUTPUT_CHOICES) + ",all,none}",
-                      help=f"outputs beside the normals, heights and masks, comma-separated (default {DEFAULT_BATCH}; "
-                           f"contact costs about 10 ms a 320 x 240 frame, confidence 0.3 MB); docs/reconstruction.md")
-    outs.add_argument("--precision", choices=list(PRECISIONS), default="single",
-                      help="normals and confidence as float32 (single, default) or float16 (half)")
+    add_output_flags(outs, DEFAULT_BATCH)
     outs.add_argument("--out", metavar="DIR", help="OUT/<recording>/normals.h5, depth.h5 (links to the store's "
                                                    "files, not copies)")
     outs.add_argument("--images", action="store_true", help="also write PNG/PLY pictures to --out")

@@ -3,14 +3,12 @@
 from __future__ import annotations
 
 from pipeline.cli._common import (
-    add_drift_flag,
     add_heal_flag,
     add_json_flag,
-    add_markers_flag,
-    add_mask_flag,
-    add_solver_flags,
+    add_light_flags,
+    add_output_flags,
+    add_solving_group,
     add_threads_flag,
-    add_video_flags,
     print_json,
     threads_arg,
 )
@@ -21,20 +19,12 @@ JSON_KEYS = ("solver", "integrator", "seconds", "valid_fraction", "cached", "mar
 
 
 def register(sub, name, help_text):
-    from pipeline.frame_pipeline.outputs import DEFAULT_RECONSTRUCT, OUTPUT_CHOICES, PRECISIONS
+    from pipeline.frame_pipeline.outputs import DEFAULT_RECONSTRUCT
 
     p = sub.add_parser(name, help=help_text, description=help_text)
     p.add_argument("capture", metavar="CAPTURE", help="capture.h5 or a video (.mp4, .avi, ...)")
-    light = p.add_argument_group("light model (one of --calibration and --illumination)")
-    src = light.add_mutually_exclusive_group()
-    src.add_argument("--calibration", metavar="CAL", help="calibration.h5 (light_field / light_vectors / LUT)")
-    src.add_argument("--illumination", metavar="ILL", help="illumination.h5 (V or light_matrices)")
-    solve = p.add_argument_group("solving")
-    add_solver_flags(solve, short_help=True)
-    add_mask_flag(solve)
-    add_markers_flag(solve)
-    add_drift_flag(solve)
-    add_video_flags(solve)
+    add_light_flags(p, "calibration.h5 (light_field / light_vectors / LUT)", "illumination.h5 (V or light_matrices)")
+    solve = add_solving_group(p)
     solve.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
     solve.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
     run = p.add_argument_group("where it runs")
@@ -44,11 +34,7 @@ def register(sub, name, help_text):
     add_threads_flag(run, "threads of the frame pipeline: frames in parallel on the fast paths, torch's or BLAS's "
                      "threads on the eager ones (default 1; 0: every core)")
     outs = p.add_argument_group("what is written")
-    outs.add_argument("--save", default=DEFAULT_RECONSTRUCT, metavar="{" + ",".join(OUTPUT_CHOICES) + ",all,none}",
-                      help=f"outputs beside the normals, heights and masks, comma-separated (default "
-                           f"{DEFAULT_RECONSTRUCT}); docs/reconstruction.md")
-    outs.add_argument("--precision", choices=list(PRECISIONS), default="single",
-                      help="normals and confidence as float32 (single, default) or float16 (half)")
+    add_output_flags(outs, DEFAULT_RECONSTRUCT)
     outs.add_argument("--out", metavar="DIR", required=True, help="output folder (links to the store's files)")
     outs.add_argument("--no-images", action="store_true", help="write only normals.h5, depth.h5 and contact.h5")
     outs.add_argument("--force", action="store_true", help="recompute even if the store has the result")
