@@ -71,6 +71,8 @@ _JSON_ATTRS = "iristac_json_attrs"
 _ENTRY_RE = re.compile(r"^[0-9a-f]{32}\.h5$")
 _TEMP_RE = re.compile(r"^\.(?P<name>[^.]+)\.(?P<pid>\d+)\.(?P<rand>[0-9a-f]+)\.tmp\.h5$")
 _QUARANTINE_RE = re.compile(r"^[0-9a-f]{32}\.bad-\d+\.h5$")
+# A streamed entry being written (pipeline.base.streamed): its partial file and progress files.
+_PARTIAL_RE = re.compile(r"^\.[0-9a-f]{32}\.(partial\.h5|progress-\d+\.json)$")
 # Datasets at least this large get compressed (and chunked); small ones stay contiguous.
 _COMPRESS_MIN_ELEMENTS = 4096
 #: Schemas whose ``frames`` stack is written in the frames layout (:mod:`pipeline.base.frame_codec`:
@@ -601,7 +603,7 @@ class EntryInfo:
 
     path: Path
     stage: str
-    kind: str  # "entry", "temp", "quarantined", "foreign"
+    kind: str  # "entry", "temp", "quarantined", "partial" (a streamed entry being written), "foreign"
     size: int
     schema: str | None = None
     key: str | None = None
@@ -725,6 +727,8 @@ class StageStore:
             size = p.stat().st_size
             if _TEMP_RE.match(p.name):
                 out.append(EntryInfo(p, stage, "temp", size))
+            elif _PARTIAL_RE.match(p.name):
+                out.append(EntryInfo(p, stage, "partial", size))
             elif _QUARANTINE_RE.match(p.name):
                 out.append(EntryInfo(p, stage, "quarantined", size))
             elif _ENTRY_RE.match(p.name):
@@ -752,6 +756,8 @@ class StageStore:
         """Remove temporaries left by crashed writers; return what was removed.
 
         A temporary whose writing process is still alive is left alone unless ``include_live``.
+        Partial streamed entries (kind ``partial``: a recording's results being written, or left by
+        a killed run) are kept: the next run of the same work resumes them; :meth:`clear` removes them.
         """
         removed = []
         for e in self.entries():

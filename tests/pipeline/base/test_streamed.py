@@ -98,3 +98,16 @@ def test_progress_files_are_whole_json_and_name_their_key(tmp_path):
     d = json.loads(p.read_text())
     assert (d["start"], d["done"], d["stats"]["2"]["valid"]) == (2, 5, 3) and "crc" in d["stats"]["4"]
     assert merge_ranges([(0, 2), (2, 5), (7, 8)]) == [(0, 5), (7, 8)]
+
+
+def test_the_store_lists_a_partial_entry_keeps_it_on_gc_and_removes_it_on_clear(tmp_path):
+    store = StageStore(tmp_path / "store")
+    key = store.key("depth", 1, {"integrator": "dst", "mm_per_px": 0.1}, inputs=["y"])
+    sf = StreamedFile.open(store.path_for(key), "depth", 4, LAYOUT, meta=META, key=key)
+    with sf.writer(0, 2) as w:
+        w.write(0, _frames(0, 2))
+        w.commit(2)
+    kinds = sorted(e.kind for e in store.entries())
+    assert kinds == ["partial", "partial"]  # the partial file and its progress file
+    assert store.gc(include_live=True) == [] and len(store.entries()) == 2  # resumable work is kept
+    assert len(store.clear()) == 2 and store.entries() == []
