@@ -97,11 +97,28 @@ def frame_ranges(missing: Sequence[tuple[int, int]], parts: int, min_frames: int
     return out
 
 
+#: What a worker process set up for a job (its capture, light model and frame pipeline), kept for
+#: the job's next range: a worker takes several ranges of a recording, and the set-up (reading the
+#: light model, the solver's precomputation) is the same for each.
+_WORKER_JOBS: dict = {}
+
+
 def _range_task(job, start: int, stop: int, threads) -> dict:
     """A worker's frame range (module level: picklable for a process pool and Dask)."""
-    from pipeline.stream import run_frames
+    from pipeline.stages.normals import capture_lights
+    from pipeline.stream import load_light_record, prepare, read_capture, run_frames
 
-    return run_frames(job, start, stop, threads=threads)
+    ident = (job.capture, tuple(e["key"].digest for e in job.entries.values()), threads)
+    if ident not in _WORKER_JOBS:
+        cap = read_capture(job.capture)
+        lights = capture_lights(cap, load_light_record(job.light_files["calibration"], "calibration"),
+                                load_light_record(job.light_files["illumination"], "illumination"))
+        for old in _WORKER_JOBS.values():  # one job's set-up at a time per worker
+            old[2].close()
+        _WORKER_JOBS.clear()
+        _WORKER_JOBS[ident] = (cap, lights, prepare(job, cap, lights, threads))
+    cap, lights, pipe = _WORKER_JOBS[ident]
+    return run_frames(job, start, stop, threads=threads, cap=cap, lights=lights, pipe=pipe, keep=True)
 
 
 def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = None, illumination: str | None = None,

@@ -39,7 +39,7 @@ from pipeline.base.errors import UserError
 from pipeline.frame_pipeline.outputs import OutputSpec
 from pipeline.stages.base import StageSpec
 
-__all__ = ["StreamJob", "plan_stream", "prepare", "open_files", "run_frames", "finish_stream", "reconstruct_stream", "link_outputs",
+__all__ = ["StreamJob", "load_light_record", "plan_stream", "prepare", "open_files", "run_frames", "finish_stream", "reconstruct_stream", "link_outputs",
            "CONTACT_SPEC", "read_capture", "video_options", "CHUNK_BYTES", "COMMIT_SECONDS"]
 
 #: The contact mask's entry: keyed on the depth entry and the capture (the colour change is the
@@ -134,7 +134,8 @@ class StreamJob:
         return all(e["done"] for e in self.entries.values())
 
 
-def _load_light_record(path, schema):
+def load_light_record(path, schema):
+    """The light record at ``path`` (a Record as it is; None stays None), or a UserError naming it."""
     from pipeline.base.store import Record, read_record
 
     if path is None or isinstance(path, Record):
@@ -160,8 +161,8 @@ def plan_stream(capture, *, calibration=None, illumination=None, solver: str = "
     SOLVERS.check(solver)
     INTEGRATORS.check(integrator)
     outputs = outputs or OutputSpec()
-    cal = _load_light_record(calibration, "calibration")
-    ill = _load_light_record(illumination, "illumination")
+    cal = load_light_record(calibration, "calibration")
+    ill = load_light_record(illumination, "illumination")
     video = video_options(capture, video, cal, ill)
     cap = read_capture(capture, video)
     lights = normals_stage.capture_lights(cap, cal, ill)
@@ -344,13 +345,15 @@ def open_files(job: StreamJob) -> dict:
 
 
 def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None, *, threads: int | None = 1,
-               progress: Callable[[int], None] | None = None, cap=None, lights=None, pipe=None) -> dict:
+               progress: Callable[[int], None] | None = None, cap=None, lights=None, pipe=None,
+               keep: bool = False) -> dict:
     """Write the frames ``start:stop`` (default: every frame no progress file claims) of the job's
     unfinished entries; returns ``{"frames": written, "solved": frames solved (0 where the normals
     and heights were read back), "seconds", "method", "worker"}``.
 
     A worker process or a Dask worker calls it with its frame range (``cap`` and ``lights`` None:
     read again from the job's files). ``progress(n)`` is called after every chunk with its frames.
+    ``keep``: the pipeline stays open for the caller's next range (else it is closed here).
     """
     from pipeline.base.h5frames import H5Frames
     from pipeline.base.threads import limit_threads
@@ -362,8 +365,8 @@ def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None
     if lights is None:
         from pipeline.stages.normals import capture_lights
 
-        lights = capture_lights(cap, _load_light_record(job.light_files["calibration"], "calibration"),
-                                _load_light_record(job.light_files["illumination"], "illumination"))
+        lights = capture_lights(cap, load_light_record(job.light_files["calibration"], "calibration"),
+                                load_light_record(job.light_files["illumination"], "illumination"))
     if pipe is None:
         pipe = prepare(job, cap, lights, threads)
     files = open_files(job)
@@ -381,12 +384,16 @@ def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None
         source = frames.reader()  # a decoder of its own
     else:
         source = H5Frames(job.capture, "frames", threads=readers)
-    with pipe, limit_threads(blas=1), source as reader, _Writer(files) as writer:
-        truth = _Truth(cap, job.region)
-        for a, b in ranges:
-            writer.begin(a, b)
-            written += _run_range(job, pipe, reader, writer, truth, a, b, progress)
-            writer.end()
+    try:
+        with limit_threads(blas=1), source as reader, _Writer(files) as writer:
+            truth = _Truth(cap, job.region)
+            for a, b in ranges:
+                writer.begin(a, b)
+                written += _run_range(job, pipe, reader, writer, truth, a, b, progress)
+                writer.end()
+    finally:
+        if not keep:
+            pipe.close()
     import socket
 
     solved = written if not (job.entries["normals"]["done"] and job.entries["depth"]["done"]) else 0
