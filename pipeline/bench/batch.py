@@ -201,7 +201,7 @@ def _result(rows, lengths, cores, load, w, h, repeats) -> dict:
         targets.append({"what": f"{max(pooled)} local workers >= 1.7x one ({one['solver']}, {one['frames']:,} frames, "
                                 f"a thread each)", "met": many["fps"] >= 1.7 * one["fps"],
                         "value": f"{many['fps'] / one['fps']:.2f}x ({many['fps']:.0f} against {one['fps']:.0f} "
-                                 f"frames/s, worker start-up included)"})
+                                 f"frames/s; worker start-up apart, as a thread's)"})
     rows_main = [r for r in rows if not r.get("workers")]
     for solver in dict.fromkeys(r["solver"] for r in rows_main):
         mine = [r for r in rows_main if r["solver"] == solver and "fps" in r]
