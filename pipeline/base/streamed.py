@@ -52,7 +52,6 @@ import json
 import logging
 import os
 import threading
-import zlib
 from pathlib import Path
 from typing import Any, Iterable, Mapping
 
@@ -69,7 +68,7 @@ _log = logging.getLogger("iristac")
 CHUNK_BYTES = 1 << 20
 
 #: The progress files' format version (a file of another is ignored: its frames are written again).
-_PROGRESS_VERSION = 1
+_PROGRESS_VERSION = 2
 
 
 
@@ -333,7 +332,7 @@ class RangeWriter:
 
     def write(self, at: int, arrays: Mapping[str, np.ndarray]) -> None:
         """Frames ``at : at + n`` of every per-frame dataset (``arrays[name]`` of shape ``(n, *frame
-        shape)``; each name of the layout, in its dtype). Each frame's CRC-32 over its datasets is
+        shape)``; each name of the layout, in its dtype). Each frame's checksum over its datasets is
         kept for the file's :data:`pipeline.base.store.DIGEST_ATTR` (what guards unfiltered data against a flipped bit)."""
         self._crcs(at, arrays)
         n = None
@@ -356,13 +355,14 @@ class RangeWriter:
                 k += run
 
     def _crcs(self, at: int, arrays: Mapping[str, np.ndarray]) -> None:
+        from pipeline.base.store import frame_checksum
+
         n = len(next(iter(arrays.values()))) if arrays else 0
+        ordered = [arrays[name] for name in sorted(self._places)]
         for k in range(n):
-            crc = 0
-            for name in sorted(self._places):
-                crc = zlib.crc32(np.ascontiguousarray(arrays[name][k]).view(np.uint8).reshape(-1).data, crc)
+            check = frame_checksum(ordered, k)
             with self._lock:
-                self._stats.setdefault(str(at + k), {})["crc"] = crc
+                self._stats.setdefault(str(at + k), {})["crc"] = check
 
     def commit(self, done_until: int, stats: Mapping[int, Mapping[str, Any]] | None = None) -> None:
         """Frames ``start : done_until`` are written: fsync them, then record it (with per-frame
