@@ -386,10 +386,10 @@ def run_frames(job: StreamJob, start: int | None = None, stop: int | None = None
         source = H5Frames(job.capture, "frames", threads=readers)
     try:
         with limit_threads(blas=1), source as reader, _Writer(files) as writer:
-            truth = _Truth(cap, job.region)
+            truth, stored = _Truth(cap, job.region), _Stored(job)
             for a, b in ranges:
                 writer.begin(a, b)
-                written += _run_range(job, pipe, reader, writer, truth, a, b, progress)
+                written += _run_range(job, pipe, reader, writer, truth, stored, a, b, progress)
                 writer.end()
     finally:
         if not keep:
@@ -411,10 +411,8 @@ def _ranges(files: dict, start, stop) -> list[tuple[int, int]]:
     return [(max(a, lo), min(b, hi)) for a, b in missing if min(b, hi) > max(a, lo)]
 
 
-def _run_range(job: StreamJob, pipe, reader, writer, truth, a: int, b: int, progress) -> int:
+def _run_range(job: StreamJob, pipe, reader, writer, truth, stored, a: int, b: int, progress) -> int:
     """Frames ``a:b`` chunk by chunk, the next chunk read while this one is solved."""
-    frames = job.frames
-    stored = _Stored(job)
     shape = (job.chunk,) + tuple(reader.shape[1:])
     bufs = [np.empty(shape, reader.dtype), np.empty(shape, reader.dtype)]
     starts = list(range(a, b, job.chunk))
@@ -428,14 +426,14 @@ def _run_range(job: StreamJob, pipe, reader, writer, truth, a: int, b: int, prog
         nxt = pool.submit(read, 0) if starts else None
         for i, s in enumerate(starts):
             chunk = nxt.result()
-            # The next chunk's buffer is the one the last write no longer needs (written synchronously below).
+            # The next chunk goes into the previous chunk's buffer: its solve is done (the writer
+            # gets results, never frames).
             nxt = pool.submit(read, i + 1) if i + 1 < len(starts) else None
             out = pipe.run(chunk, *stored.read(s, s + len(chunk)))
             arrays = _arrays(out, job.outputs)
             writer.write(s, arrays, _frame_stats(out, arrays, truth, s))
             if progress is not None:
                 progress(len(out))
-    assert frames >= b
     return b - a
 
 
