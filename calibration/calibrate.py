@@ -38,7 +38,7 @@ from calibration.samples import Samples, collect_samples
 from calibration.validate import INVALID_ERROR_DEG, cross_validate, cv_report
 from pipeline.base.capture import Capture, read_capture
 from pipeline.base.errors import UserError
-from pipeline.evaluate import angular_error_deg
+from pipeline.results.evaluate import angular_error_deg
 from sim.illumination_model import IlluminationModel
 
 __all__ = ["CalibrationResult", "CircleFit", "calibrate", "find_circles", "label_errors", "read_illumination", "CIRCLE_COLUMNS",

@@ -37,7 +37,7 @@ from calibration.samples import Samples, collect_samples
 from calibration.validate import INVALID_ERROR_DEG
 from pipeline.base.capture import Capture, read_capture
 from pipeline.base.errors import UserError
-from pipeline.evaluate import angular_error_deg
+from pipeline.results.evaluate import angular_error_deg
 from sim.geometry.shapes import cap_depth
 
 if TYPE_CHECKING:

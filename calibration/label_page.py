@@ -30,7 +30,7 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from calibration.label_session import LabelSession
 from pipeline.base.errors import UserError
 from pipeline.base.http_page import send, send_json
-from pipeline.outputs import png_bytes
+from pipeline.results.exports import png_bytes
 
 __all__ = ["LabelServer", "serve_labeller", "PAGE"]
 

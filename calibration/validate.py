@@ -14,7 +14,7 @@ import numpy as np
 
 from calibration.models.base import CalibrationModel
 from calibration.samples import Samples
-from pipeline.evaluate import angular_error_deg
+from pipeline.results.evaluate import angular_error_deg
 
 __all__ = ["cross_validate", "cv_report", "fold_assignment"]
 

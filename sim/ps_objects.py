@@ -12,7 +12,7 @@ black background and are seen from above by an orthographic camera:
 96 by default, within 45 degrees of the view axis) with the renderer's ``specular``
 (Cook-Torrance lobe), ``cast_shadows``, ``shot_noise``, ``read_noise``, ``saturation`` and 16-bit
 ``quantization`` effects, and returns a schema-``capture`` record laid out like
-:func:`pipeline.diligent.diligent_record`'s: ``frames (1, P, H, W, 3)`` uint16, ``drive (P, P, 3)``
+:func:`pipeline.capture.diligent.diligent_record`'s: ``frames (1, P, H, W, 3)`` uint16, ``drive (P, P, 3)``
 (light ``p`` alone at its RGB intensity), ``lights/light_vectors (P, 3, 3)`` (direction times
 intensity), ``mask``, ``truth/normals``, ``truth/height``, ``truth/albedo``; no reference frames.
 The object may be rendered in a small window and placed in a larger black frame

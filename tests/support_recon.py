@@ -23,7 +23,7 @@ def _one_torch_thread():
 
 def angular_error_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Per-pixel angle (degrees) between unit normals ``(..., 3)`` (atan2: exact near 0)."""
-    from pipeline.evaluate import angular_error_deg as ang
+    from pipeline.results.evaluate import angular_error_deg as ang
 
     return ang(a, b)
 

@@ -27,14 +27,11 @@ PACKAGES = ("sim", "calibration", "pipeline", "data_schemas")
 LAYERS = [
     ("schemas", ["data_schemas"]),
     ("base", ["pipeline.base", "pipeline"]),
-    ("physics and numerics", ["sim", "pipeline.normals", "pipeline.depth", "pipeline.evaluate", "pipeline.outputs",
-                              "pipeline.report", "pipeline.charts", "pipeline.batch",
-                              "pipeline.contact", "pipeline.frame_pipeline"]),
-    ("calibration and capture", ["calibration", "pipeline.capture"]),
+    ("physics and numerics", ["sim", "pipeline.normals", "pipeline.depth", "pipeline.frame_pipeline",
+                              "pipeline.results", "pipeline.charts"]),
+    ("calibration and capture", ["calibration", "pipeline.capture", "pipeline.solving"]),
     ("stage registry", ["pipeline.stages"]),
-    ("entry points", ["pipeline.run", "pipeline.reconstruct", "pipeline.batch_reconstruct", "pipeline.stream",
-                      "pipeline.compare",
-                      "pipeline.demo", "pipeline.diligent", "pipeline.live"]),
+    ("entry points", ["pipeline.streaming", "pipeline.workflows", "pipeline.live"]),
     ("command line and benchmarks", ["pipeline.cli", "pipeline.bench", "pipeline.__main__"]),
 ]
 
@@ -316,8 +313,8 @@ def _tree(root: Path, files: dict[str, str]) -> Path:
     ({"pipeline/base/store.py": "def f():\n    from sim.render import x\n", "sim/render.py": "x = 1\n"},
      "pipeline.base.store (base) imports sim.render (physics and numerics), a layer above it"),
     # sim reaching up to an entry point
-    ({"sim/scene.py": "import pipeline.reconstruct\n", "pipeline/reconstruct.py": ""},
-     "sim.scene (physics and numerics) imports pipeline.reconstruct (entry points)"),
+    ({"sim/scene.py": "import pipeline.workflows.reconstruct\n", "pipeline/workflows/reconstruct.py": ""},
+     "sim.scene (physics and numerics) imports pipeline.workflows.reconstruct (entry points)"),
     # two modules of one layer importing each other (the old lens <-> torus)
     ({"sim/optics/lens.py": "from sim.optics.torus import A\n",
       "sim/optics/torus.py": "def f():\n    from sim.optics.lens import B\n"},

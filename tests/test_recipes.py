@@ -20,8 +20,8 @@ DOC = REPO / "docs" / "developing.md"
 
 #: Per recipe heading: the files every part of that kind reaches (checked below, part by part).
 RECIPES = {
-    "A solver": ["pipeline/normals/solve.py", "pipeline/stages/model_solvers.py", "pipeline/base/registry.py",
-                 "pipeline/stages/fast_solvers.py", "tests/pipeline/normals/test_fast_paths.py",
+    "A solver": ["pipeline/normals/solve.py", "pipeline/solving/model_solvers.py", "pipeline/base/registry.py",
+                 "pipeline/solving/frame_solvers.py", "tests/pipeline/normals/test_fast_paths.py",
                  "docs/reconstruction.md"],
     "An integrator": ["pipeline/depth/__init__.py", "pipeline/base/registry.py", "docs/reconstruction.md",
                       "tests/pipeline/depth/test_depth_integrators.py"],
@@ -30,7 +30,7 @@ RECIPES = {
                        "data_schemas/configs/scene.json", "sim/optics/kernel.py", "sim/optics/engine.py",
                        "tests/sim/test_intersect_cases.py"],
     "A stage": ["pipeline/stages/__init__.py", "data_schemas/configs/pipeline.json",
-                "tests/pipeline/stages/test_keys.py", "tests/pipeline/stages/test_contract.py", "pipeline/run.py",
+                "tests/pipeline/stages/test_keys.py", "tests/pipeline/stages/test_contract.py", "pipeline/workflows/run.py",
                 "docs/running.md"],
 }
 
@@ -85,11 +85,11 @@ def test_every_solver_is_where_the_solver_recipe_says():
     documented = _table_names("docs/reconstruction.md", "lstsq")
     for e in SOLVERS:
         module, _, attr = e.target.partition(":")
-        assert module in ("pipeline.normals.solve", "pipeline.stages.model_solvers") and attr == f"stack_{e.name}", e
+        assert module in ("pipeline.normals.solve", "pipeline.solving.model_solvers") and attr == f"stack_{e.name}", e
         assert e.name in documented, f"docs/reconstruction.md's solvers table has no row for {e.name}"
         assert {"needs", "patterns"} <= set(e.info), f"{e.name}: the registry entry lacks its facts"
         if e.info.get("fast"):
-            assert e.info["fast"] == f"pipeline.stages.fast_solvers:fast_{e.name}", e.info["fast"]
+            assert e.info["fast"] == f"pipeline.solving.frame_solvers:fast_{e.name}", e.info["fast"]
             assert re.search(rf"\b{e.name}\b", fast_tests), \
                 f"tests/pipeline/normals/test_fast_paths.py does not test {e.name}'s fast path"
 
@@ -111,7 +111,7 @@ def test_every_integrator_is_where_the_integrator_recipe_says():
 def test_every_lighting_mode_is_where_the_mode_recipe_says():
     from pipeline.base.modes import load_mode
     from pipeline.base.registry import list_modes
-    from pipeline.demo import builtin_modes
+    from pipeline.workflows.demo import builtin_modes
 
     documented = _table_names("docs/renderer.md", "point")
     for name in list_modes():

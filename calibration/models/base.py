@@ -16,7 +16,7 @@ import numpy as np
 
 from calibration.samples import Samples
 from pipeline.base.errors import UserError
-from pipeline.evaluate import angular_error_deg
+from pipeline.results.evaluate import angular_error_deg
 
 __all__ = ["CalibrationModel", "LightFieldModel", "MIN_FLAT", "flat_field", "solve_normals", "check_light_rank", "fit_tilt_gain",
            "scale_tilt"]

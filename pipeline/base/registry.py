@@ -157,7 +157,7 @@ class Registry:
 #:   drift against it is removed first by default (``--drift auto``,
 #:   :meth:`pipeline.normals.prepare.FramePrep.use_drift`);
 #: - ``fast``: the builder of its live per-frame path (precomputed once per calibration,
-#:   :func:`pipeline.stages.fast_solvers.frame_solver`), absent when live use runs it eagerly;
+#:   :func:`pipeline.solving.frame_solvers.frame_solver`), absent when live use runs it eagerly;
 #: - ``batch``: that fast path also solves many frames in one call per thread
 #:   (:meth:`pipeline.normals.fast.NearFieldFast.solve_batch`), which the normals stage uses
 #:   with more than one thread;
@@ -167,11 +167,11 @@ class Registry:
 SOLVERS = Registry("solver", "--solver", [
     Entry("lstsq", "pipeline.normals.solve:stack_lstsq",
           "far field (Woodham): one light vector per observation, else the light field at the image centre",
-          {"needs": "vectors", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_lstsq", "batch": True,
+          {"needs": "vectors", "patterns": "any", "fast": "pipeline.solving.frame_solvers:fast_lstsq", "batch": True,
            "numpy_on_cpu": True}),
     Entry("nearfield", "pipeline.normals.solve:stack_nearfield",
           "per-pixel light vectors (an illumination model or a calibrated light field)",
-          {"needs": "field", "patterns": "any", "fast": "pipeline.stages.fast_solvers:fast_nearfield",
+          {"needs": "field", "patterns": "any", "fast": "pipeline.solving.frame_solvers:fast_nearfield",
            "batch": True}),
     Entry("robust", "pipeline.normals.solve:stack_robust",
           "shadows and highlights modelled: attached shadows from the light matrix, highlights above and cast "
@@ -180,27 +180,27 @@ SOLVERS = Registry("solver", "--solver", [
     Entry("cauchy", "pipeline.normals.solve:stack_cauchy",
           "the earlier robust solver: dark and saturated observations excluded, trimmed start, Cauchy IRLS",
           {"needs": "vectors", "patterns": "any", "variant": True}),
-    Entry("far", "pipeline.stages.model_solvers:stack_far",
+    Entry("far", "pipeline.solving.model_solvers:stack_far",
           "the calibration's far-field model (one light vector per pattern-channel, flat field from the reference), "
           "as eval calibration applies it",
           {"needs": "model:far", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
            "fills_markers": True}),
-    Entry("near", "pipeline.stages.model_solvers:stack_near",
+    Entry("near", "pipeline.solving.model_solvers:stack_near",
           "the calibration's polynomial near-field model, as eval calibration applies it",
           {"needs": "model:near", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
            "fills_markers": True}),
-    Entry("traced", "pipeline.stages.model_solvers:stack_traced",
+    Entry("traced", "pipeline.solving.model_solvers:stack_traced",
           "the calibration's traced model (ray-traced LED fields with fitted gains), as eval calibration applies it",
           {"needs": "model:traced", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
            "fills_markers": True}),
-    Entry("lut", "pipeline.stages.model_solvers:stack_lut",
+    Entry("lut", "pipeline.solving.model_solvers:stack_lut",
           "the calibration's colour lookup table with its per-bin position correction (one RGB pattern)",
           {"needs": "model:lut", "keys_on_reference": True, "patterns": "one-rgb", "whole_frame": True,
-           "fills_markers": True, "fast": "pipeline.stages.fast_solvers:fast_lut"}),
-    Entry("mlp", "pipeline.stages.model_solvers:stack_mlp",
+           "fills_markers": True, "fast": "pipeline.solving.frame_solvers:fast_lut"}),
+    Entry("mlp", "pipeline.solving.model_solvers:stack_mlp",
           "the calibration's MLP (colour change, reference and position -> normal)",
           {"needs": "model:mlp", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
-           "fills_markers": True, "fast": "pipeline.stages.fast_solvers:fast_mlp"}),
+           "fills_markers": True, "fast": "pipeline.solving.frame_solvers:fast_mlp"}),
 ])
 
 #: Depth integrators: ``target(normals (H, W, 3), mm_per_px, mask, **kwargs) -> DepthResult``

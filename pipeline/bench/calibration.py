@@ -74,7 +74,7 @@ def run(args) -> dict:
     from calibration.calibrate import calibrate
     from calibration.importers import load_gelsight_npz
     from calibration.synthetic import synthetic_sphere_capture
-    from pipeline.evaluate import angular_error_deg
+    from pipeline.results.evaluate import angular_error_deg
 
     quick = bool(getattr(args, "quick", False))
     if getattr(args, "sensors", False):

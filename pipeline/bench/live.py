@@ -2,7 +2,7 @@
 
 Per solver and image size, the eager reference (the solver ``reconstruct`` runs, then
 :func:`pipeline.depth.poisson.poisson_dst`) and the live fast path (precomputed per
-calibration, :mod:`pipeline.stages.fast_solvers`, then :class:`pipeline.depth.fast.FastDST`),
+calibration, :mod:`pipeline.solving.frame_solvers`, then :class:`pipeline.depth.fast.FastDST`),
 on one thread and on every core:
 
 - **near field**: the reconstruct benchmark's scene (a 3 mm ball pressed 0.5 mm, 8 white
@@ -152,7 +152,7 @@ def measure_model(solver: str, width: int, height: int, repeats: int, store, thr
     from pipeline.depth.fast import FastDST
     from pipeline.depth.poisson import poisson_dst
     from pipeline.normals.lights import LightSource
-    from pipeline.stages.fast_solvers import frame_solver
+    from pipeline.solving.frame_solvers import frame_solver
     from sim.contacts import contact_surfaces
     from sim.rendered_capture import render_capture
 

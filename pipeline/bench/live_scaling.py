@@ -28,7 +28,7 @@ FOV_MM = 16.0
 
 def mean_error_deg(normals, truth, mask=None) -> float:
     """Mean angular error (deg) of ``normals (..., 3)`` against ``truth``, over ``mask`` if given."""
-    from pipeline.evaluate import angular_error_deg
+    from pipeline.results.evaluate import angular_error_deg
 
     e = angular_error_deg(np.asarray(normals, np.float64), truth)
     return float(e.mean() if mask is None else e[mask].mean())
@@ -36,7 +36,7 @@ def mean_error_deg(normals, truth, mask=None) -> float:
 
 def max_deviation_deg(a, b, mask) -> float:
     """Largest angle (deg) between two normal maps over ``mask`` (0 where the mask is empty)."""
-    from pipeline.evaluate import angular_error_deg
+    from pipeline.results.evaluate import angular_error_deg
 
     m = np.asarray(mask, bool)
     return float(angular_error_deg(np.asarray(a, np.float64)[m], np.asarray(b, np.float64)[m]).max()) if m.any() else 0.0

@@ -1,6 +1,6 @@
 """``iristac bench modes``: what a lighting mode buys, in normal error against capture and reconstruction time.
 
-The ``compare-modes`` run of the virtual sensor (:func:`pipeline.compare.compare_modes`): the
+The ``compare-modes`` run of the virtual sensor (:func:`pipeline.workflows.compare_modes.compare_modes`): the
 shipped ``default`` scene traced onto the demo's camera grid, the demo's test object (a
 textured ball, a rod and a flat punch) captured under every shipped lighting mode through
 the ring emulator on a pseudo-terminal and the virtual camera at the demo's frame rate
@@ -35,8 +35,8 @@ def live_defaults() -> tuple[str, str]:
 
 
 def run(args) -> dict:
-    from pipeline.compare import compare_captures, compare_modes, comparison_rows
-    from pipeline.demo import DemoSettings
+    from pipeline.workflows.compare_modes import compare_captures, compare_modes, comparison_rows
+    from pipeline.workflows.demo import DemoSettings
 
     quick = bool(getattr(args, "quick", False))
     st = DemoSettings(quick)

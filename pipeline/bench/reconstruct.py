@@ -86,8 +86,8 @@ def _corrupt(frames: np.ndarray, kind: str, rng) -> np.ndarray:
 def measure_size(width: int, height: int, repeats: int, device: str, no_compile: bool = False) -> dict:
     """All measurements at one image size."""
     from pipeline.depth import integrate
-    from pipeline.evaluate import normal_error_stats
     from pipeline.normals import FarFieldSolver, NearFieldSolver, ratio_to_reference, solve_cauchy, solve_robust_irls
+    from pipeline.results.evaluate import normal_error_stats
 
     mm = FOV_MM / width
     s = render_sphere_scene((height, width), mm, radius=RADIUS, depth=DEPTH, num_patterns=PATTERNS, noise=1.0,

@@ -11,7 +11,7 @@ solving every box pixel and pasting the result into the full frame timed: the sa
 Times are the best of ``--repeats`` runs, solvers interleaved, wall and process CPU time
 (one torch thread: what the solve costs when it has a core; the masked-vs-box comparison uses
 it, since on the shared machine wall time includes waiting for a core); errors are mean
-angles to the rendered truth over the mask. The end-to-end row times ``pipeline.reconstruct.reconstruct`` of
+angles to the rendered truth over the mask. The end-to-end row times ``pipeline.workflows.reconstruct.reconstruct`` of
 the specular sphere written as ``capture.h5``: read, solve, integrate (DST on the bounding box),
 write ``normals.h5`` and ``depth.h5``.
 
@@ -66,8 +66,8 @@ def measure_ps(radius_px: float = 71.0, lights=(8, 12), frame=(512, 612), repeat
                solvers=SOLVERS) -> dict:
     """Render the objects, time and score every solver masked and on the bounding box, and
     time ``reconstruct`` end to end. Returns a dict (see :func:`format_ps`)."""
-    from pipeline.evaluate import normal_error_stats
     from pipeline.normals import PixelMask
+    from pipeline.results.evaluate import normal_error_stats
     from sim.ps_objects import bumpy_object, dome_lights, render_ps_capture, sphere_object
 
     size = int(2 * np.ceil(radius_px) + 18)
@@ -128,7 +128,7 @@ def _paste(res, pixels):
 def _end_to_end(rec, device: str) -> dict:
     """``reconstruct`` of the specular sphere from its file, per solver (fresh store: no cache)."""
     from pipeline.base.capture import write_capture
-    from pipeline.reconstruct import reconstruct
+    from pipeline.workflows.reconstruct import reconstruct
 
     res = {}
     with tempfile.TemporaryDirectory() as tmp:

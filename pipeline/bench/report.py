@@ -19,7 +19,7 @@ from pathlib import Path
 from pipeline.charts.decisions import Overview, overview, summary_charts
 from pipeline.charts.model import Table, format_seconds, format_value
 from pipeline.charts.rows import load_results, result_rows
-from pipeline.report import format_number
+from pipeline.results.report import format_number
 
 __all__ = ["add_arguments", "run", "format_table", "build_report", "markdown_charts", "chart_tables", "write_docs",
            "format_markdown", "CHART_DIR"]

@@ -1,7 +1,7 @@
 """A recorded video read as a capture, a chunk of frames at a time, without converting it first.
 
 ``iristac batch rec.mp4`` and ``iristac reconstruct rec.mp4`` come here through
-:func:`pipeline.stream.read_capture`: :func:`video_capture` gives the ``capture`` record of a video
+:func:`pipeline.streaming.inputs.read_capture`: :func:`video_capture` gives the ``capture`` record of a video
 (one white pattern of three colour channels, RGB, as ``iristac import images`` writes a video) whose
 ``frames`` is a :class:`VideoFrames`, decoded with OpenCV only when a range of them is read.
 
@@ -31,7 +31,7 @@ import numpy as np
 
 from pipeline.base.errors import UserError
 
-__all__ = ["VideoFrames", "video_capture", "video_frame_count", "is_video", "parse_reference", "BUILD_SAMPLE",
+__all__ = ["VideoFrames", "video_capture", "video_frame_count", "is_video", "parse_reference", "video_options", "BUILD_SAMPLE",
            "DEFAULT_CONTACT_RADIUS"]
 
 #: A built reference is built from at most this many frames, spread evenly over the video.
@@ -66,6 +66,22 @@ def parse_reference(reference) -> int | str:
     if i < 0:
         raise UserError(f"--reference {i}: a frame index is 0 or more")
     return i
+
+
+def video_options(capture, video: dict | None, cal, ill) -> dict | None:
+    """A video file's options for :func:`video_capture` (None for anything else): ``reference``
+    (default 0), ``mm_per_px`` (given, else the calibration's or the illumination's attribute) and
+    ``ball_radius_mm`` (the calibration's, for a built reference)."""
+    if not is_video(capture):
+        return None
+    v = dict(video or {})
+    v["reference"] = parse_reference(v.get("reference"))
+    for rec in (cal, ill):
+        if v.get("mm_per_px") is None and rec is not None and rec.meta.get("mm_per_px") is not None:
+            v["mm_per_px"] = float(rec.meta["mm_per_px"])
+    if v.get("ball_radius_mm") is None and cal is not None and cal.meta.get("ball_radius_mm") is not None:
+        v["ball_radius_mm"] = float(cal.meta["ball_radius_mm"])
+    return v
 
 
 def _open(path: Path):

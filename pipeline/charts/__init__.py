@@ -14,6 +14,6 @@ labelled without overlap, the shipped default ringed and one sentence read from 
 - :mod:`pipeline.charts.page`: an offline interactive page (Plotly, its JavaScript written
   beside the page or embedded in it).
 
-The benchmarks (:mod:`pipeline.charts.decisions`) and the demo report (:mod:`pipeline.compare`)
+The benchmarks (:mod:`pipeline.charts.decisions`) and the demo report (:mod:`pipeline.workflows.compare_modes`)
 build charts from their rows; this package knows nothing of either.
 """

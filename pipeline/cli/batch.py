@@ -1,7 +1,7 @@
 """``iristac batch RECORDINGS... --calibration CAL | --illumination ILL [--threads N | --workers N | --scheduler ADDRESS]``.
 
-Calls :func:`pipeline.batch_reconstruct.batch_reconstruct` and prints
-:func:`pipeline.batch.format_summary` (``--json``: :func:`pipeline.batch_reconstruct.summary_json`).
+Calls :func:`pipeline.workflows.batch.batch_reconstruct` and prints
+:func:`pipeline.workflows.task_pool.format_summary` (``--json``: :func:`pipeline.workflows.batch.summary_json`).
 """
 
 from __future__ import annotations
@@ -52,8 +52,8 @@ def register(sub, name, help_text):
 
 def _run(args) -> int:
     from pipeline.base.errors import UserError
-    from pipeline.batch import format_summary
-    from pipeline.batch_reconstruct import SUMMARY_COLUMNS, batch_reconstruct, summary_json
+    from pipeline.workflows.batch import SUMMARY_COLUMNS, batch_reconstruct, summary_json
+    from pipeline.workflows.task_pool import format_summary
 
     if args.threads < 0:
         raise UserError(f"--threads must be 0 (every core) or more, got {args.threads}")

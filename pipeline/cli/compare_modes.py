@@ -1,4 +1,4 @@
-"""``iristac compare-modes``: which lighting mode reconstructs best (:func:`pipeline.compare.compare_modes`)."""
+"""``iristac compare-modes``: which lighting mode reconstructs best (:func:`pipeline.workflows.compare_modes.compare_modes`)."""
 
 from __future__ import annotations
 
@@ -53,7 +53,7 @@ def _pairs(items, flag):
 def _run(args) -> int:
     import sys
 
-    from pipeline.compare import compare_modes
+    from pipeline.workflows.compare_modes import compare_modes
 
     data = compare_modes(args.out, modes=args.modes, scene=args.scene, illumination=args.illumination,
                          object=args.object, shape=tuple(args.size), mm_per_px=args.mm_per_px, rays=args.rays,

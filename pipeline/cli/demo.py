@@ -1,4 +1,4 @@
-"""``iristac demo``: the whole pipeline on a virtual IrisTac (see :func:`pipeline.demo.run_demo`)."""
+"""``iristac demo``: the whole pipeline on a virtual IrisTac (see :func:`pipeline.workflows.demo.run_demo`)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ def register(sub, name, help_text):
 
 
 def _run(args) -> int:
-    from pipeline.demo import run_demo
+    from pipeline.workflows.demo import run_demo
 
     data = run_demo(args.out, quick=args.quick, cache=args.cache, progress=True, scene=args.scene)
     if args.json:

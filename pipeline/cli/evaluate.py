@@ -1,4 +1,4 @@
-"""``iristac eval normals PRED --gt GT [--mask M] [--json]`` (calls :func:`pipeline.evaluate.evaluate_normals`) and
+"""``iristac eval normals PRED --gt GT [--mask M] [--json]`` (calls :func:`pipeline.results.evaluate.evaluate_normals`) and
 ``iristac eval calibration CAL.h5 TEST.h5 [--ball-radius MM] [--json]`` (calls
 :func:`calibration.evaluate.evaluate_calibration`)."""
 
@@ -37,7 +37,7 @@ def register(sub, name, help_text):
 
 
 def _run(args) -> int:
-    from pipeline.evaluate import evaluate_normals
+    from pipeline.results.evaluate import evaluate_normals
 
     r = evaluate_normals(args.pred, args.gt, args.mask, index=args.index)
     if args.json:

@@ -1,4 +1,4 @@
-"""``iristac import diligent DIR --out capture.h5`` (calls :func:`pipeline.diligent.import_diligent`)."""
+"""``iristac import diligent DIR --out capture.h5`` (calls :func:`pipeline.capture.diligent.import_diligent`)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ def register(group):
 
 
 def _run(args) -> int:
-    from pipeline.diligent import import_diligent
+    from pipeline.capture.diligent import import_diligent
 
     r = import_diligent(args.folder, args.out)
     if args.json:

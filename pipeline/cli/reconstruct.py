@@ -1,4 +1,4 @@
-"""``iristac reconstruct CAPTURE``: normals and depth (calls :func:`pipeline.reconstruct.reconstruct`)."""
+"""``iristac reconstruct CAPTURE``: normals and depth (calls :func:`pipeline.workflows.reconstruct.reconstruct`)."""
 
 from __future__ import annotations
 
@@ -45,7 +45,7 @@ def register(sub, name, help_text):
 
 
 def _run(args) -> int:
-    from pipeline.reconstruct import reconstruct
+    from pipeline.workflows.reconstruct import reconstruct
 
     threads = threads_arg(args)
     res = reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
@@ -77,9 +77,9 @@ def _bar(args):
 
     if args.json or not sys.stderr.isatty():
         return None
-    from pipeline.batch import progress_bar
     from pipeline.capture.video_frames import is_video, video_frame_count
-    from pipeline.stream import read_capture
+    from pipeline.streaming.inputs import read_capture
+    from pipeline.workflows.task_pool import progress_bar
 
     if is_video(args.capture):  # the frames but the reference
         frames = video_frame_count(args.capture)[0] - (args.reference != "build")

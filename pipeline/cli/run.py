@@ -1,6 +1,6 @@
 """``iristac run CONFIG.yaml [--dry-run] [--force STAGE] [--json] [--cache DIR]``.
 
-Calls :func:`pipeline.run.run_pipeline` (or :func:`pipeline.run.plan_pipeline` for
+Calls :func:`pipeline.workflows.run.run_pipeline` (or :func:`pipeline.workflows.run.plan_pipeline` for
 ``--dry-run``).
 """
 
@@ -27,8 +27,8 @@ def register(sub, name, help_text):
 
 
 def _run(args) -> int:
-    from pipeline.run import plan_pipeline, run_pipeline
     from pipeline.stages.graph import StageFailed
+    from pipeline.workflows.run import plan_pipeline, run_pipeline
 
     if args.dry_run:
         plan = plan_pipeline(args.config, cache=args.cache, force=args.force)

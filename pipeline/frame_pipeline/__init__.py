@@ -16,7 +16,7 @@
 Each runs a normals solver (:mod:`pipeline.normals`) and then an integrator
 (:mod:`pipeline.depth`): what needs both lives here, so neither of those imports the other.
 
-The solvers it runs are built by the stage layer (:func:`pipeline.stages.fast_solvers.frame_solver`);
+The solvers it runs are built a layer above (:func:`pipeline.solving.frame_solvers.frame_solver`);
 this package knows no calibration object.
 """
 

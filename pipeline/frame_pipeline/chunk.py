@@ -1,9 +1,9 @@
 """The one frame pipeline: integer camera frames to normals, heights (and contact), a run at a time.
 
 ``iristac live`` runs it on one frame set at a time, ``reconstruct`` and ``batch`` on chunks of
-a recording's frames (:mod:`pipeline.stream`); every path is the same code:
+a recording's frames (:mod:`pipeline.streaming`); every path is the same code:
 
-- the normals: the solver built by :func:`pipeline.stages.fast_solvers.frame_solver`:
+- the normals: the solver built by :func:`pipeline.solving.frame_solvers.frame_solver`:
    - a fast path that solves many frames in one call (``solve_batch``: the near-field and
      far-field paths, :class:`pipeline.normals.fast.NearFieldFast`): every frame of the chunk
      at once, each thread a run of pixels of every frame;
@@ -15,7 +15,7 @@ a recording's frames (:mod:`pipeline.stream`); every path is the same code:
 - the heights: the integrator's fast path (``dst``: :meth:`pipeline.depth.fast.FastDST.integrate_batch`,
    a run of frames per thread) on the whole frame, else the eager integrator per frame (on the
    region's bounding box where one is given, :func:`pipeline.depth.integrate`), frames in parallel;
-- the contact masks (when asked): :func:`pipeline.contact.contact_mask` per frame, frames in parallel.
+- the contact masks (when asked): :func:`pipeline.frame_pipeline.contact.contact_mask` per frame, frames in parallel.
 
 Filled-in marker pixels (``filled``) are integrated through, as the depth stage does.
 
@@ -84,7 +84,7 @@ class FramePipeline:
     Parameters
     ----------
     solver : object
-        From :func:`pipeline.stages.fast_solvers.frame_solver`: ``solve(frames (P, H, W, C),
+        From :func:`pipeline.solving.frame_solvers.frame_solver`: ``solve(frames (P, H, W, C),
         threads)``, ``method`` (``fast``/``eager``); ``solve_batch`` where it has one;
         ``solve_stack`` (the eager one).
     integrator : object

@@ -6,13 +6,13 @@ Set-up (:meth:`LiveSession.open`), each step one method:
    virtual sensor is used, and the camera (OpenCV, a :class:`~pipeline.base.camera.Camera`,
    or the virtual sensor);
 2. the light model: ``calibration=`` or ``illumination=`` through the normals stage's
-   :func:`pipeline.stages.normals.load_lights` (for the mode's patterns and the camera's image
+   :func:`pipeline.solving.light_files.load_lights` (for the mode's patterns and the camera's image
    size); the virtual sensor without either is calibrated first
    (:func:`pipeline.live.virtual.virtual_calibration`, cached in the store);
 3. the source of samples (:mod:`pipeline.live.sources`), the no-contact reference and the
    virtual sensor's scripted presses;
 4. the per-frame solver and integrator, both from their registries: the registered fast path
-   (:func:`pipeline.stages.fast_solvers.frame_solver`,
+   (:func:`pipeline.solving.frame_solvers.frame_solver`,
    :func:`pipeline.depth.frame_integrator`), else the eager one, in the frame pipeline
    ``reconstruct`` and ``batch`` run (:class:`pipeline.frame_pipeline.FramePipeline`), warmed up
    before the camera runs.
@@ -168,7 +168,7 @@ patterns (use a single-frame mode such as trichromatic)
     def _load_lights(self) -> None:
         from pipeline.normals.lights import check_lights
         from pipeline.normals.solve import stored_reference
-        from pipeline.stages.normals import load_lights
+        from pipeline.solving.light_files import load_lights
 
         cal = None if self.calibration is None else _read(self.calibration, "calibration")
         ill = None if self.illumination is None else _read(self.illumination, "illumination")
@@ -225,7 +225,7 @@ patterns (use a single-frame mode such as trichromatic)
 
     def _build_solver(self) -> None:
         from pipeline.depth import frame_integrator
-        from pipeline.stages.fast_solvers import frame_solver
+        from pipeline.solving.frame_solvers import frame_solver
 
         H, W = self.cam.shape
         t0 = time.monotonic()
@@ -287,15 +287,15 @@ patterns (use a single-frame mode such as trichromatic)
     # ---- the loop ---------------------------------------------------------------------------
 
     def contact(self, frames, depth) -> np.ndarray:
-        """A result's contact mask ``(H, W)`` (:func:`pipeline.contact.contact_mask`): colour (drift
+        """A result's contact mask ``(H, W)`` (:func:`pipeline.frame_pipeline.contact.contact_mask`): colour (drift
         removed) and height against :meth:`contact_reference`, the height alone without one."""
-        from pipeline.contact import contact_mask
+        from pipeline.frame_pipeline.contact import contact_mask
 
         ref = self.contact_reference()
         if ref is None or np.shape(ref) != np.shape(frames):
             return contact_mask(height=depth.height, valid=depth.mask)
         if self._contact_drift is None or self._contact_drift[0] is not ref:
-            from pipeline.contact import contact_reference_level, drift_estimator
+            from pipeline.frame_pipeline.contact import contact_reference_level, drift_estimator
 
             # Built once per reference, not per frame.
             self._contact_drift = (ref, drift_estimator(ref), contact_reference_level(ref))
@@ -468,7 +468,7 @@ def run_live(*, mode: str = DEFAULT_MODE, solver: str = "lut", camera=None, virt
         Defaults: 120 fps and 1 s presses in single-frame modes; 1000 fps (short exposures, so
         a cycle of P patterns is quick) and 4 s presses in multi-pattern modes.
     calibration, illumination : path or Record, optional
-        The light model (:func:`pipeline.stages.normals.load_lights`).
+        The light model (:func:`pipeline.solving.light_files.load_lights`).
     port, emulate, ring_firmware
         The ring for multi-pattern modes: a serial port, or the emulator (the C firmware's
         host build with ``ring_firmware``). ``virtual`` implies the emulator.
@@ -496,7 +496,7 @@ def run_live(*, mode: str = DEFAULT_MODE, solver: str = "lut", camera=None, virt
     fast : bool
         False: the eager solver even where a fast path is registered (a reference).
     contact : bool
-        Also compute each result's contact mask (:func:`pipeline.contact.contact_mask`: the
+        Also compute each result's contact mask (:func:`pipeline.frame_pipeline.contact.contact_mask`: the
         colour change, drift removed, against the no-contact frame, the session's or else the
         calibration model's, and the height), passed to ``on_result`` as ``contact``, kept in
         :attr:`LiveResult.last_contact`, recorded (``contact`` in the recording) and summarised
@@ -505,7 +505,7 @@ def run_live(*, mode: str = DEFAULT_MODE, solver: str = "lut", camera=None, virt
         for it).
     drift : str
         Illumination drift removed from each frame before the solve
-        (:func:`pipeline.stages.fast_solvers.frame_solver`): ``auto`` (default: a per-channel
+        (:func:`pipeline.solving.frame_solvers.frame_solver`): ``auto`` (default: a per-channel
         gain and offset against the reference the LUT and the MLP key on, in their fast paths
         too), ``none``, or a model of :data:`pipeline.normals.drift.DRIFT_MODELS`.
     on_ready : callable, optional

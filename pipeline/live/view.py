@@ -96,7 +96,7 @@ class LiveView:
         TCP port on 127.0.0.1 (0: any free port; :attr:`url` says which).
     contact_mm : float, optional
         Heights above this are contact in ``/contact.png`` (default: the contact mask's own
-        threshold, :func:`pipeline.contact.contact_mask`).
+        threshold, :func:`pipeline.frame_pipeline.contact.contact_mask`).
     """
 
     def __init__(self, port: int = 0, contact_mm: float | None = None):
@@ -177,7 +177,7 @@ class LiveView:
     def _render(self, kind, normals, mask, height) -> np.ndarray:
         import cv2
 
-        from pipeline.outputs import normal_map_rgb
+        from pipeline.results.exports import normal_map_rgb
 
         if kind == "normals":
             return cv2.cvtColor(normal_map_rgb(normals, mask), cv2.COLOR_RGB2BGR)
@@ -186,7 +186,7 @@ class LiveView:
         return cv2.applyColorMap(np.clip(128 + 127 * h / top, 0, 255).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
 
     def _contact_image(self, mask, height) -> np.ndarray:
-        from pipeline.contact import contact_mask
+        from pipeline.frame_pipeline.contact import contact_mask
 
         with self._lock:
             contact, frames, reference = self._contact

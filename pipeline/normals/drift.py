@@ -49,7 +49,7 @@ DRIFT_MODELS = ("none", "offset", "gain_offset", "field")
 #: normals stage's per-frame fits.
 SAMPLES = 4000
 
-#: Pixels the live per-frame fits use (:func:`pipeline.stages.fast_solvers.frame_solver`): the fit's
+#: Pixels the live per-frame fits use (:func:`pipeline.solving.frame_solvers.frame_solver`): the fit's
 #: cost grows with them (320 x 240, one loaded core: 4.7 ms for 4000, 1.3 ms for 1000, 0.8 ms for 500)
 #: and a gain and an offset per channel need few (1000 moved them by 0.0002 and 0.03 DN).
 LIVE_SAMPLES = 1000

@@ -1,6 +1,6 @@
 """Live paths of the learned single-frame models: a vectorised lookup table and a fused MLP.
 
-Both take the model's arrays (built from a calibration by :mod:`pipeline.stages.fast_solvers`;
+Both take the model's arrays (built from a calibration by :mod:`pipeline.solving.frame_solvers`;
 this layer knows no calibration object), precompute what depends only on the pixel and the
 session's reference, and turn an integer camera frame into normals, mask and confidence in
 one compiled pass. The eager references are the models' own ``normal_maps``

@@ -5,7 +5,7 @@
 frames (:class:`pipeline.normals.prepare.FramePrep`: dark level, saturation, markers, region),
 solve them with :func:`solve_capture`, finish the results (scatter the region back, marker
 pixels invalid). The fast per-frame paths take the same :class:`~pipeline.normals.prepare.FramePrep`
-(:func:`pipeline.stages.fast_solvers.frame_solver`).
+(:func:`pipeline.solving.frame_solvers.frame_solver`).
 
 :func:`solve_capture` takes prepared frames ``(K, P, H, W, C)`` and a
 :class:`~pipeline.normals.lights.LightSource`, checks that the lights are what the solver needs
@@ -25,7 +25,7 @@ light vectors, per contact instance:
   else the far field; dark values (within ``dark_threshold`` of the dark level) and saturated
   raw values are excluded;
 - the calibration's fitted models (``far``, ``near``, ``traced``, ``lut``, ``mlp``): their
-  adapters live in :mod:`pipeline.stages.model_solvers` (a model is a calibration object, a
+  adapters live in :mod:`pipeline.solving.model_solvers` (a model is a calibration object, a
   layer above this one) and call the model's batched ``normal_maps``.
 
 A new solver is its module in ``pipeline/normals/`` plus an adapter with the signature of

@@ -15,7 +15,7 @@ Each stage module owns, in one place:
 - ``SPEC``: its name, version, output schema and run-config defaults
   (:class:`pipeline.stages.base.StageSpec`);
 - ``params(section)``: the parameters that change its result, which with the identities of its
-  inputs (:func:`pipeline.stages.base.record_key`) make its store key;
+  inputs (:func:`pipeline.base.identity.record_key`) make its store key;
 - ``resolve(section, config, base, source)``: check and fill its run-config section;
 - ``compute(...)``: the computation, a :class:`~pipeline.base.store.Record` out;
 - ``run(store, ...)``: key, look up, compute if missing (or bad: the cache heals), for the

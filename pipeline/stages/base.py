@@ -1,17 +1,10 @@
-"""What every stage module shares: the contract it keeps (:class:`StageModule`), its
-:class:`StageSpec`, and the identity of the records it reads.
+"""What every stage module shares: the contract it keeps (:class:`StageModule`) and its
+:class:`StageSpec`.
 
 A stage's output key hashes (stage name, stage version, canonical parameters, input keys)
 (:meth:`pipeline.base.store.StageStore.key`). Each stage module owns the first three
 (:class:`StageSpec` and its ``params(...)``); the input keys are the *identities* of the
-records the stage reads, given by :func:`record_key`, the one rule every entry point uses:
-
-- a store entry (read from ``<store>/<stage>/<key>.h5``) is identified by its stage key, so
-  a result computed by ``iristac run`` and read back by ``iristac reconstruct`` is the same
-  input to both;
-- any other file by the hash of its content (``file:...``, :func:`file_input_key`), so
-  renaming, moving or copying it out of a store changes nothing;
-- a record in memory by the digest of its content (``memory:...``).
+records the stage reads (:func:`pipeline.base.identity.record_key`).
 
 A standalone capture file is special: the capture stage reads files too (``capture: {file:
 ...}`` in a run config), so its identity is that stage's key over the file
@@ -20,7 +13,6 @@ A standalone capture file is special: the capture stage reads files too (``captu
 
 from __future__ import annotations
 
-import hashlib
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -29,7 +21,7 @@ from typing import Any, Callable, Mapping, Protocol, Sequence, runtime_checkable
 from pipeline.base.errors import UserError
 from pipeline.base.store import Record, StageKey, StageStore
 
-__all__ = ["StageModule", "StageSpec", "NodeContext", "record_key", "is_entry", "file_input_key", "config_path"]
+__all__ = ["StageModule", "StageSpec", "NodeContext", "config_path"]
 
 
 @dataclass(frozen=True)
@@ -114,45 +106,6 @@ class NodeContext:
         if other not in self.present:
             what = f"stage {stage!r} {why}".rstrip()
             raise UserError(f"config: {what} needs the {other!r} section, which is absent")
-
-
-def record_key(rec: Record) -> str:
-    """The identity of a record as a stage input (see the module docstring).
-
-    Examples
-    --------
-    >>> import numpy as np
-    >>> rec = Record("depth", {"height": np.zeros((1, 2, 2), np.float32), "mask": np.ones((1, 2, 2), bool)},
-    ...              {"integrator": "fc", "mm_per_px": 0.1})
-    >>> record_key(rec)[:7]
-    'memory:'
-    """
-    if is_entry(rec):
-        return str(rec.provenance["iristac_key"])
-    if rec.path is None:  # an in-memory record: hash its content
-        from pipeline.base.hashing import digest
-
-        return "memory:" + digest({"schema": rec.schema, "data": rec.data, "meta": rec.meta})
-    return file_input_key(rec.path)
-
-
-def is_entry(rec: Record) -> bool:
-    """Whether ``rec`` was read from (or written to) its own entry of a stage store."""
-    key = rec.provenance.get("iristac_key") if rec.provenance else None
-    return bool(key) and rec.path is not None and Path(rec.path).stem == key \
-        and Path(rec.path).parent.name == rec.provenance.get("iristac_stage")
-
-
-def file_input_key(path: str | os.PathLike) -> str:
-    """Content hash of a file outside the store (``file:`` + 32 hex digits)."""
-    p = Path(path)
-    if not p.is_file():
-        raise UserError(f"{p}: no such file")
-    h = hashlib.sha256()
-    with open(p, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return "file:" + h.hexdigest()[:32]
 
 
 def config_path(path: str, base: Path) -> str:

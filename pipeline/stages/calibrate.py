@@ -17,7 +17,8 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 from pipeline.base.errors import UserError
-from pipeline.stages.base import StageSpec, config_path, file_input_key, record_key
+from pipeline.base.identity import file_input_key, record_key
+from pipeline.stages.base import StageSpec, config_path
 
 __all__ = ["SPEC", "RENDER_DEFAULTS", "params", "compute", "run", "rendered", "run_rendered", "node", "resolve"]
 
@@ -104,7 +105,7 @@ def run(store, capture, *, ball_radius_mm: float, models: str | Sequence[str], f
     """``(record, key, cached)``: calibrate the sphere ``capture`` through ``store``.
 
     ``capture`` is a ``capture.h5`` (identified by its content) or a ``capture`` Record
-    (identified by :func:`pipeline.stages.base.record_key`: a rendered capture in memory by
+    (identified by :func:`pipeline.base.identity.record_key`: a rendered capture in memory by
     its data, so a rerun that renders the same presses finds this calibration).
     ``illumination`` (an IlluminationModel) and its identity ``illumination_key`` are needed
     for the ``traced`` model.

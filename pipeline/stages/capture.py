@@ -28,7 +28,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from pipeline.base.errors import UserError
-from pipeline.stages.base import StageSpec, config_path, file_input_key, is_entry, record_key
+from pipeline.base.identity import file_input_key, is_entry, record_key
+from pipeline.stages.base import StageSpec, config_path
 
 __all__ = ["SPEC", "params", "compute", "run", "node", "resolve", "scale", "capture_key", "virtual_sensor_capture"]
 

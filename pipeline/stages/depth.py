@@ -55,7 +55,7 @@ def compute(n_rec, integrator: str = "dst", mm_per_px: float | None = None, regi
     mm_per_px : float, optional
         The pitch the stage was keyed with; it must be the normals record's.
     region : ndarray, shape (H, W), bool, optional
-        The solved region (:func:`pipeline.stages.normals.capture_region`): ``sparse``
+        The solved region (:func:`pipeline.solving.regions.capture_region`): ``sparse``
         integrates on it, the others on its bounding box (:func:`pipeline.depth.integrate`).
         It is decided by the normals stage's inputs, so it needs no key of its own.
     device : str

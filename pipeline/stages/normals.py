@@ -7,33 +7,13 @@ where the lights come from (``calibration``, ``illumination`` or the ``capture``
 offset against the no-contact reference where the solver keys on it, :mod:`pipeline.normals.drift`;
 what ``auto`` resolves to follows from the solver and the inputs, so the setting itself is keyed).
 Inputs: the capture's identity and the light file's
-(:func:`pipeline.stages.base.record_key`). The device, the thread count and ``compile`` do
+(:func:`pipeline.base.identity.record_key`). The device, the thread count and ``compile`` do
 not change the result and stay out of the key.
 
-Where the lights come from (:func:`load_lights`, for a capture :func:`capture_lights`; first that
-applies):
-
-- ``calibration``: ``light_field (P, C, H, W, 3)`` (with optional ``flat_field (P, C, H, W)``
-  by which observations are divided first), ``light_vectors (P, C, 3)`` (far field) and every
-  fitted model ``models/<name>/*`` (:func:`calibration.stored.calibration_from_record`; the
-  ``far``, ``near``, ``traced``, ``lut`` and ``mlp`` solvers apply them,
-  :mod:`pipeline.stages.model_solvers`);
-- ``illumination``: ``light_matrices (P, 3, H, W, 3)``, or ``V (L, H, W, 3)`` combined with
-  the capture's ``drive``, ``brightness`` and ``exposure`` (and ``gains (L,)`` or ``(L, 3)``
-  if the file has them) by :func:`sim.illumination_model.light_matrices`;
-- the capture itself: ``lights/light_vectors (P, C, 3)`` (written by the DiLiGenT importer).
-
-Where to solve (:func:`capture_region`): the capture's ``mask`` dataset (an object's
-silhouette: DiLiGenT's, ``iristac sim ps-object``'s), or a user's ``mask`` (``--mask``), which
-replaces it and enters the key. Only those pixels are read out of the frames and solved
-(:class:`pipeline.normals.prepare.FramePrep`); every pixel outside is invalid in the record.
-The calibration models read whole frames (pixel position is one of their inputs) and are
-masked afterwards.
-
-Printed gel markers (:func:`marker_mask`: the capture's ``markers``, else the calibration's,
-or ``--markers auto|none|MASK.png``) are filled in before normals are solved
-(:func:`pipeline.normals.prepare.fill_markers`), False in the record's ``mask`` and True in its
-``filled (H, W)``: the depth stage integrates through them. A marker mask enters the key.
+Where the lights come from, where a capture is solved and which markers are filled in is
+decided below this stage, where ``reconstruct``, ``batch`` and ``live`` decide it too
+(:mod:`pipeline.solving`): the lights' file enters the key by its identity, a user's region
+(``--mask``) and the marker mask filled in by their digests.
 
 The solve itself is the one path every entry point takes,
 :class:`pipeline.normals.solve.FrameSolver` (frames prepared by
@@ -47,14 +27,14 @@ from typing import Any, Mapping
 
 import numpy as np
 
-from pipeline.base.errors import UserError
 from pipeline.base.registry import SOLVERS
 from pipeline.normals.drift import check_drift
 from pipeline.normals.lights import LightSource
-from pipeline.stages.base import StageSpec, record_key
+from pipeline.solving.light_files import capture_lights
+from pipeline.solving.regions import capture_region, reference_frames
+from pipeline.stages.base import StageSpec
 
-__all__ = ["SPEC", "load_lights", "capture_lights", "capture_region", "reference_frames", "marker_mask", "params",
-           "key_params", "check_drift", "resolve", "compute", "run", "node"]
+__all__ = ["SPEC", "params", "key_params", "resolve", "compute", "run", "node"]
 
 # 2: only the capture's (or user's) mask is solved; 3: the lut solver applies the calibrated model
 # (per-bin position correction, tilt gain), markers are filled in, confidence and filled are written;
@@ -65,206 +45,13 @@ SPEC = StageSpec("normals", version=5, schema="normals",
                            "drift": "auto", "save": ["confidence"], "precision": "single"})
 
 
-def _check_shape(arr, want: tuple, path, name: str) -> np.ndarray:
-    a = np.asarray(arr)
-    if a.shape != want:
-        raise UserError(f"{path}: dataset {name!r} has shape {a.shape}, expected {want} to match the capture")
-    return a
-
-
-def load_lights(calibration=None, illumination=None, *, mode, shape, channels: int = 3, exposure: float = 1.0,
-                embedded=None, where: str = "frames") -> LightSource:
-    """The light model for frames of ``shape`` under ``mode``'s patterns (see the module docstring).
-
-    Parameters
-    ----------
-    calibration, illumination : Record, optional
-        At most one: the light file.
-    mode : LightingMode
-        The patterns (``drive (P, L, 3)``, ``brightness (P,)``: anything with both, such as a
-        capture's own, :func:`capture_lights`); an illumination's ``V`` is combined with them.
-    shape : (H, W)
-        The frames' image size; ``channels`` their camera channels.
-    exposure : float
-        The frames' exposure (an illumination's light matrices scale with it).
-    embedded : ndarray, shape (P, C, 3), optional
-        Far-field lights that came with the frames (a capture's ``lights/light_vectors``), used
-        when neither file is given.
-    where : str
-        The frames' name (a capture file) for messages and the light source's name.
-    """
-    drive = np.asarray(mode.drive)
-    P, (H, W), C = drive.shape[0], tuple(int(s) for s in shape), int(channels)
-    if calibration is not None and illumination is not None:
-        raise UserError("give either a calibration or an illumination file, not both")
-    if calibration is not None:
-        return _calibration_lights(calibration, P, H, W, C)
-    if illumination is not None:
-        return _illumination_lights(illumination, mode, exposure, P, H, W, C)
-    if embedded is not None:
-        src = LightSource(source=f"capture:{Path(where).name}:lights/light_vectors", key="embedded")
-        src.far = _check_shape(embedded, (P, C, 3), where, "lights/light_vectors")
-        return src
-    raise UserError(f"{where}: no light model: pass --calibration or --illumination "
-                    f"(the capture has no embedded lights/light_vectors)")
-
-
-def capture_lights(capture, calibration=None, illumination=None) -> LightSource:
-    """:func:`load_lights` for a ``capture`` Record: its patterns, image size, channels, exposure
-    and embedded far-field lights (``lights/light_vectors``, written by importers)."""
-    from types import SimpleNamespace
-
-    _, P, H, W, C = capture.data["frames"].shape
-    patterns = SimpleNamespace(drive=capture.data["drive"], brightness=capture.data.get("brightness"))
-    return load_lights(calibration, illumination, mode=patterns, shape=(H, W), channels=C,
-                       exposure=float(capture.meta.get("exposure", 1.0)),
-                       embedded=capture.data.get("lights/light_vectors"), where=str(capture.path or "memory"))
-
-
-def _calibration_lights(calibration, P: int, H: int, W: int, C: int) -> LightSource:
-    d, path = calibration.data, calibration.path
-    src = LightSource(source=f"calibration:{Path(path).name if path else 'memory'}", key=record_key(calibration))
-    if "light_field" in d:
-        src.field = _check_shape(d["light_field"], (P, C, H, W, 3), path, "light_field")
-        if "flat_field" in d:
-            src.flat_field = _check_shape(d["flat_field"], (P, C, H, W), path, "flat_field")
-    if "light_vectors" in d:
-        src.far = _check_shape(d["light_vectors"], (P, C, 3), path, "light_vectors")
-    if any(k.startswith("models/") for k in d):
-        from calibration.stored import calibration_from_record
-
-        src.models, cal_meta = calibration_from_record(calibration)
-        src.markers = cal_meta.get("markers")
-        _check_model_shapes(src.models, (P, H, W, C), path)
-    if src.field is None and src.far is None and not src.models:
-        raise UserError(f"{path}: calibration has no light model (expected dataset 'light_field', "
-                        f"'light_vectors' or 'models/<name>/*')")
-    return src
-
-
-def _illumination_lights(illumination, mode, exposure: float, P: int, H: int, W: int, C: int) -> LightSource:
-    from pipeline.normals.lights import LightSource
-    from sim.illumination_model import light_matrices
-
-    d, path = illumination.data, illumination.path
-    src = LightSource(source=f"illumination:{Path(path).name if path else 'memory'}", key=record_key(illumination))
-    if "light_matrices" in d and d["light_matrices"].shape[0] == P:
-        src.field = _check_shape(d["light_matrices"], (P, C, H, W, 3), path, "light_matrices")
-        return src
-    V = np.asarray(d["V"])
-    if V.shape[1:3] != (H, W):
-        raise UserError(f"{path}: dataset 'V' covers {V.shape[1:3]} pixels, the capture has {(H, W)}")
-    drive = np.asarray(mode.drive)
-    if drive.shape[1] != V.shape[0]:
-        raise UserError(f"{path}: 'V' has {V.shape[0]} LEDs but the capture's drive has {drive.shape[1]}")
-    if C != 3:
-        raise UserError(f"{path}: illumination light matrices need 3 camera channels, the capture has {C}")
-    src.field = light_matrices(V, drive, mode.brightness, float(exposure), d.get("gains"))
-    return src
-
-
-def _check_model_shapes(models, want: tuple, path) -> None:
-    """A model made for other frames (size, patterns, channels) is one clear error, not a
-    broadcast failure deep inside it."""
-    P, H, W, C = want
-    for name, m in models.items():
-        ref = m.stored_reference() if hasattr(m, "stored_reference") else None
-        field = getattr(m, "field", None)
-        have = ref.shape if ref is not None else (None if field is None else
-                                                   (field.shape[0], field.shape[2], field.shape[3], field.shape[1]))
-        if have is not None and tuple(have) != (P, H, W, C):
-            raise UserError(f"{path}: model '{name}' was calibrated for {have[0]} pattern(s) x {have[1]}x{have[2]} px "
-                            f"x {have[3]} channel(s), the capture has {P} x {H}x{W} px x {C}")
-
-
-def marker_mask(cap, spec=None, lights: LightSource | None = None) -> np.ndarray | None:
-    """The printed gel markers to fill in: ``(H, W)`` bool, or None.
-
-    Parameters
-    ----------
-    cap : Record
-        The capture (its ``markers`` dataset, its ``reference`` for ``auto``).
-    spec : None, "none", "auto", path or ndarray
-        None: the capture's own ``markers``, else the calibration's (``lights.markers``);
-        ``"none"``: no markers; ``"auto"``: detected in the capture's reference
-        (:func:`calibration.markers.detect_markers`); a mask image (non-zero = marker) or an
-        ``(H, W)`` array.
-    lights : LightSource, optional
-    """
-    from calibration.markers import resolve_markers
-
-    H, W = cap.data["frames"].shape[2:4]
-    if spec is None:
-        if "markers" in cap.data:
-            m = np.asarray(cap.data["markers"]).astype(bool)
-        elif lights is not None and lights.markers is not None:
-            m = np.asarray(lights.markers, bool)
-            if m.shape != (H, W):
-                raise UserError(f"the calibration's marker mask is {m.shape}, the capture's frames {(H, W)}")
-        else:
-            return None
-        return m if m.any() else None
-    if isinstance(spec, str) and spec == "auto":
-        ref = reference_frames(cap)
-        if ref is None:
-            raise UserError(f"{cap.path or 'capture'}: --markers auto finds markers in the no-contact reference; the "
-                            f"capture has none (give a mask image instead)")
-        spec_ref = np.asarray(ref, np.float32)
-        if "dark" in cap.data:
-            spec_ref = spec_ref - np.asarray(cap.data["dark"], np.float32)
-        m = resolve_markers("auto", spec_ref)
-    else:
-        m = resolve_markers(spec, np.zeros((1, H, W, 1), np.uint8))
-    return None if m is None or not np.asarray(m).any() else np.asarray(m, bool)
-
-
-def capture_region(cap, mask=None) -> np.ndarray | None:
-    """The pixels to reconstruct: a user's ``mask`` (a ``.png``/``.npy`` path or an array), else
-    the capture's ``mask`` dataset, else None (every pixel).
-
-    Raises
-    ------
-    UserError
-        Naming the mask file (or the capture and its dataset ``mask``) when the mask does not
-        have the frames' ``(H, W)`` or selects no pixel.
-    """
-    import os
-
-    H, W = cap.data["frames"].shape[2:4]
-    if mask is None:
-        if "mask" not in cap.data:
-            return None
-        m, where = np.asarray(cap.data["mask"]), f"{cap.path or 'capture'}: dataset 'mask'"
-    elif isinstance(mask, (str, os.PathLike)):
-        from pipeline.evaluate import load_mask
-
-        m, where = load_mask(mask), f"{mask}: mask"
-    else:
-        m, where = np.asarray(mask), "mask"
-    if m.shape != (H, W):
-        raise UserError(f"{where} has shape {m.shape}, expected (H, W) = {(H, W)} to match the capture's frames")
-    if m.dtype != bool:
-        m = m != 0
-    if not m.any():
-        raise UserError(f"{where} selects no pixels (all zero): nothing to reconstruct")
-    return m
-
-
-def reference_frames(cap) -> np.ndarray | None:
-    """The capture's no-contact ``reference (P, H, W, C)``, or None when it has none (the
-    dataset is absent, or a version-1 file marked ``has_reference = False`` holds zeros)."""
-    if "reference" not in cap.data or cap.meta.get("has_reference", True) is False:
-        return None
-    return cap.data["reference"]
-
-
 def params(section: Mapping[str, Any]) -> dict:
     """The key parameters of a normals section: ``solver``, ``ratio``, ``max_condition``,
     ``dtype``, ``drift``, what is written (``save``, ``precision``: :meth:`pipeline.frame_pipeline.outputs.OutputSpec.key_params`;
     defaults :data:`SPEC`'s) and ``lights`` (``calibration``, ``illumination`` or
     ``capture``); ``mask``, a user's region (the capture's own is part of the capture's
     identity), enters as its digest, and so does the marker mask filled in (``markers``,
-    :func:`marker_mask`).
+    :func:`pipeline.solving.regions.marker_mask`).
 
     Examples
     --------
@@ -311,14 +98,14 @@ def compute(cap, lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fa
         Schema ``capture``: ``frames (K, P, H, W, C)``, optional ``reference (P, H, W, C)``,
         ``dark (H, W, C)`` and ``mask (H, W)``; attributes ``mm_per_px`` and ``bit_depth``.
     lights : LightSource
-        From :func:`load_lights`.
+        From :func:`pipeline.solving.light_files.load_lights`.
     solver, ratio, max_condition, device, dtype, compile
-        As in :func:`pipeline.reconstruct.reconstruct`.
+        As in :func:`pipeline.workflows.reconstruct.reconstruct`.
     mask : path or ndarray, shape (H, W), optional
-        The pixels to solve, replacing the capture's ``mask`` (:func:`capture_region`). Only
+        The pixels to solve, replacing the capture's ``mask`` (:func:`pipeline.solving.regions.capture_region`). Only
         they are read out of the frames and solved; the others are invalid in the result.
     markers : ndarray, shape (H, W), bool, optional
-        Printed gel markers (:func:`marker_mask`): filled in before the solve (the calibration
+        Printed gel markers (:func:`pipeline.solving.regions.marker_mask`): filled in before the solve (the calibration
         models fill them in themselves, as ``eval calibration`` does), False in ``mask``, True
         in ``filled``.
     threads : int, optional
@@ -433,7 +220,7 @@ def _solve_fast_batch(cap, lights: LightSource, *, solver: str, max_condition: f
     ``batch``: :meth:`pipeline.normals.fast.NearFieldFast.solve_batch`) on ``threads`` threads,
     as per-instance results; None when the solver has none or the frames are not integers."""
     from pipeline.base.frame_pool import FramePool
-    from pipeline.stages.fast_solvers import frame_solver
+    from pipeline.solving.frame_solvers import frame_solver
 
     raw = np.asarray(cap.data["frames"])
     if raw.dtype.kind not in "ui" or not SOLVERS.get(solver).info.get("batch"):
@@ -469,7 +256,7 @@ def _compute_batched(cap, lights: LightSource, *, max_condition: float, device):
 def key_params(lights: LightSource, *, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3,
                dtype="float32", mask=None, markers=None, drift: str = "auto", outputs=None) -> dict:
     """The key parameters of the normals of a capture (:func:`params` of the section these
-    arguments make): what :func:`run` and the streamed reconstruction (:mod:`pipeline.stream`) key on."""
+    arguments make): what :func:`run` and the streamed reconstruction (:mod:`pipeline.streaming`) key on."""
     from pipeline.frame_pipeline.outputs import OutputSpec
 
     return params({"solver": solver, "ratio": ratio, "max_condition": max_condition, "dtype": dtype,
@@ -481,8 +268,8 @@ def run(store, cap, cap_key, lights: LightSource, *, solver: str = "lstsq", rati
         max_condition: float = 1e3, device="cpu", dtype="float32", threads: int | None = 1, compile: bool = False,
         force: bool = False, heal: bool = True, mask=None, markers=None, drift: str = "auto", outputs=None):
     """``(record, key, cached)`` of the normals of ``cap`` (identified by ``cap_key``) through
-    ``store``; ``mask``: a user's region (an array, see :func:`capture_region`) instead of the
-    capture's; ``markers``: the marker mask to fill in (:func:`marker_mask`); ``drift``,
+    ``store``; ``mask``: a user's region (an array, see :func:`pipeline.solving.regions.capture_region`) instead of the
+    capture's; ``markers``: the marker mask to fill in (:func:`pipeline.solving.regions.marker_mask`); ``drift``,
     ``outputs``: as :func:`compute`."""
     p = key_params(lights, solver=solver, ratio=ratio, max_condition=max_condition, dtype=dtype, mask=mask,
                    markers=markers, drift=drift, outputs=outputs)

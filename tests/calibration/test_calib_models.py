@@ -10,7 +10,7 @@ from calibration.synthetic import synthetic_sphere_capture
 from calibration.validate import cross_validate
 from helpers import calibration_samples
 from pipeline.base.errors import UserError
-from pipeline.evaluate import angular_error_deg
+from pipeline.results.evaluate import angular_error_deg
 
 
 @pytest.fixture(scope="module")

@@ -109,7 +109,7 @@ def test_a_config_file_that_is_not_utf8_is_one_clear_error_everywhere(tmp_path):
     from pipeline.base.errors import UserError
     from pipeline.base.modes import load_mode
     from pipeline.capture.sensor_profiles import load_profile
-    from pipeline.run import load_pipeline_config
+    from pipeline.workflows.run import load_pipeline_config
     from sim.scene import load_scene
 
     p = tmp_path / "caf\u00e9.yaml"

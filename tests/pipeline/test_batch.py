@@ -7,7 +7,7 @@ import pytest
 from batch_support import summarise_capture, write_capture
 from pipeline.base.errors import UserError
 from pipeline.base.store import StageStore
-from pipeline.batch import format_summary, run_batch
+from pipeline.workflows.task_pool import format_summary, run_batch
 
 
 @pytest.fixture(scope="module")

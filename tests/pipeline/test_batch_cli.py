@@ -9,9 +9,9 @@ import pytest
 from helpers import run_cli
 from pipeline.base.errors import UserError
 from pipeline.base.store import StageStore, write_record
-from pipeline.batch import format_summary
-from pipeline.batch_reconstruct import SUMMARY_COLUMNS, batch_reconstruct
 from pipeline.stages.synthesize import illumination_record
+from pipeline.workflows.batch import SUMMARY_COLUMNS, batch_reconstruct
+from pipeline.workflows.task_pool import format_summary
 from sim.contacts import contact_surfaces
 
 SHAPE, PX = (12, 16), 0.5

@@ -20,9 +20,11 @@ SHAPE, PX, FRAMES = (24, 32), 0.25, 64
 
 _KILLED = """
 import glob, json, os, signal, sys, time
-import pipeline.stream as stream
-from pipeline.stream import plan_stream, prepare, run_frames
-stream.COMMIT_SECONDS = 0.0   # every chunk recorded as done once fsynced
+import pipeline.streaming.writer as stream_writer
+from pipeline.streaming.frame_setup import prepare
+from pipeline.streaming.frames import run_frames
+from pipeline.streaming.plan import plan_stream
+stream_writer.COMMIT_SECONDS = 0.0   # every chunk recorded as done once fsynced
 job, cap, lights = plan_stream(sys.argv[1], illumination=sys.argv[2], solver="nearfield", store=sys.argv[3])
 job.chunk = 8
 seen = [0]
@@ -45,7 +47,7 @@ def progress(n):
         while claimed() < 16 and time.monotonic() - t < 60:
             time.sleep(0.01)
         os.kill(os.getpid(), signal.SIGKILL)
-run_frames(job, threads=1, progress=progress, cap=cap, lights=lights, pipe=prepare(job, cap, lights, 1))
+run_frames(job, threads=1, progress=progress, cap=cap, pipe=prepare(job, cap, lights, 1))
 """
 
 
@@ -164,9 +166,11 @@ def test_the_device_pipeline_equals_the_cpu_fast_path_on_its_torch_variant(recor
     from pipeline.frame_pipeline import FramePipeline
     from pipeline.frame_pipeline.device import DeviceFramePipeline
     from pipeline.frame_pipeline.gpu_stream import GPUFramePipeline
-    from pipeline.stages.fast_solvers import fast_nearfield
-    from pipeline.stages.normals import capture_lights
-    from pipeline.stream import _on_device, plan_stream, read_capture
+    from pipeline.solving.frame_solvers import fast_nearfield
+    from pipeline.solving.light_files import capture_lights
+    from pipeline.streaming.frame_setup import _on_device
+    from pipeline.streaming.inputs import read_capture
+    from pipeline.streaming.plan import plan_stream
 
     cap = read_capture(recording["rec"])
     lights = capture_lights(cap, None, read_record(recording["ill"], "illumination"))

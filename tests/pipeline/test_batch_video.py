@@ -129,7 +129,7 @@ def test_a_truncated_video_fails_alone_in_one_line(video, tmp_path):
 
 def test_a_video_needs_a_pixel_pitch(video, tmp_path):
     from pipeline.base.errors import UserError
-    from pipeline.stream import read_capture
+    from pipeline.streaming.inputs import read_capture
 
     with pytest.raises(UserError, match="rec.avi: a video needs the pixel pitch"):
         read_capture(video["avi"], {"reference": 0})

@@ -8,7 +8,7 @@ from cdp_chromium import CHART_CHECK_JS, Chromium, find_chromium, serve
 from helpers import run_cli
 from pipeline.base.errors import UserError
 from pipeline.base.store import StageStore, read_record, write_record
-from pipeline.compare import compare_captures, render_mode_captures
+from pipeline.workflows.compare_modes import compare_captures, render_mode_captures
 
 
 @pytest.fixture(scope="module")
@@ -98,8 +98,8 @@ def test_bench_modes_rings_the_pair_iristac_live_runs():
     """The modes benchmark marks what `iristac live` runs without options (its mode falls back
     to the live session's default when no profile names one): the pair must exist as a row."""
     from pipeline.bench.modes import live_defaults
-    from pipeline.compare import ModeRun, comparison_rows
     from pipeline.live import DEFAULT_MODE
+    from pipeline.workflows.compare_modes import ModeRun, comparison_rows
 
     mode, solver = live_defaults()
     assert (mode, solver) == (DEFAULT_MODE, "lut")

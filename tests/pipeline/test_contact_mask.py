@@ -1,4 +1,4 @@
-"""The contact mask (pipeline.contact): against the virtual sensor's exact contact, in
+"""The contact mask (pipeline.frame_pipeline.contact): against the virtual sensor's exact contact, in
 ``reconstruct``'s outputs, and in ``live``'s results."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from pipeline.contact import color_change, contact_mask
+from pipeline.frame_pipeline.contact import color_change, contact_mask
 from sim.virtual_sensor import random_sensor, render_sensor
 
 
@@ -54,7 +54,7 @@ def test_bad_input_is_refused():
 def test_reconstruct_writes_the_contact_mask(tmp_path):
     from pipeline.base.store import read_record, write_record
     from pipeline.bench.recon_scene import scene_records
-    from pipeline.reconstruct import reconstruct
+    from pipeline.workflows.reconstruct import reconstruct
     from support_recon import render_sphere_scene
 
     s = render_sphere_scene((30, 40), 0.12, radius=2.0, depth=0.3, num_patterns=6, noise=1.0, bits=8, seed=4)

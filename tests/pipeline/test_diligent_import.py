@@ -12,9 +12,9 @@ import scipy.io
 from helpers import run_cli
 from pipeline.base.errors import UserError
 from pipeline.base.store import read_record
-from pipeline.diligent import import_diligent, read_diligent
-from pipeline.evaluate import evaluate_normals
-from pipeline.reconstruct import reconstruct
+from pipeline.capture.diligent import import_diligent, read_diligent
+from pipeline.results.evaluate import evaluate_normals
+from pipeline.workflows.reconstruct import reconstruct
 from support_recon import _one_torch_thread, sphere_cap  # noqa: F401
 
 H, W = 24, 28

@@ -41,7 +41,7 @@ def sensor(tmp_path_factory):
 
 def _errors(res, truth, contact) -> dict:
     """Mean angular error (deg) over the whole image (the reconstruct summary's) and inside the contacts."""
-    from pipeline.evaluate import angular_error_deg
+    from pipeline.results.evaluate import angular_error_deg
 
     n, m = res.normals.data["normals"], res.normals.data["mask"]
     inside = [angular_error_deg(n[k], truth[k])[contact[k] & m[k]].mean() for k in range(len(n))]
@@ -50,7 +50,7 @@ def _errors(res, truth, contact) -> dict:
 
 def test_drift_removal_brings_a_drifted_capture_back_to_the_undrifted_error(sensor):
     from pipeline.base.capture import read_capture
-    from pipeline.reconstruct import reconstruct
+    from pipeline.workflows.reconstruct import reconstruct
 
     cal, paths, contact, d = sensor
     err, res = {}, {}
@@ -77,7 +77,7 @@ def test_the_models_own_reference_without_the_captures_and_clear_errors(sensor):
     from pipeline.base.store import read_record
     from pipeline.normals.lights import LightSource
     from pipeline.normals.solve import FrameSolver
-    from pipeline.reconstruct import reconstruct
+    from pipeline.workflows.reconstruct import reconstruct
 
     cal, paths, _, d = sensor
     with pytest.raises(UserError, match="--drift must be one of"):

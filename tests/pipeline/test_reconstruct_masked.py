@@ -14,7 +14,7 @@ import pytest
 from helpers import run_cli
 from pipeline.base.errors import UserError
 from pipeline.base.store import Record, StoreError, read_record, write_record
-from pipeline.reconstruct import reconstruct
+from pipeline.workflows.reconstruct import reconstruct
 from sim.ps_objects import dome_lights, render_ps_capture, sphere_object
 from support_recon import _one_torch_thread  # noqa: F401
 

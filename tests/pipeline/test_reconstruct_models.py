@@ -58,9 +58,9 @@ def _reconstruct(capture, cal, solver, out, *extra):
 
 
 def _reconstruct_api(capture, cal, solver, out, **options):
-    """:func:`pipeline.reconstruct.reconstruct` in this process (what the CLI runs, without its
+    """:func:`pipeline.workflows.reconstruct.reconstruct` in this process (what the CLI runs, without its
     start-up): ``(summary, normals record, depth record)``."""
-    from pipeline.reconstruct import reconstruct
+    from pipeline.workflows.reconstruct import reconstruct
 
     res = reconstruct(capture, calibration=cal, solver=solver, out=out, store=out / "cache", images=False, **options)
     return res.summary, res.normals, res.depth
@@ -87,7 +87,7 @@ def test_every_model_reconstructs_real_frames_as_the_model_predicts(real_split, 
     # By default each press's drift against the reference (fitted on the whole frame, trimmed) is
     # removed first: the model's prediction for the frames so corrected.
     from pipeline.normals.drift import STREAM_SAMPLES, fit_drift
-    from pipeline.reconstruct import reconstruct
+    from pipeline.workflows.reconstruct import reconstruct
 
     res = reconstruct(test_path, calibration=cal, solver=solver, store=tmp_path / "auto", images=False)
     fixed = np.stack([fit_drift(f, ref, max_samples=STREAM_SAMPLES).remove(f) for f in frames])

@@ -13,7 +13,7 @@ from helpers import run_cli
 from pipeline.base.errors import UserError
 from pipeline.base.store import StageStore, read_record, write_record
 from pipeline.bench.recon_scene import scene_records
-from pipeline.reconstruct import reconstruct
+from pipeline.workflows.reconstruct import reconstruct
 from support_recon import _one_torch_thread, render_sphere_scene  # noqa: F401
 
 

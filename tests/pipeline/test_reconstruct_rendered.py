@@ -8,7 +8,7 @@ import pytest
 
 from pipeline.base.frames import normals_to_gradients
 from pipeline.base.store import Record
-from pipeline.reconstruct import reconstruct
+from pipeline.workflows.reconstruct import reconstruct
 from sim.render import bare_ring_illumination
 from sim.rendered_capture import render_capture, sphere_presses
 from support_recon import _one_torch_thread  # noqa: F401

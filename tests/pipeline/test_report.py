@@ -5,7 +5,7 @@ import re
 
 import numpy as np
 
-from pipeline.report import Report, to_uint8_image
+from pipeline.results.report import Report, to_uint8_image
 
 
 def test_report_page_references_existing_images_and_writes_json(tmp_path):

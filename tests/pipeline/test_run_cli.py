@@ -13,7 +13,7 @@ import yaml
 from helpers import REPO, run_cli
 from pipeline.base.errors import UserError
 from pipeline.base.store import StageStore
-from pipeline.run import plan_pipeline, run_pipeline
+from pipeline.workflows.run import plan_pipeline, run_pipeline
 
 STAGES = ["synthesize", "calibrate", "capture", "normals", "depth"]
 

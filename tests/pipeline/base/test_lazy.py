@@ -13,7 +13,7 @@ from helpers import REPO
 
 _PROBE = """
 import json, sys
-import pipeline.live, pipeline.stages.fast_solvers, pipeline.normals.fast, pipeline.normals.fast_models
+import pipeline.live, pipeline.solving.frame_solvers, pipeline.normals.fast, pipeline.normals.fast_models
 import pipeline.depth.fast, pipeline.base.store
 print(json.dumps(sorted(m for m in ("torch", "scipy.sparse", "sim.render") if m in sys.modules)))
 """

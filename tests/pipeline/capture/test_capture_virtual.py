@@ -207,7 +207,7 @@ def test_virtual_capture_on_each_device_matches_the_cpu_float64_rendering(tmp_pa
 def test_virtual_capture_reconstructs_to_its_truth(tmp_path, ring_backend):
     """Stage 3 -> 4: the near-field solver with the sensor's own illumination recovers the
     stored truth/normals of a captured press (the frames and the truth belong together)."""
-    from pipeline.reconstruct import reconstruct
+    from pipeline.workflows.reconstruct import reconstruct
     from sim.synthesize import save_illumination
 
     s = spec(contacts=1, obj="sphere", noise_dn=0.5)

@@ -91,7 +91,7 @@ def test_zero_error_or_time_sits_on_the_axis_floor_and_says_so():
 
 
 def test_mode_rows_contrast_point_and_trichromatic():
-    from pipeline.compare import comparison_rows
+    from pipeline.workflows.compare_modes import comparison_rows
 
     runs = [{"mode": m, "solver": s, "patterns": p, "capture_seconds": cap, "capture_seconds_source": "measured",
              "reconstruct_seconds": rt, "normal_mean_error_deg": e, "depth_rmse_mm": 0.05, "valid_fraction": 1.0}

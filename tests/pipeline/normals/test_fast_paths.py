@@ -95,7 +95,7 @@ def test_lstsq_fast_equals_eager():
     """``lstsq``'s fast path (the far-field vectors at every pixel through the near-field kernel)
     against its eager solve path, both from the registry through ``frame_solver``."""
     from pipeline.normals.lights import LightSource
-    from pipeline.stages.fast_solvers import frame_solver
+    from pipeline.solving.frame_solvers import frame_solver
 
     frames, lights, _ = _uint8_scene()
     P, H, W, C = frames.shape
@@ -182,7 +182,7 @@ def test_model_fast_paths_equal_normal_maps(real_models, case):
     with that drift removed."""
     from pipeline.normals.drift import drifted_capture
     from pipeline.normals.lights import LightSource
-    from pipeline.stages.fast_solvers import frame_solver
+    from pipeline.solving.frame_solvers import frame_solver
 
     all_models, cap = real_models
     name = case.split("-")[0]

@@ -13,7 +13,7 @@ from support_recon import _one_torch_thread  # noqa: F401  (autouse)
 
 @pytest.fixture(scope="module")
 def capture_and_lights():
-    from pipeline.stages.normals import capture_lights
+    from pipeline.solving.light_files import capture_lights
     from pipeline.stages.synthesize import illumination_record
     from sim.contacts import contact_surfaces
     from sim.render import bare_ring_illumination
@@ -75,8 +75,8 @@ def test_threads_take_the_batch_fast_path(capture_and_lights):
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device: the CUDA-vs-CPU check needs a GPU")
 def test_reconstruct_on_cuda_equals_cpu(capture_and_lights, tmp_path):
-    from pipeline.reconstruct import reconstruct
     from pipeline.stages.synthesize import illumination_record
+    from pipeline.workflows.reconstruct import reconstruct
     from sim.render import bare_ring_illumination
 
     cap, _ = capture_and_lights

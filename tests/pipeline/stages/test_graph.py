@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from pipeline.base.errors import UserError
+from pipeline.base.identity import file_input_key
 from pipeline.base.store import Record, StageStore
-from pipeline.stages.base import file_input_key
 from pipeline.stages.graph import Stage, StageFailed, plan_stages, run_stages
 
 

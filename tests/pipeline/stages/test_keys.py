@@ -85,8 +85,8 @@ def test_a_capture_file_is_one_entry_through_run_reconstruct_and_batch(ran, tmp_
 
 
 def test_the_demos_trace_and_runs_trace_are_one_entry(tmp_path):
-    from pipeline.run import plan_pipeline
     from pipeline.stages import synthesize
+    from pipeline.workflows.run import plan_pipeline
 
     store = StageStore(tmp_path / "cache")
     _, key, cached = synthesize.run(store, "default", (6, 8), 2.0, rays=4096, sampler="sobol")

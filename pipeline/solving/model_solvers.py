@@ -8,8 +8,8 @@ here make each a solver of the registry (:data:`pipeline.base.registry.SOLVERS`)
 ``iristac eval calibration`` does: one code path, the model's own (the LUT with its per-bin
 position correction, every model with its fitted tilt gain).
 
-They live in the stage layer because a model is a calibration object, a layer above the
-normal solvers (``tests/test_layers.py``); the stage's :func:`pipeline.stages.normals.load_lights`
+They live in the calibration layer because a model is a calibration object, a layer above the
+normal solvers (``tests/test_layers.py``); :func:`pipeline.solving.light_files.load_lights`
 reads the models out of the calibration record.
 
 What a model's :class:`~calibration.normal_maps.NormalMaps` becomes in a
@@ -74,7 +74,7 @@ def solve_with_model(name: str, frames, lights, *, reference=None, markers=None,
     frames : ndarray, shape (K, P, H, W, C)
         Dark-subtracted float frames (``Capture.linear()``).
     lights : LightSource
-        With ``models`` (:func:`pipeline.stages.normals.load_lights`).
+        With ``models`` (:func:`pipeline.solving.light_files.load_lights`).
     reference : ndarray, shape (P, H, W, C), optional
         The capture's dark-subtracted no-contact frames; None: the model's own (the one it was
         calibrated with).

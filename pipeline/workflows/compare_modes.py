@@ -18,7 +18,7 @@ from typing import Any, Callable, Sequence
 import numpy as np
 
 from pipeline.base.errors import UserError
-from pipeline.report import format_number
+from pipeline.results.report import format_number
 
 __all__ = ["ModeRun", "Comparison", "compare_captures", "compare_modes", "render_mode_captures",
            "lut_calibrations", "add_to_report", "comparison_rows", "comparison_charts", "MODE_KNOB"]
@@ -223,10 +223,10 @@ def compare_captures(captures: dict[str, Any], *, illumination=None, calibration
         Folder for per-run outputs (normals/depth files and PNGs).
     """
     from pipeline.base.store import Record, read_record
-    from pipeline.evaluate import angular_error_deg
     from pipeline.normals.lights import applicable_solvers
-    from pipeline.outputs import depth_colormap_rgb, normal_map_rgb
-    from pipeline.reconstruct import reconstruct
+    from pipeline.results.evaluate import angular_error_deg
+    from pipeline.results.exports import depth_colormap_rgb, normal_map_rgb
+    from pipeline.workflows.reconstruct import reconstruct
 
     if not captures:
         raise UserError("compare-modes: no captures to compare")
@@ -309,8 +309,8 @@ def comparison_charts(comp: Comparison, default: tuple[str, str] | None = None) 
 
 def add_to_report(report, comp: Comparison, title: str = "Lighting modes compared",
                   default: tuple[str, str] | None = None) -> None:
-    """Add the comparison's charts, table and images to a :class:`pipeline.report.Report`."""
-    from pipeline.outputs import depth_colormap_rgb, normal_map_rgb
+    """Add the comparison's charts, table and images to a :class:`pipeline.results.report.Report`."""
+    from pipeline.results.exports import depth_colormap_rgb, normal_map_rgb
 
     s = report.section(title, "Normal error is the mean angle between reconstructed and true normals over the "
                               "pixels each solver marked valid; depth RMSE is over the whole image. Capture time "
@@ -361,11 +361,11 @@ def compare_modes(out: str | Path, *, modes: Sequence[str] | None = None, scene:
     the stage registry (:mod:`pipeline.stages`) and the store in ``cache``. Writes
     ``report.html`` and ``report.json`` into ``out`` and returns the JSON.
     """
+    from pipeline.base.identity import record_key
     from pipeline.base.modes import list_modes
     from pipeline.base.store import StageStore, read_record
-    from pipeline.report import Report
+    from pipeline.results.report import Report
     from pipeline.stages import synthesize as synthesize_stage
-    from pipeline.stages.base import record_key
     from pipeline.stages.synthesize import illumination_model
     from sim.rendered_capture import press_ring, sphere_presses
 

@@ -2,31 +2,31 @@
 
 :func:`reconstruct` reads the capture (its frames a chunk at a time) and the light model (a
 calibration or an illumination file, or lights embedded in the capture by an importer;
-:func:`pipeline.stages.normals.capture_lights`) and writes the ``normals`` and ``depth`` stage
-entries (and the ``contact`` mask's) in one pass over the frames (:mod:`pipeline.stream`: the
+:func:`pipeline.solving.light_files.capture_lights`) and writes the ``normals`` and ``depth`` stage
+entries (and the ``contact`` mask's) in one pass over the frames (:mod:`pipeline.streaming`: the
 frame pipeline live uses, under the keys the stages compute, so a repeated call, or work
 ``iristac run`` or ``iristac batch`` already did, is a cache hit). The output folder gets links
 to those entries (``normals.h5``, ``depth.h5``, ``contact.h5``) and, with ``images``, a
 normal-map PNG, a colour-mapped depth PNG, a PLY point cloud and a contact-mask PNG per
-contact instance; the contact mask (:func:`pipeline.contact.contact_mask`: the colour change
+contact instance; the contact mask (:func:`pipeline.frame_pipeline.contact.contact_mask`: the colour change
 against the reference and the height) is also :attr:`ReconstructResult.contact`.
 
 Where to solve: the capture's ``mask`` dataset (an object's silhouette, e.g. DiLiGenT's), or a
 user's ``mask=`` (a PNG/NPY file or an array), which replaces it
-(:func:`pipeline.stages.normals.capture_region`). Only those pixels are solved and integrated
+(:func:`pipeline.solving.regions.capture_region`). Only those pixels are solved and integrated
 (rectangular integrators on the mask's bounding box); every pixel outside is invalid in the
 outputs (:mod:`pipeline.normals.masking`).
 
 Printed gel markers (``markers=``, ``--markers auto|none|MASK.png``; default the capture's own
 ``markers`` dataset, else the calibration's): filled in before the normals are solved, False
 in the normals' mask, integrated through by the depth stage
-(:func:`pipeline.stages.normals.marker_mask`).
+(:func:`pipeline.solving.regions.marker_mask`).
 
 Illumination drift (``drift=``, ``--drift auto|none|offset|gain_offset|field``): each contact
 instance's drift against the no-contact reference (a per-channel gain and offset fitted on the
 pixels outside the contact, :mod:`pipeline.normals.drift`) is removed before the solve where
 the solver keys on that reference (``auto``, the default: the calibration's models and
-``--ratio``), and before the contact mask's colour change always (:mod:`pipeline.contact`; its
+``--ratio``), and before the contact mask's colour change always (:mod:`pipeline.frame_pipeline.contact`; its
 no-contact frame is the capture's, else the one the solver's model stores).
 
 What is written (``save=``, ``precision=``: :mod:`pipeline.frame_pipeline.outputs`) is part of
@@ -59,7 +59,7 @@ class ReconstructResult:
     depth: Any
     summary: dict[str, Any]
     files: list[Path] = field(default_factory=list)
-    #: Where the object touches the gel, ``(K, H, W)`` bool (:func:`pipeline.contact.contact_mask`).
+    #: Where the object touches the gel, ``(K, H, W)`` bool (:func:`pipeline.frame_pipeline.contact.contact_mask`).
     contact: Any = None
 
 
@@ -76,7 +76,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     capture : path or Record
         ``capture.h5`` (a record in memory must carry its path), or a video file (``.mp4``, ``.avi``, ...).
     calibration, illumination : path or Record, optional
-        The light model (at most one; see :func:`pipeline.stages.normals.capture_lights`).
+        The light model (at most one; see :func:`pipeline.solving.light_files.capture_lights`).
     solver : str
         A name in :data:`pipeline.base.registry.SOLVERS` (``iristac reconstruct --help`` lists
         them all).
@@ -84,7 +84,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         A name in :data:`pipeline.base.registry.INTEGRATORS` (``fc``, ``dct``, ``dst``, ``sparse``).
     out : path, optional
         Folder for ``normals.h5``, ``depth.h5`` and ``contact.h5`` (links to the store's entries,
-        :func:`pipeline.stream.link_outputs`) and, with ``images``, per contact instance
+        :func:`pipeline.streaming.files.link_outputs`) and, with ``images``, per contact instance
         ``normals_kNNN.png``, ``depth_kNNN.png``, ``depth_kNNN.ply`` and ``contact_kNNN.png``.
     store : StageStore or path, optional
         The stage store (default: ``$IRISTAC_CACHE`` or ``./iristac-cache``).
@@ -109,7 +109,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         Reconstruct only these pixels (a ``.png``/``.npy`` file, non-zero inside, or an array),
         instead of the capture's own ``mask`` dataset (or every pixel when it has none).
     markers : None, "auto", "none", path or ndarray (H, W), optional
-        Printed gel markers to fill in (:func:`pipeline.stages.normals.marker_mask`); None: the
+        Printed gel markers to fill in (:func:`pipeline.solving.regions.marker_mask`); None: the
         capture's own ``markers``, else the calibration's.
     drift : str
         Illumination drift removed before the solve: ``auto`` (default: a per-channel gain and
@@ -132,7 +132,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     """
     from pipeline.base.store import read_record
     from pipeline.frame_pipeline.outputs import OutputSpec
-    from pipeline.stream import LAZY_BYTES, link_outputs, reconstruct_stream
+    from pipeline.streaming.files import link_outputs
+    from pipeline.streaming.job import LAZY_BYTES
+    from pipeline.streaming.local import reconstruct_stream
 
     t0 = time.perf_counter()
     outputs = OutputSpec.parse(save, precision)
@@ -156,7 +158,7 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         summary["contact_fraction"] = float(recs["contact"].meta.get("contact_fraction", 0.0))
     files: list[Path] = []
     if out is not None:
-        from pipeline.outputs import write_pictures
+        from pipeline.results.exports import write_pictures
 
         files = link_outputs(job, out)
         if images:
@@ -174,8 +176,8 @@ def _truth(job, n_rec, d_rec, streamed: dict) -> dict:
         if k not in out and k in rec.meta:
             out[k] = float(rec.meta[k])
     if len(out) < 2 and job.video is None:  # a video has no truth
-        from pipeline.evaluate import truth_errors
-        from pipeline.stream import read_capture
+        from pipeline.results.evaluate import truth_errors
+        from pipeline.streaming.inputs import read_capture
 
         cap = read_capture(job.capture)
         if any(k in cap.data for k in ("truth/normals", "truth/height")):

@@ -23,7 +23,7 @@ from multiprocessing import get_context
 from typing import Any, Callable, Sequence
 
 from pipeline.base.errors import UserError
-from pipeline.report import format_number
+from pipeline.results.report import format_number
 
 __all__ = ["BatchItem", "run_batch", "map_tasks", "progress_bar", "format_summary", "error_message"]
 

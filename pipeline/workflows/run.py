@@ -237,8 +237,8 @@ def _finish(config: dict, results) -> tuple[dict, list[str]]:
     import numpy as np
 
     from pipeline.base.store import read_record
-    from pipeline.evaluate import truth_errors
-    from pipeline.outputs import link_results, write_pictures
+    from pipeline.results.evaluate import truth_errors
+    from pipeline.results.exports import link_results, write_pictures
     from pipeline.stages import stage_module
 
     def rec(name):

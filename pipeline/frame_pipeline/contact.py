@@ -3,7 +3,7 @@
 What gs_sdk users call the contact mask ``C``: pixels where the frame differs from the no-contact
 reference by more than the noise (a touch changes the colour), that are also raised above the
 flat gel in the reconstructed height map (a colour change alone may be a shadow, a marker or
-drift). Numpy in, numpy out; :func:`pipeline.reconstruct.reconstruct` writes it beside the depth
+drift). Numpy in, numpy out; :func:`pipeline.workflows.reconstruct.reconstruct` writes it beside the depth
 (``contact`` in ``depth.h5``, ``contact_kNNN.png``) and ``iristac live`` shows and returns it.
 
 Colour: ``|frame - reference|`` (L2 over patterns and channels) after removing the press's

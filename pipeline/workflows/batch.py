@@ -1,8 +1,8 @@
 """``iristac batch``: reconstruct recordings of any length with one shared light model.
 
-Each recording is planned here (:func:`pipeline.stream.plan_stream`: its keys, what the store
+Each recording is planned here (:func:`pipeline.streaming.plan.plan_stream`: its keys, what the store
 already has; a bad recording is reported and skipped, the others go on), then its missing
-frames are reconstructed by the one frame pipeline a chunk at a time (:func:`pipeline.stream.run_frames`):
+frames are reconstructed by the one frame pipeline a chunk at a time (:func:`pipeline.streaming.frames.run_frames`):
 
 - in this process, frames in parallel on ``threads`` threads (the default);
 - on ``workers`` local processes or a Dask cluster (``scheduler``): every recording's missing
@@ -45,7 +45,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from pipeline.base.errors import UserError
-from pipeline.batch import BatchItem, error_message, map_tasks
+from pipeline.workflows.task_pool import BatchItem, error_message, map_tasks
 
 __all__ = ["batch_reconstruct", "expand_recordings", "summary_json", "SUMMARY_COLUMNS", "frame_ranges"]
 
@@ -105,8 +105,10 @@ _WORKER_JOBS: dict = {}
 
 def _range_task(job, start: int, stop: int, threads) -> dict:
     """A worker's frame range (module level: picklable for a process pool and Dask)."""
-    from pipeline.stages.normals import capture_lights
-    from pipeline.stream import load_light_record, prepare, read_capture, run_frames
+    from pipeline.solving.light_files import capture_lights
+    from pipeline.streaming.frame_setup import prepare
+    from pipeline.streaming.frames import run_frames
+    from pipeline.streaming.inputs import load_light_record, read_capture
 
     ident = (job.capture, tuple(e["key"].digest for e in job.entries.values()), threads)
     if ident not in _WORKER_JOBS:
@@ -117,8 +119,8 @@ def _range_task(job, start: int, stop: int, threads) -> dict:
             old[2].close()
         _WORKER_JOBS.clear()
         _WORKER_JOBS[ident] = (cap, lights, prepare(job, cap, lights, threads))
-    cap, lights, pipe = _WORKER_JOBS[ident]
-    return run_frames(job, start, stop, threads=threads, cap=cap, lights=lights, pipe=pipe, keep=True)
+    cap, _, pipe = _WORKER_JOBS[ident]
+    return run_frames(job, start, stop, threads=threads, cap=cap, pipe=pipe, keep=True)
 
 
 def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = None, illumination: str | None = None,
@@ -138,7 +140,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     calibration, illumination : str, optional
         The shared light model (at most one).
     solver, integrator, device, heal, mask, markers, drift, force
-        As :func:`pipeline.reconstruct.reconstruct`.
+        As :func:`pipeline.workflows.reconstruct.reconstruct`.
     out : str, optional
         ``out/<recording stem>/normals.h5``, ``depth.h5`` (and ``contact.h5``): links to the
         store's entries; with ``images`` also the per-instance pictures.
@@ -165,7 +167,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
 
     Returns
     -------
-    list of pipeline.batch.BatchItem
+    list of pipeline.workflows.task_pool.BatchItem
         One per recording, in input order.
     """
     from pipeline.frame_pipeline.outputs import DEFAULT_BATCH, OutputSpec
@@ -211,7 +213,8 @@ def _absolute(p):
 
 def _plan(recording: str, options: dict, threads) -> dict:
     """A recording's job, or its failure (one bad recording never stops the batch)."""
-    from pipeline.stream import plan_stream, prepare
+    from pipeline.streaming.frame_setup import prepare
+    from pipeline.streaming.plan import plan_stream
 
     t0 = time.perf_counter()
     entry: dict[str, Any] = {"recording": recording, "job": None, "error": None, "frames": 0, "t0": t0,
@@ -228,14 +231,14 @@ def _plan(recording: str, options: dict, threads) -> dict:
 
 
 def _run_here(p: dict, threads, bar) -> None:
-    from pipeline.stream import run_frames
+    from pipeline.streaming.frames import run_frames
 
     job = p["job"]
     if job is None or job.cached or p["error"]:
         return
     t0 = time.perf_counter()
     try:
-        r = run_frames(job, threads=threads, progress=bar.update, cap=p["cap"], lights=p["lights"], pipe=p["pipe"])
+        r = run_frames(job, threads=threads, progress=bar.update, cap=p["cap"], pipe=p["pipe"])
         p["method"], p["workers"], p["frames_solved"] = r["method"], {r["worker"]}, r["solved"]
     except Exception as exc:  # noqa: BLE001 - this recording fails, the others go on
         p["error"] = error_message(exc)
@@ -245,7 +248,7 @@ def _run_here(p: dict, threads, bar) -> None:
 
 def _run_distributed(planned: list[dict], threads, workers: int, scheduler, connect_timeout: float, bar) -> None:
     """Every recording's missing frames as frame ranges on a process pool or a Dask cluster."""
-    from pipeline.stream import open_files
+    from pipeline.streaming.files import open_files
 
     tasks, owners = [], []
     parts = max(2, workers) * 2
@@ -295,7 +298,8 @@ def _run_distributed(planned: list[dict], threads, workers: int, scheduler, conn
 def _finish(p: dict, out, images: bool, t0: float) -> BatchItem:
     """The item of one recording: its entries finished and summarised, linked into ``out``."""
     from pipeline.base.store import read_record
-    from pipeline.stream import LAZY_BYTES, finish_stream, link_outputs
+    from pipeline.streaming.files import finish_stream, link_outputs
+    from pipeline.streaming.job import LAZY_BYTES
 
     job = p["job"]
     if p["error"] or job is None:
@@ -320,7 +324,7 @@ def _finish(p: dict, out, images: bool, t0: float) -> BatchItem:
             dest = Path(out) / Path(p["recording"]).stem
             files = link_outputs(job, dest)
             if images:
-                from pipeline.outputs import write_pictures
+                from pipeline.results.exports import write_pictures
 
                 files += write_pictures(dest, recs["normals"], recs["depth"], job.mm_per_px,
                                         recs["contact"].data["contact"] if "contact" in recs else None)
@@ -375,6 +379,6 @@ def summary_json(items: Sequence[BatchItem], seconds: float) -> dict:
 
 
 def _bar(total: int, enabled: bool):
-    from pipeline.batch import progress_bar
+    from pipeline.workflows.task_pool import progress_bar
 
     return progress_bar(total, enabled, unit="frame", desc="batch")

@@ -23,7 +23,7 @@ same estimator, the same sampled pixels as the eager path, applied inside the ke
 that varies over the image (``field``), or one asked for by name of a solver that does not key
 on the reference, runs the eager path.
 
-They live in the stage layer because the table and the network are calibration objects.
+They live in the calibration layer because the table and the network are calibration objects.
 """
 
 from __future__ import annotations
@@ -144,7 +144,7 @@ def frame_solver(solver: str, lights, *, shape, channels: int = 3, reference=Non
     solver : str
         A name in :data:`pipeline.base.registry.SOLVERS`.
     lights : LightSource
-        From :func:`pipeline.stages.normals.load_lights`.
+        From :func:`pipeline.solving.light_files.load_lights`.
     shape : (H, W)
     channels : int
     reference : ndarray, shape (P, H, W, C), optional

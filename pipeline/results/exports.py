@@ -164,7 +164,7 @@ def write_ply(path, height, mm_per_px: float, mask=None, colors=None, *, binary:
 
 def write_pictures(out: Path, n_rec, d_rec, mm_per_px: float, contact=None) -> list[Path]:
     """Per contact instance ``normals_kNNN.png``, ``depth_kNNN.png`` and ``depth_kNNN.ply`` (and
-    ``contact_kNNN.png`` from ``contact (K, H, W)`` bool, :mod:`pipeline.contact`) in ``out``, from
+    ``contact_kNNN.png`` from ``contact (K, H, W)`` bool, :mod:`pipeline.frame_pipeline.contact`) in ``out``, from
     the ``normals`` and ``depth`` records (their datasets read an instance at a time); the files
     written."""
     out.mkdir(parents=True, exist_ok=True)

@@ -12,7 +12,7 @@ reconstruction frame (:mod:`pipeline.base.frames`), so directions and normals ar
 The capture (schema ``capture``) gets: ``frames (1, P, H, W, 3)`` uint16, ``drive (P, P, 3)``
 (image ``p`` lit by light ``p`` alone at its RGB intensity), ``brightness`` ones,
 ``lights/light_vectors (P, 3, 3)`` (direction times the channel's intensity: the far-field
-calibration :func:`pipeline.reconstruct.reconstruct` uses when given no other), ``mask (H, W)``
+calibration :func:`pipeline.workflows.reconstruct.reconstruct` uses when given no other), ``mask (H, W)``
 (reconstruction then solves only those pixels), ``truth/normals (1, H, W, 3)`` when
 ``Normal_gt.mat`` exists. DiLiGenT has no no-contact frame, so the capture has no
 ``reference`` (``--ratio`` is refused; version-1 captures held zeros and ``has_reference =
@@ -105,7 +105,7 @@ def read_diligent(folder) -> DiligentObject:
     H, W = images.shape[1:3]
     mask_path = folder / "mask.png"
     if mask_path.exists():
-        from pipeline.evaluate import load_mask
+        from pipeline.results.evaluate import load_mask
 
         mask = load_mask(mask_path)
         if mask.shape != (H, W):
@@ -117,7 +117,7 @@ def read_diligent(folder) -> DiligentObject:
     gt = None
     gt_path = folder / "Normal_gt.mat"
     if gt_path.exists():
-        from pipeline.evaluate import load_normals
+        from pipeline.results.evaluate import load_normals
 
         gt, _ = load_normals(gt_path, key="Normal_gt")
         if gt.shape != (H, W, 3):

@@ -69,7 +69,7 @@ def _or(value, fallback):
 def _summary_figure(comp, path: Path) -> str:
     """The comparison's charts (error against capture and reconstruction time) as one PNG."""
     from pipeline.charts.static import summary_figure
-    from pipeline.compare import comparison_charts
+    from pipeline.workflows.compare_modes import comparison_charts
 
     return summary_figure(comparison_charts(comp), path, cols=2, width_px=900,
                           title="Lighting modes and solvers: what accuracy costs in time (iristac demo)")["path"]
@@ -104,8 +104,8 @@ def run_demo(out: str | Path = "iristac-demo", *, quick: bool = False, cache: st
         solver the normal and depth errors and times.
     """
     from pipeline.base.store import StageStore
-    from pipeline.compare import compare_captures, render_mode_captures
     from pipeline.stages import synthesize as synthesize_stage
+    from pipeline.workflows.compare_modes import compare_captures, render_mode_captures
     from sim.uniformity import uniformity_report
 
     t_start = time.perf_counter()
@@ -165,8 +165,8 @@ def _demo_calibrate(store, model, ill_key, settings: DemoSettings, out: Path, sa
     ``(stage entry of report.json, calibration summary, LUT calibrations, presses)``."""
     from pipeline.base.capture import write_capture
     from pipeline.base.store import Record, write_record
-    from pipeline.compare import lut_calibrations
     from pipeline.stages import calibrate as calibrate_stage
+    from pipeline.workflows.compare_modes import lut_calibrations
     from sim.rendered_capture import press_ring, render_capture, sphere_presses
 
     t0 = time.perf_counter()
@@ -202,8 +202,8 @@ def _write_demo_report(out: Path, data: dict, scene, settings: DemoSettings, sta
                        uniformity: dict, comp, ill_cached: bool, presses: int) -> None:
     """``report.html`` and ``report.json`` (``data``, plus the summary figure) in ``out``: the
     stages, the calibration's CV, the flat-gel uniformity per mode and the comparison."""
-    from pipeline.compare import add_to_report
-    from pipeline.report import Report
+    from pipeline.results.report import Report
+    from pipeline.workflows.compare_modes import add_to_report
 
     total = data["seconds"]
     report = Report("IrisTac demo: a virtual sensor end to end",
