@@ -48,16 +48,3 @@ def wait_until(cond, timeout: float = 10.0) -> None:
     while not cond():
         assert time.monotonic() < t, "timed out"
         time.sleep(0.002)
-
-
-#: Files left out of the house-rule checks (function length, issue numbers in the product) for
-#: now: being rewritten by the batch work; this set is emptied when that work lands.
-BEING_REWRITTEN_BY_BATCH_WORK = frozenset({
-    "pipeline/workflows/reconstruct.py", "pipeline/workflows/task_pool.py", "pipeline/workflows/batch.py", "pipeline/cli/batch.py",
-    "pipeline/cli/reconstruct.py", "pipeline/cli/_common.py", "pipeline/stages/normals.py",
-    "pipeline/stages/depth.py", "pipeline/solving/frame_solvers.py", "pipeline/frame_pipeline/cpu_batch.py",
-    "pipeline/frame_pipeline/gpu_stream.py", "pipeline/normals/batched.py", "pipeline/depth/batched.py",
-    "pipeline/live/session.py",
-    "pipeline/base/h5frames.py", "pipeline/base/store.py", "pipeline/base/capture.py", "pipeline/bench/live.py",
-    "pipeline/bench/live_scaling.py",
-})

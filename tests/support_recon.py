@@ -52,3 +52,16 @@ class NearestColourTable:
         d, i = self.tree.query(images.reshape(-1, 3))
         g = self.gradients[i].reshape(images.shape[:-1] + (2,))
         return g, (d <= self.max_distance).reshape(images.shape[:-1])
+
+
+def uint8_sphere_scene(shape=(36, 52), patterns=6, seed=0, coloured=False):
+    """A rendered sphere press as 8-bit frames ``(P, H, W, 3)``, its lights ``(P, 3, H, W, 3)``
+    (``coloured``: each channel its own lights, so the per-group albedo alternation runs) and
+    the scene."""
+    scene = render_sphere_scene(shape, 0.1, radius=1.5, depth=0.4, num_patterns=patterns, peak=200.0, noise=1.0,
+                                bits=8, seed=seed)
+    lights = scene.lights.copy()
+    if coloured:  # channels see different lights: the per-group albedo alternation runs
+        rng = np.random.default_rng(seed)
+        lights = lights * rng.uniform(0.7, 1.3, size=(patterns, 3, 1, 1, 3))
+    return scene.frames.astype(np.uint8), lights, scene

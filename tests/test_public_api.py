@@ -25,3 +25,28 @@ def test_importing_the_packages_is_cheap():
     code = "import sim, calibration, sys; print('torch' in sys.modules, 'numba' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["False", "False"]
+
+
+def test_every_package_folder_says_what_it_holds():
+    """A folder of modules is a package whose ``__init__`` docstring says what it offers (no
+    namespace packages: a newcomer reads the folder's purpose in one place)."""
+    import ast
+
+    missing = []
+    for top in ("sim", "calibration", "pipeline", "data_schemas"):
+        for folder in sorted(p for p in (REPO / top).rglob("*") if p.is_dir() and any(p.glob("*.py"))):
+            init = folder / "__init__.py"
+            doc = ast.get_docstring(ast.parse(init.read_text(encoding="utf-8"))) if init.is_file() else None
+            if not doc:
+                missing.append(folder.relative_to(REPO).as_posix())
+    assert missing == []
+
+
+@pytest.mark.parametrize("package", ["pipeline.results", "pipeline.solving", "pipeline.streaming",
+                                     "pipeline.frame_pipeline"])
+def test_pipeline_packages_offer_what_they_list(package):
+    import importlib
+
+    pkg = importlib.import_module(package)
+    for name in pkg.__all__:
+        assert not isinstance(getattr(pkg, name), types.ModuleType), name

@@ -18,7 +18,7 @@ on one thread and on every core:
   (rows ``lut (--drift none)``): the difference is what drift removal costs per frame.
 
 Errors: mean angular error of the normals against the rendered truth (every pixel), and the
-largest deviation of the fast path from the eager one (deg). Targets (issue 14, this 2-core
+largest deviation of the fast path from the eager one (deg). Targets (on a 2-core
 CPU): near field + DST >= 400 fps at 320 x 240 and >= 100 fps at 640 x 480 with an error
 within 0.05 deg of the eager near-field solver; LUT and MLP single-frame >= 200 fps at
 320 x 240; judged on the better of one thread and all cores, both printed.
@@ -282,7 +282,7 @@ def _run(args) -> dict:
         targets.append({"solver": solver, "size": size, "target_fps": fps, "fps": best["fps"],
                         "threads": best["threads"], "met": bool(ok), "note": note})
     frames = [r for r in rows if r["path"] == "frames" and r["solver"] == "nearfield" and r["size"] == "320x240"]
-    if frames and cores >= 16:  # issue 25: on 16 cores, frames in parallel >= 2,000 fps and >= 8x one thread
+    if frames and cores >= 16:  # on 16 cores: frames in parallel >= 2,000 fps and >= 8x one thread
         best = max(frames, key=lambda r: r["fps"])
         targets.append({"solver": "nearfield frames in parallel", "size": "320x240", "target_fps": 2000.0,
                         "fps": best["fps"], "threads": best["threads"],

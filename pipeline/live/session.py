@@ -167,7 +167,6 @@ patterns (use a single-frame mode such as trichromatic)
 
     def _load_lights(self) -> None:
         from pipeline.normals.lights import check_lights
-        from pipeline.normals.solve import stored_reference
         from pipeline.solving.light_files import load_lights
 
         cal = None if self.calibration is None else _read(self.calibration, "calibration")
@@ -177,7 +176,7 @@ patterns (use a single-frame mode such as trichromatic)
         H, W = self.cam.shape
         self.lights = load_lights(cal, ill, mode=self.patterns, shape=(H, W), channels=3)
         check_lights(self.solver, self.lights, len(self.patterns.frames), 3)
-        self.model_reference = stored_reference(self.lights, self.solver)
+        self.model_reference = self.lights.stored_reference(self.solver)
         if self.spec is not None:
             self.pitch = float(self.spec.model().mm_per_px)
         elif cal is not None and cal.meta.get("mm_per_px"):

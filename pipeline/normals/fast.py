@@ -12,7 +12,7 @@ normal equations, the same per-group albedo alternation when the channels see di
 lights, the same masks), which stays as the reference: ``tests/pipeline/normals/test_fast_paths.py``
 pins the two together to float32 rounding.
 
-The kernels (:mod:`pipeline.normals.fast_kernels`) are Numba, compiled once and cached on disk
+The kernels (:mod:`pipeline.normals._fast_kernels`) are Numba, compiled once and cached on disk
 (``cache=True``; ``NUMBA_CACHE_DIR`` moves the cache): a first use in a fresh process loads
 them in well under a second. They work on blocks of 512 pixels with pixel-contiguous planes
 (each block's observations de-interleaved from the camera's frames in the kernel, the light
@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from pipeline.normals.fast_kernels import nearfield_batch, shared_batch, shared_factors
+from pipeline.normals._fast_kernels import nearfield_batch, shared_batch, shared_factors
 from pipeline.normals.result import COND_CAP, NormalResult
 
 __all__ = ["NearFieldFast", "PlaneBatch", "frame_planes_np", "split_into", "run_split", "BLOCK"]
@@ -221,7 +221,7 @@ class NearFieldFast:
             albedo_iterations = 0 if shared or (counts < 3).any() else 3
         self.iterations = int(albedo_iterations) if self.num_groups > 1 else 0
         # White patterns (channels share their lights, no alternation): the pseudo-inverse
-        # kernel (pipeline.normals.fast_kernels.shared_batch), which reads fewer bytes and vectorises.
+        # kernel (pipeline.normals._fast_kernels.shared_batch), which reads fewer bytes and vectorises.
         self.pinv = scale is not None and self.iterations == 0
         if self.pinv:
             L0 = Lm[::self.num_groups]  # (P, M, 3): the first channel's lights
@@ -330,7 +330,7 @@ class NearFieldFast:
     def solve_batch(self, frames, pool=None, out: PlaneBatch | None = None, parts: int | None = None) -> PlaneBatch:
         """Normals of ``K`` frame sets ``frames (K, P, H, W, C)`` (uint8 or uint16, C-contiguous as a
         camera or an HDF5 file gives them; ``P * C = N``) by one call of the kernel per part
-        (:func:`pipeline.normals.fast_kernels.shared_batch` / ``nearfield_batch``): each part is a
+        (:func:`pipeline.normals._fast_kernels.shared_batch` / ``nearfield_batch``): each part is a
         run of pixels of every frame, so a block's factors are read once a call.
 
         ``pool``: a :class:`pipeline.base.frame_pool.FramePool` whose threads run the parts

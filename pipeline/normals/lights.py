@@ -66,6 +66,14 @@ class LightSource:
     key: str = ""
     centre: np.ndarray | None = None
 
+    def stored_reference(self, solver: str) -> np.ndarray | None:
+        """The no-contact reference ``(P, H, W, C)`` (linear, float32) that ``solver``'s
+        calibration model stores (the LUT's and the MLP's: what they key on without a capture's
+        own), else None."""
+        model = (self.models or {}).get(solver)
+        ref = model.stored_reference() if model is not None and hasattr(model, "stored_reference") else None
+        return None if ref is None else np.asarray(ref, np.float32)
+
     def kinds(self) -> set[str]:
         """What these lights offer, in the terms of a solver's ``needs``."""
         out = set()

@@ -42,7 +42,7 @@ from pipeline.base.registry import SOLVERS
 from pipeline.normals.lights import LightSource, check_lights
 from pipeline.normals.prepare import FramePrep, full_scale
 
-__all__ = ["FrameSolver", "solve_capture", "stored_reference", "stack_lstsq", "stack_nearfield", "stack_robust",
+__all__ = ["FrameSolver", "solve_capture", "stack_lstsq", "stack_nearfield", "stack_robust",
            "stack_cauchy"]
 
 
@@ -89,7 +89,7 @@ class FrameSolver:
         if reference is not None:
             prep.use_drift(reference, applies=applies)
         else:
-            prep.use_drift(stored_reference(lights, self.solver), applies=applies, linear=True)
+            prep.use_drift(lights.stored_reference(self.solver), applies=applies, linear=True)
         self.options = dict(ratio=bool(ratio), max_condition=float(max_condition), device=device, dtype=dtype,
                             compile=bool(compile),
                             dark_threshold=0.01 * prep.saturation if prep.saturation is not None else 0.0)
@@ -138,14 +138,6 @@ class FrameSolver:
         """One frame set ``(P, H, W, C)`` (or ``(H, W, C)``) -> its NormalResult."""
         f = np.asarray(frames)
         return self.solve_stack(f[None] if f.ndim == 4 else f[None, None], threads)[0]
-
-
-def stored_reference(lights: LightSource, solver: str) -> np.ndarray | None:
-    """The no-contact reference ``(P, H, W, C)`` (linear) the solver's calibration model stores
-    (the LUT's and the MLP's: what they key on without a capture's own), else None."""
-    model = (lights.models or {}).get(solver)
-    ref = model.stored_reference() if model is not None and hasattr(model, "stored_reference") else None
-    return None if ref is None else np.asarray(ref, np.float32)
 
 
 def solve_capture(frames, lights: LightSource, *, solver: str = "lstsq", reference=None, saturated=None,

@@ -29,6 +29,8 @@ def _pipeline(job: StreamJob, cap, lights, threads):
         return DeviceFramePipeline(GPUFramePipeline(
             lights.field, job.mm_per_px, dark=cap.data.get("dark"), flat_field=lights.flat_field,
             max_condition=o["max_condition"], solver="fused" if cuda else "torch", device=o["device"], host_threads=1))
+    # The contact mask first: it reads the reference the solver's model stores, before the solver is built.
+    contact = _contact_fn(job, cap, lights) if job.outputs.contact and not job.entries["contact"]["done"] else None
     solver = frame_solver(o["solver"], lights, shape=(H, W), channels=frames.shape[-1],
                           reference=reference_frames(cap), dark=cap.data.get("dark"), markers=job.markers,
                           max_condition=o["max_condition"], region=job.region, drift=o["drift"],
@@ -36,7 +38,6 @@ def _pipeline(job: StreamJob, cap, lights, threads):
                           bit_depth=cap.meta.get("bit_depth"), name=str(cap.path or "capture"), ratio=o["ratio"],
                           device=o["device"], dtype=o["dtype"], compile=o["compile"])
     integ = frame_integrator(o["integrator"], (H, W), job.mm_per_px)
-    contact = _contact_fn(job, cap, lights) if job.outputs.contact and not job.entries["contact"]["done"] else None
     filled = None if job.markers is None else job.markers & (job.region if job.region is not None else True)
     return FramePipeline(solver, integ, threads=threads, region=job.region, filled=filled, contact=contact,
                          extras=job.outputs.normal_extras + (() if "groups" in job.meta else ("albedo",)))
@@ -58,12 +59,11 @@ def _contact_fn(job: StreamJob, cap, lights):
     """``contact(frames, height, valid)`` of one frame set (:func:`pipeline.frame_pipeline.contact.contact_mask`),
     against the capture's reference, else the one the solver's model stores, else the height alone."""
     from pipeline.frame_pipeline.contact import contact_mask, contact_reference_level, drift_estimator
-    from pipeline.normals.solve import stored_reference
     from pipeline.solving.regions import reference_frames
 
     ref = reference_frames(cap)
     if ref is None:
-        ref = stored_reference(lights, job.options["solver"])
+        ref = lights.stored_reference(job.options["solver"])
     frames = cap.data["frames"]
     if ref is None or np.shape(ref) != tuple(frames.shape[1:]):
         def height_only(f, h, v):

@@ -132,7 +132,6 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     """
     from pipeline.base.store import read_record
     from pipeline.frame_pipeline.outputs import OutputSpec
-    from pipeline.streaming.files import link_outputs
     from pipeline.streaming.job import LAZY_BYTES
     from pipeline.streaming.local import reconstruct_stream
 
@@ -144,6 +143,19 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         compile=compile, mask=mask, markers=markers, drift=drift, outputs=outputs, force=force, heal=heal,
         video={"reference": reference, "mm_per_px": mm_per_px})
     recs = {name: read_record(e["path"], e["key"].schema, lazy_bytes=LAZY_BYTES) for name, e in job.entries.items()}
+    summary = _summary(job, recs, streamed, solver, integrator)
+    files: list[Path] = []
+    if out is not None:
+        files = _write_out(job, recs, Path(out), images)
+        summary["outputs"] = [str(f) for f in files]
+    summary["seconds"] = round(time.perf_counter() - t0, 4)
+    contact = recs["contact"].data["contact"] if "contact" in recs else None
+    n_rec, d_rec = recs["normals"], recs["depth"]
+    return ReconstructResult(normals=n_rec, depth=d_rec, summary=summary, files=files, contact=contact)
+
+
+def _summary(job, recs: dict, streamed: dict, solver: str, integrator: str) -> dict[str, Any]:
+    """What :attr:`ReconstructResult.summary` says of a run (its records and what the stream measured)."""
     n_rec, d_rec = recs["normals"], recs["depth"]
     summary: dict[str, Any] = {"solver": solver, "integrator": integrator, "seconds": 0.0,
                                "valid_fraction": float(n_rec.meta.get("valid_fraction", 0.0)),
@@ -152,20 +164,21 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
                                "drift": str(n_rec.meta.get("drift", "none")), "frames": job.frames,
                                "method": streamed["method"]}
     summary.update(_truth(job, n_rec, d_rec, streamed))
-    contact = None
     if "contact" in recs:
-        contact = recs["contact"].data["contact"]
         summary["contact_fraction"] = float(recs["contact"].meta.get("contact_fraction", 0.0))
-    files: list[Path] = []
-    if out is not None:
-        from pipeline.results.exports import write_pictures
+    return summary
 
-        files = link_outputs(job, out)
-        if images:
-            files += write_pictures(Path(out), n_rec, d_rec, job.mm_per_px, contact)
-        summary["outputs"] = [str(f) for f in files]
-    summary["seconds"] = round(time.perf_counter() - t0, 4)
-    return ReconstructResult(normals=n_rec, depth=d_rec, summary=summary, files=files, contact=contact)
+
+def _write_out(job, recs: dict, out: Path, images: bool) -> list[Path]:
+    """The ``--out`` folder: links to the entries and, with ``images``, the pictures of every contact."""
+    from pipeline.results.exports import write_pictures
+    from pipeline.streaming.files import link_outputs
+
+    files = link_outputs(job, out)
+    if images:
+        contact = recs["contact"].data["contact"] if "contact" in recs else None
+        files += write_pictures(out, recs["normals"], recs["depth"], job.mm_per_px, contact)
+    return files
 
 
 def _truth(job, n_rec, d_rec, streamed: dict) -> dict:

@@ -18,18 +18,8 @@ import numpy as np
 import pytest
 import torch
 
-from pipeline.bench.recon_scene import render_sphere_scene
 from support_recon import _one_torch_thread  # noqa: F401  (autouse: one torch thread)
-
-
-def _uint8_scene(shape=(36, 52), patterns=6, seed=0, coloured=False):
-    scene = render_sphere_scene(shape, 0.1, radius=1.5, depth=0.4, num_patterns=patterns, peak=200.0, noise=1.0,
-                                bits=8, seed=seed)
-    lights = scene.lights.copy()
-    if coloured:  # channels see different lights: the per-group albedo alternation runs
-        rng = np.random.default_rng(seed)
-        lights = lights * rng.uniform(0.7, 1.3, size=(patterns, 3, 1, 1, 3))
-    return scene.frames.astype(np.uint8), lights, scene
+from support_recon import uint8_sphere_scene as _uint8_scene
 
 
 @pytest.mark.parametrize("coloured,masked", [(False, True), (False, False), (True, True)])
@@ -59,36 +49,6 @@ def test_nearfield_fast_equals_eager(coloured, masked):
     np.testing.assert_allclose(got.albedo[both], ref.albedo[both], rtol=2e-4, atol=1e-4)
     np.testing.assert_allclose(got.residual[both], ref.residual[both], atol=2e-2 * ref.residual[both].max())
     np.testing.assert_array_equal(got.normals[~got.mask], np.tile([0, 0, 1], ((~got.mask).sum(), 1)))
-
-
-@pytest.mark.parametrize("coloured", [False, True])
-def test_frames_in_parallel_equal_one_at_a_time(coloured):
-    """CPUFramePipeline (the kernel over a stack, runs of pixels of every frame per thread, then
-    runs of frames per thread for the depth) gives each frame exactly what the per-frame path
-    gives; with a region (scattered in the kernel), a dark frame, 52 x 36 (a short last block)."""
-    from pipeline.depth.fast import FastDST
-    from pipeline.frame_pipeline.cpu_batch import CPUFramePipeline
-    from pipeline.normals.fast import NearFieldFast
-
-    frames, lights, _ = _uint8_scene(coloured=coloured)
-    P, H, W, C = frames.shape
-    rng = np.random.default_rng(3)
-    stack = np.clip(frames[None] + rng.integers(-3, 4, size=(5,) + frames.shape), 0, 255).astype(np.uint8)
-    region = np.zeros((H, W), bool)
-    region[2:, 4:-3] = True
-    fast = NearFieldFast(lights.reshape(P * C, H, W, 3), groups=np.tile(np.arange(C), P), mask=region,
-                         dark=np.full((H, W, C), 2.0, np.float32))
-    dst = FastDST((H, W), 0.1)
-    with CPUFramePipeline(fast, dst, threads=2) as pipe:
-        out = pipe.run(stack)
-    for k in range(len(stack)):
-        one = fast.solve(stack[k])
-        got = out["planes"].result(k)
-        for name in ("normals", "albedo", "residual", "mask", "condition", "count"):
-            np.testing.assert_array_equal(getattr(got, name), getattr(one, name), err_msg=name)
-        ref = dst.integrate(one.normals, one.mask)
-        np.testing.assert_array_equal(out["height"][k], ref.height)
-        np.testing.assert_array_equal(out["height_mask"][k], ref.mask)
 
 
 def test_lstsq_fast_equals_eager():
