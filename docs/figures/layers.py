@@ -22,13 +22,17 @@ OUT = ROOT / "docs" / "images" / "layers.png"
 #: What each layer holds, in words (the test's LAYERS table gives the names and the order).
 CONTENTS = {
     "command line and benchmarks": ["pipeline/cli/  (thin: one module per command)", "pipeline/bench/  (benchmarks)"],
-    "entry points": ["run", "reconstruct", "batch", "compare-modes", "demo", "import diligent", "(live)"],
+    "entry points": ["pipeline/workflows/\n(run, reconstruct, batch, demo, ...)",
+                     "pipeline/streaming/\n(a recording a chunk at a time)", "pipeline/live/"],
     "stage registry": ["synthesize", "calibrate", "capture", "normals", "depth"],
-    "calibration and capture": ["calibration/  (contacts, light models, LUT, MLP)",
-                                "pipeline/capture/  (ring protocol, emulator, plan, cameras)"],
-    "physics and numerics": ["sim/  (tracer, renderer, geometry)", "pipeline/normals/  (solvers)",
-                             "pipeline/depth/  (integrators)", "evaluate, outputs, report, batch"],
-    "base": ["errors", "frames", "hashing", "store", "capture", "camera", "modes", "registry", "threads"],
+    "calibration and capture": ["calibration/\n(contacts, light models, LUT, MLP)",
+                                "pipeline/capture/\n(ring, emulator, plan, cameras, videos)",
+                                "pipeline/solving/\n(lights, regions, frame solvers)"],
+    "physics and numerics": ["sim/\n(tracer, renderer)", "pipeline/normals/\n(solvers)",
+                             "pipeline/depth/\n(integrators)", "pipeline/frame_pipeline/\n(normals, then depth)",
+                             "pipeline/results/", "pipeline/charts/"],
+    "base": ["errors", "frames", "hashing", "identity", "store", "streamed", "capture", "camera", "modes", "registry",
+             "threads"],
     "schemas": ["data_schemas/  (JSON Schemas of every file and config)"],
 }
 COLOURS = ["#e8e8f4", "#dde9f7", "#e2f0e0", "#f7ecd9", "#f6dede", "#ece2f4", "#eeeeee"]
