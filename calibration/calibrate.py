@@ -23,6 +23,7 @@ from calibration.labels import capture_label_circles, has_labels, label_errors
 from calibration.models import (
     MODEL_NAMES,
     CalibrationModel,
+    ConvModel,
     FarFieldModel,
     LightFieldModel,
     LUTModel,
@@ -283,6 +284,9 @@ def model_factories(names, capture: Capture, illumination, saturation, model_opt
             # The sensor's own MLP settings (its profile's ensemble size) unless the caller set them.
             o = {**capture_model_options(capture).get("mlp", {}), **o}
             out[name] = lambda o=o, scale=scale: MLPModel(**{"input_scale": scale, **o})
+        elif name == "conv":
+            scale = float(saturation) if saturation else 1.0
+            out[name] = lambda o=o, scale=scale: ConvModel(**{"input_scale": scale, **o})
         else:
             raise UserError(f"calibrate: unknown model '{name}' (expected one of {', '.join(MODEL_NAMES)} or all)")
     return out
