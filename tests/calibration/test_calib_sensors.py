@@ -300,3 +300,28 @@ def test_eval_runs_on_labels_alone_when_nothing_is_detected(rendered):
     assert ev["truth"]["labels"]["models"]["near"]["mean_deg"] is not None
     assert len(ev["ball_fit"]["near"]["per_press"]) == 2
     assert "no test press" in format_report(ev)
+
+
+def test_label_truth_takes_a_virtual_sensors_exact_normals():
+    """A capture that carries the gel's exact normals (a rim-smoothed virtual sensor) is judged on them:
+    the contact samples' normals become the truth's, which leave the sphere cap near the rim."""
+    import dataclasses
+
+    from calibration.detect import Circle
+    from calibration.evaluate import exact_normals
+    from calibration.samples import collect_samples
+
+    s = random_sensor(3, shape=(90, 120), num_presses=2, effects=["rim_smoothing"], border_fraction=0.0).replace(
+        rim_smoothing_px=3.0)
+    cap = render_sensor(s).capture
+    f, r = cap.linear()
+    circles = [Circle(tuple(c), float(a) * 1.05, float(a), 1.0, True, "") for c, a in
+               zip(cap.truth["center_xy"], cap.truth["radius_px"])]
+    samples = collect_samples(f, r, circles, s.ball_radius_mm, s.mm_per_px)
+    n = exact_normals(cap, samples)
+    m = samples.contact
+    np.testing.assert_allclose(n[m], cap.truth["normals"][samples.press[m], samples.rows[m], samples.cols[m]],
+                               atol=1e-6)
+    rim = m & (samples.radial > 0.8)
+    assert np.degrees(np.arccos(np.clip(np.sum(n[rim] * samples.normals[rim], 1), -1, 1))).max() > 1.0
+    assert exact_normals(dataclasses.replace(cap, truth=None), samples) is None  # a real sensor's: none
