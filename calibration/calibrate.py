@@ -22,7 +22,9 @@ from calibration.gate import CalibrationRefused, GateSettings, Verdict, judge, m
 from calibration.labels import capture_label_circles, has_labels, label_errors
 from calibration.models import (
     MODEL_NAMES,
+    NEIGHBOURHOOD_MODELS,
     CalibrationModel,
+    ConvModel,
     FarFieldModel,
     LightFieldModel,
     LUTModel,
@@ -283,8 +285,12 @@ def model_factories(names, capture: Capture, illumination, saturation, model_opt
             # The sensor's own MLP settings (its profile's ensemble size) unless the caller set them.
             o = {**capture_model_options(capture).get("mlp", {}), **o}
             out[name] = lambda o=o, scale=scale: MLPModel(**{"input_scale": scale, **o})
+        elif name == "conv":
+            scale = float(saturation) if saturation else 1.0
+            out[name] = lambda o=o, scale=scale: ConvModel(**{"input_scale": scale, **o})
         else:
-            raise UserError(f"calibrate: unknown model '{name}' (expected one of {', '.join(MODEL_NAMES)} or all)")
+            raise UserError(f"calibrate: unknown model '{name}' (expected one of "
+                            f"{', '.join(MODEL_NAMES + NEIGHBOURHOOD_MODELS)} or all)")
     return out
 
 
@@ -307,7 +313,9 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
     mm_per_px : float, optional
         Pixel pitch; default: the capture's ``mm_per_px`` attribute.
     models : "all", a name, or a list of names
-        Among ``far``, ``near``, ``traced``, ``lut``, ``mlp``. With ``all``, models that do not
+        Among ``far``, ``near``, ``traced``, ``lut``, ``mlp`` and ``conv`` (the network,
+        :class:`calibration.models.conv.ConvModel`: ``all`` fits it only when it is named beside
+        it, ``["all", "conv"]``). With ``all``, models that do not
         apply (``traced`` without ``illumination``, ``lut`` with more than one pattern) are
         reported as skipped; asked for by name they raise :class:`UserError`.
     illumination : IlluminationModel or ndarray (L, H, W, 3), optional
@@ -772,8 +780,8 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
                tilt_correction=True, circles="auto", gate=None) -> CalibrationResult:
     names = [models] if isinstance(models, str) else list(models)
     explicit = "all" not in names
-    if not explicit:
-        names = list(MODEL_NAMES)
+    if not explicit:  # "all": the per-pixel models, and the network when named beside it
+        names = list(MODEL_NAMES) + [n for n in names if n in NEIGHBOURHOOD_MODELS]
     found = _find_circles(capture, ball_radius_mm, mm_per_px, illumination=illumination, folds=folds,
                           shrink_px=shrink_px, detect_options=detect_options, model_options=model_options,
                           refine_iterations=refine_iterations, refine_model=refine_model, seed=seed,

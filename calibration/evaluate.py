@@ -44,7 +44,7 @@ if TYPE_CHECKING:
     from calibration.detect import Circle
 
 __all__ = ["evaluate_calibration", "evaluate_models", "angular_stats", "label_circles", "format_report", "CV_GAP_WARN_DEG",
-           "TEST_TRUTH"]
+           "TEST_TRUTH", "exact_normals"]
 
 #: A model whose test error and CV error differ by more than this is flagged in the report.
 CV_GAP_WARN_DEG = 2.0
@@ -330,12 +330,28 @@ def _label_truth(loaded: dict[str, Any], cap: Capture, found, radius: float, shr
     circles = capture_label_circles(cap, radius / found.mm_per_px, src)
     lab_samples = collect_samples(found.frames, found.reference, circles, radius, found.mm_per_px,
                                   shrink_px=shrink_px, saturation=found.saturation, exclude=found.markers)
+    exact = exact_normals(cap, lab_samples)
+    if exact is not None:  # a virtual sensor's: the gel's own normals, not the sphere cap's, near the rim
+        lab_samples.normals = exact
     offsets = np.array([c.center_xy for c in found.circles]) - np.asarray(cap.labels["center_xy"], float)
     acc = np.array([c.accepted for c in found.circles])
     return {"method": "hand labels labels/center_xy, labels/radius_px (contact radius clamped to "
-                      "0.95 x ball)",
+                      "0.95 x ball)" + ("; the normals of truth/normals (exact)" if exact is not None else ""),
             "center_offset_px_median": np.median(offsets[acc], axis=0).tolist() if acc.any() else None,
             "models": evaluate_models(loaded, lab_samples)}
+
+
+def exact_normals(cap: Capture, samples) -> np.ndarray | None:
+    """The samples' normals ``(N, 3)`` with each contact sample's taken from the capture's exact
+    ``truth/normals (K, H, W, 3)`` (a virtual sensor's), or None when the capture has none."""
+    exact = (cap.truth or {}).get("normals")
+    if exact is None or np.asarray(exact).shape != (len(cap.frames), *cap.shape, 3):
+        return None
+    out = np.array(samples.normals, np.float64)
+    m = samples.contact & (samples.press >= 0)
+    n = np.asarray(exact, np.float64)[samples.press[m], samples.rows[m], samples.cols[m]]
+    out[m] = n / np.maximum(np.linalg.norm(n, axis=-1, keepdims=True), 1e-12)
+    return out
 
 
 def _add_cv_gaps(det: dict[str, Any], meta: dict[str, Any], truth: dict[str, Any], cv_truth: str) -> None:

@@ -100,7 +100,8 @@ def pixel_samples(image: np.ndarray, reference: np.ndarray, rows: np.ndarray | N
         Pixels to take (default: all, row-major).
 
     The ``normals`` of the returned samples are placeholders ``(0, 0, 1)``; ``press`` is 0 and
-    ``contact`` False.
+    ``contact`` False; ``images`` is the frame (``(1, P, H, W, C)``) and ``reference_image`` the
+    reference, for models that look at a pixel's neighbourhood.
     """
     from calibration.samples import Samples
 
@@ -111,7 +112,8 @@ def pixel_samples(image: np.ndarray, reference: np.ndarray, rows: np.ndarray | N
     ref = np.asarray(reference, np.float32).transpose(1, 2, 0, 3)[rows, cols]
     n = np.zeros((len(rows), 3))
     n[:, 2] = 1.0
-    return Samples(img, ref, rows, cols, n, np.zeros(len(rows), int), np.zeros(len(rows), bool), (h, w))
+    return Samples(img, ref, rows, cols, n, np.zeros(len(rows), int), np.zeros(len(rows), bool), (h, w), None,
+                   np.asarray(image, np.float32)[None], np.asarray(reference, np.float32))
 
 
 def predict_normal_maps(model, frames: np.ndarray, reference: np.ndarray | None = None, *,

@@ -51,6 +51,11 @@ class Samples:
     radial : ndarray, shape (N,), float, or None
         Distance from the press's circle centre over its contact radius (in [0, 1) on contact
         pixels, 0 elsewhere): where on the cap a pixel lies, for rim weighting.
+    images : ndarray, shape (K, P, H, W, C), float32, or None
+        The whole frames the samples were drawn from (``press`` indexes them; shared, never
+        copied by :meth:`subset`): a model that looks at a pixel's neighbourhood reads them.
+    reference_image : ndarray, shape (P, H, W, C), float32, or None
+        The whole no-contact reference (the frame of the ``press = -1`` samples).
     """
 
     intensities: np.ndarray
@@ -62,6 +67,8 @@ class Samples:
     contact: np.ndarray
     shape: tuple[int, int]
     radial: np.ndarray | None = None
+    images: np.ndarray | None = None
+    reference_image: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(len(self.rows))
@@ -70,7 +77,8 @@ class Samples:
         """The samples where ``mask (N,)`` is True."""
         m = np.asarray(mask, dtype=bool)
         return Samples(self.intensities[m], self.reference[m], self.rows[m], self.cols[m], self.normals[m],
-                       self.press[m], self.contact[m], self.shape, None if self.radial is None else self.radial[m])
+                       self.press[m], self.contact[m], self.shape, None if self.radial is None else self.radial[m],
+                       self.images, self.reference_image)
 
     @property
     def flat_observations(self) -> np.ndarray:
@@ -145,7 +153,8 @@ def collect_samples(frames: np.ndarray, reference: np.ndarray, circles: list[Cir
             dist / max(circ.contact_radius_px, 1e-9))
         add(grid & (dist > flat_outside * ball_px), flat_n, k, False, img)
     I, R, rr, cc, n, pr, ct, rad = (np.concatenate(x) for x in zip(*parts))
-    s = Samples(I.astype(np.float32), R.astype(np.float32), rr, cc, n, pr, ct.astype(bool), (h, w), rad)
+    s = Samples(I.astype(np.float32), R.astype(np.float32), rr, cc, n, pr, ct.astype(bool), (h, w), rad, frames,
+                reference)
     if saturation is not None:
         s = s.subset((s.intensities < saturation).all(axis=(1, 2)))
     if exclude is not None:

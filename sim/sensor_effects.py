@@ -10,7 +10,8 @@ it on (so a sensor that asks for less costs less):
 - :func:`apply_drift`: per-channel gain and offset and that field, on linear DN;
 - :func:`column_stripes`: per-column offsets redrawn every frame (the stripes of cheap
   rolling-shutter sensors such as the DIGIT's);
-- :func:`quantize_8bit` and :func:`jpeg_roundtrip`: what the camera stores.
+- :func:`quantize_8bit` and :func:`jpeg_roundtrip`: what the camera stores;
+- :func:`optical_blur`: the lens and gel stack's point spread (a Gaussian), as on the DIGIT.
 
 Images are ``(H, W, 3)`` RGB; linear ones float (DN), stored ones uint8.
 """
@@ -20,7 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["marker_coverage", "drift_basis", "drift_field", "apply_drift", "column_stripes", "quantize_8bit",
-           "jpeg_roundtrip", "DRIFT_TERMS"]
+           "jpeg_roundtrip", "optical_blur", "DRIFT_TERMS"]
 
 #: Terms of the drift field, on coordinates u (columns) and v (rows) scaled to [-1, 1].
 DRIFT_TERMS = ("u", "v", "u^2", "uv", "v^2")
@@ -195,3 +196,31 @@ def jpeg_roundtrip(image: np.ndarray, quality: int) -> tuple[np.ndarray, bytes]:
     data = buf.tobytes()
     dec = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR)
     return np.ascontiguousarray(dec[..., ::-1]), data
+
+
+def optical_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
+    """A linear image ``(H, W, C)`` blurred by a Gaussian of standard deviation ``sigma_px``.
+
+    The optics' point spread: a camera focused behind a thick gel (the DIGIT's frames are
+    blurred by about 11 px, docs/calibration.md). The border is mirrored, so a flat image
+    stays flat.
+
+    Examples
+    --------
+    >>> img = np.zeros((9, 9, 3), np.float32); img[4, 4] = 90.0
+    >>> out = optical_blur(img, 1.0)
+    >>> out.shape, round(float(out[..., 0].sum()), 3), bool(out[4, 4, 0] < 90)
+    ((9, 9, 3), 90.0, True)
+    """
+    import cv2
+
+    img = np.asarray(image, np.float32)
+    if img.ndim != 3:
+        raise ValueError(f"optical_blur: image must be (H, W, C), got {img.shape}")
+    if not sigma_px >= 0:
+        raise ValueError(f"optical_blur: sigma_px must be >= 0, got {sigma_px}")
+    if sigma_px == 0:
+        return img
+    k = 2 * int(np.ceil(4 * sigma_px)) + 1
+    out = cv2.GaussianBlur(img, (k, k), float(sigma_px), borderType=cv2.BORDER_REFLECT)
+    return out.reshape(img.shape)

@@ -5,10 +5,17 @@ module gives it the look of a lab's own GelSight-type sensor and then the flaws 
 have, each optional and computed only when the sensor asks for it
 (:attr:`VirtualSensor.effects`, :attr:`SensorCapture.computed`):
 
+``rim_smoothing``
+    the gel's smoothing at the contact rim: the pressed surface (and so its exact truth) is
+    the sphere cap blurred by a Gaussian (:func:`sim.geometry.smooth`), so near the rim it is
+    no longer a sphere cap (the sphere truth of calibration stops being exact there);
 ``markers``
     printed dark dots on the gel (albedo, :func:`sim.sensor_effects.marker_coverage`);
 ``vignetting``
     the renderer's lens fall-off (same in the reference and every press);
+``optical_blur``
+    the optics' point spread, a Gaussian (:func:`sim.sensor_effects.optical_blur`; the DIGIT's
+    frames are blurred by about 11 px);
 ``drift_gain``, ``drift_offset``, ``drift_field``
     illumination drift between the reference and each press: per-channel gain and offset
     (DN) and a smooth low-order multiplicative field, drawn per press;
@@ -66,7 +73,7 @@ __all__ = ["VirtualSensor", "SensorTruth", "SensorCapture", "SENSOR_EFFECTS", "p
            "sensor_illumination", "render_sensor", "write_sensor_capture", "write_sensor_images"]
 
 #: Optional effects of a virtual sensor, in the order they are applied.
-SENSOR_EFFECTS = ("markers", "vignetting", "drift_gain", "drift_offset", "drift_field", "column_stripes",
+SENSOR_EFFECTS = ("rim_smoothing", "markers", "vignetting", "optical_blur", "drift_gain", "drift_offset", "drift_field", "column_stripes",
                   "read_noise", "jpeg")
 
 #: Sizes :func:`random_sensor` draws from (rows, columns): portrait and landscape.
@@ -118,6 +125,10 @@ class VirtualSensor:
         Gaussian noise (DN).
     jpeg_quality : int
         JPEG quality (1..100); 0 = frames stored losslessly.
+    rim_smoothing_px : float
+        Standard deviation (px) of the gel's smoothing of the pressed surface.
+    blur_px : float
+        Standard deviation (px) of the optical blur.
     seed : int
         Seed of every random draw of the rendering (drift, noise, marker jitter).
     """
@@ -144,6 +155,8 @@ class VirtualSensor:
     read_noise_dn: float = 1.0
     jpeg_quality: int = 0
     seed: int = 0
+    rim_smoothing_px: float = 0.0
+    blur_px: float = 0.0
 
     def __post_init__(self):
         self.shape = (int(self.shape[0]), int(self.shape[1]))
@@ -155,7 +168,7 @@ class VirtualSensor:
             if not (math.isfinite(v) and v > 0):
                 raise ValueError(f"VirtualSensor: {name} must be a finite number > 0, got {v!r}")
         for name in ("drift_gain", "drift_offset_dn", "drift_field", "marker_spacing_px", "marker_radius_px",
-                     "vignetting", "stripe_noise_dn", "read_noise_dn", "ambient"):
+                     "vignetting", "stripe_noise_dn", "read_noise_dn", "ambient", "rim_smoothing_px", "blur_px"):
             v = getattr(self, name)
             if not (math.isfinite(v) and v >= 0):
                 raise ValueError(f"VirtualSensor: {name} must be a finite number >= 0, got {v!r}")
@@ -199,7 +212,8 @@ class VirtualSensor:
         on = {"markers": self.marker_spacing_px > 0, "vignetting": self.vignetting > 0,
               "drift_gain": self.drift_gain > 0, "drift_offset": self.drift_offset_dn > 0,
               "drift_field": self.drift_field > 0, "column_stripes": self.stripe_noise_dn > 0,
-              "read_noise": self.read_noise_dn > 0, "jpeg": self.jpeg_quality > 0}
+              "read_noise": self.read_noise_dn > 0, "jpeg": self.jpeg_quality > 0,
+              "rim_smoothing": self.rim_smoothing_px > 0, "optical_blur": self.blur_px > 0}
         return tuple(e for e in SENSOR_EFFECTS if on[e])
 
     def to_dict(self) -> dict:
@@ -360,7 +374,8 @@ def random_sensor(seed: int, *, shape: tuple[int, int] | None = None, num_presse
         Which effects to turn on (each at a random strength within what real sensors show:
         gain up to 15 %, offset up to 30 DN, drift field up to 8 %, markers 7-12 % of the
         short side apart, vignetting up to 0.4, stripes 1-3 DN, read noise 0.5-2 DN, JPEG
-        quality 60-90).
+        quality 60-90, rim smoothing 3-8 % and optical blur 2-10 % of the ball radius in
+        pixels, at least 1 px: the DIGIT's 11 px blur is 10 % of its 3 mm ball).
     border_fraction, radius_range
         As :func:`press_layout`.
 
@@ -405,7 +420,20 @@ def random_sensor(seed: int, *, shape: tuple[int, int] | None = None, num_presse
     if "markers" in on:
         kw["marker_radius_px"] = max(1.0, float(rng.uniform(0.12, 0.25)) * spacing)
         kw["marker_darkness"] = float(rng.uniform(0.5, 0.9))
+    _draw_gel_optics(kw, on, rng, ball_px)
     return VirtualSensor(**kw)
+
+
+def _draw_gel_optics(kw: dict, on: set, rng, ball_px: float) -> None:
+    """The rim smoothing and optical blur of :func:`random_sensor`, drawn after every other
+    draw (so turning them on or off leaves the other effects' values as they were)."""
+    # at least 1 px each: below that a small sensor's 8-bit frames would not show them
+    smoothing = max(1.0, float(rng.uniform(0.03, 0.08)) * ball_px)
+    blur = max(1.0, float(rng.uniform(0.02, 0.10)) * ball_px)
+    if "rim_smoothing" in on:
+        kw["rim_smoothing_px"] = smoothing
+    if "optical_blur" in on:
+        kw["blur_px"] = blur
 
 
 def sensor_illumination(sensor: VirtualSensor) -> tuple[IlluminationModel, np.ndarray, np.ndarray, list[str]]:
@@ -450,8 +478,13 @@ def _press_surfaces(sensor: VirtualSensor):
     a_mm = sensor.contact_radii_px * sensor.mm_per_px
     depths = R - np.sqrt(R * R - a_mm * a_mm)
     x, y = pixel_to_recon(sensor.centers_xy[:, 1], sensor.centers_xy[:, 0], (h, w), sensor.mm_per_px)
-    return [sphere((h, w), sensor.mm_per_px, R, float(d), center=(float(cx), float(cy)))
+    caps = [sphere((h, w), sensor.mm_per_px, R, float(d), center=(float(cx), float(cy)))
             for d, cx, cy in zip(depths, np.atleast_1d(x), np.atleast_1d(y))]
+    if "rim_smoothing" not in sensor.effects:
+        return caps
+    from sim.geometry import smooth
+
+    return [smooth(c, sensor.rim_smoothing_px * sensor.mm_per_px) for c in caps]
 
 
 def _drift_draws(sensor: VirtualSensor, rng):
@@ -482,6 +515,9 @@ class _Camera:
 
     def frame(self, img: np.ndarray, press: int | None, rng) -> np.ndarray:
         s, on = self.s, self.s.effects
+        if "optical_blur" in on:
+            img = fx.optical_blur(img, s.blur_px)
+            self._mark("optical_blur")
         if press is not None and ("drift_gain" in on or "drift_offset" in on or "drift_field" in on):
             field_map = None
             if "drift_field" in on:
@@ -542,6 +578,8 @@ def _render_sensor(sensor: VirtualSensor, device) -> SensorCapture:
     renderer = Renderer(model, settings, device=device)
     if "vignetting" in on:
         computed.append("vignetting")
+    if "rim_smoothing" in on:
+        computed.append("rim_smoothing")
     camera = _Camera(sensor, gain, offset, coeffs)
     surfaces = _press_surfaces(sensor)
     frames = np.empty((sensor.num_presses, len(pattern_names), h, w, 3), np.uint8)

@@ -17,7 +17,7 @@ Lighting modes are data, not code: a built-in mode registers by its YAML file in
 Examples
 --------
 >>> SOLVERS.names()
-('lstsq', 'nearfield', 'robust', 'cauchy', 'far', 'near', 'traced', 'lut', 'mlp')
+('lstsq', 'nearfield', 'robust', 'cauchy', 'far', 'near', 'traced', 'lut', 'mlp', 'conv')
 >>> INTEGRATORS.check("dst")
 'dst'
 >>> INTEGRATORS.check("poisson")
@@ -201,6 +201,10 @@ SOLVERS = Registry("solver", "--solver", [
           "the calibration's MLP (colour change, reference and position -> normal)",
           {"needs": "model:mlp", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
            "fills_markers": True, "fast": "pipeline.solving.frame_solvers:fast_mlp"}),
+    Entry("conv", "pipeline.solving.model_solvers:stack_conv",
+          "the calibration's convolutional network (the colour change around each pixel -> normal)",
+          {"needs": "model:conv", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
+           "fills_markers": True}),
 ])
 
 #: Depth integrators: ``target(normals (H, W, 3), mm_per_px, mask, **kwargs) -> DepthResult``

@@ -16,7 +16,7 @@ Per sensor, calibrate on some presses and judge on the others:
   and as the documented workflow has it, two folders (presses 0-19 and 20-29, each with the
   no-contact frame) imported one by one, calibrated on the first and evaluated on the second;
 - **randomised virtual sensors** (:func:`sim.virtual_sensor.random_sensor`, every effect:
-  markers, vignetting, drift, column stripes, read noise, JPEG; sizes 120 x 160 to 640 x 480,
+  the gel's rim smoothing, markers, vignetting, optical blur, drift, column stripes, read noise, JPEG; sizes 120 x 160 to 640 x 480,
   portrait and landscape) with exact truth: 20 presses calibrate, 10 test.
 
 Per sensor: presses accepted (calibration and test), the median centre and radius error of
@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["DIGIT_BALL_MM", "DIGIT_MM_PER_PX", "format_sensors", "run_sensors", "shared_data_dir"]
+__all__ = ["DIGIT_BALL_MM", "DIGIT_MM_PER_PX", "SENSOR_MODELS", "format_sensors", "run_sensors", "shared_data_dir"]
 
 #: The DIGIT folder's ball and pixel pitch (its README).
 DIGIT_BALL_MM = 3.0
@@ -200,7 +200,11 @@ def _drift_rotation_rows(cases, model: str) -> list[dict[str, Any]]:
             for drift in ROTATED_DRIFTS]
 
 
-def run_sensors(quick: bool = False, models="all", log=None) -> dict[str, Any]:
+#: The models every row calibrates: the per-pixel ones and the convolutional network.
+SENSOR_MODELS = ("all", "conv")
+
+
+def run_sensors(quick: bool = False, models=SENSOR_MODELS, log=None) -> dict[str, Any]:
     """Every sensor on hand through calibrate (train presses) and eval calibration (test presses).
 
     ``log(message)``, when given, hears one line per finished row and before each drift table
@@ -286,7 +290,7 @@ def format_sensors(result: dict[str, Any]) -> list[str]:
     """The ``--sensors`` table."""
     lines = [("sensors: calibrate on presses 0-19, test on 20-29 (virtual: 20 of 30 random presses, 10 test); "
              "test = best model (by CV) against the test presses' detected circles, truth = against the exact "
-             "circles (virtual), ball = median |radius error| of a sphere fitted to each reconstructed test press, "
+             "circles and the gel's exact normals (virtual), ball = median |radius error| of a sphere fitted to each reconstructed test press, "
              "r med = the median fitted radius against the ball's (signed: the scale the presses share), "
              "scatter = how much single presses scatter about it (1.48 MAD); "
              "centre/radius = accepted circles against the hand labels (GelSight: a convention ~2 px off) or the "

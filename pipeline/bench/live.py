@@ -15,7 +15,10 @@ on one thread and on every core:
   runs them by default, each frame's illumination drift against the reference removed
   (``--drift auto``: a gain and an offset per channel fitted on
   :data:`pipeline.normals.drift.LIVE_SAMPLES` pixels), and again with ``--drift none``
-  (rows ``lut (--drift none)``): the difference is what drift removal costs per frame.
+  (rows ``lut (--drift none)``): the difference is what drift removal costs per frame;
+- **conv**: the convolutional network (:mod:`calibration.models.conv`) the same way (not with
+  ``--quick``); it has no compiled fast path, so its "fast" rows run the model's own
+  ``normal_maps`` (torch) per frame.
 
 Errors: mean angular error of the normals against the rendered truth (every pixel), and the
 largest deviation of the fast path from the eager one (deg). Targets (on a 2-core
@@ -260,7 +263,8 @@ def _run(args) -> dict:
             rows += measure_nearfield(w, h, max(3, repeats // 3), patterns=24, label="nearfield (point, 72 obs)",
                                       threads_all=cores)
         if spec == sizes[0] or spec == "320x240":
-            for solver in ("lut", "mlp"):
+            # the network's calibration fits for a minute: not in --quick (the test suite runs it)
+            for solver in ("lut", "mlp") + (() if quick else ("conv",)):
                 rows += measure_model(solver, w, h, repeats, store, threads_all=cores)
     device = None
     if getattr(args, "device", "cpu") != "cpu":

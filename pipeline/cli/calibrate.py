@@ -11,7 +11,7 @@ from pipeline.cli._common import (
     profile_metavar,
 )
 
-MODEL_CHOICES = ["far", "near", "traced", "lut", "mlp", "all"]
+MODEL_CHOICES = ["far", "near", "traced", "lut", "mlp", "conv", "all"]
 
 
 def register(sub, name, help_text):
@@ -44,7 +44,9 @@ def register(sub, name, help_text):
                                "(default: the --profile's, else gain_offset: a gain and an offset per channel; "
                                "field: both quadratic in the image position)")
     models = p.add_argument_group("models")
-    models.add_argument("--model", choices=MODEL_CHOICES, default="all", help="model(s) to fit (default all)")
+    models.add_argument("--model", choices=MODEL_CHOICES, default="all",
+                        help="model(s) to fit (default all: the per-pixel models; conv, the convolutional network "
+                             "that sees a pixel's neighbourhood, only when named)")
     models.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
     models.add_argument("--mlp-members", type=int, default=None, metavar="N",
                         help="fit the MLP as an ensemble of N nets (mean prediction; their agreement is the "

@@ -27,7 +27,7 @@ import numpy as np
 from pipeline.normals.result import COND_CAP
 
 __all__ = ["solve_with_model", "maps_to_results", "stack_far", "stack_near", "stack_traced", "stack_lut",
-           "stack_mlp", "LIGHT_FIELD_MODELS"]
+           "stack_mlp", "stack_conv", "LIGHT_FIELD_MODELS"]
 
 #: Models whose confidence is the inverse condition number of a per-pixel light matrix.
 LIGHT_FIELD_MODELS = ("far", "near", "traced")
@@ -115,3 +115,8 @@ def stack_lut(frames, lights, **options) -> list:
 def stack_mlp(frames, lights, **options) -> list:
     """The calibration's MLP (:func:`solve_with_model`)."""
     return solve_with_model("mlp", frames, lights, **options)
+
+
+def stack_conv(frames, lights, **options) -> list:
+    """The calibration's convolutional network (:func:`solve_with_model`)."""
+    return solve_with_model("conv", frames, lights, **options)

@@ -155,3 +155,30 @@ def test_solve_normals_float32_and_float64_agree():
     assert fine.mean() > 0.8
     assert angular_error_deg(n64[fine], n[fine]).max() < 1e-4
     assert angular_error_deg(n32[fine], n64[fine]).max() < 1e-2
+
+
+def test_conv_learns_is_deterministic_and_predicts_frames_as_samples(trichromatic):
+    """The network: two fits bit-identical; a whole frame gives each pixel what its samples give
+    (valid convolutions, the frame's border repeated); stored and loaded it answers the same."""
+    from calibration.models import ConvModel
+    from calibration.samples import Samples
+
+    cap, tr = trichromatic
+    s, r = calibration_samples(cap, tr)
+    train, test = s.subset(s.press < 7), s.subset((s.press >= 7) & s.contact)
+    a, b = (ConvModel(width=8, dilations=(1, 2), epochs=100, tiles=64, batch=16) for _ in range(2))
+    a.fit(train, r)
+    b.fit(train, r)
+    na, ok = a.predict(test)
+    np.testing.assert_array_equal(na, b.predict(test)[0])
+    assert ok.all() and angular_error_deg(na, test.normals).mean() < 6.0
+    k = 8
+    maps = a.normal_maps(test.images[k:k + 1], r)
+    one = test.subset(test.press == k)
+    np.testing.assert_allclose(maps.normals[0][one.rows, one.cols], a.predict(one)[0], atol=1e-5)
+    again = ConvModel.from_arrays(a.to_arrays())
+    np.testing.assert_allclose(again.predict(test)[0], na, atol=1e-6)
+    bare = Samples(test.intensities, test.reference, test.rows, test.cols, test.normals, test.press, test.contact,
+                   test.shape)
+    with pytest.raises(ValueError, match="whole frames"):
+        a.predict(bare)

@@ -165,3 +165,20 @@ def test_cli_writes_a_capture_and_an_image_folder(tmp_path, capsys):
     assert read_capture(tmp_path / "s.h5").frames.shape == (2, 1, 40, 60, 3)
     assert main(["sim", "sensor", "--effects", "fog", "--out", str(tmp_path / "x.h5")]) == 2
     assert "unknown effect" in capsys.readouterr().err and not (tmp_path / "x.h5").exists()
+
+
+def test_rim_smoothing_and_blur_are_what_the_truth_says():
+    """Rim smoothing: the truth is the smoothed cap, the sphere's normals wrong near the rim and
+    within a degree beyond SPHERE_TRUST_SIGMAS; optical blur: the frame is the blurred clean one."""
+    from calibration.truth import SPHERE_TRUST_SIGMAS, rim_error_profile
+
+    s = random_sensor(13, shape=(90, 120), num_presses=1, effects=["rim_smoothing", "optical_blur"],
+                      border_fraction=0.0).replace(rim_smoothing_px=2.0, blur_px=2.0, ball_radius_mm=3.0, mm_per_px=0.1, contact_radii_px=(20.0,))
+    out = render_sensor(s)
+    (x, y), a = out.truth.center_xy[0], out.truth.radius_px[0]
+    prof = rim_error_profile(out.truth.normals[0], (y, x), a, s.ball_radius_mm, s.mm_per_px, 1.0, 8)
+    assert prof[0] > 5 and np.nanmax(prof[int(SPHERE_TRUST_SIGMAS * 2):]) < 1.0, prof
+    sharp = render_sensor(s.replace(blur_px=0.0))
+    want = sensor_effects.optical_blur(sharp.capture.frames[0, 0].astype(np.float32), 2.0)
+    err = np.abs(out.capture.frames[0, 0].astype(np.float32) - want)[4:-4, 4:-4]
+    assert err.max() <= 1.0 and np.abs(out.capture.frames.astype(float) - sharp.capture.frames).max() > 5

@@ -1,0 +1,362 @@
+"""A small fully-convolutional network: a pixel's normal from the colour change around it.
+
+A pixel's colour alone cannot undo what spreads light over its neighbours (an optical blur,
+the gel's smoothing at the rim, printed markers, JPEG blocks); its neighbourhood can. The
+network sees, per pixel, the same inputs as the MLP (:mod:`calibration.models.mlp`): the colour
+change ``I - I_ref`` of every pattern-channel (times 4, over ``input_scale``), the reference
+``I_ref`` and the normalised position ``(u, v)``, as image planes; a stack of 3 x 3
+convolutions with growing dilation (``dilations``, default 1, 2, 4: a 15 x 15 pixel window)
+and two 1 x 1 layers give ``(n_x, n_y)`` per pixel, with ``n_z = sqrt(1 - n_x^2 - n_y^2)``.
+Every convolution is "valid"; a frame is padded by the window's radius, repeating its border
+pixels, so a pixel's answer depends on its own window only: training on tiles of the presses
+and predicting whole frames compute the same function.
+
+Training: tiles of ``tile x tile`` output pixels centred on the presses' samples (three in four
+on contact pixels, the rest on flat ones), each with its input window; the loss is the L1
+error of ``(n_x, n_y)`` at the tile's sampled pixels, weighted toward the rim as the MLP's
+(``rim_weight``). Adam with a cosine learning-rate decay over ``epochs`` steps of ``batch``
+tiles; the seed and ``torch.use_deterministic_algorithms`` make two fits bit-identical. The
+samples must carry their whole frames (:attr:`calibration.samples.Samples.images`, as
+:func:`calibration.samples.collect_samples` and :func:`calibration.normal_maps.pixel_samples`
+give them).
+"""
+
+from __future__ import annotations
+
+import contextlib
+from typing import Any
+
+import numpy as np
+
+from calibration.models.base import CalibrationModel
+from calibration.samples import Samples
+
+__all__ = ["ConvModel", "feature_planes"]
+
+
+@contextlib.contextmanager
+def _seeded(seed: int, threads: int | None):
+    import torch
+
+    from pipeline.base.threads import limit_threads
+
+    was = torch.are_deterministic_algorithms_enabled()
+    torch.use_deterministic_algorithms(True, warn_only=True)
+    try:
+        with limit_threads(torch=int(threads) if threads else None):
+            torch.manual_seed(seed)
+            yield
+    finally:
+        torch.use_deterministic_algorithms(was)
+
+
+def feature_planes(image: np.ndarray, reference: np.ndarray, rows: tuple[int, int], cols: tuple[int, int],
+                   input_scale: float) -> np.ndarray:
+    """The network's input planes on a window of a frame.
+
+    Parameters
+    ----------
+    image, reference : ndarray, shape (P, H, W, C)
+        A frame and the no-contact reference (linear).
+    rows, cols : (start, stop)
+        The window (stop excluded); it may reach past the frame, whose border pixels then repeat.
+    input_scale : float
+
+    Returns
+    -------
+    ndarray, shape (2 * P * C + 2, stop - start of rows, of cols), float32
+        The colour change (times 4) and the reference over ``input_scale``, then ``u``, ``v``
+        (the position, -1 to 1 over the frame).
+
+    Examples
+    --------
+    >>> img = np.full((1, 4, 5, 3), 60.0, np.float32); ref = np.full((1, 4, 5, 3), 50.0, np.float32)
+    >>> x = feature_planes(img, ref, (-1, 3), (0, 5), 100.0)
+    >>> x.shape, round(float(x[0, 0, 0]), 3), round(float(x[3, 0, 0]), 3), x[6, 0].tolist(), x[7, :, 0].tolist()
+    ((8, 4, 5), 0.4, 0.5, [-1.0, -0.5, 0.0, 0.5, 1.0], [-1.0, -1.0, -0.3333333432674408, 0.3333333432674408])
+    """
+    p, h, w, c = image.shape
+    (a, b), (d, e) = (int(v) for v in rows), (int(v) for v in cols)
+    r0, r1, c0, c1 = max(a, 0), min(b, h), max(d, 0), min(e, w)
+    if r0 >= r1 or c0 >= c1:
+        raise ValueError(f"feature_planes: the window rows {rows}, cols {cols} misses the {h} x {w} frame")
+    scale = np.float32(1.0 / float(input_scale))
+    img = np.asarray(image, np.float32)[:, r0:r1, c0:c1].transpose(0, 3, 1, 2).reshape(p * c, r1 - r0, c1 - c0)
+    ref = np.asarray(reference, np.float32)[:, r0:r1, c0:c1].transpose(0, 3, 1, 2).reshape(p * c, r1 - r0, c1 - c0)
+    u = (np.clip(np.arange(d, e), 0, w - 1).astype(np.float32) - (w - 1) / 2.0) / max((w - 1) / 2.0, 1.0)
+    v = (np.clip(np.arange(a, b), 0, h - 1).astype(np.float32) - (h - 1) / 2.0) / max((h - 1) / 2.0, 1.0)
+    out = np.empty((2 * p * c + 2, b - a, e - d), np.float32)
+    inner = (slice(r0 - a, r1 - a), slice(c0 - d, c1 - d))
+    np.multiply(img - ref, np.float32(4.0 * scale), out=out[(slice(0, p * c), *inner)])
+    np.multiply(ref, scale, out=out[(slice(p * c, 2 * p * c), *inner)])
+    planes = out[:2 * p * c]
+    if (a, b, d, e) != (r0, r1, c0, c1):  # repeat the border pixels into the window's margin
+        planes[:, :r0 - a] = planes[:, r0 - a:r0 - a + 1]
+        planes[:, r1 - a:] = planes[:, r1 - a - 1:r1 - a]
+        planes[:, :, :c0 - d] = planes[:, :, c0 - d:c0 - d + 1]
+        planes[:, :, c1 - d:] = planes[:, :, c1 - d - 1:c1 - d]
+    out[-2] = u[None, :]
+    out[-1] = v[:, None]
+    return out
+
+
+class ConvModel(CalibrationModel):
+    """Fully-convolutional network on a pixel's neighbourhood.
+
+    Parameters
+    ----------
+    width : int
+        Channels of every hidden layer.
+    dilations : tuple of int
+        One 3 x 3 convolution per entry, with that dilation; the window's radius is their sum.
+    epochs : int
+        Adam steps (each on ``batch`` tiles).
+    lr : float
+        Peak learning rate (cosine decay to 0).
+    seed : int
+    tile : int
+        Output pixels per tile side.
+    tiles : int
+        Tiles drawn (seeded) from the training samples.
+    batch : int
+        Tiles per step.
+    input_scale : float
+        Camera values are divided by this (255 for 8-bit frames).
+    rim_weight : float
+        Loss weight of a contact pixel at the rim relative to the apex, ``1 + (rim_weight - 1)
+        rho^2`` (as :class:`calibration.models.mlp.MLPModel`).
+    device : str
+        Torch device ("cpu", "cuda").
+    threads : int or None
+        Torch intra-op threads while fitting and predicting (None: leave torch's setting).
+    """
+
+    name = "conv"
+    confidence_meaning = "1 where the network gives a normal"
+
+    def __init__(self, width: int = 16, dilations: tuple[int, ...] = (1, 2, 4, 8), epochs: int = 600, lr: float = 1e-2,
+                 seed: int = 0, tile: int = 16, tiles: int = 384, batch: int = 32, input_scale: float = 255.0,
+                 rim_weight: float = 4.0, device: str = "cpu", threads: int | None = 1):
+        dil = tuple(int(d) for d in dilations)
+        if int(width) < 1 or not dil or min(dil) < 1:
+            raise ValueError(f"ConvModel: width must be >= 1 and dilations a non-empty list of integers >= 1, got "
+                             f"{width}, {dilations}")
+        if int(tile) < 1 or int(tiles) < 1 or int(batch) < 1 or not rim_weight > 0:
+            raise ValueError(f"ConvModel: tile, tiles and batch must be >= 1 and rim_weight > 0, got {tile}, {tiles}, "
+                             f"{batch}, {rim_weight}")
+        self.width, self.dilations, self.epochs, self.lr, self.seed = int(width), dil, int(epochs), float(lr), int(seed)
+        self.tile, self.tiles, self.batch = int(tile), int(tiles), int(batch)
+        self.input_scale, self.rim_weight = float(input_scale), float(rim_weight)
+        self.device, self.threads = device, threads
+        self.net = None
+        self.shape: tuple[int, int] | None = None
+        self.reference: np.ndarray | None = None
+
+    @property
+    def radius(self) -> int:
+        """The input window's radius (pixels): the sum of the dilations."""
+        return int(sum(self.dilations))
+
+    def _build(self, n_in: int):
+        import torch
+
+        mods: list = []
+        width = n_in
+        for d in self.dilations:
+            mods += [torch.nn.Conv2d(width, self.width, 3, dilation=d), torch.nn.SiLU()]
+            width = self.width
+        mods += [torch.nn.Conv2d(width, self.width, 1), torch.nn.SiLU(), torch.nn.Conv2d(self.width, 2, 1)]
+        return torch.nn.Sequential(*mods).to(self.device)
+
+    @staticmethod
+    def _frames(samples: Samples) -> tuple[np.ndarray, np.ndarray]:
+        if samples.images is None or samples.reference_image is None:
+            raise ValueError("ConvModel: the samples carry no whole frames (Samples.images, reference_image); build "
+                             "them with calibration.samples.collect_samples or calibration.normal_maps.pixel_samples")
+        return samples.images, samples.reference_image
+
+    @staticmethod
+    def _flat_area(samples: Samples, idx: np.ndarray) -> np.ndarray:
+        """``(H, W)`` float32, 1 on the flat gel of one frame: within 2 px of its flat samples (a sparse
+        grid far from the contact, :func:`calibration.samples.collect_samples`), every pixel."""
+        from scipy import ndimage
+
+        out = np.zeros(samples.shape, bool)
+        flat = idx[~samples.contact[idx]]
+        out[samples.rows[flat], samples.cols[flat]] = True
+        return ndimage.maximum_filter(out, size=5).astype(np.float32)
+
+    def _tile_set(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(inputs (N, F, T + 2R, T + 2R), targets (N, 2, T, T), weights (N, T, T))`` of the drawn tiles."""
+        images, ref = self._frames(samples)
+        rng = np.random.default_rng(self.seed)
+        con = np.nonzero(samples.contact)[0]
+        flat = np.nonzero(~samples.contact)[0]
+        n_con = 0 if not len(con) else self.tiles if not len(flat) else int(round(0.75 * self.tiles))
+        centres = np.concatenate([rng.choice(con, n_con) if n_con else np.zeros(0, int),
+                                  rng.choice(flat, self.tiles - n_con) if self.tiles > n_con else np.zeros(0, int)])
+        w_all = np.ones(len(samples), np.float32)
+        if self.rim_weight != 1.0 and samples.radial is not None:
+            rho2 = np.where(samples.contact, np.clip(samples.radial, 0.0, 1.0) ** 2, 0.0)
+            w_all = (1.0 + (self.rim_weight - 1.0) * rho2).astype(np.float32)
+        t, r = self.tile, self.radius
+        by_press = {int(p): np.nonzero(samples.press == p)[0] for p in np.unique(samples.press[centres])}
+        flat = {p: self._flat_area(samples, idx) for p, idx in by_press.items()}
+        h, w = samples.shape
+        n_in = 2 * int(np.prod(samples.intensities.shape[1:])) + 2
+        x = np.empty((len(centres), n_in, t + 2 * r, t + 2 * r), np.float32)
+        y = np.zeros((len(centres), 2, t, t), np.float32)
+        wt = np.zeros((len(centres), t, t), np.float32)
+        for j, i in enumerate(centres):
+            p = int(samples.press[i])
+            r0, c0 = int(samples.rows[i]) - t // 2, int(samples.cols[i]) - t // 2
+            img = images[p] if p >= 0 else ref
+            x[j] = feature_planes(img, ref, (r0 - r, r0 + t + r), (c0 - r, c0 + t + r), self.input_scale)
+            win = flat[p][np.clip(np.arange(r0, r0 + t), 0, h - 1)][:, np.clip(np.arange(c0, c0 + t), 0, w - 1)]
+            wt[j] = win  # the flat gel around the flat samples: n = (0, 0, 1)
+            idx = by_press[p]
+            rr, cc = samples.rows[idx] - r0, samples.cols[idx] - c0
+            m = (rr >= 0) & (rr < t) & (cc >= 0) & (cc < t)
+            y[j, :, rr[m], cc[m]] = samples.normals[idx[m], :2].astype(np.float32)
+            wt[j, rr[m], cc[m]] = w_all[idx[m]]
+        return x, y, wt
+
+    def fit(self, samples: Samples, reference: np.ndarray | None = None) -> dict[str, Any]:
+        import torch
+
+        self.shape = samples.shape
+        if reference is not None:
+            self.reference = np.asarray(reference, dtype=np.float32)
+        x, y, w = self._tile_set(samples)
+        w = w / max(float(w.sum()) / max(int((w > 0).sum()), 1), 1e-12)  # mean weight 1 over the sampled pixels
+        with _seeded(self.seed, self.threads):
+            net = self._build(x.shape[1])
+            xt, yt, wt = (torch.from_numpy(a).to(self.device) for a in (x, y, w))
+            opt = torch.optim.Adam(net.parameters(), lr=self.lr)
+            sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(self.epochs, 1))
+            order = np.random.default_rng(self.seed + 1)
+            perm = order.permutation(len(x))
+            at, loss = 0, torch.zeros(())
+            for _ in range(self.epochs):
+                if at + self.batch > len(perm):
+                    perm, at = order.permutation(len(x)), 0
+                b = torch.from_numpy(perm[at:at + self.batch])
+                at += self.batch
+                opt.zero_grad()
+                wb = wt[b]
+                loss = (wb[:, None] * (net(xt[b]) - yt[b]).abs()).sum() / torch.clamp(wb.sum() * 2, min=1e-6)
+                loss.backward()
+                opt.step()
+                sched.step()
+        self.net = net.eval()
+        rep = self._fit_report(samples)
+        rep["final_l1_loss"] = float(loss.detach())
+        rep["tiles"] = int(len(x))
+        return rep
+
+    def predict_planes(self, image: np.ndarray, reference: np.ndarray, rows: slice, cols: slice,
+                       as_float64: bool = True) -> np.ndarray:
+        """The raw ``(n_x, n_y)`` ``(2, h, w)`` on a window (``rows``, ``cols`` slices) of a frame
+        (float64, or the network's float32 with ``as_float64=False``)."""
+        import torch
+
+        if self.net is None:
+            raise ValueError("ConvModel: not fitted")
+        r = self.radius
+        x = feature_planes(image, reference, (rows.start - r, rows.stop + r), (cols.start - r, cols.stop + r),
+                           self.input_scale)
+        from pipeline.base.threads import limit_threads
+
+        # No deterministic mode here: it picks slower convolutions (45 against 17 ms a 320 x 240
+        # frame, measured), and inference on a CPU gives the same numbers run after run.
+        with torch.no_grad(), limit_threads(torch=int(self.threads) if self.threads else None):
+            out = self.net(torch.from_numpy(x[None]).to(self.device))[0].cpu().numpy()
+        return out.astype(np.float64) if as_float64 else out
+
+    def _predict(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        images, ref = self._frames(samples)
+        out = np.zeros((len(samples), 2))
+        for p in np.unique(samples.press):
+            m = samples.press == p
+            rows, cols = samples.rows[m], samples.cols[m]
+            r0, c0 = int(rows.min()), int(cols.min())
+            planes = self.predict_planes(images[p] if p >= 0 else ref, ref, slice(r0, int(rows.max()) + 1),
+                                         slice(c0, int(cols.max()) + 1))
+            out[m] = planes[:, rows - r0, cols - c0].T
+        r2 = np.sum(out ** 2, axis=1)
+        # Outputs outside the unit disc have no normal: shrink them onto an 85-degree tilt (as the MLP).
+        out = out * np.where(r2 > 0.996, np.sqrt(0.996 / np.maximum(r2, 1e-12)), 1.0)[:, None]
+        n = np.concatenate([out, np.sqrt(1.0 - np.sum(out ** 2, axis=1, keepdims=True))], axis=1)
+        ok = np.isfinite(n).all(axis=1)
+        return n, ok, ok.astype(np.float64)
+
+    def normal_maps(self, frames: np.ndarray, reference: np.ndarray | None = None, *, markers=None):
+        """Normals, mask and confidence of whole frames, as
+        :func:`calibration.normal_maps.predict_normal_maps` gives them (which runs with ``markers``).
+
+        Without markers the network runs on each whole frame in float32 and its answer is corrected
+        (``tilt_gain``, ``max_tilt``) in place: the same normals as the per-sample path to float32
+        rounding, without gathering every pixel as a sample (86 -> 50 ms a 320 x 240 frame, measured
+        with other jobs running).
+        """
+        from calibration.normal_maps import NormalMaps, as_frame_stack
+
+        ref = reference if reference is not None else self.stored_reference()
+        if markers is not None or ref is None:
+            return super().normal_maps(frames, reference, markers=markers)
+        ref = np.asarray(ref, np.float32)
+        stack = as_frame_stack(frames, ref.shape[0])
+        n_img, p, h, w, c = stack.shape
+        if ref.shape != (p, h, w, c):
+            raise ValueError(f"ConvModel.normal_maps: reference must be (P, H, W, C) = {(p, h, w, c)} like the frames, "
+                             f"got {ref.shape}")
+        finite = np.isfinite(stack).all(axis=(1, 4))
+        stack = np.where(np.isfinite(stack), stack, np.float32(0.0)) if not finite.all() else stack
+        normals = np.zeros((n_img, h, w, 3), np.float32)
+        limit = np.float32(0.999 if self.max_tilt is None else min(float(self.max_tilt), 0.999))
+        for i in range(n_img):
+            xy = self.predict_planes(stack[i], ref, slice(0, h), slice(0, w), as_float64=False)
+            r2 = xy[0] * xy[0] + xy[1] * xy[1]
+            # onto an 85-degree tilt at most (as _predict), then the output correction (scale_tilt)
+            xy *= np.where(r2 > 0.996, np.sqrt(0.996 / np.maximum(r2, 1e-12)), 1.0).astype(np.float32) * np.float32(
+                self.tilt_gain)
+            mag = np.sqrt(xy[0] * xy[0] + xy[1] * xy[1])
+            xy *= np.where(mag > limit, limit / np.maximum(mag, 1e-12), 1.0).astype(np.float32)
+            normals[i, ..., 0], normals[i, ..., 1] = xy[0], xy[1]
+            normals[i, ..., 2] = np.sqrt(np.clip(1.0 - xy[0] * xy[0] - xy[1] * xy[1], 0.0, 1.0))
+        mask = finite & np.isfinite(normals).all(-1)
+        normals[~mask] = (0.0, 0.0, 1.0)
+        return NormalMaps(normals=normals, mask=mask, confidence=mask.astype(np.float32),
+                          meta={"model": self.name, "confidence": self.confidence_meaning})
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """Arrays for calibration.h5 (inverse: :meth:`from_arrays`): ``weights/<param>``,
+        ``config = [width, *dilations]``, ``input_scale``, ``reference``."""
+        if self.net is None:
+            raise ValueError("ConvModel: not fitted")
+        arrays = {f"weights/{k.replace('.', '_')}": v.detach().cpu().numpy() for k, v in self.net.state_dict().items()}
+        arrays["config"] = np.array([self.width, *self.dilations], dtype=np.int64)
+        arrays["input_scale"] = np.asarray(self.input_scale, dtype=np.float64)
+        if self.reference is not None:
+            arrays["reference"] = self.reference
+        return arrays
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], device: str = "cpu") -> "ConvModel":
+        """A fitted model from :meth:`to_arrays`' output."""
+        import torch
+
+        cfg = [int(v) for v in np.asarray(arrays["config"]).ravel()]
+        model = cls(width=cfg[0], dilations=tuple(cfg[1:]), input_scale=float(arrays["input_scale"]), device=device)
+        ref = arrays.get("reference")
+        model.reference = None if ref is None else np.asarray(ref, np.float32)
+        if model.reference is not None:
+            model.shape = tuple(model.reference.shape[1:3])
+        state = {k[len("weights/"):]: torch.from_numpy(np.asarray(v)) for k, v in arrays.items()
+                 if k.startswith("weights/")}
+        if not state:
+            raise KeyError("weights/*")
+        net = model._build(int(state["0_weight"].shape[1]))
+        net.load_state_dict({k.replace("_", ".", 1): v for k, v in state.items()})
+        model.net = net.eval()
+        return model
