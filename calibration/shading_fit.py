@@ -241,9 +241,6 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
     det = detect or DetectOptions()
     report: dict[str, Any] = {"iterations": 0, "moved": [], "explained": [None] * len(circles), "max_move_px": []}
     trusted = [k for k, c in enumerate(circles) if c.accepted]
-    if len(trusted) < 2:
-        report["note"] = "fewer than two accepted presses: no forward model"
-        return list(circles), report
     s = work_scale(ball_radius_px, det)
     ball = ball_radius_px * s
     f_w, ref_w = shrink(frames, s), shrink(reference, s)[None]
@@ -263,6 +260,15 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
     edge = [(to_w(c.center_xy[0]), to_w(c.center_xy[1]), max(c.radius_px * s, 0.2 * ball)) for c in circles]
     located = [k for k, c in enumerate(circles) if c.accepted or (c.radius_px > 0 and not c.reason.startswith("too faint"))]
     cur = dict(enumerate(edge))
+    support = {k: _support_circle(change[k], valid[k], ball, cur[k][:2]) for k in located}
+    if len(trusted) < max(3, len(located) // 3):
+        # Too few edge circles to shape the first model: start every press from the region that changed.
+        cur.update(support)
+        trusted = list(located)
+        report["start"] = "the regions that changed (too few edge circles accepted)"
+    if len(trusted) < 2:
+        report["note"] = "fewer than two located presses: no forward model"
+        return list(circles), report
     model = ShadingModel((h, w), opt.ridge)
     explained: dict[int, float] = {}
     for it in range(opt.iterations):
@@ -273,7 +279,7 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
             win = wins[k]
             cx, cy, r = cur[k]
             com = _centre_of_change(win)
-            starts = [cur[k], edge[k]] + [(x, y, f * ball) for f in (0.3, 0.45, 0.6, 0.75, 0.9)
+            starts = [cur[k], edge[k], support[k]] + [(x, y, f * ball) for f in (0.3, 0.45, 0.6, 0.75, 0.9)
                                           for x, y in ((cx, cy), com)]
             fit, cost = _fit_press(model, win, starts, ball)
             if fit is None:
@@ -298,6 +304,32 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
                 abs(r - circles[k].radius_px) > 0.5:
             report["moved"].append(k)
     return out, report
+
+
+def _support_circle(change_img: np.ndarray, valid: np.ndarray, ball_px: float, near=None) -> tuple[float, float, float]:
+    """A model-free start: the disc of the same area and centroid as the region that changed
+    (above six noise sigmas of the change's magnitude, holes filled; the region nearest ``near``
+    ``(x, y)`` when given, else the largest)."""
+    from scipy import ndimage
+
+    mag = np.sqrt((change_img ** 2).sum(axis=-1))
+    mag = ndimage.gaussian_filter(np.where(valid, mag, np.median(mag)), 1.0)
+    med = float(np.median(mag))
+    sigma = 1.4826 * float(np.median(np.abs(mag - med))) + 1e-6
+    region = ndimage.binary_fill_holes(ndimage.binary_closing(mag > med + 6 * sigma, iterations=2))
+    labels, n = ndimage.label(region)
+    if n == 0:
+        h, w = mag.shape
+        return (w - 1) / 2, (h - 1) / 2, 0.5 * ball_px
+    sizes = ndimage.sum(region, labels, range(1, n + 1))
+    pick = int(np.argmax(sizes)) + 1
+    if near is not None:
+        cy, cx = zip(*ndimage.center_of_mass(region, labels, range(1, n + 1)))
+        d = np.hypot(np.asarray(cx) - near[0], np.asarray(cy) - near[1]) - np.sqrt(sizes / np.pi)
+        pick = int(np.argmin(d)) + 1
+    rows, cols = np.nonzero(labels == pick)
+    r = float(np.clip(np.sqrt(len(rows) / np.pi), 0.2 * ball_px, 0.95 * ball_px))
+    return float(cols.mean()), float(rows.mean()), r
 
 
 def _centre_of_change(win: _Press) -> tuple[float, float]:

@@ -71,12 +71,15 @@ from sim.illumination_model import IlluminationModel
 from sim.point_source import point_source_field
 from sim.render import Renderer, RenderSettings, auto_exposure, bare_ring_illumination
 
-__all__ = ["VirtualSensor", "SensorTruth", "SensorCapture", "SENSOR_EFFECTS", "press_layout", "random_sensor",
+__all__ = ["VirtualSensor", "SensorTruth", "SensorCapture", "SENSOR_EFFECTS", "CONTACT_LOOK_EFFECTS", "press_layout", "random_sensor",
            "sensor_illumination", "render_sensor", "write_sensor_capture", "write_sensor_images"]
 
 #: Optional effects of a virtual sensor, in the order they are applied.
 SENSOR_EFFECTS = ("markers", "marker_motion", "vignetting", "soft_shading", "drift_gain", "drift_offset", "drift_field", "column_stripes",
                   "read_noise", "jpeg")
+
+#: The effects that change how a contact itself looks (what the edge detector alone misses).
+CONTACT_LOOK_EFFECTS = ("marker_motion", "soft_shading")
 
 #: Sizes :func:`random_sensor` draws from (rows, columns): portrait and landscape.
 SIZES = ((120, 160), (160, 120), (240, 320), (320, 240), (480, 640), (640, 480))

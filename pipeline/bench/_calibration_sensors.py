@@ -132,8 +132,8 @@ def _linked_folder(folder: Path, source: Path, names) -> Path:
     return folder
 
 
-#: Effects of the contact's own look, benchmarked as twins of the plain virtual sensors: the same
-#: sensor (every other draw the same) with one of them added.
+#: Effects of the contact's own look (:data:`sim.virtual_sensor.CONTACT_LOOK_EFFECTS`), benchmarked as
+#: twins of the plain virtual sensors: the same sensor (every other draw the same) with one of them added.
 LOOK_EFFECTS = ("soft_shading", "marker_motion")
 
 
