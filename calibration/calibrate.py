@@ -34,8 +34,8 @@ from calibration.models import (
 from calibration.models.base import fit_tilt_gain, scale_tilt
 from calibration.models.led_geometry import geometry_basis
 from calibration.refine import refine_centres
-from calibration.shading_fit import refit_by_shading
 from calibration.samples import Samples, collect_samples
+from calibration.shading_fit import refit_by_shading
 from calibration.validate import INVALID_ERROR_DEG, cross_validate, cv_report
 from pipeline.base.capture import Capture, read_capture
 from pipeline.base.errors import UserError
