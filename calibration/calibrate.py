@@ -619,9 +619,10 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
         from calibration.markers import press_markers
         from pipeline.normals.prepare import fill_markers
 
-        # Each press filled where its own dots are: they move with the gel under the press.
+        # Each press filled where its own dots are (they move with the gel under the press), the
+        # reference wherever any press has one: no pixel is filled in one and not the other.
         press_mask = press_markers(frames, mask)
-        frames, ref = fill_markers(frames, press_mask), fill_markers(ref, mask)
+        frames, ref = fill_markers(frames, press_mask), fill_markers(ref, press_mask.any(axis=0))
     opt = detect_options or capture_detect_options(cap)
     t0 = time.perf_counter()
     # The detector runs in every mode: with labels or given circles its circles are what

@@ -22,7 +22,9 @@ its position and size: it is what a ball of known radius pressed there looks lik
 3. The shading's circle replaces the edge circle only where the edge detector failed: it
    rejected the press for want of a clear circle or for its size, or its circle is a small
    one off to the side of the shading's (centre more than ``off_centre`` of the shading's
-   radius away and radius below ``small_fraction`` of it: a highlight at one rim), and the
+   radius away and radius below ``small_fraction`` of it: a highlight at one rim), or one of
+   the same size (within ``same_size``) shifted by more than ``shift_fraction`` of the radius
+   (rays pulled to one side by a ring of moved dots), and the
    shading's circle explains the change clearly better (its squared residual at most
    :attr:`ShadingOptions.keep_edge_ratio` of the edge circle's). Elsewhere the edge circle
    stays: the shading's radius follows wherever the gel changed, and a soft gel changes
@@ -59,6 +61,8 @@ class ShadingOptions:
     keep_edge_ratio: float = 0.85
     off_centre: float = 0.3
     small_fraction: float = 0.6
+    shift_fraction: float = 0.1
+    same_size: float = 0.15
     tol_px: float = 0.25
     ridge: float = 1e-3
 
@@ -352,7 +356,10 @@ def _edge_failed(c: Circle, edge, fit, opt: ShadingOptions) -> bool:
     if not c.accepted:
         return c.reason.startswith(_OVERTURNABLE)
     off = np.hypot(edge[0] - fit[0], edge[1] - fit[1])
-    return bool(off > opt.off_centre * fit[2] and edge[2] < opt.small_fraction * fit[2])
+    small_aside = off > opt.off_centre * fit[2] and edge[2] < opt.small_fraction * fit[2]
+    # The same size but shifted: rays pulled to one side (a ring of moved dots, a glint).
+    shifted = off > opt.shift_fraction * fit[2] and abs(edge[2] / fit[2] - 1.0) < opt.same_size
+    return bool(small_aside or shifted)
 
 
 def _centre_of_change(win: _Press) -> tuple[float, float]:
