@@ -149,7 +149,7 @@ def _virtual_rows(seeds, models, tmp: Path, done=None, look: str | None = None) 
     rows = []
     for seed in seeds:
         sensor = random_sensor(seed, num_presses=30, effects=base + ([look] if look else []))
-        path = tmp / f"virtual_{seed}_{look or 'plain'}.h5"
+        path = tmp / (f"virtual_{seed}.h5" if look is None else f"virtual_{seed}_{look}.h5")
         out = write_sensor_capture(path, sensor, labels=True)
         cap = read_capture(path)
         if look == "marker_motion":
