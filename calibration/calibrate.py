@@ -37,6 +37,7 @@ from calibration.models.base import fit_tilt_gain, scale_tilt
 from calibration.models.led_geometry import geometry_basis
 from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
+from calibration.shading_fit import refit_by_shading
 from calibration.validate import INVALID_ERROR_DEG, cross_validate, cv_report
 from pipeline.base.capture import Capture, read_capture
 from pipeline.base.errors import UserError
@@ -621,15 +622,26 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
     if sat is not None and cap.dark is not None:
         sat = sat - float(np.asarray(cap.dark).min())
     mask = _marker_mask(markers, cap, ref)
+    press_mask = None
     if mask is not None:
+        from calibration.markers import press_markers
         from pipeline.normals.prepare import fill_markers
 
-        frames, ref = fill_markers(frames, mask), fill_markers(ref, mask)
+        # Each press filled where its own dots are (they move with the gel under the press), the
+        # reference wherever any press has one: no pixel is filled in one and not the other.
+        press_mask = press_markers(frames, mask)
+        frames, ref = fill_markers(frames, press_mask), fill_markers(ref, press_mask.any(axis=0))
     opt = detect_options or capture_detect_options(cap)
     t0 = time.perf_counter()
     # The detector runs in every mode: with labels or given circles its circles are what
     # they are compared with (the report's centre offset), not what is fitted.
     detected = detect_contacts(frames, ref, ball_px, opt, exclude=mask)
+    shading_report = None
+    if opt.shading:
+        first, _ = _without_drift(frames, ref, detected, detected, ball_px, opt, mask, sat)
+        detected, shading_report = refit_by_shading(first, ref, detected, ball_px, opt,
+                                                    exclude=mask if press_mask is None else press_mask,
+                                                    saturation=sat)
     t_detect = time.perf_counter() - t0
     use = {"detected": detected, "labels": labelled if source == "labels" else None,
            "given": None if isinstance(circles, str) else list(circles)}[source]
@@ -665,6 +677,7 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
         samples = collect_samples(frames, ref, use, ball_radius_mm, mm, shrink_px=shrink_px, saturation=sat,
                                   exclude=mask)
     refine_report["seconds"] = time.perf_counter() - t0
+    refine_report["shading"] = shading_report
     return CircleFit(cap, src, float(mm), frames, ref, sat, use, samples, rank, t_detect, refine_report, mask,
                      ball_radius_mm, source, detected, drifts, _mismatch(frames, ref, use, drifts), explained,
                      str(cap.meta.get("reference_source") or "the capture's no-contact frame"), opt)

@@ -111,6 +111,12 @@ class DetectOptions:
     drift_degree: int = 2
     stripes: bool = False
     seed: int = 0
+    #: After the edge detector, re-find every press's contact as the cap that best explains its
+    #: colour change under a forward model fitted on the presses (:mod:`calibration.shading_fit`):
+    #: what finds the contacts of soft gels, whose brightest change is a highlight at one rim,
+    #: and of gels whose markers move. The edge circle stays where it explains the change about
+    #: as well.
+    shading: bool = True
 
 
 def drift_settings(options: "DetectOptions") -> dict[str, Any]:

@@ -14,9 +14,8 @@ does not reflect the LEDs, so their pixels say nothing about the surface normal.
   (:func:`calibration.normal_maps.predict_normal_maps`);
 - :func:`calibration.samples.collect_samples` leaves them out of the calibration samples.
 
-A marker that moves with the gel under a press further than ``grow_px`` leaves the reference's
-mask; give a larger ``grow_px`` (or a mask per frame to the fill) for gels that
-shear a lot.
+A marker moves with the gel under a press and leaves the reference's mask: the dots are
+also found in every press (:func:`press_markers`), each press filled where its own dots are.
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ import numpy as np
 from pipeline.base.errors import UserError
 from pipeline.normals.prepare import check_marker_mask
 
-__all__ = ["detect_markers", "read_marker_mask", "resolve_markers", "draw_markers"]
+__all__ = ["detect_markers", "read_marker_mask", "resolve_markers", "draw_markers", "press_markers"]
 
 
 def _grey(image: np.ndarray) -> np.ndarray:
@@ -97,6 +96,51 @@ def detect_markers(reference: np.ndarray, *, min_sigma: float = 0.7, max_sigma: 
         x0, x1 = int(max(0, np.floor(x - r))), int(min(w, np.ceil(x + r) + 1))
         mask[y0:y1, x0:x1] |= (yy[y0:y1, x0:x1] - y) ** 2 + (xx[y0:y1, x0:x1] - x) ** 2 <= r * r
     return mask
+
+
+def press_markers(frames: np.ndarray, reference_mask: np.ndarray, *, threshold: float = 0.3,
+                  grow_px: float = 1.0) -> np.ndarray:
+    """Each press's dots, with the reference's mask ``(H, W)`` added: ``(K, H, W)`` bool.
+
+    In each press, a pixel is a dot where it is more than ``threshold`` darker than the gel
+    around it (the grey image over a morphological closing as large as three of the
+    reference's dots: the closing fills the dots and keeps the shading), grown by ``grow_px``.
+    A closing per frame costs milliseconds where :func:`detect_markers`' median filter costs
+    seconds on a 640 x 480 frame.
+
+    Parameters
+    ----------
+    frames : ndarray, shape (K, P, H, W, C)
+    reference_mask : ndarray, shape (H, W), bool
+        The reference's dots (:func:`detect_markers`); their size sets the closing's.
+
+    Examples
+    --------
+    >>> f = np.full((1, 1, 30, 30, 3), 100.0); f[0, 0, 10:13, 20:23] = 30.0
+    >>> ref = np.zeros((30, 30), bool); ref[4:7, 4:7] = True
+    >>> m = press_markers(f, ref)
+    >>> bool(m[0, 11, 21]), bool(m[0, 5, 5]), bool(m[0, 25, 5])
+    (True, True, False)
+    """
+    import cv2
+    from scipy import ndimage
+
+    f = np.asarray(frames, np.float32)
+    if f.ndim != 5:
+        raise ValueError(f"press_markers: frames must be (K, P, H, W, C), got {f.shape}")
+    ref = np.asarray(reference_mask, bool)
+    labels, n = ndimage.label(ref)
+    dot = 2.0 * np.sqrt(ref.sum() / max(n, 1) / np.pi) if n else 3.0  # a typical dot's diameter
+    size = int(2 * round(1.5 * dot) + 1)
+    kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (size, size))
+    grow = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (int(2 * round(grow_px) + 1),) * 2)
+    out = np.empty((len(f),) + ref.shape, bool)
+    for k in range(len(f)):
+        g = f[k].mean(axis=(0, 3))
+        bg = cv2.morphologyEx(g, cv2.MORPH_CLOSE, kernel)
+        dark = (1.0 - g / np.maximum(bg, 1e-6)) > threshold
+        out[k] = cv2.dilate(dark.astype(np.uint8), grow).astype(bool) | ref
+    return out
 
 
 def read_marker_mask(path: str | Path, shape: tuple[int, int]) -> np.ndarray:

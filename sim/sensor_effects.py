@@ -10,6 +10,10 @@ it on (so a sensor that asks for less costs less):
 - :func:`apply_drift`: per-channel gain and offset and that field, on linear DN;
 - :func:`column_stripes`: per-column offsets redrawn every frame (the stripes of cheap
   rolling-shutter sensors such as the DIGIT's);
+- :func:`displace_markers` and :func:`dot_coverage`: printed dots moved by a press, as a real
+  gel stretched by the ball carries them;
+- :func:`soften_shading` and :func:`rim_highlight`: a soft gel's weak, broad shading with a
+  glossy highlight where the contact's rim faces a light;
 - :func:`quantize_8bit` and :func:`jpeg_roundtrip`: what the camera stores;
 - :func:`optical_blur`: the lens and gel stack's point spread (a Gaussian), as on the DIGIT.
 
@@ -21,7 +25,8 @@ from __future__ import annotations
 import numpy as np
 
 __all__ = ["marker_coverage", "drift_basis", "drift_field", "apply_drift", "column_stripes", "quantize_8bit",
-           "jpeg_roundtrip", "optical_blur", "DRIFT_TERMS"]
+           "jpeg_roundtrip", "optical_blur", "DRIFT_TERMS", "dot_coverage", "displace_markers", "soften_shading",
+           "rim_highlight"]
 
 #: Terms of the drift field, on coordinates u (columns) and v (rows) scaled to [-1, 1].
 DRIFT_TERMS = ("u", "v", "u^2", "uv", "v^2")
@@ -77,10 +82,24 @@ def marker_coverage(shape: tuple[int, int], spacing_px: float, radius_px: float,
         y = y + rng.uniform(-jitter_px, jitter_px, y.shape)
     keep = (x > -radius_px) & (x < w - 1 + radius_px) & (y > -radius_px) & (y < h - 1 + radius_px)
     centers = np.stack([x[keep], y[keep]], axis=-1)
+    return dot_coverage((h, w), centers, radius_px, supersample=supersample), centers
+
+
+def dot_coverage(shape: tuple[int, int], centers_xy: np.ndarray, radius_px: float, *, supersample: int = 4
+                 ) -> np.ndarray:
+    """Fraction of each pixel ``(H, W)`` (float32) covered by round dots of ``radius_px`` at ``centers_xy (N, 2)``.
+
+    Examples
+    --------
+    >>> cov = dot_coverage((20, 20), np.array([[10.0, 10.0]]), 3.0)
+    >>> round(float(cov.sum()), 0), float(cov[10, 10]), float(cov[0, 0])
+    (28.0, 1.0, 0.0)
+    """
+    h, w = int(shape[0]), int(shape[1])
     cov = np.zeros((h, w), np.float32)
     s = int(supersample)
     sub = (np.arange(s) + 0.5) / s - 0.5  # subsample offsets within a pixel
-    for mx, my in centers:
+    for mx, my in np.asarray(centers_xy, np.float64).reshape(-1, 2):
         r0, r1 = max(0, int(np.floor(my - radius_px))), min(h, int(np.ceil(my + radius_px)) + 1)
         c0, c1 = max(0, int(np.floor(mx - radius_px))), min(w, int(np.ceil(mx + radius_px)) + 1)
         if r0 >= r1 or c0 >= c1:
@@ -90,7 +109,7 @@ def marker_coverage(shape: tuple[int, int], spacing_px: float, radius_px: float,
         inside = ((yy[:, None] - my) ** 2 + (xx[None, :] - mx) ** 2) <= radius_px ** 2
         frac = inside.reshape(r1 - r0, s, c1 - c0, s).mean(axis=(1, 3))
         cov[r0:r1, c0:c1] = np.maximum(cov[r0:r1, c0:c1], frac)
-    return cov, centers
+    return cov
 
 
 def drift_basis(shape: tuple[int, int]) -> np.ndarray:
@@ -224,3 +243,66 @@ def optical_blur(image: np.ndarray, sigma_px: float) -> np.ndarray:
     k = 2 * int(np.ceil(4 * sigma_px)) + 1
     out = cv2.GaussianBlur(img, (k, k), float(sigma_px), borderType=cv2.BORDER_REFLECT)
     return out.reshape(img.shape)
+
+
+def displace_markers(centers_xy: np.ndarray, contact_xy, contact_radius_px: float, amplitude_px: float
+                     ) -> np.ndarray:
+    """Dot centres moved by a press: radially outward, ``amplitude_px * rho / a`` inside the contact
+    (radius ``a``) and ``amplitude_px * (a / rho)^2`` beyond it (the gel stretched over the ball
+    and pushed aside around it).
+
+    Examples
+    --------
+    >>> c = np.array([[10.0, 0.0], [5.0, 0.0], [20.0, 0.0]])
+    >>> displace_markers(c, (0.0, 0.0), 10.0, 2.0)[:, 0].round(3).tolist()
+    [12.0, 6.0, 20.5]
+    """
+    c = np.asarray(centers_xy, np.float64).reshape(-1, 2)
+    d = c - np.asarray(contact_xy, np.float64)
+    rho = np.hypot(d[:, 0], d[:, 1])
+    a = float(contact_radius_px)
+    mag = np.where(rho <= a, amplitude_px * rho / max(a, 1e-9), amplitude_px * (a / np.maximum(rho, 1e-9)) ** 2)
+    unit = d / np.maximum(rho, 1e-9)[:, None]
+    return c + unit * mag[:, None]
+
+
+def soften_shading(image: np.ndarray, reference: np.ndarray, contrast: float, blur_px: float) -> np.ndarray:
+    """A soft gel's shading: the change from ``reference`` scaled by ``contrast`` and blurred (Gaussian,
+    ``blur_px``), on linear images ``(H, W, 3)``.
+
+    Examples
+    --------
+    >>> ref = np.full((9, 9, 3), 100.0, np.float32); img = ref.copy(); img[4, 4] = 190.0
+    >>> out = soften_shading(img, ref, 0.5, 0.0)
+    >>> float(out[4, 4, 0]), float(out[0, 0, 0])
+    (145.0, 100.0)
+    """
+    from scipy import ndimage
+
+    ref = np.asarray(reference, np.float32)
+    change = (np.asarray(image, np.float32) - ref) * float(contrast)
+    if blur_px > 0:
+        change = ndimage.gaussian_filter(change, (blur_px, blur_px, 0))
+    return ref + change
+
+
+def rim_highlight(normals: np.ndarray, tilt_deg: float, azimuth_deg: float, strength_dn: float,
+                  sharpness: float) -> np.ndarray:
+    """A white glossy highlight ``strength_dn * max(0, n . h)^sharpness`` ``(H, W, 1)`` float32.
+
+    ``h`` leans ``tilt_deg`` from the camera axis toward ``azimuth_deg`` (on screen,
+    counter-clockwise from the right; reconstruction-frame normals ``(H, W, 3)``): the highlight
+    sits where the contact's sphere cap is tilted that much toward that light, a crescent near
+    its rim, and nowhere on flat gel (for a sharp lobe).
+
+    Examples
+    --------
+    >>> n = np.zeros((1, 2, 3)); n[..., 2] = 1.0
+    >>> t = np.deg2rad(20.0); n[0, 1] = (np.sin(t), 0.0, np.cos(t))
+    >>> [round(float(v), 1) for v in rim_highlight(n, 20.0, 0.0, 100.0, 80.0)[0, :, 0]]
+    [0.7, 100.0]
+    """
+    t, a = np.deg2rad(tilt_deg), np.deg2rad(azimuth_deg)
+    h = np.array([np.sin(t) * np.cos(a), np.sin(t) * np.sin(a), np.cos(t)])
+    dot = np.clip(np.asarray(normals, np.float64) @ h, 0.0, 1.0)
+    return (float(strength_dn) * dot ** float(sharpness)).astype(np.float32)[..., None]

@@ -11,8 +11,17 @@ have, each optional and computed only when the sensor asks for it
     no longer a sphere cap (the sphere truth of calibration stops being exact there);
 ``markers``
     printed dark dots on the gel (albedo, :func:`sim.sensor_effects.marker_coverage`);
+``marker_motion``
+    the dots carried by the gel under each press (radially outward around the contact,
+    :func:`sim.sensor_effects.displace_markers`), so that a press's dots are not where the
+    reference's are (needs ``markers``);
 ``vignetting``
     the renderer's lens fall-off (same in the reference and every press);
+``soft_shading``
+    a soft gel's look: the shading's change from the flat gel weaker and blurred
+    (:func:`sim.sensor_effects.soften_shading`), and a white glossy highlight where the cap
+    leans toward a light, a crescent at the contact's rim
+    (:func:`sim.sensor_effects.rim_highlight`), brighter than the rest of the change;
 ``optical_blur``
     the optics' point spread, a Gaussian (:func:`sim.sensor_effects.optical_blur`; the DIGIT's
     frames are blurred by about 11 px);
@@ -69,12 +78,16 @@ from sim.illumination_model import IlluminationModel
 from sim.point_source import point_source_field
 from sim.render import Renderer, RenderSettings, auto_exposure, bare_ring_illumination
 
-__all__ = ["VirtualSensor", "SensorTruth", "SensorCapture", "SENSOR_EFFECTS", "press_layout", "random_sensor",
+__all__ = ["VirtualSensor", "SensorTruth", "SensorCapture", "SENSOR_EFFECTS", "CONTACT_LOOK_EFFECTS", "press_layout", "random_sensor",
            "sensor_illumination", "render_sensor", "write_sensor_capture", "write_sensor_images"]
 
 #: Optional effects of a virtual sensor, in the order they are applied.
-SENSOR_EFFECTS = ("rim_smoothing", "markers", "vignetting", "optical_blur", "drift_gain", "drift_offset", "drift_field", "column_stripes",
+SENSOR_EFFECTS = ("rim_smoothing", "markers", "marker_motion", "vignetting", "soft_shading", "optical_blur",
+                  "drift_gain", "drift_offset", "drift_field", "column_stripes",
                   "read_noise", "jpeg")
+
+#: The effects that change how a contact itself looks (what the edge detector alone misses).
+CONTACT_LOOK_EFFECTS = ("marker_motion", "soft_shading")
 
 #: Sizes :func:`random_sensor` draws from (rows, columns): portrait and landscape.
 SIZES = ((120, 160), (160, 120), (240, 320), (320, 240), (480, 640), (640, 480))
@@ -129,6 +142,15 @@ class VirtualSensor:
         Standard deviation (px) of the gel's smoothing of the pressed surface.
     blur_px : float
         Standard deviation (px) of the optical blur.
+    marker_motion : float
+        Markers' largest outward move under a press, as a fraction of its contact radius.
+    soft_shading : float
+        In [0, 1): the shading's change from the flat gel is scaled by ``1 - soft_shading``.
+    soft_blur_px : float
+        ... and blurred with this Gaussian sigma (px).
+    rim_highlight_dn, rim_highlight_tilt_deg, rim_highlight_azimuth_deg, rim_highlight_sharpness : float
+        The glossy highlight (:func:`sim.sensor_effects.rim_highlight`): peak (DN), where its
+        half vector leans, and its lobe's exponent.
     seed : int
         Seed of every random draw of the rendering (drift, noise, marker jitter).
     """
@@ -157,6 +179,13 @@ class VirtualSensor:
     seed: int = 0
     rim_smoothing_px: float = 0.0
     blur_px: float = 0.0
+    marker_motion: float = 0.0
+    soft_shading: float = 0.0
+    soft_blur_px: float = 0.0
+    rim_highlight_dn: float = 0.0
+    rim_highlight_tilt_deg: float = 20.0
+    rim_highlight_azimuth_deg: float = 0.0
+    rim_highlight_sharpness: float = 60.0
 
     def __post_init__(self):
         self.shape = (int(self.shape[0]), int(self.shape[1]))
@@ -175,6 +204,7 @@ class VirtualSensor:
         if self.drift_gain >= 1 or self.drift_field >= 1:
             raise ValueError(f"VirtualSensor: drift_gain and drift_field must be < 1, got {self.drift_gain}, "
                              f"{self.drift_field}")
+        self._check_contact_look()
         if not 0 <= self.marker_darkness <= 1:
             raise ValueError(f"VirtualSensor: marker_darkness must be in [0, 1], got {self.marker_darkness}")
         if self.marker_spacing_px > 0 and not 0 < self.marker_radius_px < self.marker_spacing_px / 2:
@@ -190,6 +220,16 @@ class VirtualSensor:
             raise ValueError(f"VirtualSensor: contact radii must be in (0, {self.ball_radius_px:.2f}) px (the ball) "
                              f"and centres finite; got radii {np.round(r, 2).tolist()}")
         self.centers_xy, self.contact_radii_px = c, r
+
+    def _check_contact_look(self):
+        for name in ("marker_motion", "soft_blur_px", "rim_highlight_dn", "rim_highlight_sharpness"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and v >= 0):
+                raise ValueError(f"VirtualSensor: {name} must be a finite number >= 0, got {v!r}")
+        if not 0 <= self.soft_shading < 1:
+            raise ValueError(f"VirtualSensor: soft_shading must be in [0, 1), got {self.soft_shading!r}")
+        if self.marker_motion > 0 and self.marker_spacing_px <= 0:
+            raise ValueError("VirtualSensor: marker_motion needs markers (marker_spacing_px > 0)")
 
     @property
     def ball_radius_px(self) -> float:
@@ -210,6 +250,8 @@ class VirtualSensor:
         ('drift_gain', 'read_noise', 'jpeg')
         """
         on = {"markers": self.marker_spacing_px > 0, "vignetting": self.vignetting > 0,
+              "marker_motion": self.marker_motion > 0,
+              "soft_shading": self.soft_shading > 0 or self.rim_highlight_dn > 0,
               "drift_gain": self.drift_gain > 0, "drift_offset": self.drift_offset_dn > 0,
               "drift_field": self.drift_field > 0, "column_stripes": self.stripe_noise_dn > 0,
               "read_noise": self.read_noise_dn > 0, "jpeg": self.jpeg_quality > 0,
@@ -259,6 +301,8 @@ class SensorTruth:
         Per press and channel (1 and 0 when off).
     drift_field_coeffs : ndarray, shape (K, 5)
         Per press (:func:`sim.sensor_effects.drift_field`; zeros when off).
+    press_markers : ndarray, shape (K, H, W), bool, or None
+        With ``marker_motion``: each press's marker mask (the dots where that press moved them).
     """
 
     center_xy: np.ndarray
@@ -273,6 +317,7 @@ class SensorTruth:
     drift_gain: np.ndarray
     drift_offset: np.ndarray
     drift_field_coeffs: np.ndarray
+    press_markers: np.ndarray | None = None
 
     def drift_field(self, k: int) -> np.ndarray:
         """Press ``k``'s multiplicative drift field ``(H, W)``."""
@@ -375,7 +420,11 @@ def random_sensor(seed: int, *, shape: tuple[int, int] | None = None, num_presse
         gain up to 15 %, offset up to 30 DN, drift field up to 8 %, markers 7-12 % of the
         short side apart, vignetting up to 0.4, stripes 1-3 DN, read noise 0.5-2 DN, JPEG
         quality 60-90, rim smoothing 3-8 % and optical blur 2-10 % of the ball radius in
-        pixels, at least 1 px: the DIGIT's 11 px blur is 10 % of its 3 mm ball).
+        pixels, at least 1 px: the DIGIT's 11 px blur is 10 % of its 3 mm ball; markers moved by
+        up to 15-30 % of the contact radius, and then darker (75-90 %) and larger (20-30 % of
+        their spacing); soft shading at 30-50 % of its contrast, blurred by 5-10 % of the ball
+        radius, with a highlight of 30-60 % of the gel's brightness). ``marker_motion`` turns
+        ``markers`` on too.
     border_fraction, radius_range
         As :func:`press_layout`.
 
@@ -389,6 +438,8 @@ def random_sensor(seed: int, *, shape: tuple[int, int] | None = None, num_presse
     unknown = on - set(SENSOR_EFFECTS)
     if unknown:
         raise ValueError(f"random_sensor: unknown effect(s) {sorted(unknown)} (known: {', '.join(SENSOR_EFFECTS)})")
+    if "marker_motion" in on:
+        on.add("markers")
     rng = np.random.default_rng([int(seed), 22])
     shape = tuple(SIZES[int(rng.integers(len(SIZES)))]) if shape is None else (int(shape[0]), int(shape[1]))
     short = min(shape)
@@ -421,6 +472,7 @@ def random_sensor(seed: int, *, shape: tuple[int, int] | None = None, num_presse
         kw["marker_radius_px"] = max(1.0, float(rng.uniform(0.12, 0.25)) * spacing)
         kw["marker_darkness"] = float(rng.uniform(0.5, 0.9))
     _draw_gel_optics(kw, on, rng, ball_px)
+    kw.update(_contact_look_draws(seed, on, ball_px, kw))
     return VirtualSensor(**kw)
 
 
@@ -434,6 +486,26 @@ def _draw_gel_optics(kw: dict, on: set, rng, ball_px: float) -> None:
         kw["rim_smoothing_px"] = smoothing
     if "optical_blur" in on:
         kw["blur_px"] = blur
+
+
+def _contact_look_draws(seed: int, on: set[str], ball_px: float, kw: dict[str, Any]) -> dict[str, Any]:
+    """:func:`random_sensor`'s draws for ``marker_motion`` and ``soft_shading``, from a generator of their own
+    (so that sensors drawn without them keep every value they had)."""
+    rng = np.random.default_rng([int(seed), 23])
+    out: dict[str, Any] = {}
+    motion = float(rng.uniform(0.15, 0.3))
+    dark, size = float(rng.uniform(0.75, 0.9)), float(rng.uniform(0.2, 0.3))
+    soft = float(rng.uniform(0.5, 0.7))
+    blur = float(rng.uniform(0.05, 0.1)) * ball_px
+    peak = float(rng.uniform(0.3, 0.6)) * kw["target_dn"]
+    tilt = float(rng.uniform(15.0, 25.0))
+    sharp = float(rng.uniform(40.0, 80.0))
+    if "marker_motion" in on:  # the dark, large dots of the gels whose markers track shear
+        out.update(marker_motion=motion, marker_darkness=dark, marker_radius_px=size * kw["marker_spacing_px"])
+    if "soft_shading" in on:
+        out.update(soft_shading=soft, soft_blur_px=blur, rim_highlight_dn=peak, rim_highlight_tilt_deg=tilt,
+                   rim_highlight_azimuth_deg=float(kw["light_azimuths_deg"][0]), rim_highlight_sharpness=sharp)
+    return out
 
 
 def sensor_illumination(sensor: VirtualSensor) -> tuple[IlluminationModel, np.ndarray, np.ndarray, list[str]]:
@@ -501,6 +573,65 @@ def _drift_draws(sensor: VirtualSensor, rng):
     return gain, offset, coeffs
 
 
+class _ContactLook:
+    """``marker_motion`` and ``soft_shading``: each press's own albedo (its moved dots) and its soft look."""
+
+    def __init__(self, sensor: VirtualSensor, renderer, drive, bright, albedo, dots):
+        self.s, self.renderer, self.drive, self.bright, self.base_albedo = sensor, renderer, drive, bright, albedo
+        self.computed: list[str] = []
+        self.masks: list[np.ndarray] = []
+        self.dots = dots if sensor.marker_motion > 0 else None
+        if self.dots is not None:
+            self.computed.append("marker_motion")
+        self._albedo: dict[int, Any] = {}
+
+    def albedo(self, k: int):
+        """Press ``k``'s albedo: the dots moved by its press (the sensor's dots when they do not move)."""
+        s = self.s
+        if self.dots is None:
+            return self.base_albedo
+        if k not in self._albedo:
+            moved = fx.displace_markers(self.dots, s.centers_xy[k], s.contact_radii_px[k],
+                                        s.marker_motion * s.contact_radii_px[k])
+            cov = fx.dot_coverage(s.shape, moved, s.marker_radius_px)
+            self.masks.append(cov >= 0.5)
+            self._albedo[k] = 1.0 - s.marker_darkness * cov
+        return self._albedo[k]
+
+    def press(self, k: int, imgs: np.ndarray, surface) -> np.ndarray:
+        s = self.s
+        if s.soft_shading <= 0 and s.rim_highlight_dn <= 0:
+            return imgs
+        self.renderer.set_surface(None, self.albedo(k))
+        flat = self.renderer.render(self.drive, self.bright)
+        normals = np.asarray(surface.normals, np.float64)
+        alb = np.asarray(self.albedo(k), np.float32)
+        alb = alb[..., None] if alb.ndim == 2 else alb
+        out = np.stack([fx.soften_shading(img, f, 1.0 - s.soft_shading, s.soft_blur_px)
+                        + alb * self._highlight(normals) for img, f in zip(imgs, flat)])
+        if "soft_shading" not in self.computed:
+            self.computed.append("soft_shading")
+        return out
+
+    def _highlight(self, normals):
+        s = self.s
+        return fx.rim_highlight(normals, s.rim_highlight_tilt_deg, s.rim_highlight_azimuth_deg, s.rim_highlight_dn,
+                                s.rim_highlight_sharpness)
+
+    def reference(self, flat: np.ndarray) -> np.ndarray:
+        s = self.s
+        if s.rim_highlight_dn <= 0:
+            return flat
+        n = np.zeros(s.shape + (3,))
+        n[..., 2] = 1.0
+        alb = np.asarray(self.base_albedo, np.float32)
+        alb = alb[..., None] if alb.ndim == 2 else alb
+        return flat + alb * self._highlight(n)
+
+    def press_markers(self) -> np.ndarray | None:
+        return np.stack(self.masks) if self.masks else None
+
+
 class _Camera:
     """The per-frame effects after the renderer, each run only when the sensor turns it on."""
 
@@ -563,10 +694,10 @@ def _render_sensor(sensor: VirtualSensor, device) -> SensorCapture:
     rng = np.random.default_rng([sensor.seed, 7])
     gain, offset, coeffs = _drift_draws(sensor, rng)
     albedo: Any = 1.0
-    coverage = markers = None
+    coverage = markers = dots = None
     if "markers" in on:
         jitter = 0.1 * sensor.marker_spacing_px
-        coverage, _ = fx.marker_coverage((h, w), sensor.marker_spacing_px, sensor.marker_radius_px,
+        coverage, dots = fx.marker_coverage((h, w), sensor.marker_spacing_px, sensor.marker_radius_px,
                                          angle_deg=float(rng.uniform(-5, 5)), jitter_px=jitter,
                                          offset_px=tuple(rng.uniform(0, sensor.marker_spacing_px, 2)), rng=rng)
         albedo = 1.0 - sensor.marker_darkness * coverage
@@ -582,15 +713,23 @@ def _render_sensor(sensor: VirtualSensor, device) -> SensorCapture:
         computed.append("rim_smoothing")
     camera = _Camera(sensor, gain, offset, coeffs)
     surfaces = _press_surfaces(sensor)
+    look = _ContactLook(sensor, renderer, drive, bright, albedo, dots) if "marker_motion" in on or \
+        "soft_shading" in on else None
     frames = np.empty((sensor.num_presses, len(pattern_names), h, w, 3), np.uint8)
     for k, surf in enumerate(surfaces):
-        renderer.set_surface(surf, albedo)
+        renderer.set_surface(surf, albedo if look is None else look.albedo(k))
         imgs = renderer.render(drive, bright)
+        if look is not None:
+            imgs = look.press(k, imgs, surf)
         frng = np.random.default_rng([sensor.seed, 1000 + k])
         frames[k] = [camera.frame(img, k, frng) for img in imgs]
     renderer.set_surface(None, albedo)
     frng = np.random.default_rng([sensor.seed, 999])
-    reference = np.stack([camera.frame(img, None, frng) for img in renderer.render(drive, bright)])
+    flat = renderer.render(drive, bright)
+    if look is not None:
+        flat = look.reference(flat)
+        computed += look.computed
+    reference = np.stack([camera.frame(img, None, frng) for img in flat])
     computed += [e for e in camera.computed if e not in computed]
     computed.sort(key=SENSOR_EFFECTS.index)
     c, r = sensor.centers_xy, sensor.contact_radii_px
@@ -602,7 +741,7 @@ def _render_sensor(sensor: VirtualSensor, device) -> SensorCapture:
         contact=np.stack([f.contact for f in surfaces]), markers=markers, marker_coverage=coverage,
         drift_gain=gain if "drift_gain" in on else np.ones_like(gain),
         drift_offset=offset if "drift_offset" in on else np.zeros_like(offset),
-        drift_field_coeffs=coeffs)
+        drift_field_coeffs=coeffs, press_markers=None if look is None else look.press_markers())
     if sensor.lights == "gelsight":  # as an import of RGB frames has it: the three channels are three lights
         cap_drive, cap_bright, mode = np.eye(3, dtype=np.float32)[None], np.ones(1, np.float32), "trichromatic"
     else:

@@ -17,7 +17,10 @@ Per sensor, calibrate on some presses and judge on the others:
   no-contact frame) imported one by one, calibrated on the first and evaluated on the second;
 - **randomised virtual sensors** (:func:`sim.virtual_sensor.random_sensor`, every effect:
   the gel's rim smoothing, markers, vignetting, optical blur, drift, column stripes, read noise, JPEG; sizes 120 x 160 to 640 x 480,
-  portrait and landscape) with exact truth: 20 presses calibrate, 10 test.
+  portrait and landscape) with exact truth: 20 presses calibrate, 10 test; and the same
+  sensors again, once with a soft gel's look (``soft_shading``: weak, broad shading and a
+  glossy highlight at the contact's rim) and once with markers the presses move
+  (``marker_motion``; calibrated with the dots found in the reference, as ``--markers auto``).
 
 Per sensor: presses accepted (calibration and test), the median centre and radius error of
 the accepted circles against the truth where there is one (the hand labels of the GelSight
@@ -38,6 +41,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from sim.virtual_sensor import CONTACT_LOOK_EFFECTS
 
 __all__ = ["DIGIT_BALL_MM", "DIGIT_MM_PER_PX", "SENSOR_MODELS", "format_sensors", "run_sensors", "shared_data_dir"]
 
@@ -129,20 +134,32 @@ def _linked_folder(folder: Path, source: Path, names) -> Path:
     return folder
 
 
-def _virtual_rows(seeds, models, tmp: Path, done=None) -> list[dict[str, Any]]:
-    """One row per virtual sensor seed; ``done(row)`` after each (progress)."""
-    from pipeline.base.capture import read_capture
-    from sim.virtual_sensor import random_sensor, write_sensor_capture
+#: Effects of the contact's own look, benchmarked as twins of the plain virtual sensors: the same
+#: sensor (every other draw the same) with one of them added.
+LOOK_EFFECTS = CONTACT_LOOK_EFFECTS
 
+
+def _virtual_rows(seeds, models, tmp: Path, done=None, look: str | None = None) -> list[dict[str, Any]]:
+    """One row per virtual sensor seed (every effect but :data:`LOOK_EFFECTS`, or with ``look`` added);
+    ``done(row)`` after each (progress). A sensor with markers is calibrated as ``import images
+    --markers auto`` leaves it: the dots found in its reference (:func:`calibration.markers.detect_markers`)."""
+    from calibration.markers import detect_markers
+    from pipeline.base.capture import read_capture
+    from sim.virtual_sensor import SENSOR_EFFECTS, random_sensor, write_sensor_capture
+
+    base = [e for e in SENSOR_EFFECTS if e not in LOOK_EFFECTS]
     rows = []
     for seed in seeds:
-        sensor = random_sensor(seed, num_presses=30)
-        path = tmp / f"virtual_{seed}.h5"
+        sensor = random_sensor(seed, num_presses=30, effects=base + ([look] if look else []))
+        path = tmp / (f"virtual_{seed}.h5" if look is None else f"virtual_{seed}_{look}.h5")
         out = write_sensor_capture(path, sensor, labels=True)
         cap = read_capture(path)
+        if look == "marker_motion":
+            cap.markers = detect_markers(cap.reference)
         truth = (np.asarray(out.truth.center_xy, float), np.asarray(out.truth.radius_px, float))
         h, w = cap.shape
-        name = f"virtual seed {seed} ({h}x{w}, ball {sensor.ball_radius_px:.0f} px, {len(sensor.effects)} effects)"
+        what = f"{len(sensor.effects)} effects" if look is None else f"+ {look.replace('_', ' ')}"
+        name = f"virtual seed {seed} ({h}x{w}, ball {sensor.ball_radius_px:.0f} px, {what})"
         row = _split_row(name, cap, float(cap.meta["ball_radius_mm"]), models, truth)
         row["effects"] = list(sensor.effects)
         row["touching_border"] = int(np.asarray(out.truth.touches_border).sum())
@@ -273,7 +290,10 @@ def run_sensors(quick: bool = False, models=SENSOR_MODELS, log=None) -> dict[str
                         for part, presses in (("train", range(0, 20)), ("test", range(20, 30)))]
             add(_split_row("DIGIT two folders (0-19, 20-29; each with the frame)", imported[0], DIGIT_BALL_MM,
                            models, test_capture=imported[1]))
-        out["sensors"] += _virtual_rows(range(2) if quick else range(4), models, tmp, done)
+        seeds = range(2) if quick else range(4)
+        out["sensors"] += _virtual_rows(seeds, models, tmp, done)
+        for look in LOOK_EFFECTS:  # the same sensors, each with one effect of the contact's look added
+            out["sensors"] += _virtual_rows(seeds, models, tmp, done, look=look)
         if not quick and real:
             say("drift models on the fixed split (mlp)")
             out["drift_models"] = _drift_model_rows([c for c in real if c[0] != "drifted"], "mlp")

@@ -38,7 +38,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--npz", default=None, help="GelSight-style npz (default ../shared/data/...)")
     parser.add_argument("--sensors", action="store_true",
                         help="instead: every sensor on hand (shared GelSight, drifted GelSight, DIGIT, DIGIT without "
-                             "its no-contact frame, randomised virtual sensors) calibrated on some presses and judged "
+                             "its no-contact frame, randomised virtual sensors, the same again with a soft gel's look and with "
+                             "markers the presses move) calibrated on some presses and judged "
                              "on the others (pipeline/bench/_calibration_sensors.py)")
 
 

@@ -19,8 +19,9 @@ def register(group):
     sensor.add_argument("--lights", default="gelsight", metavar="{" + ",".join(["gelsight", *list_modes()]) + "}",
                         help="gelsight (default) or a lighting mode of the 24-LED ring")
     sensor.add_argument("--effects", default="all", metavar="all|none|E1,E2",
-                        help="markers, vignetting, drift_gain, drift_offset, drift_field, column_stripes, read_noise, "
-                             "jpeg (default all)")
+                        help="markers, marker_motion (markers the presses move), vignetting, soft_shading (a soft "
+                             "gel: weak, blurred shading and a glossy rim highlight), drift_gain, drift_offset, "
+                             "drift_field, column_stripes, read_noise, jpeg (default all)")
     sensor.add_argument("--border-fraction", type=float, default=0.15, help="presses cut by the image border")
     outs = p.add_argument_group("what is written (--out, --images or both)")
     outs.add_argument("--out", metavar="capture.h5", help="write a capture file (calibrate reads it)")

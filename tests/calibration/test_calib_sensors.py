@@ -18,9 +18,11 @@ from calibration.detect import DetectOptions, detect_contacts, detect_press, rim
 from calibration.gate import CalibrationRefused
 from helpers import SHARED, run_cli
 from pipeline.base.capture import Capture
-from sim.virtual_sensor import SENSOR_EFFECTS, random_sensor, render_sensor
+from sim.virtual_sensor import CONTACT_LOOK_EFFECTS, SENSOR_EFFECTS, random_sensor, render_sensor
 
 DIGIT = SHARED / "data" / "digit_ball_presses"
+#: A real sensor's flaws, without the ones of the contact's own look (tested on their own below).
+FLAWS = [e for e in SENSOR_EFFECTS if e not in CONTACT_LOOK_EFFECTS]
 
 
 def _errors(circles, truth):
@@ -37,8 +39,8 @@ def test_every_flaw_at_once_on_virtual_sensors(seed, shape):
     noise and JPEG, portrait
     and landscape, 120 x 160 to 640 x 480: every press clear of the border is found, within 2 px (plus a
     quarter of the optical blur's sigma: 3.2 px at 640 x 480) and 15 % of its exact circle; a press cut by the border is rejected with a reason saying so."""
-    sensor = random_sensor(seed, shape=shape, num_presses=5)
-    assert sensor.effects == SENSOR_EFFECTS
+    sensor = random_sensor(seed, shape=shape, num_presses=5, effects=FLAWS)
+    assert sensor.effects == tuple(FLAWS)
     out = render_sensor(sensor)
     f, r = out.capture.linear()
     circles = detect_contacts(f, r, sensor.ball_radius_px)
@@ -55,7 +57,7 @@ def test_detection_scales_with_the_ball_up_to_1280x960():
     """The same presses at twice the size (1280 x 960) with twice the ball: the same circles, twice as large."""
     import cv2
 
-    sensor = random_sensor(4, shape=(480, 640), num_presses=2, border_fraction=0.0)
+    sensor = random_sensor(4, shape=(480, 640), num_presses=2, border_fraction=0.0, effects=FLAWS)
     out = render_sensor(sensor)
     f, r = out.capture.linear()
     small = detect_contacts(f, r, sensor.ball_radius_px)
@@ -69,6 +71,31 @@ def test_detection_scales_with_the_ball_up_to_1280x960():
         assert a.accepted and b.accepted
         np.testing.assert_allclose(np.array(b.center_xy), 2 * np.array(a.center_xy) + 0.5, atol=1.5)
         assert b.radius_px == pytest.approx(2 * a.radius_px, rel=0.05)
+
+
+@pytest.mark.parametrize("look, seed", [("soft_shading", 1), ("marker_motion", 2)])
+def test_contacts_found_by_their_shading_where_the_edges_mislead(look, seed):
+    """A soft gel (its brightest change a highlight at one rim) and markers the presses move: the edge
+    detector alone rejects most presses; calibrate's circles (each press filled where its own dots
+    are, then every contact re-found as the cap that explains its colour change) are accepted and
+    within 2 px of the truth."""
+    from calibration.calibrate import find_circles
+    from calibration.markers import detect_markers
+
+    sensor = random_sensor(seed, shape=(120, 160), num_presses=10, border_fraction=0.0,
+                           effects=["read_noise", "drift_gain", "drift_offset", look])
+    out = render_sensor(sensor)
+    cap = out.capture
+    if look == "marker_motion":
+        cap.markers = detect_markers(cap.reference)
+    f, r = cap.linear()
+    edges = detect_contacts(f, r, sensor.ball_radius_px)
+    found = find_circles(cap, sensor.ball_radius_mm, strict=False)
+    acc, centre, radius = _errors(found.circles, out.truth)
+    edge_acc, edge_centre, _ = _errors(edges, out.truth)
+    assert acc.sum() >= 9 and acc.sum() > edge_acc.sum() + 3, ([c.reason for c in edges], [c.reason for c in found.circles])
+    assert np.median(centre[acc]) < 1.0 and centre[acc].max() < 2.0, centre
+    assert -0.12 < np.median(radius[acc]) < 0.05, radius  # the edge detector's radii are 4-8 % small
 
 
 def test_rim_inside_rule_accepts_contacts_near_the_border():

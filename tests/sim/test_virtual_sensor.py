@@ -73,7 +73,7 @@ def test_disabled_effects_are_not_computed(monkeypatch):
 def test_each_effect_alone_is_computed_and_changes_the_frames(effect, plain):
     s = random_sensor(4, shape=(24, 32), num_presses=1, effects=[effect])
     out = render_sensor(s)
-    assert out.computed == [effect]
+    assert out.computed == (["markers", effect] if effect == "marker_motion" else [effect])  # moved dots need dots
     base = render_sensor(random_sensor(4, shape=(24, 32), num_presses=1, effects="none"))
     assert np.any(out.capture.frames != base.capture.frames)
 
@@ -182,3 +182,33 @@ def test_rim_smoothing_and_blur_are_what_the_truth_says():
     want = sensor_effects.optical_blur(sharp.capture.frames[0, 0].astype(np.float32), 2.0)
     err = np.abs(out.capture.frames[0, 0].astype(np.float32) - want)[4:-4, 4:-4]
     assert err.max() <= 1.0 and np.abs(out.capture.frames.astype(float) - sharp.capture.frames).max() > 5
+
+
+def test_moved_markers_are_where_the_press_pushed_them():
+    """Under a press the dots move outward (the reference's mask no longer covers them); away from it they stay."""
+    s = random_sensor(1, shape=(120, 160), num_presses=2, effects=["markers", "marker_motion"], border_fraction=0.0)
+    out = render_sensor(s)
+    ref_mask, moved = out.truth.markers, out.truth.press_markers
+    assert moved.shape == (2, 120, 160)
+    yy, xx = np.mgrid[:120, :160]
+    for k in range(2):
+        (cx, cy), a = out.truth.center_xy[k], out.truth.radius_px[k]
+        near = np.hypot(xx - cx, yy - cy) < 1.5 * a
+        far = np.hypot(xx - cx, yy - cy) > 4 * a
+        assert (moved[k] & ~ref_mask & near).sum() > 10  # dots left the reference's mask
+        assert (moved[k] ^ ref_mask)[far].mean() < 0.05  # a fraction of a pixel there: edge pixels only
+
+
+def test_soft_shading_puts_the_brightest_change_on_a_rim_crescent():
+    s = random_sensor(0, shape=(120, 160), num_presses=1, effects=["soft_shading"], border_fraction=0.0,
+                      radius_range=(0.7, 0.8))
+    soft = render_sensor(s)
+    plain = render_sensor(s.replace(soft_shading=0.0, soft_blur_px=0.0, rim_highlight_dn=0.0))
+    def change(out):
+        return np.abs(out.capture.frames[0, 0].astype(float) - out.capture.reference[0]).sum(-1)
+    d_soft, d_plain = change(soft), change(plain)
+    (cx, cy), a = soft.truth.center_xy[0], soft.truth.radius_px[0]
+    y, x = np.unravel_index(np.argmax(d_soft), d_soft.shape)
+    assert 0.3 * a < np.hypot(x - cx, y - cy) < 1.1 * a  # the peak is off centre, toward the rim
+    inside = soft.truth.contact[0]
+    assert np.median(d_soft[inside]) < 0.8 * np.median(d_plain[inside])  # the rest of the shading is weaker
