@@ -101,7 +101,7 @@ def frame_sets(data: Path, presses: int, quick: bool) -> tuple[dict[str, np.ndar
         notes.append(f"digit: left out ({digit} has no frame_*.jpg)")
     n = min(presses, 16) if quick else presses
     # The camera's flaws only (markers, vignetting, drift, stripes, noise, JPEG): the frames these
-    # figures were first measured on; the gel's and the contact's looks change what is stored little.
+    # figures were first measured on, so they stay comparable from run to run.
     flaws = [e for e in SENSOR_EFFECTS if e not in CONTACT_LOOK_EFFECTS + ("rim_smoothing", "optical_blur")]
     out["virtual 320x240"] = np.ascontiguousarray(
         render_sensor(random_sensor(1, shape=(240, 320), num_presses=n, effects=flaws)).capture.frames)
