@@ -7,7 +7,7 @@ from helpers import run_cli
 
 
 def test_bench_live_smoke(tmp_path):
-    r = run_cli("bench", "live", "--sizes", "64x48", "--repeats", "1", "--no-startup", "--cache", tmp_path / "c",
+    r = run_cli("bench", "live", "--quick", "--sizes", "64x48", "--repeats", "1", "--no-startup", "--cache", tmp_path / "c",
                 "--json", timeout=600)
     assert r.returncode == 0, r.stderr
     res = json.loads(r.stdout)
