@@ -18,7 +18,7 @@ from calibration.samples import Samples
 from pipeline.base.errors import UserError
 from pipeline.results.evaluate import angular_error_deg
 
-__all__ = ["CalibrationModel", "LightFieldModel", "MIN_FLAT", "flat_field", "solve_normals", "check_light_rank", "fit_tilt_gain",
+__all__ = ["net_arrays", "net_state", "CalibrationModel", "LightFieldModel", "MIN_FLAT", "flat_field", "solve_normals", "check_light_rank", "fit_tilt_gain",
            "scale_tilt"]
 
 #: A flat field (the no-contact reference over its channel's median level) below this carries no
@@ -273,3 +273,27 @@ class LightFieldModel(CalibrationModel):
             ok = ok & ~dark
         sv = np.linalg.svd(np.asarray(L, np.float64), compute_uv=False)  # (N, 3)
         return n, ok, np.where(ok, sv[:, -1] / np.maximum(sv[:, 0], 1e-30), 0.0)
+
+
+def net_arrays(net, prefix: str) -> dict[str, np.ndarray]:
+    """A torch network's parameters as calibration.h5 arrays ``<prefix>/<param>`` (the state
+    dict's ``.`` written ``_``: ``"0.weight"`` -> ``"0_weight"``); inverse: :func:`net_state`."""
+    return {f"{prefix}/{k.replace('.', '_')}": v.detach().cpu().numpy() for k, v in net.state_dict().items()}
+
+
+def net_state(arrays: dict[str, np.ndarray], prefix: str) -> dict[str, Any]:
+    """The state dict :func:`net_arrays` wrote under ``prefix`` (torch tensors, keys with ``.``).
+
+    Raises
+    ------
+    KeyError
+        ``<prefix>/*`` when the arrays hold no parameter under it.
+    """
+    import torch
+
+    head = prefix + "/"
+    state = {k[len(head):].replace("_", ".", 1): torch.from_numpy(np.asarray(v)) for k, v in arrays.items()
+             if k.startswith(head)}
+    if not state:
+        raise KeyError(f"{head}*")
+    return state

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.models.base import CalibrationModel
+from calibration.models.base import CalibrationModel, net_arrays, net_state
 from calibration.samples import Samples
 
 __all__ = ["ConvModel", "feature_planes"]
@@ -334,7 +334,7 @@ class ConvModel(CalibrationModel):
         ``config = [width, *dilations]``, ``input_scale``, ``reference``."""
         if self.net is None:
             raise ValueError("ConvModel: not fitted")
-        arrays = {f"weights/{k.replace('.', '_')}": v.detach().cpu().numpy() for k, v in self.net.state_dict().items()}
+        arrays = net_arrays(self.net, "weights")
         arrays["config"] = np.array([self.width, *self.dilations], dtype=np.int64)
         arrays["input_scale"] = np.asarray(self.input_scale, dtype=np.float64)
         if self.reference is not None:
@@ -344,7 +344,6 @@ class ConvModel(CalibrationModel):
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], device: str = "cpu") -> "ConvModel":
         """A fitted model from :meth:`to_arrays`' output."""
-        import torch
 
         cfg = [int(v) for v in np.asarray(arrays["config"]).ravel()]
         model = cls(width=cfg[0], dilations=tuple(cfg[1:]), input_scale=float(arrays["input_scale"]), device=device)
@@ -352,11 +351,8 @@ class ConvModel(CalibrationModel):
         model.reference = None if ref is None else np.asarray(ref, np.float32)
         if model.reference is not None:
             model.shape = tuple(model.reference.shape[1:3])
-        state = {k[len("weights/"):]: torch.from_numpy(np.asarray(v)) for k, v in arrays.items()
-                 if k.startswith("weights/")}
-        if not state:
-            raise KeyError("weights/*")
-        net = model._build(int(state["0_weight"].shape[1]))
-        net.load_state_dict({k.replace("_", ".", 1): v for k, v in state.items()})
+        state = net_state(arrays, "weights")
+        net = model._build(int(state["0.weight"].shape[1]))
+        net.load_state_dict(state)
         model.net = net.eval()
         return model

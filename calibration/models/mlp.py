@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from calibration.models.base import CalibrationModel
+from calibration.models.base import CalibrationModel, net_arrays, net_state
 from calibration.models.nearfield import poly_terms
 from calibration.samples import Samples
 from pipeline.base.frames import normals_to_gradients
@@ -252,9 +252,7 @@ class MLPModel(CalibrationModel):
         """
         arrays = {}
         for i, net in enumerate(self.nets):
-            prefix = "weights" if i == 0 else f"members/{i}"
-            arrays.update({f"{prefix}/{k.replace('.', '_')}": v.detach().cpu().numpy()
-                           for k, v in net.state_dict().items()})
+            arrays.update(net_arrays(net, "weights" if i == 0 else f"members/{i}"))
         arrays["config"] = np.array([self.hidden, self.layers, int(self.position), len(self.nets),
                                      FEATURES.index(self.features), self.position_degree], dtype=np.int64)
         arrays["input_scale"] = np.asarray(self.input_scale, dtype=np.float64)
@@ -265,7 +263,6 @@ class MLPModel(CalibrationModel):
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], device: str = "cpu") -> "MLPModel":
         """A fitted model from :meth:`to_arrays`' output (files written before ensembles load too)."""
-        import torch
 
         cfg = [int(v) for v in np.asarray(arrays["config"]).ravel()]
         hidden, layers, position = cfg[:3]
@@ -280,13 +277,9 @@ class MLPModel(CalibrationModel):
         if model.reference is not None:
             model.shape = tuple(model.reference.shape[1:3])
         for i in range(members):
-            prefix = "weights/" if i == 0 else f"members/{i}/"
-            state = {k[len(prefix):]: torch.from_numpy(np.asarray(v)) for k, v in arrays.items() if k.startswith(prefix)}
-            if not state:
-                raise KeyError(f"{prefix}*")
+            state = net_state(arrays, "weights" if i == 0 else f"members/{i}")
             first = state[min(k for k in state if k.endswith("weight"))]
             net = model._build(int(first.shape[1]))
-            # state_dict keys were stored with '.' -> '_' ("0.weight" -> "0_weight").
-            net.load_state_dict({k.replace("_", ".", 1): v for k, v in state.items()})
+            net.load_state_dict(state)
             model.nets.append(net.eval())
         return model

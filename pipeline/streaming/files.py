@@ -37,7 +37,7 @@ def open_files(job: StreamJob) -> dict:
         schema, datasets, meta = layouts[name]
         static = {}
         if name == "normals" and job.markers is not None:
-            static["filled"] = job.markers & (job.region if job.region is not None else True)
+            static["filled"] = job.filled
         out[name] = StreamedFile.open(e["path"], schema, job.frames, datasets, static=static, meta=meta, key=e["key"])
     return out
 

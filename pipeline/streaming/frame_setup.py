@@ -38,8 +38,7 @@ def _pipeline(job: StreamJob, cap, lights, threads):
                           bit_depth=cap.meta.get("bit_depth"), name=str(cap.path or "capture"), ratio=o["ratio"],
                           device=o["device"], dtype=o["dtype"], compile=o["compile"])
     integ = frame_integrator(o["integrator"], (H, W), job.mm_per_px)
-    filled = None if job.markers is None else job.markers & (job.region if job.region is not None else True)
-    return FramePipeline(solver, integ, threads=threads, region=job.region, filled=filled, contact=contact,
+    return FramePipeline(solver, integ, threads=threads, region=job.region, filled=job.filled, contact=contact,
                          extras=job.outputs.normal_extras + (() if "groups" in job.meta else ("albedo",)))
 
 

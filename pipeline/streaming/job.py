@@ -76,6 +76,11 @@ class StreamJob:
     def cached(self) -> bool:
         return all(e["done"] for e in self.entries.values())
 
+    @property
+    def filled(self) -> np.ndarray | None:
+        """The marker pixels filled in and solved: the markers within the solved region (None: no markers)."""
+        return None if self.markers is None else self.markers & (self.region if self.region is not None else True)
+
     def summarize(self, stats: dict[int, dict]) -> dict:
         """The run's summary from its frames' statistics (:func:`pipeline.streaming.frames.frame_stats`):
         ``valid_fraction``, ``drift`` (and its median DN before and after), the truth errors

@@ -97,7 +97,7 @@ def frame_ranges(missing: Sequence[tuple[int, int]], parts: int, min_frames: int
     return out
 
 
-#: What a worker process set up for a job (its capture, light model and frame pipeline), kept for
+#: What a worker process set up for a job (its capture and frame pipeline), kept for
 #: the job's next range: a worker takes several ranges of a recording, and the set-up (reading the
 #: light model, the solver's precomputation) is the same for each.
 _WORKER_JOBS: dict = {}
@@ -115,11 +115,11 @@ def _range_task(job, start: int, stop: int, threads) -> dict:
         cap = read_capture(job.capture)
         lights = capture_lights(cap, load_light_record(job.light_files["calibration"], "calibration"),
                                 load_light_record(job.light_files["illumination"], "illumination"))
-        for old in _WORKER_JOBS.values():  # one job's set-up at a time per worker
-            old[2].close()
+        for _, old_pipe in _WORKER_JOBS.values():  # one job's set-up at a time per worker
+            old_pipe.close()
         _WORKER_JOBS.clear()
-        _WORKER_JOBS[ident] = (cap, lights, prepare(job, cap, lights, threads))
-    cap, _, pipe = _WORKER_JOBS[ident]
+        _WORKER_JOBS[ident] = (cap, prepare(job, cap, lights, threads))
+    cap, pipe = _WORKER_JOBS[ident]
     return run_frames(job, start, stop, threads=threads, cap=cap, pipe=pipe, keep=True)
 
 
@@ -221,7 +221,7 @@ def _plan(recording: str, options: dict, threads) -> dict:
                              "method": "cached", "pipe": None}
     try:
         job, cap, lights = plan_stream(recording, **options)
-        entry.update(job=job, frames=job.frames, cap=cap, lights=lights)
+        entry.update(job=job, frames=job.frames, cap=cap)
         if not job.cached:
             entry["pipe"] = prepare(job, cap, lights, threads)
     except Exception as exc:  # noqa: BLE001 - reported in its item
