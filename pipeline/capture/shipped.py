@@ -46,6 +46,8 @@ def shipped_calibration_path(profile) -> Path | None:
     name = profile.name if isinstance(profile, SensorProfile) else str(profile)
     if name not in list_profiles():
         return None
+    if isinstance(profile, SensorProfile) and Path(profile.source).resolve() != (PROFILES_DIR / f"{name}.yaml").resolve():
+        return None  # a profile file of the user's that shares a built-in's name: not that sensor
     path = PROFILES_DIR / f"{name}{SUFFIX}"
     return path if path.is_file() else None
 

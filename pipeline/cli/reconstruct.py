@@ -10,6 +10,8 @@ from pipeline.cli._common import (
     add_solving_group,
     add_threads_flag,
     print_json,
+    profile_metavar,
+    shipped_calibration,
     threads_arg,
 )
 
@@ -24,7 +26,12 @@ def register(sub, name, help_text):
     p = sub.add_parser(name, help=help_text, description=help_text)
     p.add_argument("capture", metavar="CAPTURE", help="capture.h5 or a video (.mp4, .avi, ...)")
     add_light_flags(p, "calibration.h5 (light_field / light_vectors / LUT)", "illumination.h5 (V or light_matrices)")
+    p.add_argument("--profile", default=None, metavar=profile_metavar(),
+                   help="sensor profile of the capture (a built-in name or a .yaml): its pixel pitch for a video and, "
+                        "without --calibration or --illumination, the calibration shipped with it (digit: solved with "
+                        "--solver mlp; its measured error is printed)")
     solve = add_solving_group(p)
+    p.set_defaults(solver=None)  # lstsq, or mlp with a profile's shipped calibration (_run)
     solve.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
     solve.add_argument("--max-condition", type=float, default=1e3, help="mask pixels whose light matrix is worse")
     run = p.add_argument_group("where it runs")
@@ -48,13 +55,16 @@ def _run(args) -> int:
     from pipeline.workflows.reconstruct import reconstruct
 
     threads = threads_arg(args)
-    res = reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
-                      solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
+    calibration, solver, mm_per_px = args.calibration, args.solver or "lstsq", args.mm_per_px
+    if args.profile is not None:
+        calibration, solver, mm_per_px = _with_profile(args)
+    res = reconstruct(args.capture, calibration=calibration, illumination=args.illumination,
+                      solver=solver, integrator=args.integrator, out=args.out, store=args.cache,
                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
                       images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
                       markers=args.markers, threads=threads, drift=args.drift, save=args.save,
                       precision=args.precision, progress=_bar(args), reference=args.reference,
-                      mm_per_px=args.mm_per_px)
+                      mm_per_px=mm_per_px)
     s = res.summary
     if args.json:
         print_json(s)
@@ -69,6 +79,29 @@ def _run(args) -> int:
     print(line)
     print(f"wrote {len(res.files)} files to {args.out}")
     return 0
+
+
+def _with_profile(args):
+    """``(calibration, solver, mm_per_px)`` with ``--profile``: the capture must be of the
+    profile's image size; the profile's shipped calibration when no light model is given."""
+    from pipeline.base.errors import UserError
+    from pipeline.capture.sensor_profiles import load_profile
+    from pipeline.capture.video_frames import is_video
+
+    prof = load_profile(args.profile)
+    if not is_video(args.capture):
+        from pipeline.base.store import describe_file
+
+        shape = describe_file(args.capture)[0]["datasets"].get("frames", {}).get("shape") or []
+        if len(shape) == 5 and (shape[3], shape[2]) != prof.resolution:
+            raise UserError(f"{args.capture}: images are {shape[3]} x {shape[2]} px, sensor profile {prof.name!r} is "
+                            f"for {prof.resolution[0]} x {prof.resolution[1]} (import the frames with --profile "
+                            f"{prof.name})")
+    shipped = shipped_calibration("reconstruct", prof, args.calibration, args.illumination)
+    calibration = args.calibration if shipped is None else shipped
+    solver = args.solver or ("lstsq" if shipped is None else "mlp")
+    video_pitch = prof.mm_per_px if is_video(args.capture) else None
+    return calibration, solver, args.mm_per_px if args.mm_per_px is not None else video_pitch
 
 
 def _bar(args):
