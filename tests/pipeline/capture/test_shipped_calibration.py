@@ -17,6 +17,7 @@ from pipeline.capture.sensor_profiles import PROFILES_DIR, load_profile
 from pipeline.capture.shipped import shipped_calibration_path, shipped_info, shipped_note
 
 PATH = shipped_calibration_path("digit")
+META = {"source": "test", "pattern_names": ["all"], "sensor_profile": "digit"}
 
 
 def test_shipped_file_loads_under_the_current_schema_and_models():
@@ -92,19 +93,20 @@ def test_live_profile_digit_uses_the_shipped_calibration(digit_frames, tmp_path)
     # The DIGIT streams 640 x 480 landscape; its profile turns it portrait.
     stream = np.stack([np.rot90(f, k=-1) for f in digit_frames])
     video = _video(tmp_path / "digit.avi", stream)
-    r = run_cli("live", "--profile", "digit", "--camera", video, "--json", "--frames", "3", timeout=120)
+    r = run_cli("live", "--profile", "digit", "--camera", video, "--json", timeout=120)
     assert r.returncode == 0, r.stderr
     assert "no --calibration given: using the shipped DIGIT calibration" in r.stderr
     assert "on another unit expect about" in r.stderr
     s = json.loads(r.stdout)
-    assert s["solver"] == "mlp" and s["results"] == 3
+    # The first frame is the session's no-contact reference (another unit's: not the shipped one).
+    assert s["solver"] == "mlp" and s["results"] == 2
 
 
 def test_reconstruct_profile_digit_uses_the_shipped_calibration(digit_frames, tmp_path):
     from pipeline.base.capture import Capture, write_capture
 
     cap = Capture(frames=digit_frames[1:, None], reference=digit_frames[:1], drive=np.eye(3, dtype=np.float32)[None],
-                  brightness=np.ones(1, np.float32), mm_per_px=0.0266, meta={"sensor_profile": "digit"})
+                  brightness=np.ones(1, np.float32), mm_per_px=0.0266, meta=META)
     path = write_capture(tmp_path / "cap.h5", cap)
     r = run_cli("reconstruct", path, "--profile", "digit", "--out", tmp_path / "out", "--no-images", "--json",
                 "--cache", tmp_path / "cache", timeout=120)
@@ -112,9 +114,16 @@ def test_reconstruct_profile_digit_uses_the_shipped_calibration(digit_frames, tm
     assert "iristac reconstruct: no --calibration given: using the shipped DIGIT calibration" in r.stderr
     s = json.loads(r.stdout)
     assert s["solver"] == "mlp" and s["valid_fraction"] > 0.9
-    # A capture of another size is not this profile's: one line saying so.
-    small = Capture(frames=digit_frames[1:, None, :320, :240], reference=digit_frames[:1, :320, :240],
-                    drive=np.eye(3, dtype=np.float32)[None], brightness=np.ones(1, np.float32), mm_per_px=0.05)
-    r = run_cli("reconstruct", write_capture(tmp_path / "small.h5", small), "--profile", "digit", "--out",
-                tmp_path / "out2", "--cache", tmp_path / "cache", timeout=60)
-    assert r.returncode != 0 and "images are 240 x 320 px, sensor profile 'digit' is for 480 x 640" in r.stderr
+
+
+def test_a_light_model_of_the_users_wins(capsys):
+    """Where the user gives --calibration or --illumination, or the profile ships none, nothing changes."""
+    from pipeline.cli._common import shipped_calibration
+
+    assert shipped_calibration("live", "digit", "cal.h5", None) is None
+    assert shipped_calibration("reconstruct", "digit", None, "ill.h5") is None
+    assert shipped_calibration("live", "gelsight-mini", None, None) is None
+    assert shipped_calibration("live", None, None, None) is None
+    assert capsys.readouterr().err == ""
+    assert shipped_calibration("live", "digit", None, None) == PATH
+    assert "iristac live: no --calibration given: using the shipped DIGIT calibration" in capsys.readouterr().err
