@@ -51,6 +51,9 @@ def add_shipped_arguments(parser) -> None:
                              "figures (pipeline/capture/sensors/digit.calibration.h5 is the one shipped)")
     parser.add_argument("--frames", metavar="DIR", default=None,
                         help="with --shipped: the DIGIT frames (default ../shared/data/digit_ball_presses)")
+    parser.add_argument("--altered-seeds", metavar="SEED", type=int, nargs="*", default=[],
+                        help="with --shipped: also altered copies drawn at random from these seeds (resolution 0.5-0.9 "
+                             "x, any turn, border, gains 0.8-1.15; calibration.altered_unit.Alteration.from_seed)")
 
 
 def _digit_frames(frames) -> Path:
@@ -73,32 +76,47 @@ def _folder(folder: Path, source: Path, presses) -> Path:
     return folder
 
 
-def measure_shipped(calibration, frames, tmp, log: Callable[[str], None] = lambda m: None) -> dict[str, Any]:
-    """The calibration's figures on the held-out presses of ``frames`` (a DIGIT folder) and on an
-    altered copy of them: ``original`` and ``altered`` (``presses``, ``accepted``, ``mean_deg``,
-    ``median_deg``, ``ball_radius_error`` (median |error| of the fitted radius),
-    ``ball_radius_signed``, ``seconds``; ``alteration`` for the copy)."""
-    from calibration.altered_unit import Alteration, make_altered_unit
+def _judge(calibration, folder, profile) -> dict[str, Any]:
+    """The MLP's figures on one folder of test presses (imported with ``profile``)."""
     from calibration.evaluate import evaluate_calibration
     from calibration.image_import import load_images
 
+    t = time.perf_counter()
+    cap, _ = load_images(folder, profile=profile)
+    ev = evaluate_calibration(calibration, cap, models=["mlp"])
+    m, ball = ev["models"]["mlp"], ev["ball_fit"]["mlp"]
+    return {"presses": ev["presses"], "accepted": ev["accepted"], "mean_deg": m["mean_deg"],
+            "median_deg": m["median_deg"], "ball_radius_error": ball["radius_error_median"],
+            "ball_radius_signed": ball["radius_error_signed_median"], "ball_fitted": ball["fitted"],
+            "seconds": time.perf_counter() - t}
+
+
+def measure_shipped(calibration, frames, tmp, log: Callable[[str], None] = lambda m: None,
+                    seeds=()) -> dict[str, Any]:
+    """The calibration's figures on the held-out presses of ``frames`` (a DIGIT folder) and on an
+    altered copy of them: ``original`` and ``altered`` (``presses``, ``accepted``, ``mean_deg``,
+    ``median_deg``, ``ball_radius_error`` (median |error| of the fitted radius),
+    ``ball_radius_signed``, ``seconds``; ``alteration`` for the copy); ``seeded``: one such per
+    seed of ``seeds`` (:meth:`calibration.altered_unit.Alteration.from_seed`)."""
+    from calibration.altered_unit import Alteration, make_altered_unit
+    from pipeline.capture.sensor_profiles import load_profile
+
     tmp = Path(tmp)
     test = _folder(tmp / "test", Path(frames), TEST_PRESSES)
-    alt = Alteration(**ALTERATION)
-    unit = make_altered_unit(test, tmp / "altered", alteration=alt)
-    out: dict[str, Any] = {}
-    for case, folder, profile in (("original", test, "digit"), ("altered", unit.frames, unit.profile)):
-        t = time.perf_counter()
-        cap, _ = load_images(folder, profile=profile)
-        ev = evaluate_calibration(calibration, cap, models=["mlp"])
-        m, ball = ev["models"]["mlp"], ev["ball_fit"]["mlp"]
-        out[case] = {"presses": ev["presses"], "accepted": ev["accepted"], "mean_deg": m["mean_deg"],
-                     "median_deg": m["median_deg"], "ball_radius_error": ball["radius_error_median"],
-                     "ball_radius_signed": ball["radius_error_signed_median"], "ball_fitted": ball["fitted"],
-                     "seconds": time.perf_counter() - t}
-        log(f"{case}: {ev['accepted']} of {ev['presses']} presses accepted, mlp {m['mean_deg']:.2f} deg "
-            f"({out[case]['seconds']:.0f} s)")
-    out["altered"]["alteration"] = alt.describe()
+    alts = [("altered", Alteration(**ALTERATION))]
+    alts += [(f"seed {s}", Alteration.from_seed(s, load_profile("digit").resolution)) for s in seeds]
+    out: dict[str, Any] = {"original": _judge(calibration, test, "digit"), "seeded": []}
+    log(f"original: {out['original']['accepted']} of {out['original']['presses']} presses accepted, mlp "
+        f"{out['original']['mean_deg']:.2f} deg ({out['original']['seconds']:.0f} s)")
+    for i, (case, alt) in enumerate(alts):
+        unit = make_altered_unit(test, tmp / f"altered_{i}", alteration=alt)
+        row = {**_judge(calibration, unit.frames, unit.profile), "alteration": alt.describe(), "case": case}
+        log(f"{case}: {row['accepted']} of {row['presses']} presses accepted, mlp {row['mean_deg']:.2f} deg "
+            f"({row['seconds']:.0f} s)")
+        if i == 0:
+            out["altered"] = row
+        else:
+            out["seeded"].append(row)
     return out
 
 
@@ -127,7 +145,7 @@ def build_shipped_calibration(frames, out, log: Callable[[str], None] = lambda m
             "built_by": "iristac bench calibration --shipped --rebuild OUT.h5",
             "train_frames": [f"frame_{i}.jpg" for i in TRAIN_PRESSES] + [CLEAN_FRAME],
             "test_frames": [f"frame_{i}.jpg" for i in TEST_PRESSES] + [CLEAN_FRAME],
-            "original": measured["original"], "altered": measured["altered"]}
+            "original": measured["original"], "altered": {k: v for k, v in measured["altered"].items() if k != "case"}}
     write_record(Path(out), Record(schema="calibration", data=rec.data, meta={**rec.meta, SHIPPED_ATTR: info}))
     return {**measured, "calibrate_seconds": seconds, "out": str(out)}
 
@@ -147,7 +165,7 @@ def run_shipped(args, log: Callable[[str], None]) -> dict[str, Any]:
         if path is None:
             raise UserError("no calibration ships with the digit profile: build it with --shipped --rebuild OUT.h5")
         with tempfile.TemporaryDirectory(prefix="iristac-shipped-") as tmp:
-            res = measure_shipped(path, frames, tmp, log)
+            res = measure_shipped(path, frames, tmp, log, seeds=getattr(args, "altered_seeds", None) or ())
     stored = shipped_info(path)
     size = path.stat().st_size
     return {"shipped": True, "calibration": str(path), "size_bytes": size, "stored": stored, **res,
@@ -179,7 +197,13 @@ def format_shipped(result: dict[str, Any]) -> list[str]:
         lines.append(f"  {text:46s} {r['accepted']:>3d} / {r['presses']:<3d} {_deg(r['mean_deg']):>9s} "
                      f"{_deg(r['median_deg']):>7s} {_pct(r['ball_radius_error']):>11s} {r['seconds']:8.1f} "
                      f"{_deg(s['mean_deg']):>10s}")
+    for r in result.get("seeded", []):
+        lines.append(f"  {'another unit, altered at random (' + r['case'] + ')':46s} {r['accepted']:>3d} / "
+                     f"{r['presses']:<3d} {_deg(r['mean_deg']):>9s} {_deg(r['median_deg']):>7s} "
+                     f"{_pct(r['ball_radius_error']):>11s} {r['seconds']:8.1f} {'-':>10s}")
     lines.append(f"  altered copy: {result['altered']['alteration']}")
+    for r in result.get("seeded", []):
+        lines.append(f"  {r['case']}: {r['alteration']}")
     o, a = result["original"]["mean_deg"], result["altered"]["mean_deg"]
     if o is not None and a is not None:
         lines.append(f"  another unit vs the unit itself: {a - o:+.2f} deg (target: within 3 deg)")
