@@ -89,14 +89,19 @@ def _with_profile(args):
     from pipeline.capture.video_frames import is_video
 
     prof = load_profile(args.profile)
-    if not is_video(args.capture):
+    if is_video(args.capture):
+        from pipeline.capture.video_frames import video_frame_count
+
+        h, w = video_frame_count(args.capture)[1]
+    else:
         from pipeline.base.store import describe_file
 
-        shape = describe_file(args.capture)[0]["datasets"].get("frames", {}).get("shape") or []
-        if len(shape) == 5 and (shape[3], shape[2]) != prof.resolution:
-            raise UserError(f"{args.capture}: images are {shape[3]} x {shape[2]} px, sensor profile {prof.name!r} is "
-                            f"for {prof.resolution[0]} x {prof.resolution[1]} (import the frames with --profile "
-                            f"{prof.name})")
+        shape = describe_file(args.capture)[0]["datasets"].get("frames", {}).get("shape") or [0] * 5
+        h, w = shape[2], shape[3]
+    if (w, h) != prof.resolution:
+        raise UserError(f"{args.capture}: images are {w} x {h} px, sensor profile {prof.name!r} is for "
+                        f"{prof.resolution[0]} x {prof.resolution[1]} (import the frames with --profile {prof.name}: "
+                        "iristac import images SOURCE --profile " + f"{prof.name} --out CAPTURE.h5)")
     shipped = shipped_calibration("reconstruct", prof, args.calibration, args.illumination)
     calibration = args.calibration if shipped is None else shipped
     solver = args.solver or ("lstsq" if shipped is None else "mlp")
