@@ -100,8 +100,8 @@ def _with_profile(args):
         h, w = shape[2], shape[3]
     if (w, h) != prof.resolution:
         raise UserError(f"{args.capture}: images are {w} x {h} px, sensor profile {prof.name!r} is for "
-                        f"{prof.resolution[0]} x {prof.resolution[1]} (import the frames with --profile {prof.name}: "
-                        "iristac import images SOURCE --profile " + f"{prof.name} --out CAPTURE.h5)")
+                        f"{prof.resolution[0]} x {prof.resolution[1]} (import the frames with iristac import images SOURCE "
+                        f"--profile {prof.name} --out CAPTURE.h5)")
     shipped = shipped_calibration("reconstruct", prof, args.calibration, args.illumination)
     calibration = args.calibration if shipped is None else shipped
     solver = args.solver or ("lstsq" if shipped is None else "mlp")
