@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 __all__ = ["ALTERATION", "TRAIN_PRESSES", "TEST_PRESSES", "add_shipped_arguments", "build_shipped_calibration",
-           "measure_shipped", "run_shipped", "format_shipped"]
+           "measure_shipped", "run_shipped", "format_shipped", "colour_matched"]
 
 #: The presses the shipped calibration is built from, and those it is judged on.
 TRAIN_PRESSES = tuple(range(0, 20))
@@ -54,6 +54,9 @@ def add_shipped_arguments(parser) -> None:
     parser.add_argument("--altered-seeds", metavar="SEED", type=int, nargs="*", default=[],
                         help="with --shipped: also altered copies drawn at random from these seeds (resolution 0.5-0.9 "
                              "x, any turn, border, gains 0.8-1.15; calibration.altered_unit.Alteration.from_seed)")
+    parser.add_argument("--match-colour", action="store_true",
+                        help="with --shipped: also judge each altered copy with its colours matched to the shipped "
+                             "unit's from the no-contact frames alone (a lever; live and reconstruct do not apply it)")
 
 
 def _digit_frames(frames) -> Path:
@@ -76,28 +79,53 @@ def _folder(folder: Path, source: Path, presses) -> Path:
     return folder
 
 
-def _judge(calibration, folder, profile) -> dict[str, Any]:
+def colour_matched(cap, calibration):
+    """``cap`` (a Capture) with each colour channel of its frames and reference multiplied by the
+    ratio of the calibration's reference to the capture's (per-channel medians): another unit's
+    LED colours brought to the shipped unit's from its no-contact frame alone, no press. A lever
+    measured by ``--match-colour``; ``live`` and ``reconstruct`` do not apply it."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from calibration.stored import load_models
+
+    ref = np.asarray(load_models(calibration)["mlp"].reference, np.float64)
+    gain = np.median(ref.reshape(-1, ref.shape[-1]), 0) / np.median(
+        np.asarray(cap.reference, np.float64).reshape(-1, ref.shape[-1]), 0)
+    top = float(np.iinfo(cap.frames.dtype).max)
+    scaled = [np.clip(np.rint(np.asarray(a, np.float64) * gain), 0, top).astype(cap.frames.dtype)
+              for a in (cap.frames, cap.reference)]
+    return replace(cap, frames=scaled[0], reference=scaled[1]), gain
+
+
+def _judge(calibration, folder, profile, match_colour: bool = False) -> dict[str, Any]:
     """The MLP's figures on one folder of test presses (imported with ``profile``)."""
     from calibration.evaluate import evaluate_calibration
     from calibration.image_import import load_images
 
     t = time.perf_counter()
     cap, _ = load_images(folder, profile=profile)
+    gain = None
+    if match_colour:
+        cap, gain = colour_matched(cap, calibration)
     ev = evaluate_calibration(calibration, cap, models=["mlp"])
     m, ball = ev["models"]["mlp"], ev["ball_fit"]["mlp"]
     return {"presses": ev["presses"], "accepted": ev["accepted"], "mean_deg": m["mean_deg"],
             "median_deg": m["median_deg"], "ball_radius_error": ball["radius_error_median"],
             "ball_radius_signed": ball["radius_error_signed_median"], "ball_fitted": ball["fitted"],
-            "seconds": time.perf_counter() - t}
+            "seconds": time.perf_counter() - t, "colour_gain": None if gain is None else [float(g) for g in gain]}
 
 
 def measure_shipped(calibration, frames, tmp, log: Callable[[str], None] = lambda m: None,
-                    seeds=()) -> dict[str, Any]:
+                    seeds=(), match_colour: bool = False) -> dict[str, Any]:
     """The calibration's figures on the held-out presses of ``frames`` (a DIGIT folder) and on an
     altered copy of them: ``original`` and ``altered`` (``presses``, ``accepted``, ``mean_deg``,
     ``median_deg``, ``ball_radius_error`` (median |error| of the fitted radius),
     ``ball_radius_signed``, ``seconds``; ``alteration`` for the copy); ``seeded``: one such per
-    seed of ``seeds`` (:meth:`calibration.altered_unit.Alteration.from_seed`)."""
+    seed of ``seeds`` (:meth:`calibration.altered_unit.Alteration.from_seed`); with
+    ``match_colour``, every altered copy also judged after :func:`colour_matched`
+    (``<case> colour-matched`` rows in ``seeded``)."""
     from calibration.altered_unit import Alteration, make_altered_unit
     from pipeline.capture.sensor_profiles import load_profile
 
@@ -116,6 +144,11 @@ def measure_shipped(calibration, frames, tmp, log: Callable[[str], None] = lambd
         if i == 0:
             out["altered"] = row
         else:
+            out["seeded"].append(row)
+        if match_colour:
+            row = {**_judge(calibration, unit.frames, unit.profile, True), "alteration": alt.describe(),
+                   "case": f"{case} colour-matched"}
+            log(f"{row['case']}: mlp {row['mean_deg']:.2f} deg")
             out["seeded"].append(row)
     return out
 
@@ -165,7 +198,8 @@ def run_shipped(args, log: Callable[[str], None]) -> dict[str, Any]:
         if path is None:
             raise UserError("no calibration ships with the digit profile: build it with --shipped --rebuild OUT.h5")
         with tempfile.TemporaryDirectory(prefix="iristac-shipped-") as tmp:
-            res = measure_shipped(path, frames, tmp, log, seeds=getattr(args, "altered_seeds", None) or ())
+            res = measure_shipped(path, frames, tmp, log, seeds=getattr(args, "altered_seeds", None) or (),
+                                  match_colour=bool(getattr(args, "match_colour", False)))
     stored = shipped_info(path)
     size = path.stat().st_size
     return {"shipped": True, "calibration": str(path), "size_bytes": size, "stored": stored, **res,
@@ -198,12 +232,16 @@ def format_shipped(result: dict[str, Any]) -> list[str]:
                      f"{_deg(r['median_deg']):>7s} {_pct(r['ball_radius_error']):>11s} {r['seconds']:8.1f} "
                      f"{_deg(s['mean_deg']):>10s}")
     for r in result.get("seeded", []):
-        lines.append(f"  {'another unit, altered at random (' + r['case'] + ')':46s} {r['accepted']:>3d} / "
+        lines.append(f"  {'another unit (' + r['case'] + ')':46s} {r['accepted']:>3d} / "
                      f"{r['presses']:<3d} {_deg(r['mean_deg']):>9s} {_deg(r['median_deg']):>7s} "
                      f"{_pct(r['ball_radius_error']):>11s} {r['seconds']:8.1f} {'-':>10s}")
     lines.append(f"  altered copy: {result['altered']['alteration']}")
     for r in result.get("seeded", []):
-        lines.append(f"  {r['case']}: {r['alteration']}")
+        if r.get("colour_gain") is None:
+            lines.append(f"  {r['case']}: {r['alteration']}")
+        else:
+            lines.append(f"  {r['case']}: colour gain from the no-contact frames "
+                         f"{' / '.join(f'{g:.3f}' for g in r['colour_gain'])}")
     o, a = result["original"]["mean_deg"], result["altered"]["mean_deg"]
     if o is not None and a is not None:
         lines.append(f"  another unit vs the unit itself: {a - o:+.2f} deg (target: within 3 deg)")
