@@ -13,7 +13,10 @@ finds each test press's contact, no labels), on
   (:func:`calibration.altered_unit.make_altered_unit` with :data:`ALTERATION`: another
   resolution, turned, framed by a border its profile crops, another colour gain), imported
   through the altered unit's own profile. No press of it reaches the calibration: only its
-  own no-contact frame is used, as ``live`` and ``reconstruct`` use a session's.
+  own no-contact frame is used, as ``live`` and ``reconstruct`` use a session's: for its
+  reference and to match its colours to the shipped unit's
+  (:func:`pipeline.capture.shipped.colour_gain`; every test capture, the unit's own too, goes
+  through it; ``--unmatched`` also judges the altered copies as recorded).
 
 ``--rebuild OUT.h5`` calibrates again (about 2 minutes), measures, and writes the calibration
 with both figures in its ``shipped`` attribute (what ``live`` and ``reconstruct`` print); without
@@ -29,7 +32,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 __all__ = ["ALTERATION", "TRAIN_PRESSES", "TEST_PRESSES", "add_shipped_arguments", "build_shipped_calibration",
-           "measure_shipped", "run_shipped", "format_shipped", "colour_matched"]
+           "measure_shipped", "run_shipped", "format_shipped"]
 
 #: The presses the shipped calibration is built from, and those it is judged on.
 TRAIN_PRESSES = tuple(range(0, 20))
@@ -54,9 +57,9 @@ def add_shipped_arguments(parser) -> None:
     parser.add_argument("--altered-seeds", metavar="SEED", type=int, nargs="*", default=[],
                         help="with --shipped: also altered copies drawn at random from these seeds (resolution 0.5-0.9 "
                              "x, any turn, border, gains 0.8-1.15; calibration.altered_unit.Alteration.from_seed)")
-    parser.add_argument("--match-colour", action="store_true",
-                        help="with --shipped: also judge each altered copy with its colours matched to the shipped "
-                             "unit's from the no-contact frames alone (a lever; live and reconstruct do not apply it)")
+    parser.add_argument("--unmatched", action="store_true",
+                        help="with --shipped: also judge each altered copy without matching its colours to the "
+                             "shipped unit's (live and reconstruct match them from the no-contact frame)")
 
 
 def _digit_frames(frames) -> Path:
@@ -79,36 +82,22 @@ def _folder(folder: Path, source: Path, presses) -> Path:
     return folder
 
 
-def colour_matched(cap, calibration):
-    """``cap`` (a Capture) with each colour channel of its frames and reference multiplied by the
-    ratio of the calibration's reference to the capture's (per-channel medians): another unit's
-    LED colours brought to the shipped unit's from its no-contact frame alone, no press. A lever
-    measured by ``--match-colour``; ``live`` and ``reconstruct`` do not apply it."""
+def _judge(calibration, folder, profile, match_colour: bool = True) -> dict[str, Any]:
+    """The MLP's figures on one folder of test presses (imported with ``profile``), their colours
+    matched to the calibration's from the no-contact frame as ``live`` and ``reconstruct`` match
+    them (:func:`pipeline.capture.shipped.colour_gain`), or as recorded."""
     from dataclasses import replace
 
-    import numpy as np
-
-    from calibration.stored import load_models
-
-    ref = np.asarray(load_models(calibration)["mlp"].reference, np.float64)
-    gain = np.median(ref.reshape(-1, ref.shape[-1]), 0) / np.median(
-        np.asarray(cap.reference, np.float64).reshape(-1, ref.shape[-1]), 0)
-    top = float(np.iinfo(cap.frames.dtype).max)
-    scaled = [np.clip(np.rint(np.asarray(a, np.float64) * gain), 0, top).astype(cap.frames.dtype)
-              for a in (cap.frames, cap.reference)]
-    return replace(cap, frames=scaled[0], reference=scaled[1]), gain
-
-
-def _judge(calibration, folder, profile, match_colour: bool = False) -> dict[str, Any]:
-    """The MLP's figures on one folder of test presses (imported with ``profile``)."""
     from calibration.evaluate import evaluate_calibration
     from calibration.image_import import load_images
+    from pipeline.capture.shipped import colour_gain, colour_matched, shipped_reference
 
     t = time.perf_counter()
     cap, _ = load_images(folder, profile=profile)
     gain = None
     if match_colour:
-        cap, gain = colour_matched(cap, calibration)
+        gain = colour_gain(cap.reference, shipped_reference(calibration))
+        cap = replace(cap, frames=colour_matched(cap.frames, gain), reference=colour_matched(cap.reference, gain))
     ev = evaluate_calibration(calibration, cap, models=["mlp"])
     m, ball = ev["models"]["mlp"], ev["ball_fit"]["mlp"]
     return {"presses": ev["presses"], "accepted": ev["accepted"], "mean_deg": m["mean_deg"],
@@ -118,14 +107,15 @@ def _judge(calibration, folder, profile, match_colour: bool = False) -> dict[str
 
 
 def measure_shipped(calibration, frames, tmp, log: Callable[[str], None] = lambda m: None,
-                    seeds=(), match_colour: bool = False) -> dict[str, Any]:
+                    seeds=(), unmatched: bool = False) -> dict[str, Any]:
     """The calibration's figures on the held-out presses of ``frames`` (a DIGIT folder) and on an
     altered copy of them: ``original`` and ``altered`` (``presses``, ``accepted``, ``mean_deg``,
     ``median_deg``, ``ball_radius_error`` (median |error| of the fitted radius),
     ``ball_radius_signed``, ``seconds``; ``alteration`` for the copy); ``seeded``: one such per
-    seed of ``seeds`` (:meth:`calibration.altered_unit.Alteration.from_seed`); with
-    ``match_colour``, every altered copy also judged after :func:`colour_matched`
-    (``<case> colour-matched`` rows in ``seeded``)."""
+    seed of ``seeds`` (:meth:`calibration.altered_unit.Alteration.from_seed`). Every test
+    capture's colours are matched to the calibration's from its no-contact frame, as ``live`` and
+    ``reconstruct`` do; with ``unmatched``, every altered copy is also judged as recorded
+    (``<case> not colour-matched`` rows in ``seeded``)."""
     from calibration.altered_unit import Alteration, make_altered_unit
     from pipeline.capture.sensor_profiles import load_profile
 
@@ -145,9 +135,9 @@ def measure_shipped(calibration, frames, tmp, log: Callable[[str], None] = lambd
             out["altered"] = row
         else:
             out["seeded"].append(row)
-        if match_colour:
-            row = {**_judge(calibration, unit.frames, unit.profile, True), "alteration": alt.describe(),
-                   "case": f"{case} colour-matched"}
+        if unmatched:
+            row = {**_judge(calibration, unit.frames, unit.profile, False), "alteration": alt.describe(),
+                   "case": f"{case} not colour-matched"}
             log(f"{row['case']}: mlp {row['mean_deg']:.2f} deg")
             out["seeded"].append(row)
     return out
@@ -178,6 +168,7 @@ def build_shipped_calibration(frames, out, log: Callable[[str], None] = lambda m
             "built_by": "iristac bench calibration --shipped --rebuild OUT.h5",
             "train_frames": [f"frame_{i}.jpg" for i in TRAIN_PRESSES] + [CLEAN_FRAME],
             "test_frames": [f"frame_{i}.jpg" for i in TEST_PRESSES] + [CLEAN_FRAME],
+            "colour_matching": "one gain per channel from the no-contact frames (pipeline.capture.shipped.colour_gain)",
             "original": measured["original"], "altered": {k: v for k, v in measured["altered"].items() if k != "case"}}
     write_record(Path(out), Record(schema="calibration", data=rec.data, meta={**rec.meta, SHIPPED_ATTR: info}))
     return {**measured, "calibrate_seconds": seconds, "out": str(out)}
@@ -199,7 +190,7 @@ def run_shipped(args, log: Callable[[str], None]) -> dict[str, Any]:
             raise UserError("no calibration ships with the digit profile: build it with --shipped --rebuild OUT.h5")
         with tempfile.TemporaryDirectory(prefix="iristac-shipped-") as tmp:
             res = measure_shipped(path, frames, tmp, log, seeds=getattr(args, "altered_seeds", None) or (),
-                                  match_colour=bool(getattr(args, "match_colour", False)))
+                                  unmatched=bool(getattr(args, "unmatched", False)))
     stored = shipped_info(path)
     size = path.stat().st_size
     return {"shipped": True, "calibration": str(path), "size_bytes": size, "stored": stored, **res,
@@ -235,13 +226,15 @@ def format_shipped(result: dict[str, Any]) -> list[str]:
         lines.append(f"  {'another unit (' + r['case'] + ')':46s} {r['accepted']:>3d} / "
                      f"{r['presses']:<3d} {_deg(r['mean_deg']):>9s} {_deg(r['median_deg']):>7s} "
                      f"{_pct(r['ball_radius_error']):>11s} {r['seconds']:8.1f} {'-':>10s}")
-    lines.append(f"  altered copy: {result['altered']['alteration']}")
+    gain = result["altered"].get("colour_gain")
+    lines.append(f"  altered copy: {result['altered']['alteration']}"
+                 + ("" if gain is None else f"; colours matched by {' / '.join(f'{g:.3f}' for g in gain)} (RGB)"))
     for r in result.get("seeded", []):
         if r.get("colour_gain") is None:
-            lines.append(f"  {r['case']}: {r['alteration']}")
+            lines.append(f"  {r['case']}: {r['alteration']}; colours not matched")
         else:
-            lines.append(f"  {r['case']}: colour gain from the no-contact frames "
-                         f"{' / '.join(f'{g:.3f}' for g in r['colour_gain'])}")
+            lines.append(f"  {r['case']}: {r['alteration']}; colours matched by "
+                         f"{' / '.join(f'{g:.3f}' for g in r['colour_gain'])} (RGB)")
     o, a = result["original"]["mean_deg"], result["altered"]["mean_deg"]
     if o is not None and a is not None:
         lines.append(f"  another unit vs the unit itself: {a - o:+.2f} deg (target: within 3 deg)")

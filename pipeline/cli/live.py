@@ -111,6 +111,10 @@ def _run(args) -> int:
         prof = load_profile(args.profile) if args.profile else None
         if not args.virtual:
             camera = camera_source(camera, prof)
+            if shipped is not None:
+                from pipeline.capture.shipped import ColourMatchedCamera, shipped_reference
+
+                camera = ColourMatchedCamera(camera, shipped_reference(shipped), say=log)
         if prof is not None:
             mode, mm = mode or prof.mode, prof.mm_per_px
     res = run_live(mode=mode or DEFAULT_MODE, solver=solver, camera=camera, virtual=args.virtual,

@@ -52,19 +52,18 @@ def register(sub, name, help_text):
 
 
 def _run(args) -> int:
-    from pipeline.workflows.reconstruct import reconstruct
-
     threads = threads_arg(args)
     calibration, solver, mm_per_px = args.calibration, args.solver or "lstsq", args.mm_per_px
+    capture, tmp = args.capture, None
     if args.profile is not None:
         calibration, solver, mm_per_px = _with_profile(args)
-    res = reconstruct(args.capture, calibration=calibration, illumination=args.illumination,
-                      solver=solver, integrator=args.integrator, out=args.out, store=args.cache,
-                      ratio=args.ratio, max_condition=args.max_condition, device=args.device,
-                      images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
-                      markers=args.markers, threads=threads, drift=args.drift, save=args.save,
-                      precision=args.precision, progress=_bar(args), reference=args.reference,
-                      mm_per_px=mm_per_px)
+        if calibration is not None and calibration != args.calibration:
+            capture, tmp = _colour_matched_capture(args.capture, calibration, quiet=args.json)
+    try:
+        res = _reconstruct(args, capture, calibration, solver, mm_per_px, threads)
+    finally:
+        if tmp is not None:
+            tmp.cleanup()
     s = res.summary
     if args.json:
         print_json(s)
@@ -79,6 +78,46 @@ def _run(args) -> int:
     print(line)
     print(f"wrote {len(res.files)} files to {args.out}")
     return 0
+
+
+def _reconstruct(args, capture, calibration, solver, mm_per_px, threads):
+    from pipeline.workflows.reconstruct import reconstruct
+
+    return reconstruct(capture, calibration=calibration, illumination=args.illumination,
+                     solver=solver, integrator=args.integrator, out=args.out, store=args.cache,
+                     ratio=args.ratio, max_condition=args.max_condition, device=args.device,
+                     images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
+                     markers=args.markers, threads=threads, drift=args.drift, save=args.save,
+                     precision=args.precision, progress=_bar(args), reference=args.reference,
+                     mm_per_px=mm_per_px)
+
+
+def _colour_matched_capture(capture, calibration, quiet: bool):
+    """``(path, TemporaryDirectory or None)``: the capture with its colours brought to the shipped
+    calibration's (:func:`pipeline.capture.shipped.colour_gain` from its no-contact frame), written
+    to a temporary folder; a video is kept as it is (said on stderr)."""
+    import sys
+    import tempfile
+    from dataclasses import replace
+    from pathlib import Path
+
+    from pipeline.base.capture import read_capture, write_capture
+    from pipeline.capture.shipped import colour_gain, colour_matched, shipped_reference
+    from pipeline.capture.video_frames import is_video
+
+    if is_video(capture):
+        print("iristac reconstruct: a video's colours are not matched to the shipped calibration's (import it with "
+              "iristac import images VIDEO --profile NAME --out CAPTURE.h5 for that)", file=sys.stderr)
+        return capture, None
+    cap = read_capture(capture)
+    gain = colour_gain(cap.reference, shipped_reference(calibration))
+    if not quiet:
+        print("iristac reconstruct: colours matched to the shipped calibration's from the capture's no-contact frame "
+              "(gain per channel " + " / ".join(f"{g:.3f}" for g in gain) + ")", file=sys.stderr)
+    tmp = tempfile.TemporaryDirectory(prefix="iristac-colour-matched-")
+    path = write_capture(Path(tmp.name) / Path(capture).name, replace(
+        cap, frames=colour_matched(cap.frames, gain), reference=colour_matched(cap.reference, gain)))
+    return path, tmp
 
 
 def _with_profile(args):

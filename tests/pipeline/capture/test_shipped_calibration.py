@@ -1,7 +1,7 @@
 """The calibration shipped with the DIGIT profile (pipeline/capture/shipped.py): it loads under
 today's calibration.h5 schema and models, it is small, it ships (package data, licence note),
 and the figures it carries are a measurement that met its target; ``live`` and ``reconstruct
---profile digit`` use it with no --calibration, and say so."""
+--profile digit`` use it with no --calibration, say so, and match another unit's colours to it."""
 
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ from pipeline.capture.sensor_profiles import PROFILES_DIR, load_profile
 from pipeline.capture.shipped import shipped_calibration_path, shipped_info, shipped_note
 
 PATH = shipped_calibration_path("digit")
+GAIN = (0.9, 1.1, 1.0)  # another unit's LEDs, RGB
 META = {"source": "test", "pattern_names": ["all"], "sensor_profile": "digit"}
 
 
@@ -80,6 +81,15 @@ def _press(ref: np.ndarray, centre=(320, 240), radius=60.0) -> np.ndarray:
     return np.clip(ref + bump * ((x - centre[1]) / radius)[..., None], 0, 255)
 
 
+def _gains(frames) -> str:
+    """The colour gains the CLIs print for frames whose first is the no-contact one: about 1 / GAIN."""
+    from pipeline.capture.shipped import colour_gain, shipped_reference
+
+    g = colour_gain(frames[0], shipped_reference(PATH))
+    np.testing.assert_allclose(g, 1 / np.array(GAIN), rtol=0.01)
+    return " / ".join(f"{v:.3f}" for v in g)
+
+
 @pytest.fixture(scope="module")
 def digit_frames():
     """The shipped reference as a DIGIT's images (640 x 480 portrait, RGB uint8): no contact, then two presses."""
@@ -90,30 +100,34 @@ def digit_frames():
 
 
 def test_live_profile_digit_uses_the_shipped_calibration(digit_frames, tmp_path):
-    # The DIGIT streams 640 x 480 landscape; its profile turns it portrait.
-    stream = np.stack([np.rot90(f, k=-1) for f in digit_frames])
-    video = _video(tmp_path / "digit.avi", stream)
-    r = run_cli("live", "--profile", "digit", "--camera", video, "--json", timeout=120)
+    # Another unit: other LED colours (the colours are matched back from its first frame). The
+    # DIGIT streams 640 x 480 landscape; its profile turns it portrait.
+    other = np.clip(np.rint(digit_frames * np.array(GAIN)), 0, 255).astype(np.uint8)
+    video = _video(tmp_path / "digit.avi", np.stack([np.rot90(f, k=-1) for f in other]))
+    r = run_cli("live", "--profile", "digit", "--camera", video, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "no --calibration given: using the shipped DIGIT calibration" in r.stderr
     assert "on another unit expect about" in r.stderr
-    s = json.loads(r.stdout)
+    assert f"colours matched to the shipped calibration's from the first frame (gain per channel {_gains(other)})" \
+        in r.stderr
     # The first frame is the session's no-contact reference (another unit's: not the shipped one).
-    assert s["solver"] == "mlp" and s["results"] == 2
+    assert r.stdout.startswith("2 results (trichromatic, mlp "), r.stdout
 
 
 def test_reconstruct_profile_digit_uses_the_shipped_calibration(digit_frames, tmp_path):
     from pipeline.base.capture import Capture, write_capture
 
-    cap = Capture(frames=digit_frames[1:, None], reference=digit_frames[:1], drive=np.eye(3, dtype=np.float32)[None],
+    other = np.clip(np.rint(digit_frames * np.array(GAIN)), 0, 255).astype(np.uint8)
+    cap = Capture(frames=other[1:, None], reference=other[:1], drive=np.eye(3, dtype=np.float32)[None],
                   brightness=np.ones(1, np.float32), mm_per_px=0.0266, meta=META)
     path = write_capture(tmp_path / "cap.h5", cap)
-    r = run_cli("reconstruct", path, "--profile", "digit", "--out", tmp_path / "out", "--no-images", "--json",
+    r = run_cli("reconstruct", path, "--profile", "digit", "--out", tmp_path / "out", "--no-images",
                 "--cache", tmp_path / "cache", timeout=120)
     assert r.returncode == 0, r.stderr
     assert "iristac reconstruct: no --calibration given: using the shipped DIGIT calibration" in r.stderr
-    s = json.loads(r.stdout)
-    assert s["solver"] == "mlp" and s["valid_fraction"] > 0.9
+    assert ("colours matched to the shipped calibration's from the capture's no-contact frame (gain per channel "
+            f"{_gains(other)})") in r.stderr
+    assert r.stdout.startswith("mlp + dst: 100.0% valid pixels"), r.stdout
 
 
 def test_a_light_model_of_the_users_wins(capsys):
