@@ -13,8 +13,9 @@ Another unit's LEDs have other colours: before the shipped calibration sees them
 brought to the shipped unit's colours by one gain per channel, taken from the no-contact frames
 alone (:func:`colour_gain`: the ratio of the per-channel medians of the shipped reference and of
 the session's; :func:`colour_matched`, :class:`ColourMatchedCamera` for ``live``). On altered
-copies of the DIGIT's held-out presses this took the error from 5.46 to 4.78 deg and the fitted
-ball from 2.4-9.0 % to 4.5-4.7 % off (docs/calibration.md, "No presses at all").
+copies of the DIGIT's held-out presses (five: one fixed, four drawn at random) it gave
+4.73-4.79 deg and fitted balls 4.2-4.7 % off, against 4.64-5.53 deg and 2.4-9.0 % without it
+(4.84 deg and 4.4 % on the unit itself; docs/calibration.md, "No presses at all").
 
 The DIGIT's is built from the DIGIT frames of the Taxim project (MIT licence,
 ``sensors/LICENSE-digit-calibration.txt`` beside it): ``iristac bench calibration --shipped
