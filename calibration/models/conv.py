@@ -394,8 +394,8 @@ class ConvModel(CalibrationModel):
         if ref.shape != (p, h, w, c):
             raise ValueError(f"ConvModel.normal_maps: reference must be (P, H, W, C) = {(p, h, w, c)} like the frames, "
                              f"got {ref.shape}")
-        # One sum tells a frame without a NaN or an infinity (the usual case) at a tenth of the cost
-        # of a per-pixel test (1.5 ms a 320 x 240 frame, measured).
+        # One sum tells a frame without a NaN or an infinity (the usual case): the per-pixel tests of
+        # the frame and of the normals took 4.5 ms of a 320 x 240 frame (measured, a loaded machine).
         if np.isfinite(np.sum(stack)):
             finite = np.ones((n_img, h, w), bool)
         else:

@@ -207,7 +207,7 @@ SOLVERS = Registry("solver", "--solver", [
            "fills_markers": True}),
     Entry("conv-fast", "pipeline.solving.model_solvers:stack_conv_fast",
           "the calibration's convolutional network on the frame shrunk by 2, its normals brought back bilinearly "
-          "(the live choice: about 4 times faster than conv)",
+          "(the live choice: 3-4 times faster than conv at 320 x 240)",
           {"needs": "model:conv-fast", "keys_on_reference": True, "patterns": "any", "whole_frame": True,
            "fills_markers": True}),
 ])
