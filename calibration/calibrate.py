@@ -24,6 +24,7 @@ from calibration.models import (
     MODEL_NAMES,
     NEIGHBOURHOOD_MODELS,
     CalibrationModel,
+    ConvFastModel,
     ConvModel,
     FarFieldModel,
     LightFieldModel,
@@ -286,9 +287,10 @@ def model_factories(names, capture: Capture, illumination, saturation, model_opt
             # The sensor's own MLP settings (its profile's ensemble size) unless the caller set them.
             o = {**capture_model_options(capture).get("mlp", {}), **o}
             out[name] = lambda o=o, scale=scale: MLPModel(**{"input_scale": scale, **o})
-        elif name == "conv":
+        elif name in ("conv", "conv-fast"):
             scale = float(saturation) if saturation else 1.0
-            out[name] = lambda o=o, scale=scale: ConvModel(**{"input_scale": scale, **o})
+            cls = ConvModel if name == "conv" else ConvFastModel
+            out[name] = lambda o=o, scale=scale, cls=cls: cls(**{"input_scale": scale, **o})
         else:
             raise UserError(f"calibrate: unknown model '{name}' (expected one of "
                             f"{', '.join(MODEL_NAMES + NEIGHBOURHOOD_MODELS)} or all)")
@@ -314,9 +316,10 @@ def calibrate(capture: Capture | str | Path, ball_radius_mm: float | None, mm_pe
     mm_per_px : float, optional
         Pixel pitch; default: the capture's ``mm_per_px`` attribute.
     models : "all", a name, or a list of names
-        Among ``far``, ``near``, ``traced``, ``lut``, ``mlp`` and ``conv`` (the network,
+        Among ``far``, ``near``, ``traced``, ``lut``, ``mlp``, ``conv`` (the network,
         :class:`calibration.models.conv.ConvModel`: ``all`` fits it only when it is named beside
-        it, ``["all", "conv"]``). With ``all``, models that do not
+        it, ``["all", "conv"]``) and ``conv-fast`` (the network on the frame shrunk by 2,
+        :class:`calibration.models.conv.ConvFastModel`, also fitted only when named). With ``all``, models that do not
         apply (``traced`` without ``illumination``, ``lut`` with more than one pattern) are
         reported as skipped; asked for by name they raise :class:`UserError`.
     illumination : IlluminationModel or ndarray (L, H, W, 3), optional

@@ -105,10 +105,10 @@ def _model_from_arrays(name: str, arrays: dict[str, np.ndarray]):
         from calibration.models.lut import LUTModel
 
         return LUTModel.from_arrays(arrays)
-    if name == "conv":
-        from calibration.models.conv import ConvModel
+    if name in ("conv", "conv-fast"):
+        from calibration.models.conv import ConvFastModel, ConvModel
 
-        return ConvModel.from_arrays(arrays)
+        return (ConvModel if name == "conv" else ConvFastModel).from_arrays(arrays)
     if name == "mlp":
         from calibration.models.mlp import MLPModel
 

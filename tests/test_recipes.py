@@ -85,7 +85,7 @@ def test_every_solver_is_where_the_solver_recipe_says():
     documented = _table_names("docs/reconstruction.md", "lstsq")
     for e in SOLVERS:
         module, _, attr = e.target.partition(":")
-        assert module in ("pipeline.normals.solve", "pipeline.solving.model_solvers") and attr == f"stack_{e.name}", e
+        assert module in ("pipeline.normals.solve", "pipeline.solving.model_solvers") and attr == f"stack_{e.name.replace('-', '_')}", e
         assert e.name in documented, f"docs/reconstruction.md's solvers table has no row for {e.name}"
         assert {"needs", "patterns"} <= set(e.info), f"{e.name}: the registry entry lacks its facts"
         if e.info.get("fast"):

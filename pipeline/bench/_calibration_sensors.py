@@ -217,8 +217,9 @@ def _drift_rotation_rows(cases, model: str) -> list[dict[str, Any]]:
             for drift in ROTATED_DRIFTS]
 
 
-#: The models every row calibrates: the per-pixel ones and the convolutional network.
-SENSOR_MODELS = ("all", "conv")
+#: The models every row calibrates: the per-pixel ones, the convolutional network and its live
+#: variant on the frame shrunk by 2.
+SENSOR_MODELS = ("all", "conv", "conv-fast")
 
 
 def run_sensors(quick: bool = False, models=SENSOR_MODELS, log=None) -> dict[str, Any]:

@@ -108,7 +108,7 @@ def run_split(cap, quick: bool = False) -> tuple[dict[str, Any], list[dict[str, 
 
     test_circles = test_truth(cap, 2.0)
     t = time.perf_counter()
-    four = four_way(cap, 2.0, ("all", "conv"), test_circles=test_circles)
+    four = four_way(cap, 2.0, ("all", "conv", "conv-fast"), test_circles=test_circles)
     runs = four["settings"]
     ev = runs["detected"]["evaluation"]
     case = {"case": "split: calibrate on presses 0-19, test on 20-29 (shared real frames)",

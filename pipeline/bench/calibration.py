@@ -103,7 +103,7 @@ def run(args) -> dict:
     if npz is not None:
         cap = load_gelsight_npz(npz)
         t = time.perf_counter()
-        res = calibrate(cap, 2.0, cap.mm_per_px, ("all", "conv"))
+        res = calibrate(cap, 2.0, cap.mm_per_px, ("all", "conv", "conv-fast"))
         total = time.perf_counter() - t
         s, rows = _rows(res, total)
         out["cases"].append({"case": f"real {npz.name} ({s['presses']} presses, {cap.shape[0]}x{cap.shape[1]})",

@@ -16,15 +16,18 @@ on one thread and on every core:
   (``--drift auto``: a gain and an offset per channel fitted on
   :data:`pipeline.normals.drift.LIVE_SAMPLES` pixels), and again with ``--drift none``
   (rows ``lut (--drift none)``): the difference is what drift removal costs per frame;
-- **conv**: the convolutional network (:mod:`calibration.models.conv`) the same way (not with
-  ``--quick``); it has no compiled fast path, so its "fast" rows run the model's own
-  ``normal_maps`` (torch) per frame.
+- **conv** and **conv-fast**: the convolutional network (:mod:`calibration.models.conv`) and its
+  variant on the frame shrunk by 2 the same way; they have no compiled fast path, so their
+  "fast" rows run the model's own ``normal_maps`` (torch) per frame. Their calibrations fit for
+  a minute or two each (cached in the store: only the first run pays); ``--models`` chooses
+  the calibrated models timed.
 
 Errors: mean angular error of the normals against the rendered truth (every pixel), and the
 largest deviation of the fast path from the eager one (deg). Targets (on a 2-core
 CPU): near field + DST >= 400 fps at 320 x 240 and >= 100 fps at 640 x 480 with an error
 within 0.05 deg of the eager near-field solver; LUT and MLP single-frame >= 200 fps at
-320 x 240; judged on the better of one thread and all cores, both printed.
+320 x 240; the neighbourhood model's live variant (conv-fast) >= 60 fps at 320 x 240; judged on
+the better of one thread and all cores, both printed.
 
 Start-up: a fresh process imports, precomputes and reconstructs its first frame (Numba's
 compiled code cached on disk); the compile itself (an empty cache, once per machine) is
@@ -48,9 +51,11 @@ __all__ = ["add_arguments", "run", "format_table", "TARGETS"]
 
 #: (solver, size) -> frames per second to reach.
 TARGETS = {("nearfield", "320x240"): 400.0, ("nearfield", "640x480"): 100.0, ("lut", "320x240"): 200.0,
-           ("mlp", "320x240"): 200.0}
+           ("mlp", "320x240"): 200.0, ("conv-fast", "320x240"): 60.0}
 #: The fast near-field path's error may exceed the eager solver's by at most this (deg).
 ERROR_MARGIN_DEG = 0.05
+#: The calibrated models ``bench live`` times on the virtual sensor (``--models``).
+MODEL_SOLVERS = ("lut", "mlp", "conv", "conv-fast")
 
 
 def add_arguments(parser) -> None:
@@ -62,6 +67,9 @@ def add_arguments(parser) -> None:
                         "timed: 2,048 frames, 3.8 GB of host memory at 320 x 240)")
     parser.add_argument("--cache", default=None, help="stage store for the virtual sensor's calibrations")
     parser.add_argument("--no-startup", action="store_true", help="skip the fresh-process start-up measurements")
+    parser.add_argument("--models", nargs="*", default=None, metavar="SOLVER",
+                        help="the calibrated models timed on the virtual sensor (default: "
+                             + " ".join(MODEL_SOLVERS) + "; their calibrations are cached in --cache)")
 
 
 def _runs(fn, repeats: int):
@@ -253,6 +261,16 @@ def _run(args) -> dict:
     sizes = getattr(args, "sizes", None) or (["160x120"] if quick else ["320x240", "640x480"])
     repeats = getattr(args, "repeats", None) or (5 if quick else 30)
     store = StageStore(getattr(args, "cache", None))
+    models = getattr(args, "models", None)
+    models = MODEL_SOLVERS if models is None else tuple(models)
+    from pipeline.base.errors import UserError
+    from pipeline.base.registry import SOLVERS
+
+    bad = [m for m in models if m not in SOLVERS.names() or not str(SOLVERS.get(m).info.get("needs", "")).startswith(
+        "model:")]
+    if bad:
+        raise UserError(f"bench live --models: {', '.join(bad)} is no calibrated model's solver (expected some of "
+                        f"{', '.join(n for n in SOLVERS.names() if 'model:' in str(SOLVERS.get(n).info.get('needs')))})")
     cores = os.cpu_count() or 1
     rows: list[dict] = []
     load = os.getloadavg()
@@ -263,8 +281,7 @@ def _run(args) -> dict:
             rows += measure_nearfield(w, h, max(3, repeats // 3), patterns=24, label="nearfield (point, 72 obs)",
                                       threads_all=cores)
         if spec == sizes[0] or spec == "320x240":
-            # the network's calibration fits for a minute: not in --quick (the test suite runs it)
-            for solver in ("lut", "mlp") + (() if quick else ("conv",)):
+            for solver in models:
                 rows += measure_model(solver, w, h, repeats, store, threads_all=cores)
     device = None
     if getattr(args, "device", "cpu") != "cpu":

@@ -147,8 +147,9 @@ VIEWS: list[View] = [
          split=row_size, series=_live_series, label=_threads_label,
          x_label="seconds per frame (uint8 frames to heights)",
          budget=(1.0 / LIVE_FPS, f"{LIVE_FPS:g} fps camera"), sentence=say.within_budget,
-         note="Errors: near field on the bench's 8-sector sphere (point: 24 LEDs), LUT and MLP on rendered "
-              "trichromatic presses they were not calibrated on (iristac bench live)."),
+         note="Errors: near field on the bench's 8-sector sphere (point: 24 LEDs), LUT, MLP and the convolutional "
+              "networks (conv; conv-fast, on the frame shrunk by 2) on rendered trichromatic presses they were not "
+              "calibrated on (iristac bench live)."),
     View("batch", "Batch processing", "What does a recording cost a frame, by solver, length and threads?",
          match=lambda r: r.get("bench") == "batch", series=lambda r: _group_of(r, r"^batch (.+?) @"),
          label=lambda r: str(r["setting"]).replace(" thread(s)", " thr").replace(" frames", " fr"),

@@ -11,7 +11,7 @@ from pipeline.cli._common import (
     profile_metavar,
 )
 
-MODEL_CHOICES = ["far", "near", "traced", "lut", "mlp", "conv", "all"]
+MODEL_CHOICES = ["far", "near", "traced", "lut", "mlp", "conv", "conv-fast", "all"]
 
 
 def register(sub, name, help_text):
@@ -46,7 +46,8 @@ def register(sub, name, help_text):
     models = p.add_argument_group("models")
     models.add_argument("--model", choices=MODEL_CHOICES, default="all",
                         help="model(s) to fit (default all: the per-pixel models; conv, the convolutional network "
-                             "that sees a pixel's neighbourhood, only when named)")
+                             "that sees a pixel's neighbourhood, and conv-fast, the same on the frame shrunk by 2 "
+                             "for live use, only when named)")
     models.add_argument("--folds", type=int, default=5, help="cross-validation press groups")
     models.add_argument("--mlp-members", type=int, default=None, metavar="N",
                         help="fit the MLP as an ensemble of N nets (mean prediction; their agreement is the "

@@ -27,7 +27,7 @@ import numpy as np
 from pipeline.normals.result import COND_CAP
 
 __all__ = ["solve_with_model", "maps_to_results", "stack_far", "stack_near", "stack_traced", "stack_lut",
-           "stack_mlp", "stack_conv", "LIGHT_FIELD_MODELS"]
+           "stack_mlp", "stack_conv", "stack_conv_fast", "LIGHT_FIELD_MODELS"]
 
 #: Models whose confidence is the inverse condition number of a per-pixel light matrix.
 LIGHT_FIELD_MODELS = ("far", "near", "traced")
@@ -120,3 +120,8 @@ def stack_mlp(frames, lights, **options) -> list:
 def stack_conv(frames, lights, **options) -> list:
     """The calibration's convolutional network (:func:`solve_with_model`)."""
     return solve_with_model("conv", frames, lights, **options)
+
+
+def stack_conv_fast(frames, lights, **options) -> list:
+    """The calibration's convolutional network on the frame shrunk by 2 (:func:`solve_with_model`)."""
+    return solve_with_model("conv-fast", frames, lights, **options)

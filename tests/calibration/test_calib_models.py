@@ -182,3 +182,53 @@ def test_conv_learns_is_deterministic_and_predicts_frames_as_samples(trichromati
                    test.shape)
     with pytest.raises(ValueError, match="whole frames"):
         a.predict(bare)
+
+
+def test_block_mean_and_upsampling_keep_a_ramp_in_place():
+    """Shrinking by 2 then bringing back bilinearly returns a linear ramp exactly inside the
+    frame (half a pixel off would shift it by 0.5 x the slope), and the block means sit on the
+    block centres."""
+    import torch
+
+    from calibration.models.conv import block_mean, upsample_planes
+
+    h, w = 12, 17  # odd width: the last block column is padded
+    rows, cols = np.mgrid[:h, :w].astype(np.float32)
+    ramp = (0.3 * rows - 0.7 * cols)[None, :, :, None]
+    lo = block_mean(ramp, 2)
+    assert lo.shape == (1, 6, 9, 1)
+    np.testing.assert_allclose(lo[0, 2, 3, 0], 0.3 * 4.5 - 0.7 * 6.5, atol=1e-5)
+    up = upsample_planes(torch.from_numpy(np.repeat(lo[..., 0][None], 2, axis=1)), 2, (h, w))[0, 0].numpy()
+    assert up.shape == (h, w)
+    np.testing.assert_allclose(up[1:-1, 1:-2], ramp[0, 1:-1, 1:-2, 0], atol=1e-4)
+
+
+def test_conv_fast_matches_the_full_network_on_a_smooth_scene_and_round_trips(trichromatic):
+    """The fast variant (the frame shrunk by 2): frames as samples, close to the full-resolution
+    network on the smooth rendered presses, stored and loaded as itself."""
+    from calibration.models import ConvFastModel, ConvModel
+
+    cap, tr = trichromatic
+    s, r = calibration_samples(cap, tr)
+    train, test = s.subset(s.press < 7), s.subset((s.press >= 7) & s.contact)
+    opts = dict(width=8, epochs=100, tiles=64, batch=16)
+    fast, full = ConvFastModel(dilations=(1,), **opts), ConvModel(dilations=(1, 2), **opts)
+    fast.fit(train, r)
+    full.fit(train, r)
+    nf, ok = fast.predict(test)
+    ng = full.predict(test)[0]
+    ef, eg = angular_error_deg(nf, test.normals).mean(), angular_error_deg(ng, test.normals).mean()
+    assert ok.all() and ef < 4.0 and eg < 1.5 and angular_error_deg(nf, ng).mean() < 4.0
+    k = 8
+    maps = fast.normal_maps(test.images[k:k + 1], r)
+    one = test.subset(test.press == k)
+    np.testing.assert_allclose(maps.normals[0][one.rows, one.cols], fast.predict(one)[0], atol=1e-5)
+    # as calibration.h5 holds it (models/conv-fast/...), read back as the fast variant
+    from types import SimpleNamespace
+
+    from calibration.stored import calibration_from_record
+
+    rec = SimpleNamespace(path=None, meta={}, data={f"models/conv-fast/{k}": v for k, v in fast.to_arrays().items()})
+    again = calibration_from_record(rec)[0]["conv-fast"]
+    assert (type(again), again.name, again.downsample, again.dilations) == (ConvFastModel, "conv-fast", 2, (1,))
+    np.testing.assert_allclose(again.predict(test)[0], nf, atol=1e-6)
