@@ -135,6 +135,16 @@ class _Adapter:
     def parameters(self) -> list:
         return [self.colour, self.offset] + ([self.pos, self.shift] if self.lay["position"] else [])
 
+    def distance(self):
+        """Squared distance of the free parameters from the identity map."""
+        import torch
+
+        eye = torch.eye(self.lay["c"])
+        d = ((self.colour - eye) ** 2).sum() + (self.offset ** 2).sum()
+        if self.lay["position"]:
+            d = d + ((self.pos - torch.eye(2)) ** 2).sum() + (self.shift ** 2).sum()
+        return d
+
     def matrices(self):
         """``(T (n_in, n_in), s (n_in,))`` as torch tensors."""
         import torch
@@ -177,7 +187,8 @@ def _training_set(model, samples: Samples, seed: int):
 
 
 def adapt_mlp(prior, samples: Samples, reference: np.ndarray | None = None, *, steps: int = 300, lr: float = 0.02,
-              finetune_steps: int = 0, finetune_lr: float = 2e-3, finetune_l2: float = 1.0, seed: int = 0):
+              map_l2: float = 0.1, finetune_steps: int = 200, finetune_lr: float = 2e-3, finetune_l2: float = 0.1,
+              seed: int = 0):
     """The prior's MLP adapted to a new unit's samples: a fitted input map folded into its first layer.
 
     Parameters
@@ -193,6 +204,9 @@ def adapt_mlp(prior, samples: Samples, reference: np.ndarray | None = None, *, s
     steps : int
         Adam steps fitting the input map (full batch of the prior's ``max_samples`` pixels).
     lr : float
+    map_l2 : float
+        ``map_l2 x`` the squared distance of the map's parameters from the identity added to the
+        loss: few presses, mostly flat pixels, must not carry the map far.
     finetune_steps : int
         Then every weight trained this many steps (0: none) ...
     finetune_lr, finetune_l2 : float
@@ -220,7 +234,7 @@ def adapt_mlp(prior, samples: Samples, reference: np.ndarray | None = None, *, s
         for net in model.nets:
             net.requires_grad_(False)
         ad = _Adapter(prior, x.shape[1])
-        _descend(ad.parameters(), steps, lr, lambda: _loss(model.nets, ad, xt, yt, wt))
+        _descend(ad.parameters(), steps, lr, lambda: _loss(model.nets, ad, xt, yt, wt) + map_l2 * ad.distance())
         with torch.no_grad():
             T, s = ad.matrices()
             for net in model.nets:

@@ -1,6 +1,8 @@
 """``iristac bench calibration``: time and cross-validated error of every calibration model.
 
 With ``--sensors``: every sensor on hand instead (:mod:`pipeline.bench._calibration_sensors`).
+With ``--prior``: a new virtual unit calibrated from 5 presses and another unit's calibration,
+against its own 20-press calibration (:mod:`pipeline.bench._calibration_prior`).
 
 Three cases: the shared real GelSight frames (30 presses, one RGB pattern; skipped when
 ``../shared/data`` is absent) with the hand-label comparison; the same frames split, presses
@@ -41,6 +43,10 @@ def add_arguments(parser) -> None:
                              "its no-contact frame, randomised virtual sensors, the same again with a soft gel's look and with "
                              "markers the presses move) calibrated on some presses and judged "
                              "on the others (pipeline/bench/_calibration_sensors.py)")
+    parser.add_argument("--prior", action="store_true",
+                        help="instead: new virtual units calibrated from 5 presses with another unit's calibration "
+                             "(calibrate --prior) against their own 20-press calibrations, on unseen presses "
+                             "(pipeline/bench/_calibration_prior.py)")
 
 
 def _rows(res, seconds_total):
@@ -85,6 +91,13 @@ def run(args) -> dict:
 
         return run_sensors(quick, log=lambda m: print(f"iristac bench calibration --sensors: {m}", file=sys.stderr,
                                                       flush=True))
+    if getattr(args, "prior", False):
+        import sys
+
+        from pipeline.bench._calibration_prior import run_prior
+
+        return run_prior(quick, log=lambda m: print(f"iristac bench calibration --prior: {m}", file=sys.stderr,
+                                                    flush=True))
     out: dict = {"cases": [], "rows": []}
     npz = Path(args.npz) if getattr(args, "npz", None) else _shared_data()
     if npz is not None:
@@ -156,6 +169,10 @@ def format_table(result: dict) -> str:
         from pipeline.bench._calibration_sensors import format_sensors
 
         return "\n".join(format_sensors(result))
+    if "prior" in result:
+        from pipeline.bench._calibration_prior import format_prior
+
+        return "\n".join(format_prior(result))
     lines = []
     for c in result["cases"]:
         lines.append(c["case"])
