@@ -450,7 +450,6 @@ def calibrate_with_prior(capture, prior: str | Path | Prior, ball_radius_mm: flo
     from calibration.calibrate import CalibrationResult, find_circles
     from calibration.detect import drift_settings, recorded_drift
     from calibration.gate import CalibrationRefused, judge, model_problems
-
     from pipeline.base.capture import read_capture
 
     t0 = time.perf_counter()

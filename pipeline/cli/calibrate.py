@@ -62,6 +62,9 @@ def register(sub, name, help_text):
                         help="adapt another unit's calibration of the same sensor model (its MLP) to this unit's "
                              "presses (3-5 are enough when the transfer is measured to work; the error is leave-one-"
                              "press-out over them; docs/calibration.md, 'A new unit from a few presses')")
+    models.add_argument("--adapt-steps", type=int, nargs=2, default=None, metavar=("MAP", "FINETUNE"),
+                        help="with --prior: steps fitting the input map, then steps fine-tuning every weight "
+                             "(default 300 200)")
     outs = p.add_argument_group("what is written")
     outs.add_argument("--out", required=True, help="calibration.h5 to write")
     outs.add_argument("--overlay", default=None,
@@ -91,6 +94,8 @@ def _run(args) -> int:
         opts["traced"] = {"correct_geometry": True}
     if args.mlp_members is not None:
         opts["mlp"] = {"members": args.mlp_members}
+    if args.adapt_steps is not None and not args.prior:
+        raise UserError("--adapt-steps sets how another unit's calibration is adapted: it needs --prior UNIT_A_CAL.h5")
     if args.prior:
         from pipeline.cli.calibrate_prior import run_prior
 

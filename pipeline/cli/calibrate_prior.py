@@ -30,9 +30,14 @@ def run_prior(args, overlay, print_summary) -> int:
         from pipeline.capture.sensor_profiles import capture_defaults
 
         ball, mm = capture_defaults(args.profile, args.capture, ball, mm)
+    steps = {}
+    if args.adapt_steps is not None:
+        if min(args.adapt_steps) < 0:
+            raise UserError(f"--adapt-steps needs two counts >= 0 (map, fine-tune), got {args.adapt_steps}")
+        steps = {"steps": args.adapt_steps[0], "finetune_steps": args.adapt_steps[1]}
     try:
         res = calibrate_with_prior(args.capture, args.prior, ball, mm, markers=args.markers,
-                                   detect_options=drift_options(args.drift))
+                                   detect_options=drift_options(args.drift), **steps)
     except CalibrationRefused as exc:
         if args.overlay and exc.circles:
             overlay(args, exc.circles)
