@@ -121,10 +121,12 @@ def _layout(model) -> dict[str, Any]:
 class _Adapter:
     """The affine input map ``x' = T x + s`` with its few free parameters (torch)."""
 
-    def __init__(self, model, n_in: int):
+    def __init__(self, model, n_in: int, position: bool = True):
         import torch
 
         self.lay = _layout(model)
+        if not position:
+            self.lay["position"] = None
         self.n_in = n_in
         p, c = self.lay["p"], self.lay["c"]
         self.colour = torch.nn.Parameter(torch.eye(c).repeat(p, 1, 1))
@@ -187,7 +189,7 @@ def _training_set(model, samples: Samples, seed: int):
 
 
 def adapt_mlp(prior, samples: Samples, reference: np.ndarray | None = None, *, steps: int = 300, lr: float = 0.02,
-              map_l2: float = 0.1, finetune_steps: int = 200, finetune_lr: float = 2e-3, finetune_l2: float = 0.1,
+              map_l2: float = 0.1, position_map: bool = True, finetune_steps: int = 80, finetune_lr: float = 2e-3, finetune_l2: float = 0.1,
               seed: int = 0):
     """The prior's MLP adapted to a new unit's samples: a fitted input map folded into its first layer.
 
@@ -207,6 +209,8 @@ def adapt_mlp(prior, samples: Samples, reference: np.ndarray | None = None, *, s
     map_l2 : float
         ``map_l2 x`` the squared distance of the map's parameters from the identity added to the
         loss: few presses, mostly flat pixels, must not carry the map far.
+    position_map : bool
+        Fit the position part of the map too (False: colours only).
     finetune_steps : int
         Then every weight trained this many steps (0: none) ...
     finetune_lr, finetune_l2 : float
@@ -233,7 +237,7 @@ def adapt_mlp(prior, samples: Samples, reference: np.ndarray | None = None, *, s
         xt, yt, wt = torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(w)[:, None]
         for net in model.nets:
             net.requires_grad_(False)
-        ad = _Adapter(prior, x.shape[1])
+        ad = _Adapter(prior, x.shape[1], position_map)
         _descend(ad.parameters(), steps, lr, lambda: _loss(model.nets, ad, xt, yt, wt) + map_l2 * ad.distance())
         with torch.no_grad():
             T, s = ad.matrices()

@@ -26,7 +26,7 @@ from typing import Any
 __all__ = ["run_prior", "format_prior", "PRIOR_SEEDS", "FEW_PRESSES", "TARGET_GAP_DEG"]
 
 #: Design seeds of the full run (``--quick``: the first).
-PRIOR_SEEDS = (0, 1, 2)
+PRIOR_SEEDS = (0, 1, 2, 3, 4)
 #: Presses of the new unit the prior is adapted from.
 FEW_PRESSES = 5
 #: The adapted prior's test error may exceed the unit's own 20-press calibration's by this (deg).

@@ -64,7 +64,7 @@ def register(sub, name, help_text):
                              "press-out over them; docs/calibration.md, 'A new unit from a few presses')")
     models.add_argument("--adapt-steps", type=int, nargs=2, default=None, metavar=("MAP", "FINETUNE"),
                         help="with --prior: steps fitting the input map, then steps fine-tuning every weight "
-                             "(default 300 200)")
+                             "(default 300 80)")
     outs = p.add_argument_group("what is written")
     outs.add_argument("--out", required=True, help="calibration.h5 to write")
     outs.add_argument("--overlay", default=None,
