@@ -10,7 +10,6 @@ from calibration.stored import load_calibration
 from pipeline.base.errors import UserError
 from pipeline.results.evaluate import angular_error_deg
 from sim.virtual_sensor import UNIT_VARIATION, random_sensor, render_sensor, sibling_unit
-from tests.helpers import run_cli
 
 SHAPE = (60, 80)
 FAST = {"steps": 80, "finetune_steps": 30}
@@ -103,12 +102,17 @@ def test_bad_priors_and_too_few_presses_say_what_is_wrong(units, tmp_path):
         calibrate_with_prior(units["b"].select(slice(0, 2)), units["prior"], **FAST)
 
 
-def test_cli_calibrate_with_prior(units, tmp_path):
-    out = tmp_path / "cli.h5"
-    r = run_cli("calibrate", units["b_path"], "--prior", units["prior"], "--out", out, "--force", "--adapt-steps", "40",
-                "10")
-    assert r.returncode == 0, r.stderr
-    assert "transfer:" in r.stdout and "leave-one-press-out" in r.stdout and out.is_file()
-    assert load_calibration(out)[1]["prior"]["adaptation"]["steps"] == 40
-    r = run_cli("calibrate", units["b_path"], "--prior", units["prior"], "--model", "near", "--out", out)
-    assert r.returncode != 0 and "--prior adapts the prior's MLP" in r.stderr
+def test_cli_calibrate_with_prior(units, tmp_path, capsys):
+    from pipeline.base.capture import write_capture
+    from pipeline.cli import main
+
+    three, out = tmp_path / "three.h5", tmp_path / "cli.h5"
+    write_capture(three, units["b"].select(slice(0, 3)))
+    code = main(["calibrate", str(three), "--prior", str(units["prior"]), "--out", str(out), "--force",
+                 "--adapt-steps", "40", "10"])
+    text = capsys.readouterr().out
+    assert code == 0 and "transfer:" in text and "leave-one-press-out" in text and out.is_file()
+    meta = load_calibration(out)[1]
+    assert meta["prior"]["adaptation"]["steps"] == 40 and meta["prior"]["adaptation"]["finetune_steps"] == 10
+    assert main(["calibrate", str(three), "--prior", str(units["prior"]), "--model", "near", "--out", str(out)]) != 0
+    assert "--prior adapts the prior's MLP" in capsys.readouterr().err
