@@ -89,6 +89,7 @@ def run_prior(quick: bool = False, seeds=None, log=None) -> dict[str, Any]:
     """Every design seed's row (:func:`prior_row`), the target's verdict and the common ``rows``."""
     seeds = list(seeds if seeds is not None else PRIOR_SEEDS[:1] if quick else PRIOR_SEEDS)
     out: dict[str, Any] = {"prior": [], "rows": []}
+    t0 = time.perf_counter()
     with tempfile.TemporaryDirectory() as d:
         for s in seeds:
             row = prior_row(s, Path(d))
@@ -102,6 +103,7 @@ def run_prior(quick: bool = False, seeds=None, log=None) -> dict[str, Any]:
                  "error": row["prior5_test_deg"], "error_unit": "deg", "seconds": row["prior5_seconds"]}]
     out["target"] = {"what": f"prior + {FEW_PRESSES} presses within {TARGET_GAP_DEG:g} deg of the unit's own 20-press "
                              "calibration on its unseen presses", "met": all(r["met"] for r in out["prior"])}
+    out["seconds"] = time.perf_counter() - t0
     return out
 
 
@@ -123,6 +125,9 @@ def format_prior(result: dict[str, Any]) -> list[str]:
                      f"{r['own20_seconds']:7.1f}")
     t = result["target"]
     lines.append(f"target: {t['what']}: {'met' if t['met'] else 'NOT met'}")
+    if "seconds" in result:
+        lines.append(f"time: {result['seconds']:.0f} s in all (per seed: rendering, the prior, the four calibrations "
+                     "and their evaluations: " + ", ".join(f"{r['seconds']:.0f}" for r in result["prior"]) + " s)")
     lines.append("  (LOO est = the adapted calibration's own leave-one-press-out estimate over its 5 presses; as is = the "
                  "prior unchanged; own 5 = the unit calibrated from its 5 presses alone)")
     return lines
