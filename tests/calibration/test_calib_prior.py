@@ -116,3 +116,14 @@ def test_cli_calibrate_with_prior(units, tmp_path, capsys):
     assert meta["prior"]["adaptation"]["steps"] == 40 and meta["prior"]["adaptation"]["finetune_steps"] == 10
     assert main(["calibrate", str(three), "--prior", str(units["prior"]), "--model", "near", "--out", str(out)]) != 0
     assert "--prior adapts the prior's MLP" in capsys.readouterr().err
+
+
+def test_prior_benchmark_table_says_whether_the_target_holds():
+    from pipeline.bench._calibration_prior import format_prior
+
+    row = {"seed": 0, "shape": [120, 160], "prior_cv_deg": 2.9, "own20_test_deg": 2.5, "prior5_test_deg": 3.9,
+           "gap_deg": 1.4, "prior5_loo_deg": 4.5, "prior_as_is_test_deg": 5.6, "own5_test_deg": None,
+           "prior5_gate": False, "prior5_seconds": 10.0, "own20_seconds": 20.0, "seconds": 40.0}
+    lines = format_prior({"prior": [row], "target": {"what": "within 1 deg", "met": False}, "seconds": 40.0})
+    assert lines[2].split()[:6] == ["0", "120x160", "2.90", "2.50", "3.90", "+1.40"] and "fail" in lines[2]
+    assert lines[3] == "target: within 1 deg: NOT met" and lines[4].startswith("time: 40 s")
