@@ -14,6 +14,13 @@ presses 20-29 are the unseen test presses, and B is calibrated four ways, each j
 - its own calibration of presses 0-4 only.
 
 The target: the adapted prior within 1 deg of the own 20-press calibration on the test presses.
+
+With the shared GelSight frames on hand (``../shared/data/gelsight_ball_presses.npz``), one real
+check beside it (:func:`gelsight_row`): the MLP of presses 0-19 is the prior; presses 20-29 with
+every frame's colours mixed by :data:`OTHER_LEDS` (another unit's LEDs: other gains, some
+crosstalk, 4 DN more light) are the new unit; it is adapted from 20-24 and judged on 25-29,
+against the prior's figure on the unaltered 25-29. The gel and the camera pose are the same
+unit's: only the LEDs differ.
 """
 
 from __future__ import annotations
@@ -23,7 +30,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["run_prior", "format_prior", "PRIOR_SEEDS", "FEW_PRESSES", "TARGET_GAP_DEG"]
+__all__ = ["run_prior", "format_prior", "gelsight_row", "prior_row", "PRIOR_SEEDS", "FEW_PRESSES", "TARGET_GAP_DEG",
+           "OTHER_LEDS"]
 
 #: Design seeds of the full run (``--quick``: the first).
 PRIOR_SEEDS = (0, 1, 2, 3, 4)
@@ -103,8 +111,48 @@ def run_prior(quick: bool = False, seeds=None, log=None) -> dict[str, Any]:
                  "error": row["prior5_test_deg"], "error_unit": "deg", "seconds": row["prior5_seconds"]}]
     out["target"] = {"what": f"prior + {FEW_PRESSES} presses within {TARGET_GAP_DEG:g} deg of the unit's own 20-press "
                              "calibration on its unseen presses", "met": all(r["met"] for r in out["prior"])}
+    from pipeline.bench._calibration_sensors import shared_data_dir
+
+    data = shared_data_dir()
+    if data is not None and (data / "gelsight_ball_presses.npz").is_file():
+        out["real"] = gelsight_row(data / "gelsight_ball_presses.npz")
     out["seconds"] = time.perf_counter() - t0
     return out
+
+
+#: The real check's other LEDs: ``rgb_out = OTHER_LEDS @ rgb_in + 4`` DN, every frame and the reference.
+OTHER_LEDS = ((0.85, 0.06, 0.02), (0.04, 1.15, 0.05), (0.03, 0.02, 0.95))
+
+
+def gelsight_row(npz) -> dict[str, Any]:
+    """The real check on the shared GelSight frames (see the module docstring)."""
+    import numpy as np
+
+    from calibration.calibrate import calibrate
+    from calibration.importers import load_gelsight_npz
+    from calibration.prior import calibrate_with_prior
+
+    t0 = time.perf_counter()
+    cap = load_gelsight_npz(npz)
+    mix = np.asarray(OTHER_LEDS)
+    new = cap.select(slice(20, 30))
+    new.frames = np.clip(np.asarray(new.frames, np.float64) @ mix.T + 4.0, 0, 255).astype(np.uint8)
+    new.reference = np.clip(np.asarray(new.reference, np.float64) @ mix.T + 4.0, 0, 255).astype(np.uint8)
+    with tempfile.TemporaryDirectory() as d:
+        path = Path(d) / "prior.h5"
+        prior = calibrate(cap.select(slice(0, 20)), 2.0, cap.mm_per_px, "mlp")
+        prior.save(path, force=True)
+        adapted = calibrate_with_prior(new.select(slice(0, FEW_PRESSES)), path, 2.0)
+        test = slice(FEW_PRESSES, 10)
+        row = {"case": "shared GelSight, presses 20-29 with other LEDs", "prior_cv_deg":
+               prior.reports["mlp"]["cv"]["cv_mean_angular_error_deg"],
+               "prior_original_test_deg": _test_deg(path, cap.select(slice(20 + FEW_PRESSES, 30))),
+               "prior_as_is_test_deg": _test_deg(path, new.select(test)),
+               "prior5_test_deg": _test_deg(adapted, new.select(test)),
+               "prior5_loo_deg": adapted.reports["mlp"]["cv"]["cv_mean_angular_error_deg"],
+               "prior5_gate": adapted.verdict.passed if adapted.verdict is not None else None}
+    row["seconds"] = time.perf_counter() - t0
+    return row
 
 
 def _f(v, spec=".2f"):
@@ -125,6 +173,12 @@ def format_prior(result: dict[str, Any]) -> list[str]:
                      f"{r['own20_seconds']:7.1f}")
     t = result["target"]
     lines.append(f"target: {t['what']}: {'met' if t['met'] else 'NOT met'}")
+    r = result.get("real")
+    if r:
+        lines.append(f"real: {r['case']}: the prior (CV {_f(r['prior_cv_deg'])}) on the unaltered presses 25-29 "
+                     f"{_f(r['prior_original_test_deg'])}; with the other LEDs as is {_f(r['prior_as_is_test_deg'])}, "
+                     f"adapted from presses 20-24 {_f(r['prior5_test_deg'])} (LOO est {_f(r['prior5_loo_deg'])}, gate "
+                     f"{'pass' if r['prior5_gate'] else 'fail'}; {r['seconds']:.0f} s)")
     if "seconds" in result:
         lines.append(f"time: {result['seconds']:.0f} s in all (per seed: rendering, the prior, the four calibrations "
                      "and their evaluations: " + ", ".join(f"{r['seconds']:.0f}" for r in result["prior"]) + " s)")
