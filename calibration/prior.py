@@ -382,6 +382,10 @@ def prior_gate_settings(prior: Prior, accepted: int, loo_deg: float | None, gate
     >>> p = Prior("a.h5", None, {}, 20, 5.0)
     >>> prior_gate_settings(p, 5, 6.2)[0].min_accepted, prior_gate_settings(p, 5, 9.0)[0].min_accepted
     (3, 6)
+    >>> prior_gate_settings(p, 2, 4.0)[1]["reason"]
+    'only 2 new press(es) accepted: at least 3 measure a transfer'
+    >>> prior_gate_settings(p, 5, None)[1]["transfers"]
+    False
     """
     from dataclasses import replace
 
@@ -393,7 +397,9 @@ def prior_gate_settings(prior: Prior, accepted: int, loo_deg: float | None, gate
         transfers, why = False, f"only {accepted} new press(es) accepted: at least {MIN_NEW_PRESSES} measure a transfer"
     elif limit is None:
         transfers, why = False, f"{prior.path}: no cross-validated MLP error recorded (validation.mlp.cv) to compare with"
-    elif loo_deg is None or not loo_deg <= limit:
+    elif loo_deg is None:
+        transfers, why = False, "no leave-one-out error of the new presses"
+    elif not loo_deg <= limit:
         transfers, why = False, (f"the new presses' leave-one-out error {loo_deg:.2f} deg exceeds the prior's CV "
                                  f"{prior.cv_deg:.2f} + {TRANSFER_MARGIN_DEG:g} deg")
     else:
