@@ -51,7 +51,10 @@ def run_prior(args, overlay, print_summary) -> int:
     if args.json:
         print_json(s)
     else:
-        print_summary(args, s, refused)
+        import argparse
+
+        # The MLP line names no sensor profile as the source of an ensemble: the prior's nets are the prior's.
+        print_summary(argparse.Namespace(**{**vars(args), "mlp_members": len(res.models["mlp"].nets)}), s, refused)
         t = s["prior"]["transfer"]
         print(f"  prior: {args.prior} ({s['prior']['presses']} presses, MLP CV {_deg(s['prior']['cv_deg'])}); "
               f"adapted on {s['accepted']} presses; the MLP line's CV is leave-one-press-out over them")
