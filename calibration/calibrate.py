@@ -637,7 +637,7 @@ def _find_circles(capture, ball_radius_mm, mm_per_px, *, illumination, folds, sh
     t0 = time.perf_counter()
     # The detector runs in every mode: with labels or given circles its circles are what
     # they are compared with (the report's centre offset), not what is fitted.
-    detected = detect_contacts(frames, ref, ball_px, opt, exclude=mask)
+    detected = detect_contacts(frames, ref, ball_px, opt, exclude=mask if press_mask is None else press_mask)
     shading_report = None
     if opt.shading:
         first, _ = _without_drift(frames, ref, detected, detected, ball_px, opt, mask, sat)

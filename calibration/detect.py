@@ -311,10 +311,12 @@ def _coarse_blob(diff: np.ndarray, med: float, ball_px: float, opt: DetectOption
     return best[1], best[2], best[3]
 
 
-def _search(diff: np.ndarray, ball_px: float, opt: DetectOptions) -> _Found:
-    """Find the contact circle in a (working-scale, blurred) difference image."""
-    med = float(np.median(diff))
-    sigma = float(1.4826 * np.median(np.abs(diff - med))) + 1e-6
+def _search(diff: np.ndarray, ball_px: float, opt: DetectOptions, quiet: np.ndarray | None = None) -> _Found:
+    """Find the contact circle in a (working-scale, blurred) difference image; its background
+    level and noise from the ``quiet`` pixels (all when None)."""
+    bg = diff if quiet is None or quiet.sum() < 0.25 * quiet.size else diff[quiet]
+    med = float(np.median(bg))
+    sigma = float(1.4826 * np.median(np.abs(bg - med))) + 1e-6
     peak_at = np.unravel_index(int(np.argmax(diff)), diff.shape)
     snr = (float(diff[peak_at]) - med) / sigma
 
@@ -434,9 +436,13 @@ def detect_press(frames: np.ndarray, reference: np.ndarray, ball_radius_px: floa
     s = work_scale(ball_radius_px, opt)
     f_w, ref_w = shrink(frames, s), shrink(reference, s)
     ball_w = ball_radius_px * s
-    ex_w = None
+    ex_w = quiet = None
     if exclude is not None:
         ex_w = shrink(np.asarray(exclude, np.float32)[None, :, :, None], s)[0, :, :, 0] > 0
+        # The noise is measured two pixels away from the dots: a dot's blurred edge, or a dot the
+        # press moved, leaves a ring in the difference image that is not the camera's noise.
+        near = ndimage.binary_dilation(np.asarray(exclude, bool), iterations=2).astype(np.float32)
+        quiet = ~(shrink(near[None, :, :, None], s)[0, :, :, 0] > 0)
     found = None
     for _ in range(2 if opt.drift != "none" else 1):
         # Pass 1: the drift fitted on every pixel (trimmed); pass 2: outside the contact found.
@@ -445,7 +451,7 @@ def detect_press(frames: np.ndarray, reference: np.ndarray, ball_radius_px: floa
             disc = contact_exclusion(ref_w.shape[1:3], (found.cx, found.cy), found.r, ball_w)
             ex = disc if ex is None else ex | disc
         drift = fit_drift(f_w, ref_w, ex, model=opt.drift, degree=opt.drift_degree, stripes=opt.stripes)
-        found = _search(difference_image(drift.remove(f_w), ref_w, opt.blur_sigma_px), ball_w, opt)
+        found = _search(difference_image(drift.remove(f_w), ref_w, opt.blur_sigma_px), ball_w, opt, quiet)
     to_orig = (lambda v: (v + 0.5) / s - 0.5) if s < 1 else (lambda v: v)
     full = _Found(to_orig(found.cx), to_orig(found.cy), found.r / s, found.quality, found.accepted, found.reason,
                   found.snr, found.residual / s, found.located)
@@ -454,8 +460,14 @@ def detect_press(frames: np.ndarray, reference: np.ndarray, ball_radius_px: floa
 
 def detect_contacts(frames: np.ndarray, reference: np.ndarray, ball_radius_px: float,
                     options: DetectOptions | None = None, *, exclude: np.ndarray | None = None) -> list[Circle]:
-    """:func:`detect_press` for every press of ``frames (K, P, H, W, C)``."""
+    """:func:`detect_press` for every press of ``frames (K, P, H, W, C)``; ``exclude`` is one
+    mask ``(H, W)`` for every press or one per press ``(K, H, W)`` (markers that move)."""
     frames = np.asarray(frames)
     if frames.ndim != 5:
         raise ValueError(f"detect_contacts: frames must be (K, P, H, W, C), got {frames.shape}")
-    return [detect_press(f, reference, ball_radius_px, options, exclude=exclude) for f in frames]
+    if exclude is not None and np.ndim(exclude) == 3 and len(exclude) != len(frames):
+        raise ValueError(f"detect_contacts: a per-press exclude mask must be (K={len(frames)}, H, W), got "
+                         f"{np.shape(exclude)}")
+    per_press = exclude is not None and np.ndim(exclude) == 3
+    return [detect_press(f, reference, ball_radius_px, options, exclude=exclude[k] if per_press else exclude)
+            for k, f in enumerate(frames)]

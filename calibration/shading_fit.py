@@ -30,8 +30,11 @@ its position and size: it is what a ball of known radius pressed there looks lik
    stays: the shading's radius follows wherever the gel changed, and a soft gel changes
    around the contact too (on the DIGIT frames the shading's circles were 40-60 % larger
    than the edges', and the models calibrated on them 8 deg worse). Presses whose colour
-   change the model explains to at least ``min_explained`` are the ones the next forward
-   model is fitted on; repeat until no circle moves by more than ``tol_px``.
+   change *above the camera's noise* the model explains to at least ``min_explained`` are the
+   ones the next forward model is fitted on, and only they may replace an edge circle; repeat
+   until no circle moves by more than ``tol_px``. The noise is each press's own (from its
+   neighbouring pixels' differences, :func:`noise_variance`): measured against the raw change,
+   a small press on a noisy sensor could never be explained to half, however right its circle.
 
 The rules of :func:`calibration.detect.detect_press` (border, size, faint presses) still
 hold: a faint press stays rejected for its faintness, and a circle the shading finds too close
@@ -147,12 +150,23 @@ class _Press:
     rows: np.ndarray
     cols: np.ndarray
     ref: np.ndarray  # (N, M)
+    noise_var: np.ndarray | None = None  # (M,) per-pixel noise variance of the change
 
     def __post_init__(self):
         one = np.ones(len(self.ref))
         self.X = [np.stack([one, self.ref[:, m]], axis=1) for m in range(self.ref.shape[1])]
         self.pinv = [np.linalg.pinv(x) for x in self.X]
         self.energy = float((self.project(self.change) ** 2).sum())
+        # What no circle can explain: the pixels' noise (two drift terms per column projected out).
+        self.noise = 0.0 if self.noise_var is None else float(max(len(self.ref) - 2, 0) * self.noise_var.sum())
+
+    def explained(self, cost: float) -> float:
+        """The fraction of the change above the noise that a circle of this ``cost`` explains (0 when
+        the change is not clearly above the noise: at most twice its energy)."""
+        signal = self.energy - self.noise
+        if signal <= self.noise:
+            return 0.0
+        return float(1.0 - np.clip((cost - self.noise) / signal, 0.0, 1.0))
 
     def project(self, res: np.ndarray) -> np.ndarray:
         """``res (N, M)`` without its best fit of the drift terms, per column."""
@@ -162,7 +176,20 @@ class _Press:
         return out
 
 
-def _window(change_img: np.ndarray, ref_img: np.ndarray, valid: np.ndarray, cx, cy, radius) -> _Press:
+def noise_variance(change_img: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Per column, the variance of one pixel's noise in ``change_img (H, W, M)``: from the
+    differences of horizontal neighbours (both valid), whose median square is robust to the
+    contact's own shading (a small part of the image) and twice the noise variance times the
+    median of a chi-square with one degree of freedom (0.4549)."""
+    both = valid[:, 1:] & valid[:, :-1]
+    d = (change_img[:, 1:] - change_img[:, :-1])[both]
+    if len(d) < 20:
+        return np.zeros(change_img.shape[-1])
+    return np.median(np.asarray(d, np.float64) ** 2, axis=0) / (2 * 0.4549)
+
+
+def _window(change_img: np.ndarray, ref_img: np.ndarray, valid: np.ndarray, cx, cy, radius,
+            noise_var: np.ndarray | None = None) -> _Press:
     h, w = valid.shape
     cx, cy = float(np.clip(cx, 0, w - 1)), float(np.clip(cy, 0, h - 1))
     r0, r1 = max(0, int(cy - radius)), min(h, int(np.ceil(cy + radius)) + 1)
@@ -172,7 +199,7 @@ def _window(change_img: np.ndarray, ref_img: np.ndarray, valid: np.ndarray, cx, 
     keep = valid[r0:r1:step, c0:c1:step] & (np.hypot(rows - cy, cols - cx) <= radius)
     rows, cols = rows[keep].astype(np.float64), cols[keep].astype(np.float64)
     ri, ci = rows.astype(int), cols.astype(int)
-    return _Press(change_img[ri, ci].astype(np.float64), rows, cols, ref_img[ri, ci].astype(np.float64))
+    return _Press(change_img[ri, ci].astype(np.float64), rows, cols, ref_img[ri, ci].astype(np.float64), noise_var)
 
 
 def _fit_press(model: ShadingModel, p: _Press, starts, ball_px: float) -> tuple[tuple[float, float, float], float]:
@@ -255,18 +282,8 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
     trusted = [k for k, c in enumerate(circles) if c.accepted]
     s = work_scale(ball_radius_px, det)
     ball = ball_radius_px * s
-    f_w, ref_w = shrink(frames, s), shrink(reference, s)[None]
-    k_all, p, h, w, c = f_w.shape
-    change = (f_w - ref_w).transpose(0, 2, 3, 1, 4).reshape(k_all, h, w, p * c)
-    ref_img = ref_w[0].transpose(1, 2, 0, 3).reshape(h, w, p * c)
-    valid = np.ones((k_all, h, w), bool)
-    if saturation is not None:
-        valid &= ~(shrink(frames, s) >= 0.98 * saturation).any(axis=(1, 4))
-    if exclude is not None:
-        ex = np.asarray(exclude, np.float32)
-        ex = ex[None] if ex.ndim == 2 else ex
-        ex_w = shrink(ex[..., None], s)[..., 0] > 0
-        valid &= ~ex_w
+    change, ref_img, valid = _working_change(frames, reference, s, exclude, saturation)
+    k_all, h, w = valid.shape
     to_w = (lambda v: (v + 0.5) * s - 0.5) if s < 1 else (lambda v: v)
     to_o = (lambda v: (v + 0.5) / s - 0.5) if s < 1 else (lambda v: v)
     edge = [(to_w(c.center_xy[0]), to_w(c.center_xy[1]), max(c.radius_px * s, 0.2 * ball)) for c in circles]
@@ -283,8 +300,10 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
         return list(circles), report
     model = ShadingModel((h, w), opt.ridge)
     explained: dict[int, float] = {}
+    noise = {k: noise_variance(change[k], valid[k]) for k in located}
     for it in range(opt.iterations):
-        wins = {k: _window(change[k], ref_img, valid[k], cur[k][0], cur[k][1], opt.window * ball) for k in located}
+        wins = {k: _window(change[k], ref_img, valid[k], cur[k][0], cur[k][1], opt.window * ball, noise[k])
+                for k in located}
         _fit_model(model, [wins[k] for k in trusted], [cur[k] for k in trusted], ball)
         new, moves = dict(cur), []
         for k in located:
@@ -299,7 +318,7 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
             failed = _edge_failed(circles[k], edge[k], fit, opt)
             keep_edge = not failed or _cost(model, win, edge[k], ball) * opt.keep_edge_ratio <= cost
             new[k] = edge[k] if keep_edge else fit
-            explained[k] = 1.0 - min(cost, win.energy) / max(win.energy, 1e-12)
+            explained[k] = win.explained(cost)
             moves.append(float(np.hypot(new[k][0] - cur[k][0], new[k][1] - cur[k][1]) + abs(new[k][2] - cur[k][2])))
         cur = new
         trusted = [k for k in located if explained.get(k, 0.0) >= opt.min_explained] or trusted
@@ -320,6 +339,24 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
             report["moved"].append(k)
     return out, report
 
+
+
+def _working_change(frames: np.ndarray, reference: np.ndarray, s: float, exclude, saturation):
+    """At working scale ``s``: each press's colour change ``(K, h, w, P*C)``, the reference
+    ``(h, w, P*C)`` and where a press's pixels count ``(K, h, w)`` (not saturated, not a marker)."""
+    f_w, ref_w = shrink(frames, s), shrink(reference, s)[None]
+    k_all, p, h, w, c = f_w.shape
+    change = (f_w - ref_w).transpose(0, 2, 3, 1, 4).reshape(k_all, h, w, p * c)
+    ref_img = ref_w[0].transpose(1, 2, 0, 3).reshape(h, w, p * c)
+    valid = np.ones((k_all, h, w), bool)
+    if saturation is not None:
+        valid &= ~(shrink(frames, s) >= 0.98 * saturation).any(axis=(1, 4))
+    if exclude is not None:
+        ex = np.asarray(exclude, np.float32)
+        ex = ex[None] if ex.ndim == 2 else ex
+        ex_w = shrink(ex[..., None], s)[..., 0] > 0
+        valid &= ~ex_w
+    return change, ref_img, valid
 
 def _support_circle(change_img: np.ndarray, valid: np.ndarray, ball_px: float, near=None) -> tuple[float, float, float]:
     """A model-free start: the disc of the same area and centroid as the region that changed
@@ -374,7 +411,7 @@ def _judged(edge: Circle, circle, explained: float, shape, ball_px: float, det: 
             opt: ShadingOptions) -> Circle:
     """The shading's circle under the detector's rules, or the edge circle when the shading explains too little."""
     x, y, r = circle
-    note = f"shading explains {explained:.0%} of the colour change"
+    note = f"shading explains {explained:.0%} of the colour change above the noise"
     if explained < opt.min_explained:
         return replace(edge, reason=f"{edge.reason}; {note} (< {opt.min_explained:.0%}): edge circle kept")
     contact = float(min(r, det.clamp_fraction * ball_px))

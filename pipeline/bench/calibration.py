@@ -1,6 +1,9 @@
 """``iristac bench calibration``: time and cross-validated error of every calibration model.
 
 With ``--sensors``: every sensor on hand instead (:mod:`pipeline.bench._calibration_sensors`).
+With ``--shipped``: the DIGIT calibration shipped with its profile, on the unit it was built from
+and on an altered copy of it, another unit (:mod:`pipeline.bench._calibration_shipped`;
+``--rebuild OUT.h5`` builds it again).
 With ``--prior``: a new virtual unit calibrated from 5 presses and another unit's calibration,
 against its own 20-press calibration (:mod:`pipeline.bench._calibration_prior`).
 
@@ -43,6 +46,9 @@ def add_arguments(parser) -> None:
                              "its no-contact frame, randomised virtual sensors, the same again with a soft gel's look and with "
                              "markers the presses move) calibrated on some presses and judged "
                              "on the others (pipeline/bench/_calibration_sensors.py)")
+    from pipeline.bench._calibration_shipped import add_shipped_arguments
+
+    add_shipped_arguments(parser)
     parser.add_argument("--prior", action="store_true",
                         help="instead: new virtual units calibrated from 5 presses with another unit's calibration "
                              "(calibrate --prior) against their own 20-press calibrations, on unseen presses "
@@ -84,6 +90,13 @@ def run(args) -> dict:
     from pipeline.results.evaluate import angular_error_deg
 
     quick = bool(getattr(args, "quick", False))
+    if getattr(args, "shipped", False) or getattr(args, "rebuild", None):
+        import sys
+
+        from pipeline.bench._calibration_shipped import run_shipped
+
+        return run_shipped(args, log=lambda m: print(f"iristac bench calibration --shipped: {m}", file=sys.stderr,
+                                                     flush=True))
     if getattr(args, "sensors", False):
         import sys
 
@@ -165,6 +178,10 @@ def run(args) -> dict:
 
 
 def format_table(result: dict) -> str:
+    if result.get("shipped"):
+        from pipeline.bench._calibration_shipped import format_shipped
+
+        return "\n".join(format_shipped(result))
     if "sensors" in result:
         from pipeline.bench._calibration_sensors import format_sensors
 

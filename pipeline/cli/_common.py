@@ -250,3 +250,20 @@ def add_solving_group(parser):
     add_drift_flag(solve)
     add_video_flags(solve)
     return solve
+
+
+def shipped_calibration(command: str, profile, calibration, illumination):
+    """The calibration ``live`` and ``reconstruct`` use with ``--profile`` and no light model of
+    the user's: the one shipped with the profile (:mod:`pipeline.capture.shipped`), announced on
+    stderr with its measured error on another unit (also with ``--json``); None where the user
+    gave ``--calibration`` or ``--illumination``, or no calibration ships with the profile."""
+    if profile is None or calibration is not None or illumination is not None:
+        return None
+    from pipeline.capture.sensor_profiles import load_profile
+    from pipeline.capture.shipped import shipped_calibration_path, shipped_note
+
+    path = shipped_calibration_path(load_profile(profile))
+    if path is None:
+        return None
+    print(f"iristac {command}: no --calibration given: using the {shipped_note(path)}", file=sys.stderr, flush=True)
+    return path

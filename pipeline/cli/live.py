@@ -12,6 +12,7 @@ from pipeline.cli._common import (
     mode_metavar,
     print_json,
     profile_metavar,
+    shipped_calibration,
 )
 
 
@@ -37,7 +38,9 @@ def register(sub, name, help_text):
                      help="the virtual sensor: rendered gel under the emulated ring, scripted ball presses")
     where.add_argument("--profile", default=None, metavar=profile_metavar(),
                        help="sensor profile (a built-in name or a .yaml): its camera (when --camera is not given), "
-                            "crop, rotation, size, pixel pitch and lighting mode")
+                            "crop, rotation, size, pixel pitch and lighting mode; without --calibration, the "
+                            "calibration shipped with it (digit: solved with --solver mlp, the session's first frame "
+                            "as the no-contact reference; its measured error is printed)")
     where.add_argument("--mode", default=None, metavar=mode_metavar(),
                        help="lighting mode: a built-in name or a mode file (default: the profile's, else "
                             "trichromatic)")
@@ -62,6 +65,7 @@ def register(sub, name, help_text):
                             "--virtual) or the calibration's (default with --camera)")
     solve = p.add_argument_group("solving")
     add_solver_flags(solve, default_solver="lut", short_help=True)
+    p.set_defaults(solver=None)  # lut, or mlp with a profile's shipped calibration (_run)
     add_markers_flag(solve)
     add_drift_flag(solve)
     solve.add_argument("--contact", action="store_true",
@@ -96,20 +100,29 @@ def _run(args) -> int:
             print(f"iristac live: view at {info['view']}", file=sys.stderr, flush=True)
 
     camera, mode, mm = args.camera, args.mode, args.mm_per_px
+    calibration, solver, reference = args.calibration, args.solver or "lut", args.reference
+    shipped = None if args.virtual else shipped_calibration("live", args.profile, calibration, args.illumination)
+    if shipped is not None:
+        # Another unit's calibration: its own no-contact frame is the session's first, not the shipped one.
+        calibration, solver, reference = shipped, args.solver or "mlp", reference or "start"
     if args.profile or (camera is not None and not args.virtual):
         from pipeline.capture.sensor_profiles import camera_source, load_profile
 
         prof = load_profile(args.profile) if args.profile else None
         if not args.virtual:
             camera = camera_source(camera, prof)
+            if shipped is not None:
+                from pipeline.capture.shipped import ColourMatchedCamera, shipped_reference
+
+                camera = ColourMatchedCamera(camera, shipped_reference(shipped), say=log)
         if prof is not None:
             mode, mm = mode or prof.mode, prof.mm_per_px
-    res = run_live(mode=mode or DEFAULT_MODE, solver=args.solver, camera=camera, virtual=args.virtual,
-                   calibration=args.calibration, illumination=args.illumination, port=args.port,
+    res = run_live(mode=mode or DEFAULT_MODE, solver=solver, camera=camera, virtual=args.virtual,
+                   calibration=calibration, illumination=args.illumination, port=args.port,
                    emulate=args.emulate, ring_firmware=args.ring_firmware, frames=args.frames, seconds=args.seconds,
                    record=args.record, view=args.view, view_port=args.view_port, queue=args.queue,
                    threads=args.threads, integrator=args.integrator, size=args.size, mm_per_px=mm,
-                   fps=args.fps, cache=args.cache, reference=args.reference, markers=args.markers,
+                   fps=args.fps, cache=args.cache, reference=reference, markers=args.markers,
                    fast=not args.eager, contact=args.contact, drift=args.drift, on_ready=ready, log=log)
     s = res.summary
     if res.error:

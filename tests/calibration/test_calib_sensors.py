@@ -352,3 +352,33 @@ def test_label_truth_takes_a_virtual_sensors_exact_normals():
     rim = m & (samples.radial > 0.8)
     assert np.degrees(np.arccos(np.clip(np.sum(n[rim] * samples.normals[rim], 1), -1, 1))).max() > 1.0
     assert exact_normals(dataclasses.replace(cap, truth=None), samples) is None  # a real sensor's: none
+
+
+def test_moved_blurred_dots_are_not_taken_for_noise():
+    """Printed dots that a press moves, blurred by the optics, leave a ring in the difference image
+    at every dot; a press's faintness is judged against the camera's noise measured away from its
+    dots (each press's own), so the press keeps about the contrast it has without dots."""
+    from scipy import ndimage
+
+    from calibration.detect import detect_press
+    from calibration.markers import press_markers
+    from calibration.synthetic import synthetic_sphere_capture
+
+    cap, _ = synthetic_sphere_capture((90, 120), centers_rc=[(45.0, 60.0)], radii_px=[9.0], ball_radius_mm=1.5,
+                                      num_leds=3, noise_dn=4.0, peak_dn=120.0)
+    f, r = cap.linear()
+    clean = detect_press(f[0], r, 15.0)
+    rows, cols = np.mgrid[0:90, 0:120]
+
+    def dots(dy, dx):  # a blurred grid of dark dots every 10 px, shifted by (dy, dx)
+        d = ((rows - 5 - dy) % 10 - 5) ** 2 + ((cols - 5 - dx) % 10 - 5) ** 2 <= 2
+        return 1.0 - 0.6 * ndimage.gaussian_filter(d.astype(np.float64), 1.5) / 0.5
+
+    ref_dots, press_dots = np.clip(dots(0, 0), 0.2, 1), np.clip(dots(1, 1), 0.2, 1)
+    r_d, f_d = r * ref_dots[None, :, :, None], f[0] * press_dots[None, :, :, None]
+    ref_mask = ref_dots < 0.7
+    mask = press_markers(f_d[None], ref_mask)[0]
+    found = detect_press(f_d, r_d, 15.0, exclude=mask)
+    assert clean.accepted and found.accepted, found.reason
+    assert found.snr > 0.5 * clean.snr, (found.snr, clean.snr)
+    assert np.hypot(*(np.array(found.center_xy) - (60.0, 45.0))) < 1.5
