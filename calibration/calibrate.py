@@ -160,7 +160,7 @@ class CalibrationResult:
             out["models"][name]["problems"] = list(rep.get("problems") or [])
         if self.labels is not None:
             out.update(self.labels)
-        for key in ("reference", "drift", "ball_fit"):
+        for key in ("reference", "drift", "ball_fit", "prior"):  # prior: calibration.prior's adaptation
             if key in self.meta:
                 out[key] = self.meta[key]
         if self.verdict is not None:
@@ -219,6 +219,8 @@ class CalibrationResult:
             "circle_settings": self.meta.get("circle_settings", {}),
             "summary": {k: v for k, v in self.summary().items() if k != "circles"},
             "quality_gate": self.verdict.to_dict() if self.verdict is not None else {},
+            # A calibration adapted from another unit's (calibration.prior): which, and how.
+            **({"prior": self.meta["prior"]} if "prior" in self.meta else {}),
         }
         meta = json.loads(json.dumps(meta, default=float))
         return write_record(Path(path), Record(schema="calibration", data=data, meta=meta))

@@ -79,6 +79,7 @@ from sim.point_source import point_source_field
 from sim.render import Renderer, RenderSettings, auto_exposure, bare_ring_illumination
 
 __all__ = ["VirtualSensor", "SensorTruth", "SensorCapture", "SENSOR_EFFECTS", "CONTACT_LOOK_EFFECTS", "press_layout", "random_sensor",
+           "sibling_unit", "UNIT_VARIATION",
            "sensor_illumination", "render_sensor", "write_sensor_capture", "write_sensor_images"]
 
 #: Optional effects of a virtual sensor, in the order they are applied.
@@ -186,6 +187,8 @@ class VirtualSensor:
     rim_highlight_tilt_deg: float = 20.0
     rim_highlight_azimuth_deg: float = 0.0
     rim_highlight_sharpness: float = 60.0
+    led_rgb: Any = None
+    light_shift_px: tuple[float, float] = (0.0, 0.0)
 
     def __post_init__(self):
         self.shape = (int(self.shape[0]), int(self.shape[1]))
@@ -205,6 +208,7 @@ class VirtualSensor:
             raise ValueError(f"VirtualSensor: drift_gain and drift_field must be < 1, got {self.drift_gain}, "
                              f"{self.drift_field}")
         self._check_contact_look()
+        self._check_unit()
         if not 0 <= self.marker_darkness <= 1:
             raise ValueError(f"VirtualSensor: marker_darkness must be in [0, 1], got {self.marker_darkness}")
         if self.marker_spacing_px > 0 and not 0 < self.marker_radius_px < self.marker_spacing_px / 2:
@@ -220,6 +224,17 @@ class VirtualSensor:
             raise ValueError(f"VirtualSensor: contact radii must be in (0, {self.ball_radius_px:.2f}) px (the ball) "
                              f"and centres finite; got radii {np.round(r, 2).tolist()}")
         self.centers_xy, self.contact_radii_px = c, r
+
+    def _check_unit(self):
+        self.light_shift_px = (float(self.light_shift_px[0]), float(self.light_shift_px[1]))
+        if not all(math.isfinite(v) for v in self.light_shift_px):
+            raise ValueError(f"VirtualSensor: light_shift_px must be finite, got {self.light_shift_px}")
+        if self.led_rgb is not None:
+            rgb = np.asarray(self.led_rgb, np.float64)
+            if rgb.shape != (4, 3) or not np.all(np.isfinite(rgb)) or np.any(rgb < 0) or np.any(rgb.sum(1) <= 0):
+                raise ValueError(f"VirtualSensor: led_rgb must be a (4, 3) array of finite values >= 0 with light in "
+                                 f"every row (red, green, blue LED, white light), got {np.asarray(self.led_rgb).tolist()}")
+            self.led_rgb = rgb
 
     def _check_contact_look(self):
         for name in ("marker_motion", "soft_blur_px", "rim_highlight_dn", "rim_highlight_sharpness"):
@@ -265,6 +280,8 @@ class VirtualSensor:
         d["centers_xy"] = self.centers_xy.tolist()
         d["contact_radii_px"] = self.contact_radii_px.tolist()
         d["light_azimuths_deg"] = [float(a) for a in self.light_azimuths_deg]
+        d["light_shift_px"] = [float(a) for a in self.light_shift_px]
+        d["led_rgb"] = None if self.led_rgb is None else np.asarray(self.led_rgb).tolist()
         return d
 
     def replace(self, **changes) -> "VirtualSensor":
@@ -476,6 +493,90 @@ def random_sensor(seed: int, *, shape: tuple[int, int] | None = None, num_presse
     return VirtualSensor(**kw)
 
 
+#: How much :func:`sibling_unit` lets one unit differ from another of the same design (each a
+#: uniform draw within +-): the coloured LEDs' brightness (relative), the light they put in the
+#: other two channels (up to, relative), the white light's tint per channel (relative), the
+#: camera's rotation about its axis (deg, every light's azimuth), each LED's own azimuth (deg),
+#: the lights' distance (relative) and elevation (deg), the camera's shift against the lights
+#: (fraction of the short side), the gel's brightness (``target_dn``, relative) and the drift
+#: strengths (relative).
+UNIT_VARIATION = {"led_gain": 0.2, "led_crosstalk": 0.08, "white_tint": 0.15, "rotation_deg": 4.0,
+                  "led_azimuth_deg": 3.0, "light_distance": 0.05, "light_elevation_deg": 2.0, "shift": 0.02,
+                  "brightness": 0.1, "drift": 0.3}
+
+
+def sibling_unit(sensor: VirtualSensor, unit_seed: int, *, num_presses: int | None = None,
+                 border_fraction: float = 0.0, radius_range: tuple[float, float] = (0.3, 0.9),
+                 variation: dict[str, float] | None = None) -> VirtualSensor:
+    """Another unit of ``sensor``'s design: same build, its own LEDs, camera mount, gel and presses.
+
+    Kept (the design): image size, pixel pitch, ball, the kind of lights and their nominal
+    layout, the white light's level, every effect that is on and the gel's markers and look.
+    Redrawn from ``unit_seed`` within :data:`UNIT_VARIATION` (or ``variation``, the same keys):
+    each LED's brightness and colour (``led_rgb``: the coloured LEDs' gain and their light in
+    the other channels, the white light's tint), the camera's pose against the lights (a
+    rotation of every light's azimuth, each LED's own small misplacement, their distance and
+    elevation, a shift ``light_shift_px``), the gel's brightness (``target_dn``), the drift
+    strengths and every random draw of the rendering (``seed``), and the presses
+    (:func:`press_layout`). Unit seed 0 is a unit too, not the design itself.
+
+    Parameters
+    ----------
+    sensor : VirtualSensor
+        The design (typically from :func:`random_sensor`; GelSight lights for the LED and mount
+        variation, which the 24-LED ring's modes do not have: there only the gel, drift and
+        presses change).
+    unit_seed : int
+    num_presses : int, optional
+        Presses of the new unit (default: as many as ``sensor``).
+    border_fraction, radius_range
+        As :func:`press_layout`.
+    variation : dict, optional
+        Other limits than :data:`UNIT_VARIATION` (missing keys keep theirs; 0 turns one off).
+
+    Returns
+    -------
+    VirtualSensor
+
+    Examples
+    --------
+    >>> design = random_sensor(3, shape=(60, 80), num_presses=2, effects="none")
+    >>> a, b = sibling_unit(design, 1), sibling_unit(design, 2)
+    >>> (a.shape, a.ball_radius_mm, a.effects) == (design.shape, design.ball_radius_mm, design.effects)
+    True
+    >>> a.led_rgb.shape, bool(np.allclose(a.led_rgb, b.led_rgb)), a.to_dict() == sibling_unit(design, 1).to_dict()
+    ((4, 3), False, True)
+    """
+    v = {**UNIT_VARIATION, **(variation or {})}
+    unknown = set(v) - set(UNIT_VARIATION)
+    if unknown:
+        raise ValueError(f"sibling_unit: unknown variation key(s) {sorted(unknown)} (known: {', '.join(UNIT_VARIATION)})")
+    rng = np.random.default_rng([int(unit_seed), 31])
+
+    def u(key, size=None):
+        return rng.uniform(-v[key], v[key], size)
+
+    rgb = np.zeros((4, 3))
+    rgb[:3] = rng.uniform(0.0, v["led_crosstalk"], (3, 3))
+    rgb[np.arange(3), np.arange(3)] = 1.0 + u("led_gain", 3)
+    rgb[3] = 1.0 + u("white_tint", 3)
+    turn = float(u("rotation_deg"))
+    az = tuple(float((a + turn + u("led_azimuth_deg")) % 360) for a in sensor.light_azimuths_deg)
+    shift = tuple(float(x) for x in u("shift", 2) * min(sensor.shape))
+    k = sensor.num_presses if num_presses is None else int(num_presses)
+    centers, radii = press_layout(sensor.shape, sensor.ball_radius_px, k, rng, radius_range=radius_range,
+                                  border_fraction=border_fraction)
+    drift = 1.0 + u("drift", 3)
+    return sensor.replace(
+        led_rgb=rgb, light_azimuths_deg=az, light_shift_px=shift,
+        light_distance=sensor.light_distance * (1.0 + float(u("light_distance"))),
+        light_elevation_deg=sensor.light_elevation_deg + float(u("light_elevation_deg")),
+        target_dn=sensor.target_dn * (1.0 + float(u("brightness"))),
+        drift_gain=min(0.5, sensor.drift_gain * drift[0]), drift_offset_dn=sensor.drift_offset_dn * drift[1],
+        drift_field=min(0.5, sensor.drift_field * drift[2]), seed=int(rng.integers(1 << 30)),
+        centers_xy=centers, contact_radii_px=radii)
+
+
 def _draw_gel_optics(kw: dict, on: set, rng, ball_px: float) -> None:
     """The rim smoothing and optical blur of :func:`random_sensor`, drawn after every other
     draw (so turning them on or off leaves the other effects' values as they were)."""
@@ -530,6 +631,8 @@ def sensor_illumination(sensor: VirtualSensor) -> tuple[IlluminationModel, np.nd
     az = np.deg2rad(np.asarray(sensor.light_azimuths_deg, np.float64))
     # Azimuths are on screen (recon frame, counter-clockwise from +x); optical y is recon -y.
     pos = np.stack([dist * np.cos(az), -dist * np.sin(az), np.zeros(3)], axis=-1)
+    # A camera off the design's place sees every light moved (optical x along the columns, y down the rows).
+    pos[:, :2] += np.asarray(sensor.light_shift_px) * sensor.mm_per_px
     axes = np.array([0.0, 0.0, gel_z]) - pos
     pos = np.vstack([pos, [0.0, 0.0, gel_z - 10 * half_diag]])
     axes = np.vstack([axes, [0.0, 0.0, 1.0]])
@@ -539,6 +642,9 @@ def sensor_illumination(sensor: VirtualSensor) -> tuple[IlluminationModel, np.nd
     drive = np.zeros((1, 4, 3))
     drive[0, np.arange(3), np.arange(3)] = 1.0 / centre[:3]
     drive[0, 3, :] = sensor.ambient / centre[3]
+    if sensor.led_rgb is not None:  # another unit's LEDs: other brightness and colour
+        drive[0, :3, :] = sensor.led_rgb[:3] / centre[:3, None]
+        drive[0, 3, :] = sensor.ambient * sensor.led_rgb[3] / centre[3]
     model = IlluminationModel(V=V, mm_per_px=sensor.mm_per_px, led_positions=pos, gel_z=gel_z,
                               meta={"source": "virtual_sensor"})
     return model, drive, np.ones(1), ["all-rgb"]

@@ -4,6 +4,8 @@ With ``--sensors``: every sensor on hand instead (:mod:`pipeline.bench._calibrat
 With ``--shipped``: the DIGIT calibration shipped with its profile, on the unit it was built from
 and on an altered copy of it, another unit (:mod:`pipeline.bench._calibration_shipped`;
 ``--rebuild OUT.h5`` builds it again).
+With ``--prior``: a new virtual unit calibrated from 5 presses and another unit's calibration,
+against its own 20-press calibration (:mod:`pipeline.bench._calibration_prior`).
 
 Three cases: the shared real GelSight frames (30 presses, one RGB pattern; skipped when
 ``../shared/data`` is absent) with the hand-label comparison; the same frames split, presses
@@ -47,6 +49,10 @@ def add_arguments(parser) -> None:
     from pipeline.bench._calibration_shipped import add_shipped_arguments
 
     add_shipped_arguments(parser)
+    parser.add_argument("--prior", action="store_true",
+                        help="instead: new virtual units calibrated from 5 presses with another unit's calibration "
+                             "(calibrate --prior) against their own 20-press calibrations, on unseen presses "
+                             "(pipeline/bench/_calibration_prior.py)")
 
 
 def _rows(res, seconds_total):
@@ -98,6 +104,13 @@ def run(args) -> dict:
 
         return run_sensors(quick, log=lambda m: print(f"iristac bench calibration --sensors: {m}", file=sys.stderr,
                                                       flush=True))
+    if getattr(args, "prior", False):
+        import sys
+
+        from pipeline.bench._calibration_prior import run_prior
+
+        return run_prior(quick, log=lambda m: print(f"iristac bench calibration --prior: {m}", file=sys.stderr,
+                                                    flush=True))
     out: dict = {"cases": [], "rows": []}
     npz = Path(args.npz) if getattr(args, "npz", None) else _shared_data()
     if npz is not None:
@@ -173,6 +186,10 @@ def format_table(result: dict) -> str:
         from pipeline.bench._calibration_sensors import format_sensors
 
         return "\n".join(format_sensors(result))
+    if "prior" in result:
+        from pipeline.bench._calibration_prior import format_prior
+
+        return "\n".join(format_prior(result))
     lines = []
     for c in result["cases"]:
         lines.append(c["case"])

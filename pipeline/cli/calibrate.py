@@ -59,6 +59,13 @@ def register(sub, name, help_text):
                         help="illumination.h5 (LED fields V from iristac sim trace) for the traced model")
     models.add_argument("--correct-led-geometry", action="store_true",
                         help="traced model: also fit small LED position and tilt corrections")
+    models.add_argument("--prior", default=None, metavar="UNIT_A_CAL.h5",
+                        help="adapt another unit's calibration of the same sensor model (its MLP) to this unit's "
+                             "presses (3-5 are enough when the transfer is measured to work; the error is leave-one-"
+                             "press-out over them; docs/calibration.md, 'A new unit from a few presses')")
+    models.add_argument("--adapt-steps", type=int, nargs=2, default=None, metavar=("MAP", "FINETUNE"),
+                        help="with --prior: steps fitting the input map, then steps fine-tuning every weight "
+                             "(default 300 80)")
     outs = p.add_argument_group("what is written")
     outs.add_argument("--out", required=True, help="calibration.h5 to write")
     outs.add_argument("--overlay", default=None,
@@ -88,6 +95,12 @@ def _run(args) -> int:
         opts["traced"] = {"correct_geometry": True}
     if args.mlp_members is not None:
         opts["mlp"] = {"members": args.mlp_members}
+    if args.adapt_steps is not None and not args.prior:
+        raise UserError("--adapt-steps sets how another unit's calibration is adapted: it needs --prior UNIT_A_CAL.h5")
+    if args.prior:
+        from pipeline.cli.calibrate_prior import run_prior
+
+        return run_prior(args, _overlay, _print_summary)
     ill = read_illumination(args.illumination) if args.illumination else None
     ball, mm, detect = args.ball_radius, args.mm_per_px, drift_options(args.drift)
     if args.profile:
