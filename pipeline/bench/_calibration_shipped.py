@@ -18,6 +18,11 @@ finds each test press's contact, no labels), on
   (:func:`pipeline.capture.shipped.colour_gain`; every test capture, the unit's own too, goes
   through it; ``--unmatched`` also judges the altered copies as recorded).
 
+With ``--prior`` too: the altered unit calibrated from five of its own presses
+(:data:`PRIOR_PRESSES`) with the shipped calibration as the prior (``calibrate --prior``,
+:func:`calibration.prior.calibrate_with_prior`), and the shipped calibration as it is, both
+judged on the altered unit's other five presses (:data:`PRIOR_TEST`).
+
 ``--rebuild OUT.h5`` calibrates again (about 2 minutes), measures, and writes the calibration
 with both figures in its ``shipped`` attribute (what ``live`` and ``reconstruct`` print); without
 it the file shipped is measured as it is, and the figures stored in it are printed beside the
@@ -31,12 +36,15 @@ import time
 from pathlib import Path
 from typing import Any, Callable
 
-__all__ = ["ALTERATION", "TRAIN_PRESSES", "TEST_PRESSES", "add_shipped_arguments", "build_shipped_calibration",
-           "measure_shipped", "run_shipped", "format_shipped"]
+__all__ = ["ALTERATION", "TRAIN_PRESSES", "TEST_PRESSES", "PRIOR_PRESSES", "PRIOR_TEST", "add_shipped_arguments",
+           "build_shipped_calibration", "measure_shipped", "measure_shipped_prior", "run_shipped", "format_shipped"]
 
 #: The presses the shipped calibration is built from, and those it is judged on.
 TRAIN_PRESSES = tuple(range(0, 20))
 TEST_PRESSES = tuple(range(20, 30))
+#: With ``--prior``: the other unit's presses that adapt the shipped calibration, and those both are judged on.
+PRIOR_PRESSES = tuple(range(20, 25))
+PRIOR_TEST = tuple(range(25, 30))
 #: The DIGIT folder's no-contact frame (both folders get it, as the documented workflow does).
 CLEAN_FRAME = "frame_30.jpg"
 #: What makes the other unit (an instance of :class:`calibration.altered_unit.Alteration`, built on use).
@@ -143,6 +151,37 @@ def measure_shipped(calibration, frames, tmp, log: Callable[[str], None] = lambd
     return out
 
 
+def measure_shipped_prior(calibration, frames, tmp, log: Callable[[str], None] = lambda m: None) -> dict[str, Any]:
+    """``--shipped --prior``: the altered unit (:data:`ALTERATION`) calibrated from its presses
+    :data:`PRIOR_PRESSES` with ``calibration`` as the prior, as a user runs ``calibrate NEW.h5
+    --prior`` (its colours as recorded: the adaptation learns them), against ``calibration`` as
+    it is (colours matched from the no-contact frame, as ``live`` does); both judged on the
+    altered unit's presses :data:`PRIOR_TEST`. Returns ``as_is`` and ``adapted`` (as
+    :func:`measure_shipped`'s rows; ``adapted`` also ``loo_deg``, ``transfer`` and
+    ``calibrate_seconds``)."""
+    from calibration.altered_unit import Alteration, make_altered_unit
+    from calibration.image_import import load_images
+    from calibration.prior import calibrate_with_prior
+
+    tmp, alt = Path(tmp), Alteration(**ALTERATION)
+    new = make_altered_unit(_folder(tmp / "prior_new", Path(frames), PRIOR_PRESSES), tmp / "prior_new_unit",
+                            alteration=alt)
+    test = make_altered_unit(_folder(tmp / "prior_test", Path(frames), PRIOR_TEST), tmp / "prior_test_unit",
+                             alteration=alt)
+    as_is = _judge(calibration, test.frames, test.profile)
+    log(f"--prior: the shipped calibration as it is on presses {PRIOR_TEST[0]}-{PRIOR_TEST[-1]}: "
+        f"{as_is['mean_deg']:.2f} deg")
+    t = time.perf_counter()
+    cap, _ = load_images(new.frames, profile=new.profile)
+    res = calibrate_with_prior(cap, calibration)
+    seconds = time.perf_counter() - t
+    adapted = _judge(res.save(tmp / "prior_cal.h5"), test.frames, test.profile, match_colour=False)
+    transfer = res.meta["prior"]["transfer"]
+    log(f"--prior: adapted from {len(PRIOR_PRESSES)} presses in {seconds:.0f} s: {adapted['mean_deg']:.2f} deg")
+    return {"as_is": as_is, "adapted": {**adapted, "calibrate_seconds": seconds, "loo_deg": transfer.get("loo_deg"),
+                                        "transfer": transfer}}
+
+
 def build_shipped_calibration(frames, out, log: Callable[[str], None] = lambda m: None) -> dict[str, Any]:
     """Calibrate the DIGIT's shipped calibration from ``frames`` (presses :data:`TRAIN_PRESSES`
     and the no-contact frame, imported with ``--profile digit``; the MLP alone, seed 0),
@@ -191,6 +230,8 @@ def run_shipped(args, log: Callable[[str], None]) -> dict[str, Any]:
         with tempfile.TemporaryDirectory(prefix="iristac-shipped-") as tmp:
             res = measure_shipped(path, frames, tmp, log, seeds=getattr(args, "altered_seeds", None) or (),
                                   unmatched=bool(getattr(args, "unmatched", False)))
+            if getattr(args, "prior", False):
+                res["prior"] = measure_shipped_prior(path, frames, tmp, log)
     stored = shipped_info(path)
     size = path.stat().st_size
     return {"shipped": True, "calibration": str(path), "size_bytes": size, "stored": stored, **res,
@@ -235,8 +276,26 @@ def format_shipped(result: dict[str, Any]) -> list[str]:
         else:
             lines.append(f"  {r['case']}: {r['alteration']}; colours matched by "
                          f"{' / '.join(f'{g:.3f}' for g in r['colour_gain'])} (RGB)")
+    lines += _format_prior(result.get("prior"))
     o, a = result["original"]["mean_deg"], result["altered"]["mean_deg"]
     if o is not None and a is not None:
         lines.append(f"  another unit vs the unit itself: {a - o:+.2f} deg (target: within 3 deg)")
     lines.append(f"  total {result['seconds']:.0f} s")
+    return lines
+
+
+def _format_prior(prior: dict[str, Any] | None) -> list[str]:
+    """``--prior``'s rows of :func:`format_shipped` (none without it)."""
+    if not prior:
+        return []
+    lines = [f"  --prior: the altered unit from {len(PRIOR_PRESSES)} of its presses ({PRIOR_PRESSES[0]}-{PRIOR_PRESSES[-1]}), "
+             f"judged on its presses {PRIOR_TEST[0]}-{PRIOR_TEST[-1]}"]
+    for key, text in (("as_is", "shipped, as it is (colours matched)"), ("adapted", "calibrate --prior shipped")):
+        r = prior[key]
+        lines.append(f"  {text:46s} {r['accepted']:>3d} / {r['presses']:<3d} {_deg(r['mean_deg']):>9s} "
+                     f"{_deg(r['median_deg']):>7s} {_pct(r['ball_radius_error']):>11s} {r['seconds']:8.1f}")
+    a = prior["adapted"]
+    transfer = a.get("transfer") or {}
+    lines.append(f"  calibrate --prior: {a['calibrate_seconds']:.0f} s; its own estimate (leave one press out) "
+                 f"{_deg(a.get('loo_deg'))} deg; {transfer.get('reason', '')}")
     return lines

@@ -52,7 +52,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--prior", action="store_true",
                         help="instead: new virtual units calibrated from 5 presses with another unit's calibration "
                              "(calibrate --prior) against their own 20-press calibrations, on unseen presses "
-                             "(pipeline/bench/_calibration_prior.py)")
+                             "(pipeline/bench/_calibration_prior.py); with --shipped: the altered DIGIT unit calibrated from 5 of its "
+                             "presses with the shipped calibration as the prior, beside the shipped one as it is")
 
 
 def _rows(res, seconds_total):
