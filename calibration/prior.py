@@ -181,13 +181,8 @@ def _put(T, r: int, c: int, block):
 
 def _training_set(model, samples: Samples, seed: int):
     """Features, targets ``(n_x, n_y)`` and loss weights of the drawn training pixels."""
-    x = model._features(samples.intensities, samples.reference, samples.rows, samples.cols, samples.shape)
-    y = samples.normals[:, :2].astype(np.float32)
-    w = np.ones(len(samples), np.float32)
-    if model.rim_weight != 1.0 and samples.radial is not None:
-        rho2 = np.where(samples.contact, np.clip(samples.radial, 0.0, 1.0) ** 2, 0.0)
-        w = (1.0 + (model.rim_weight - 1.0) * rho2).astype(np.float32)
-    pick = model._draw(samples, seed)
+    x, y, w = model.training_set(samples)
+    pick = model.draw(samples, seed)
     return x[pick], y[pick], w[pick] / w[pick].mean()
 
 

@@ -156,13 +156,24 @@ class MLPModel(CalibrationModel):
         mods.append(torch.nn.Linear(width, 2))
         return torch.nn.Sequential(*mods).to(self.device)
 
-    def fit(self, samples: Samples, reference: np.ndarray | None = None) -> dict[str, Any]:
-        x_all = self._features(samples.intensities, samples.reference, samples.rows, samples.cols, samples.shape)
-        y_all = samples.normals[:, :2].astype(np.float32)
-        w_all = np.ones(len(samples), np.float32)
+    def training_set(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every sample's features ``(N, F)``, target ``(n_x, n_y)`` ``(N, 2)`` and loss weight
+        ``(N,)`` (``rim_weight`` toward the contact's rim), float32; :meth:`draw` picks the ones a
+        net trains on."""
+        x = self._features(samples.intensities, samples.reference, samples.rows, samples.cols, samples.shape)
+        y = samples.normals[:, :2].astype(np.float32)
+        w = np.ones(len(samples), np.float32)
         if self.rim_weight != 1.0 and samples.radial is not None:
             rho2 = np.where(samples.contact, np.clip(samples.radial, 0.0, 1.0) ** 2, 0.0)
-            w_all = (1.0 + (self.rim_weight - 1.0) * rho2).astype(np.float32)
+            w = (1.0 + (self.rim_weight - 1.0) * rho2).astype(np.float32)
+        return x, y, w
+
+    def draw(self, samples: Samples, seed: int) -> np.ndarray:
+        """The indices of the samples a net seeded ``seed`` trains on."""
+        return self._draw(samples, seed)
+
+    def fit(self, samples: Samples, reference: np.ndarray | None = None) -> dict[str, Any]:
+        x_all, y_all, w_all = self.training_set(samples)
         self.shape = samples.shape
         if reference is not None:
             self.reference = np.asarray(reference, dtype=np.float32)

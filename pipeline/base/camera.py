@@ -13,7 +13,7 @@ from typing import Any, Protocol, runtime_checkable
 
 import numpy as np
 
-__all__ = ["CameraFrame", "Camera"]
+__all__ = ["CameraFrame", "Camera", "MappedCamera"]
 
 
 @dataclass
@@ -57,3 +57,43 @@ class Camera(Protocol):
 
     @property
     def shape(self) -> tuple[int, int]: ...
+
+
+class MappedCamera:
+    """A camera whose every frame's image passes through :meth:`map_image` (a sensor profile's
+    crop and turn, a shipped calibration's colour gain); everything else is the wrapped camera's.
+    Subclasses define :meth:`map_image` and, where the image changes size, :attr:`shape`."""
+
+    def __init__(self, camera):
+        self.camera = camera
+
+    def map_image(self, image: np.ndarray) -> np.ndarray:
+        raise NotImplementedError
+
+    def open(self) -> None:
+        self.camera.open()
+
+    def close(self) -> None:
+        self.camera.close()
+
+    def set_exposure(self, value: float) -> None:
+        self.camera.set_exposure(value)
+
+    def flush(self) -> int:
+        return self.camera.flush()
+
+    def read(self) -> CameraFrame:
+        f = self.camera.read()
+        return CameraFrame(self.map_image(f.image), f.timestamp, f.index, f.info)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.camera.shape
+
+    def __str__(self) -> str:
+        return str(self.camera)
+
+    @property
+    def is_file(self) -> bool:
+        """Whether the camera is a video file (whose end is a normal end of input)."""
+        return bool(getattr(self.camera, "is_file", False))

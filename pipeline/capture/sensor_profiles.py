@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from pipeline.base.camera import MappedCamera
 from pipeline.base.errors import UserError
 
 __all__ = ["SensorProfile", "ProfileCamera", "load_profile", "list_profiles", "profiles_of_size", "capture_defaults",
@@ -208,32 +209,16 @@ def capture_defaults(profile, capture_path, ball_radius_mm: float | None = None,
             float(mm_per_px) if mm_per_px is not None else p.mm_per_px)
 
 
-class ProfileCamera:
+class ProfileCamera(MappedCamera):
     """A camera (:class:`pipeline.base.camera.Camera`) whose frames become a profile's images
     (:meth:`SensorProfile.fit_frames`: cropped, rotated, resized)."""
 
     def __init__(self, camera, profile):
-        self.camera = camera
+        super().__init__(camera)
         self.profile = load_profile(profile)
 
-    def open(self) -> None:
-        self.camera.open()
-
-    def close(self) -> None:
-        self.camera.close()
-
-    def set_exposure(self, value: float) -> None:
-        self.camera.set_exposure(value)
-
-    def flush(self) -> int:
-        return self.camera.flush()
-
-    def read(self):
-        from pipeline.base.camera import CameraFrame
-
-        f = self.camera.read()
-        image = self.profile.fit_frames(f.image, f"camera {getattr(self.camera, 'source', '')}".strip())
-        return CameraFrame(image, f.timestamp, f.index, f.info)
+    def map_image(self, image: np.ndarray) -> np.ndarray:
+        return self.profile.fit_frames(image, f"camera {getattr(self.camera, 'source', '')}".strip())
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -242,11 +227,6 @@ class ProfileCamera:
 
     def __str__(self) -> str:
         return f"{getattr(self.camera, 'source', self.camera)} (sensor profile {self.profile.name})"
-
-    @property
-    def is_file(self) -> bool:
-        """Whether the camera is a video file (whose end is a normal end of input)."""
-        return bool(getattr(self.camera, "is_file", False))
 
 
 def camera_source(source=None, profile=None, by_id_dir=None):

@@ -39,6 +39,8 @@ from typing import Any
 
 import numpy as np
 
+from pipeline.base.camera import MappedCamera
+
 __all__ = ["shipped_calibration_path", "shipped_info", "shipped_note", "shipped_reference", "colour_gain",
            "colour_matched", "ColourMatchedCamera", "SHIPPED_ATTR", "SUFFIX"]
 
@@ -110,48 +112,22 @@ def colour_matched(frames, gain) -> np.ndarray:
     return out
 
 
-class ColourMatchedCamera:
+class ColourMatchedCamera(MappedCamera):
     """A camera whose frames are brought to a shipped calibration's colours: the gain is taken
     from its first frame (the no-contact frame ``live --reference start`` takes) against
     ``shipped_ref`` and applied to that frame and every later one. ``gain`` is None before."""
 
     def __init__(self, camera, shipped_ref, say=None):
-        self.camera, self.shipped_ref, self.gain, self.say = camera, shipped_ref, None, say
+        super().__init__(camera)
+        self.shipped_ref, self.gain, self.say = shipped_ref, None, say
 
-    def open(self) -> None:
-        self.camera.open()
-
-    def close(self) -> None:
-        self.camera.close()
-
-    def set_exposure(self, value: float) -> None:
-        self.camera.set_exposure(value)
-
-    def flush(self) -> int:
-        return self.camera.flush()
-
-    def read(self):
-        from pipeline.base.camera import CameraFrame
-
-        f = self.camera.read()
+    def map_image(self, image: np.ndarray) -> np.ndarray:
         if self.gain is None:
-            self.gain = colour_gain(f.image, self.shipped_ref)
+            self.gain = colour_gain(image, self.shipped_ref)
             if self.say is not None:
                 self.say("colours matched to the shipped calibration's from the first frame (gain per channel "
                          + " / ".join(f"{g:.3f}" for g in self.gain) + ")")
-        return CameraFrame(colour_matched(f.image, self.gain), f.timestamp, f.index, f.info)
-
-    @property
-    def shape(self) -> tuple[int, int]:
-        return self.camera.shape
-
-    def __str__(self) -> str:
-        return str(self.camera)
-
-    @property
-    def is_file(self) -> bool:
-        """Whether the camera is a video file (whose end is a normal end of input)."""
-        return bool(getattr(self.camera, "is_file", False))
+        return colour_matched(image, self.gain)
 
 
 def shipped_note(profile_or_path) -> str:

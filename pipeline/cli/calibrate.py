@@ -100,7 +100,7 @@ def _run(args) -> int:
     if args.prior:
         from pipeline.cli.calibrate_prior import run_prior
 
-        return run_prior(args, _overlay, _print_summary)
+        return run_prior(args, fit_and_write, _print_summary)
     ill = read_illumination(args.illumination) if args.illumination else None
     ball, mm, detect = args.ball_radius, args.mm_per_px, drift_options(args.drift)
     if args.profile:
@@ -110,13 +110,23 @@ def _run(args) -> int:
         ball, mm = capture_defaults(args.profile, args.capture, ball, mm)
         detect = detect or profile_detect_options(args.profile)
         opts = {**profile_model_options(args.profile), **opts}
+    return fit_and_write(args, lambda: calibrate(args.capture, ball, mm, args.model, folds=args.folds, illumination=ill,
+                                                 model_options=opts, detect_options=detect,
+                                                 refine_iterations=0 if args.no_refine else 2,
+                                                 refine_model=args.refine_model, markers=args.markers,
+                                                 circles=args.circles),
+                         lambda res, s, refused: _print_summary(args, s, refused))
+
+
+def fit_and_write(args, fit, report) -> int:
+    """``fit()`` (a :class:`calibration.calibrate.CalibrationResult`), then what every
+    calibration gets: the overlay (``--overlay``, also of a refused one's circles), the gate's
+    verdict, the file (only when passed, or ``--force``), the summary (``--json``, else
+    ``report(result, summary, refused)``); a refusal raised after the report."""
     from calibration.gate import CalibrationRefused
 
     try:
-        res = calibrate(args.capture, ball, mm, args.model, folds=args.folds, illumination=ill,
-                        model_options=opts, detect_options=detect,
-                        refine_iterations=0 if args.no_refine else 2,
-                        refine_model=args.refine_model, markers=args.markers, circles=args.circles)
+        res = fit()
     except CalibrationRefused as exc:
         if args.overlay and exc.circles:
             _overlay(args, exc.circles)
@@ -130,7 +140,7 @@ def _run(args) -> int:
     if args.json:
         print_json(s)
     else:
-        _print_summary(args, s, refused)
+        report(res, s, refused)
     if refused and not args.force:
         raise CalibrationRefused(res.verdict.message(f"{args.capture}") + f" Nothing written to {args.out}.",
                                  res.verdict)

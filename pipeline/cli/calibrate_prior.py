@@ -1,18 +1,15 @@
 """``iristac calibrate NEW.h5 --prior UNIT_A_CAL.h5 --out NEW_CAL.h5``: another unit's calibration
 adapted to this unit's presses (:func:`calibration.prior.calibrate_with_prior`)."""
 
-from pipeline.cli._common import print_json
-
 __all__ = ["run_prior", "IGNORED_WITH_PRIOR"]
 
 #: calibrate's flags that choose what a prior already fixed (the model and its settings).
 IGNORED_WITH_PRIOR = ("illumination", "correct_led_geometry", "mlp_members", "circles", "refine_model", "no_refine")
 
 
-def run_prior(args, overlay, print_summary) -> int:
-    """Adapt, gate, write and report like :func:`pipeline.cli.calibrate._run` (which passes its
-    ``overlay`` and ``print_summary`` helpers)."""
-    from calibration.gate import CalibrationRefused
+def run_prior(args, fit_and_write, print_summary) -> int:
+    """Adapt, then gate, write and report as every calibration (``fit_and_write``:
+    :func:`pipeline.cli.calibrate.fit_and_write`; ``print_summary``: its summary lines)."""
     from calibration.prior import calibrate_with_prior
     from pipeline.base.errors import UserError
     from pipeline.cli._common import drift_options
@@ -35,22 +32,8 @@ def run_prior(args, overlay, print_summary) -> int:
         if min(args.adapt_steps) < 0:
             raise UserError(f"--adapt-steps needs two counts >= 0 (map, fine-tune), got {args.adapt_steps}")
         steps = {"steps": args.adapt_steps[0], "finetune_steps": args.adapt_steps[1]}
-    try:
-        res = calibrate_with_prior(args.capture, args.prior, ball, mm, markers=args.markers,
-                                   detect_options=drift_options(args.drift), **steps)
-    except CalibrationRefused as exc:
-        if args.overlay and exc.circles:
-            overlay(args, exc.circles)
-        raise
-    if args.overlay:
-        overlay(args, res.circles)
-    refused = res.verdict is not None and not res.verdict.passed
-    if not refused or args.force:
-        res.save(args.out, force=args.force)
-    s = res.summary()
-    if args.json:
-        print_json(s)
-    else:
+
+    def report(res, s, refused) -> None:
         import argparse
 
         # The MLP line names no sensor profile as the source of an ensemble: the prior's nets are the prior's.
@@ -60,10 +43,10 @@ def run_prior(args, overlay, print_summary) -> int:
               f"adapted on {s['accepted']} presses; the MLP line's CV is leave-one-press-out over them")
         print(f"  transfer: {'measured' if t['transfers'] else 'NOT measured'}: {t['reason']}; the gate needs "
               f"{t['min_accepted']} accepted presses")
-    if refused and not args.force:
-        raise CalibrationRefused(res.verdict.message(f"{args.capture}") + f" Nothing written to {args.out}.",
-                                 res.verdict)
-    return 0
+
+    return fit_and_write(args, lambda: calibrate_with_prior(args.capture, args.prior, ball, mm, markers=args.markers,
+                                                            detect_options=drift_options(args.drift), **steps),
+                         report)
 
 
 def _deg(v) -> str:
