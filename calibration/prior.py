@@ -316,8 +316,8 @@ def _finetune(nets, xt, yt, wt, steps: int, lr: float, l2: float) -> None:
     _descend(params, steps, lr, loss)
 
 
-def leave_one_press_out(prior, samples: Samples, reference: np.ndarray | None = None, **adapt_options
-                        ) -> dict[str, Any]:
+def leave_one_press_out(prior, samples: Samples, reference: np.ndarray | None = None, *, fold_hook=None,
+                        **adapt_options) -> dict[str, Any]:
     """The adaptation's honest error: each new press judged by a model adapted on the others.
 
     Parameters
@@ -327,6 +327,9 @@ def leave_one_press_out(prior, samples: Samples, reference: np.ndarray | None = 
         The new unit's samples; every accepted press (``press >= 0`` with contact pixels) is
         held out once; the reference pixels (``press = -1``) always train.
     reference : ndarray, optional
+    fold_hook : callable, optional
+        ``fold_hook(model, [press])`` with each model adapted without ``press``
+        (:class:`calibration.ball_gain.OutOfFoldBalls`: its reconstructions of held-out presses).
     **adapt_options
         Passed to :func:`adapt_mlp`.
 
@@ -348,6 +351,8 @@ def leave_one_press_out(prior, samples: Samples, reference: np.ndarray | None = 
     log = []
     for p in presses:
         model = adapt_mlp(prior, samples.subset(samples.press != p), reference, **adapt_options)
+        if fold_hook is not None:
+            fold_hook(model, [int(p)])
         test = (samples.press == p) & samples.contact
         n, ok = model.predict(samples.subset(test))
         e = angular_error_deg(n, samples.normals[test])
@@ -456,6 +461,7 @@ def calibrate_with_prior(capture, prior: str | Path | Prior, ball_radius_mm: flo
         A prior without an MLP, of another frame size or pixel pitch; fewer than
         :data:`MIN_NEW_PRESSES` accepted presses (:class:`calibration.gate.CalibrationRefused`).
     """
+    from calibration.ball_gain import OutOfFoldBalls
     from calibration.calibrate import CalibrationResult, find_circles
     from calibration.detect import drift_settings, recorded_drift
     from calibration.gate import CalibrationRefused, judge, model_problems
@@ -479,12 +485,19 @@ def calibrate_with_prior(capture, prior: str | Path | Prior, ball_radius_mm: flo
         raise CalibrationRefused(verdict.message(src) + f" (adapting the prior {pr.path} needs at least "
                                  f"{MIN_NEW_PRESSES} accepted presses)", verdict, found.circles)
     options = {"seed": seed, **adapt_options}
-    cv = leave_one_press_out(pr.model, found.samples, found.reference, **options)
+    # The truth-free judge as in calibrate: each held-out press reconstructed by the model adapted
+    # without it, and a sphere fitted to it (with the prior's tilt gain, as the model is used).
+    balls = OutOfFoldBalls(found.frames, found.reference, [k for k, c in enumerate(found.circles) if c.accepted],
+                           found.mm_per_px, float(ball), accepted, markers=found.markers,
+                           contacts=[(*c.center_xy, c.radius_px) for c in found.circles])
+    cv = leave_one_press_out(pr.model, found.samples, found.reference, fold_hook=balls, **options)
+    ball_fit = balls.gain(pr.model.max_tilt)
+    cv["ball_gain"] = ball_fit
     model = adapt_mlp(pr.model, found.samples, found.reference, **options)
     settings, transfer = prior_gate_settings(pr, accepted, cv["cv_mean_angular_error_deg"], gate)
     verdict = judge(found.circles, best_model="mlp", cv_deg=cv.get("cv_answered_mean_angular_error_deg"),
-                    cv_invalid=cv.get("invalid_fraction"), ball_radius_error=None, mismatch=found.mismatch,
-                    settings=settings)
+                    cv_invalid=cv.get("invalid_fraction"), ball_radius_error=ball_fit["raw_radius_error"],
+                    mismatch=found.mismatch, settings=settings)
     verdict.evidence["prior"] = transfer
     seconds = time.perf_counter() - t0
     record = {"path": str(Path(pr.path).resolve()), "key": "models/mlp", "presses": pr.accepted, "cv_deg": pr.cv_deg,
@@ -502,6 +515,7 @@ def calibrate_with_prior(capture, prior: str | Path | Prior, ball_radius_mm: flo
                                   "shrink_px": float(cs.get("shrink_px", 2.0)), "folds": accepted,
                                   **drift_settings(found.options)},
               "reference": found.reference_note, "prior": record, "samples": len(found.samples),
+              **({"ball_fit": {"model": "mlp", **ball_fit}} if ball_fit["raw_radius_error"] is not None else {}),
               "contact_samples": int(found.samples.contact.sum())})
 
 
