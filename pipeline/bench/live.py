@@ -329,9 +329,10 @@ def _live_defaults() -> tuple[str, int]:
     """``iristac live``'s default solver and threads, read from its command line (the live view
     always runs the fast path)."""
     from pipeline.cli import command_defaults
+    from pipeline.cli.live import chosen_solver
 
     a = command_defaults("live", "--virtual")
-    return a.solver, a.threads
+    return chosen_solver(a), a.threads
 
 
 def format_table(result: dict) -> str:

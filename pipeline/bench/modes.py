@@ -28,10 +28,11 @@ def add_arguments(parser) -> None:
 def live_defaults() -> tuple[str, str]:
     """``iristac live``'s default mode and solver, read from its command line."""
     from pipeline.cli import command_defaults
+    from pipeline.cli.live import chosen_solver
     from pipeline.live.session import DEFAULT_MODE
 
     a = command_defaults("live", "--virtual")
-    return a.mode or DEFAULT_MODE, a.solver
+    return a.mode or DEFAULT_MODE, chosen_solver(a)
 
 
 def run(args) -> dict:

@@ -15,6 +15,15 @@ from pipeline.cli._common import (
     shipped_calibration,
 )
 
+#: ``live``'s solver when ``--solver`` is not given: the LUT, or the MLP with a profile's shipped
+#: calibration (the only model it holds).
+DEFAULT_SOLVER, SHIPPED_SOLVER = "lut", "mlp"
+
+
+def chosen_solver(args, shipped: bool = False) -> str:
+    """The solver ``live`` runs for its parsed arguments (``shipped``: with a profile's shipped calibration)."""
+    return args.solver or (SHIPPED_SOLVER if shipped else DEFAULT_SOLVER)
+
 
 def _size(text: str) -> tuple[int, int]:
     import argparse
@@ -64,8 +73,8 @@ def register(sub, name, help_text):
                        help="no-contact frame of the LUT/MLP: the first one (start with no contact; default with "
                             "--virtual) or the calibration's (default with --camera)")
     solve = p.add_argument_group("solving")
-    add_solver_flags(solve, default_solver="lut", short_help=True)
-    p.set_defaults(solver=None)  # lut, or mlp with a profile's shipped calibration (_run)
+    add_solver_flags(solve, default_solver=DEFAULT_SOLVER, short_help=True)
+    p.set_defaults(solver=None)  # chosen_solver: lut, or mlp with a profile's shipped calibration
     add_markers_flag(solve)
     add_drift_flag(solve)
     solve.add_argument("--contact", action="store_true",
@@ -100,11 +109,11 @@ def _run(args) -> int:
             print(f"iristac live: view at {info['view']}", file=sys.stderr, flush=True)
 
     camera, mode, mm = args.camera, args.mode, args.mm_per_px
-    calibration, solver, reference = args.calibration, args.solver or "lut", args.reference
+    calibration, solver, reference = args.calibration, chosen_solver(args), args.reference
     shipped = None if args.virtual else shipped_calibration("live", args.profile, calibration, args.illumination)
     if shipped is not None:
         # Another unit's calibration: its own no-contact frame is the session's first, not the shipped one.
-        calibration, solver, reference = shipped, args.solver or "mlp", reference or "start"
+        calibration, solver, reference = shipped, chosen_solver(args, shipped=True), reference or "start"
     if args.profile or (camera is not None and not args.virtual):
         from pipeline.capture.sensor_profiles import camera_source, load_profile
 
