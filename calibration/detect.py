@@ -14,7 +14,9 @@ Per press (one ``(P, H, W, C)`` stack against the no-contact reference):
    Gauss-Newton geometric refinement on the inliers; steps 3-4 are repeated from the new
    centre.
 5. **Rules**: reject a press that is too faint (peak contrast below ``faint_snr`` noise
-   sigmas), has no consistent circle (inlier fraction), touches the border (the circle plus
+   sigmas), has no consistent circle (inlier fraction, or a circle more than ``peak_reach``
+   radii from where the press changed the image most: a ring elsewhere, the press itself over
+   the border), touches the border (the circle plus
    ``border_margin_px`` leaves the image) or is far larger than the ball; clamp the contact
    radius to ``clamp_fraction`` of the ball radius (a contact disc cannot exceed the ball).
 """
@@ -95,6 +97,9 @@ class DetectOptions:
     min_inlier_fraction: float = 0.5
     soft_refit: bool = True
     faint_snr: float = 8.0
+    #: A circle is kept only if the press's strongest change lies within this many radii of its
+    #: centre (plus 2 px).
+    peak_reach: float = 2.0
     border_margin_px: float = 1.0
     min_rim_inside: float = 0.75
     clamp_fraction: float = 0.95
@@ -347,6 +352,12 @@ def _search(diff: np.ndarray, ball_px: float, opt: DetectOptions, quiet: np.ndar
     if inl_frac < opt.min_inlier_fraction:
         return reject(f"no clear circle: {inl_frac:.0%} of rays agree (< {opt.min_inlier_fraction:.0%})",
                       cx, cy, r, quality, res, True)
+    off = float(np.hypot(peak_at[1] - cx, peak_at[0] - cy))
+    if off > opt.peak_reach * r + 2.0:
+        # The press's strongest change lies far outside the circle: the circle is something else
+        # (a ring of moved dots, a speck) and the press itself is elsewhere, e.g. over the border.
+        return reject(f"no clear circle: the strongest change ({peak_at[1]}, {peak_at[0]}) lies {off:.0f} px from the "
+                      f"circle found ({cx:.0f}, {cy:.0f}, r {r:.0f} px)", cx, cy, r, quality, res, True)
     return _Found(cx, cy, r, quality, True, "ok", snr, res, True)
 
 

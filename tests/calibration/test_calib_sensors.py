@@ -382,3 +382,19 @@ def test_moved_blurred_dots_are_not_taken_for_noise():
     assert clean.accepted and found.accepted, found.reason
     assert found.snr > 0.5 * clean.snr, (found.snr, clean.snr)
     assert np.hypot(*(np.array(found.center_xy) - (60.0, 45.0))) < 1.5
+
+
+def test_a_circle_far_from_the_press_strongest_change_is_not_its_contact():
+    """A press mostly over the border leaves a bright sliver at the edge; a ring elsewhere (a dot
+    the press moved) then wins the search for a disc. A circle that far from where the press
+    changed the image most is not the press's contact: rejected, saying where the change is."""
+    rng = np.random.default_rng(0)
+    rows, cols = np.mgrid[0:120, 0:160]
+    ref = np.full((1, 120, 160, 3), 100.0) + rng.normal(0, 1.0, (1, 120, 160, 3))
+    f = ref.copy()
+    ring = np.hypot(rows - 70, cols - 100)
+    f[0][(ring > 5) & (ring < 8)] += 40.0
+    f[0][np.hypot(rows - 40, cols + 12) < 14] += 120.0  # the press, all but 2 px over the left border
+    f += rng.normal(0, 1.0, f.shape)
+    c = detect_press(f.astype(np.float32), ref.astype(np.float32), 20.0)
+    assert not c.accepted and "the strongest change (0, " in c.reason, c.reason
