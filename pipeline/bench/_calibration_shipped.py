@@ -94,18 +94,15 @@ def _judge(calibration, folder, profile, match_colour: bool = True) -> dict[str,
     """The MLP's figures on one folder of test presses (imported with ``profile``), their colours
     matched to the calibration's from the no-contact frame as ``live`` and ``reconstruct`` match
     them (:func:`pipeline.capture.shipped.colour_gain`), or as recorded."""
-    from dataclasses import replace
-
     from calibration.evaluate import evaluate_calibration
     from calibration.image_import import load_images
-    from pipeline.capture.shipped import colour_gain, colour_matched, shipped_reference
+    from pipeline.capture.shipped import colour_matched_capture
 
     t = time.perf_counter()
     cap, _ = load_images(folder, profile=profile)
     gain = None
     if match_colour:
-        gain = colour_gain(cap.reference, shipped_reference(calibration))
-        cap = replace(cap, frames=colour_matched(cap.frames, gain), reference=colour_matched(cap.reference, gain))
+        cap, gain = colour_matched_capture(cap, calibration)
     ev = evaluate_calibration(calibration, cap, models=["mlp"])
     m, ball = ev["models"]["mlp"], ev["ball_fit"]["mlp"]
     return {"presses": ev["presses"], "accepted": ev["accepted"], "mean_deg": m["mean_deg"],

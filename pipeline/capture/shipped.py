@@ -41,8 +41,11 @@ import numpy as np
 
 from pipeline.base.camera import MappedCamera
 
-__all__ = ["shipped_calibration_path", "shipped_info", "shipped_note", "shipped_reference", "colour_gain",
+__all__ = ["SHIPPED_SOLVER", "colour_matched_capture", "shipped_calibration_path", "shipped_info", "shipped_note", "shipped_reference", "colour_gain",
            "colour_matched", "ColourMatchedCamera", "SHIPPED_ATTR", "SUFFIX"]
+
+#: The solver a shipped calibration is used with: the one model it holds.
+SHIPPED_SOLVER = "mlp"
 
 #: File name of a profile's shipped calibration: ``<profile name><SUFFIX>`` beside its YAML.
 SUFFIX = ".calibration.h5"
@@ -110,6 +113,16 @@ def colour_matched(frames, gain) -> np.ndarray:
     if np.issubdtype(f.dtype, np.integer):
         out = np.clip(np.rint(out), 0, np.iinfo(f.dtype).max).astype(f.dtype)
     return out
+
+
+def colour_matched_capture(capture, calibration):
+    """``(capture, gain)``: an in-memory capture with its frames and reference brought to a shipped
+    calibration's colours (:func:`colour_gain` from its no-contact frame, :func:`colour_matched`)."""
+    from dataclasses import replace
+
+    gain = colour_gain(capture.reference, shipped_reference(calibration))
+    return replace(capture, frames=colour_matched(capture.frames, gain),
+                   reference=colour_matched(capture.reference, gain)), gain
 
 
 class ColourMatchedCamera(MappedCamera):

@@ -15,13 +15,15 @@ from pipeline.cli._common import (
     shipped_calibration,
 )
 
-#: ``live``'s solver when ``--solver`` is not given: the LUT, or the MLP with a profile's shipped
-#: calibration (the only model it holds).
-DEFAULT_SOLVER, SHIPPED_SOLVER = "lut", "mlp"
+#: ``live``'s solver when ``--solver`` is not given (with a profile's shipped calibration, the
+#: model it holds: :data:`pipeline.capture.shipped.SHIPPED_SOLVER`).
+DEFAULT_SOLVER = "lut"
 
 
 def chosen_solver(args, shipped: bool = False) -> str:
     """The solver ``live`` runs for its parsed arguments (``shipped``: with a profile's shipped calibration)."""
+    from pipeline.capture.shipped import SHIPPED_SOLVER
+
     return args.solver or (SHIPPED_SOLVER if shipped else DEFAULT_SOLVER)
 
 

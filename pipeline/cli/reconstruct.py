@@ -98,25 +98,22 @@ def _colour_matched_capture(capture, calibration, quiet: bool):
     to a temporary folder; a video is kept as it is (said on stderr)."""
     import sys
     import tempfile
-    from dataclasses import replace
     from pathlib import Path
 
     from pipeline.base.capture import read_capture, write_capture
-    from pipeline.capture.shipped import colour_gain, colour_matched, shipped_reference
+    from pipeline.capture.shipped import colour_matched_capture
     from pipeline.capture.video_frames import is_video
 
     if is_video(capture):
         print("iristac reconstruct: a video's colours are not matched to the shipped calibration's (import it with "
               "iristac import images VIDEO --profile NAME --out CAPTURE.h5 for that)", file=sys.stderr)
         return capture, None
-    cap = read_capture(capture)
-    gain = colour_gain(cap.reference, shipped_reference(calibration))
+    cap, gain = colour_matched_capture(read_capture(capture), calibration)
     if not quiet:
         print("iristac reconstruct: colours matched to the shipped calibration's from the capture's no-contact frame "
               "(gain per channel " + " / ".join(f"{g:.3f}" for g in gain) + ")", file=sys.stderr)
     tmp = tempfile.TemporaryDirectory(prefix="iristac-colour-matched-")
-    path = write_capture(Path(tmp.name) / Path(capture).name, replace(
-        cap, frames=colour_matched(cap.frames, gain), reference=colour_matched(cap.reference, gain)))
+    path = write_capture(Path(tmp.name) / Path(capture).name, cap)
     return path, tmp
 
 
@@ -125,6 +122,7 @@ def _with_profile(args):
     profile's image size; the profile's shipped calibration when no light model is given."""
     from pipeline.base.errors import UserError
     from pipeline.capture.sensor_profiles import load_profile
+    from pipeline.capture.shipped import SHIPPED_SOLVER
     from pipeline.capture.video_frames import is_video
 
     prof = load_profile(args.profile)
@@ -143,7 +141,7 @@ def _with_profile(args):
                         f"--profile {prof.name} --out CAPTURE.h5)")
     shipped = shipped_calibration("reconstruct", prof, args.calibration, args.illumination)
     calibration = args.calibration if shipped is None else shipped
-    solver = args.solver or ("lstsq" if shipped is None else "mlp")
+    solver = args.solver or ("lstsq" if shipped is None else SHIPPED_SOLVER)
     video_pitch = prof.mm_per_px if is_video(args.capture) else None
     return calibration, solver, args.mm_per_px if args.mm_per_px is not None else video_pitch
 
