@@ -174,6 +174,10 @@ class ConvModel(CalibrationModel):
         Torch device ("cpu", "cuda").
     threads : int or None
         Torch intra-op threads while fitting and predicting (None: leave torch's setting).
+    members : int
+        Ensemble size: members differ in seed (initial weights, drawn tiles and their order) and
+        their ``(n_x, n_y)`` are averaged, which takes out most of what one fit's seed decides
+        (fit and per-frame time grow ``members`` times).
     downsample : int
         The network runs on the frame shrunk by this factor (:func:`block_mean`; the window,
         ``tile`` and the dilations are then in shrunk pixels) and its answer is brought back to
@@ -185,8 +189,12 @@ class ConvModel(CalibrationModel):
 
     def __init__(self, width: int = 16, dilations: tuple[int, ...] = (1, 2, 4, 8), epochs: int = 600, lr: float = 1e-2,
                  seed: int = 0, tile: int = 16, tiles: int = 384, batch: int = 32, input_scale: float = 255.0,
-                 rim_weight: float = 4.0, device: str = "cpu", threads: int | None = 1, downsample: int = 1):
+                 rim_weight: float = 4.0, device: str = "cpu", threads: int | None = 1, downsample: int = 1,
+                 members: int = 1):
         dil = tuple(int(d) for d in dilations)
+        if int(members) < 1:
+            raise ValueError(f"ConvModel: members must be an integer >= 1, got {members}")
+        self.members = int(members)
         if int(downsample) < 1:
             raise ValueError(f"ConvModel: downsample must be an integer >= 1, got {downsample}")
         self.downsample = int(downsample)
@@ -200,9 +208,14 @@ class ConvModel(CalibrationModel):
         self.tile, self.tiles, self.batch = int(tile), int(tiles), int(batch)
         self.input_scale, self.rim_weight = float(input_scale), float(rim_weight)
         self.device, self.threads = device, threads
-        self.net = None
+        self.nets: list = []
         self.shape: tuple[int, int] | None = None
         self.reference: np.ndarray | None = None
+
+    @property
+    def net(self):
+        """The first member (the only one unless ``members > 1``); None before fitting."""
+        return self.nets[0] if self.nets else None
 
     @property
     def radius(self) -> int:
@@ -238,10 +251,10 @@ class ConvModel(CalibrationModel):
         out[samples.rows[flat], samples.cols[flat]] = True
         return ndimage.maximum_filter(out, size=5).astype(np.float32)
 
-    def _tile_set(self, samples: Samples) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(inputs (N, F, T + 2R, T + 2R), targets (N, 2, T, T), weights (N, T, T))`` of the drawn tiles."""
+    def _tile_set(self, samples: Samples, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(inputs (N, F, T + 2R, T + 2R), targets (N, 2, T, T), weights (N, T, T))`` of the tiles drawn with ``seed``."""
         images, ref = self._frames(samples)
-        rng = np.random.default_rng(self.seed)
+        rng = np.random.default_rng(seed)
         con = np.nonzero(samples.contact)[0]
         flat = np.nonzero(~samples.contact)[0]
         n_con = 0 if not len(con) else self.tiles if not len(flat) else int(round(0.75 * self.tiles))
@@ -285,19 +298,34 @@ class ConvModel(CalibrationModel):
                                    reference_image=block_mean(ref, f))
 
     def fit(self, samples: Samples, reference: np.ndarray | None = None) -> dict[str, Any]:
-        import torch
-
         self.shape = samples.shape
         if reference is not None:
             self.reference = np.asarray(reference, dtype=np.float32)
-        x, y, w = self._tile_set(self._shrunk(samples))
+        shrunk = self._shrunk(samples)
+        self.nets, losses, n_tiles = [], [], 0
+        for i in range(self.members):  # members differ in seed: initial weights, drawn tiles, their order
+            x, y, w = self._tile_set(shrunk, self.seed + i)
+            net, loss = self._train(x, y, w, self.seed + i)
+            self.nets.append(net)
+            losses.append(loss)
+            n_tiles = len(x)
+        rep = self._fit_report(samples)
+        rep["final_l1_loss"] = float(np.mean(losses))
+        rep["tiles"] = int(n_tiles)
+        rep["members"] = len(self.nets)
+        return rep
+
+    def _train(self, x: np.ndarray, y: np.ndarray, w: np.ndarray, seed: int):
+        """One network trained on the tiles ``x`` (targets ``y``, weights ``w``) with ``seed``; and its last loss."""
+        import torch
+
         w = w / max(float(w.sum()) / max(int((w > 0).sum()), 1), 1e-12)  # mean weight 1 over the sampled pixels
-        with _seeded(self.seed, self.threads):
+        with _seeded(seed, self.threads):
             net = self._build(x.shape[1])
             xt, yt, wt = (torch.from_numpy(a).to(self.device) for a in (x, y, w))
             opt = torch.optim.Adam(net.parameters(), lr=self.lr)
             sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(self.epochs, 1))
-            order = np.random.default_rng(self.seed + 1)
+            order = np.random.default_rng(seed + 1)
             perm = order.permutation(len(x))
             at, loss = 0, torch.zeros(())
             for _ in range(self.epochs):
@@ -311,11 +339,7 @@ class ConvModel(CalibrationModel):
                 loss.backward()
                 opt.step()
                 sched.step()
-        self.net = net.eval()
-        rep = self._fit_report(samples)
-        rep["final_l1_loss"] = float(loss.detach())
-        rep["tiles"] = int(len(x))
-        return rep
+        return net.eval(), float(loss.detach())
 
     def predict_planes(self, image: np.ndarray, reference: np.ndarray, rows: slice, cols: slice,
                        as_float64: bool = True) -> np.ndarray:
@@ -323,7 +347,7 @@ class ConvModel(CalibrationModel):
         (float64, or the network's float32 with ``as_float64=False``)."""
         import torch
 
-        if self.net is None:
+        if not self.nets:
             raise ValueError("ConvModel: not fitted")
         r = self.radius
         x = feature_planes(image, reference, (rows.start - r, rows.stop + r), (cols.start - r, cols.stop + r),
@@ -333,7 +357,13 @@ class ConvModel(CalibrationModel):
         # No deterministic mode here: it picks slower convolutions (45 against 17 ms a 320 x 240
         # frame, measured), and inference on a CPU gives the same numbers run after run.
         with torch.no_grad(), limit_threads(torch=int(self.threads) if self.threads else None):
-            out = self.net(torch.from_numpy(x[None]).to(self.device))[0].cpu().numpy()
+            xt = torch.from_numpy(x[None]).to(self.device)
+            out = self.nets[0](xt)
+            for net in self.nets[1:]:
+                out += net(xt)
+            if len(self.nets) > 1:
+                out /= len(self.nets)
+            out = out[0].cpu().numpy()
         return out.astype(np.float64) if as_float64 else out
 
     def frame_planes(self, image: np.ndarray, reference: np.ndarray,
@@ -425,33 +455,39 @@ class ConvModel(CalibrationModel):
                           meta={"model": self.name, "confidence": self.confidence_meaning})
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """Arrays for calibration.h5 (inverse: :meth:`from_arrays`): ``weights/<param>``,
-        ``config = [width, *dilations]``, ``input_scale``, ``downsample``, ``reference``."""
-        if self.net is None:
+        """Arrays for calibration.h5 (inverse: :meth:`from_arrays`): ``weights/<param>`` (the first
+        member), ``members/<i>/<param>`` (the others), ``config = [width, *dilations]``,
+        ``input_scale``, ``downsample``, ``members``, ``reference``."""
+        if not self.nets:
             raise ValueError("ConvModel: not fitted")
-        arrays = net_arrays(self.net, "weights")
+        arrays: dict[str, np.ndarray] = {}
+        for i, net in enumerate(self.nets):
+            arrays.update(net_arrays(net, "weights" if i == 0 else f"members/{i}"))
         arrays["config"] = np.array([self.width, *self.dilations], dtype=np.int64)
         arrays["input_scale"] = np.asarray(self.input_scale, dtype=np.float64)
         arrays["downsample"] = np.asarray(self.downsample, dtype=np.int64)
+        arrays["members"] = np.asarray(len(self.nets), dtype=np.int64)
         if self.reference is not None:
             arrays["reference"] = self.reference
         return arrays
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], device: str = "cpu") -> "ConvModel":
-        """A fitted model from :meth:`to_arrays`' output."""
+        """A fitted model from :meth:`to_arrays`' output (files written before ensembles load too)."""
 
         cfg = [int(v) for v in np.asarray(arrays["config"]).ravel()]
+        members = int(arrays.get("members", 1))
         model = cls(width=cfg[0], dilations=tuple(cfg[1:]), input_scale=float(arrays["input_scale"]), device=device,
-                    downsample=int(arrays.get("downsample", 1)))
+                    downsample=int(arrays.get("downsample", 1)), members=members)
         ref = arrays.get("reference")
         model.reference = None if ref is None else np.asarray(ref, np.float32)
         if model.reference is not None:
             model.shape = tuple(model.reference.shape[1:3])
-        state = net_state(arrays, "weights")
-        net = model._build(int(state["0.weight"].shape[1]))
-        net.load_state_dict(state)
-        model.net = net.eval()
+        for i in range(members):
+            state = net_state(arrays, "weights" if i == 0 else f"members/{i}")
+            net = model._build(int(state["0.weight"].shape[1]))
+            net.load_state_dict(state)
+            model.nets.append(net.eval())
         return model
 
 

@@ -184,6 +184,34 @@ def test_conv_learns_is_deterministic_and_predicts_frames_as_samples(trichromati
         a.predict(bare)
 
 
+def test_conv_ensemble_averages_its_members_and_round_trips(trichromatic):
+    """An ensemble of two networks: its first member is the single network of the same seed, its
+    answer the mean of its members' raw outputs, and stored and loaded it keeps both members."""
+    from calibration.models import ConvModel
+
+    cap, tr = trichromatic
+    s, r = calibration_samples(cap, tr)
+    train, test = s.subset(s.press < 7), s.subset((s.press >= 7) & s.contact)
+    opts = dict(width=8, dilations=(1, 2), epochs=60, tiles=48, batch=16)
+    pair, single, second = ConvModel(members=2, **opts), ConvModel(**opts), ConvModel(seed=1, **opts)
+    for m in (pair, single, second):
+        m.fit(train, r)
+    assert len(pair.nets) == 2 and pair.net is pair.nets[0]
+    img = test.images[8]
+    window = (slice(10, 30), slice(5, 40))
+    both = pair.predict_planes(img, r, *window)
+    one, two = single.predict_planes(img, r, *window), second.predict_planes(img, r, *window)
+    first, alone = pair.nets[0].state_dict(), single.net.state_dict()
+    assert all(np.array_equal(first[k].numpy(), alone[k].numpy()) for k in alone)
+    np.testing.assert_allclose(both, (one + two) / 2, atol=1e-5)
+    assert np.abs(one - two).max() > 1e-3  # the members differ: the mean is not either one
+    again = ConvModel.from_arrays(pair.to_arrays())
+    assert again.members == 2 and len(again.nets) == 2
+    np.testing.assert_allclose(again.predict(test)[0], pair.predict(test)[0], atol=1e-6)
+    with pytest.raises(ValueError, match="members must be an integer >= 1, got 0"):
+        ConvModel(members=0)
+
+
 def test_block_mean_and_upsampling_keep_a_ramp_in_place():
     """Shrinking by 2 then bringing back bilinearly returns a linear ramp exactly inside the
     frame (half a pixel off would shift it by 0.5 x the slope), and the block means sit on the
