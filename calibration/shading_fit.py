@@ -289,7 +289,11 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
     edge = [(to_w(c.center_xy[0]), to_w(c.center_xy[1]), max(c.radius_px * s, 0.2 * ball)) for c in circles]
     located = [k for k, c in enumerate(circles) if c.accepted or (c.radius_px > 0 and not c.reason.startswith("too faint"))]
     cur = dict(enumerate(edge))
-    support = {k: _support_circle(change[k], valid[k], ball, cur[k][:2]) for k in located}
+    # A press whose edge circle was refused for its shape may have it anywhere (a ring of moved dots,
+    # a glint): its start and window are the largest region that changed, not the region nearest it.
+    lost = {k for k in located if not circles[k].accepted and circles[k].reason.startswith(_OVERTURNABLE)}
+    support = {k: _support_circle(change[k], valid[k], ball, None if k in lost else cur[k][:2]) for k in located}
+    cur.update({k: support[k] for k in lost})
     if len(trusted) < max(3, len(located) // 3):
         # Too few edge circles to shape the first model: start every press from the region that changed.
         cur.update(support)
@@ -352,8 +356,12 @@ def _working_change(frames: np.ndarray, reference: np.ndarray, s: float, exclude
     if saturation is not None:
         valid &= ~(shrink(frames, s) >= 0.98 * saturation).any(axis=(1, 4))
     if exclude is not None:
-        ex = np.asarray(exclude, np.float32)
+        from scipy import ndimage
+
+        ex = np.asarray(exclude, bool)
         ex = ex[None] if ex.ndim == 2 else ex
+        # A dot's blurred halo reaches past its mask: the shading is fitted 2 px clear of every dot.
+        ex = ndimage.binary_dilation(ex, structure=np.ones((1, 5, 5), bool)).astype(np.float32)
         ex_w = shrink(ex[..., None], s)[..., 0] > 0
         valid &= ~ex_w
     return change, ref_img, valid
