@@ -24,8 +24,6 @@ from calibration.models import (
     MODEL_NAMES,
     NEIGHBOURHOOD_MODELS,
     CalibrationModel,
-    ConvFastModel,
-    ConvModel,
     FarFieldModel,
     LightFieldModel,
     LUTModel,
@@ -35,6 +33,7 @@ from calibration.models import (
     check_light_rank,
 )
 from calibration.models.base import fit_tilt_gain, scale_tilt
+from calibration.models.conv import CONV_MODELS
 from calibration.models.led_geometry import geometry_basis
 from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
@@ -291,8 +290,7 @@ def model_factories(names, capture: Capture, illumination, saturation, model_opt
             out[name] = lambda o=o, scale=scale: MLPModel(**{"input_scale": scale, **o})
         elif name in ("conv", "conv-fast"):
             scale = float(saturation) if saturation else 1.0
-            cls = ConvModel if name == "conv" else ConvFastModel
-            out[name] = lambda o=o, scale=scale, cls=cls: cls(**{"input_scale": scale, **o})
+            out[name] = lambda o=o, scale=scale, cls=CONV_MODELS[name]: cls(**{"input_scale": scale, **o})
         else:
             raise UserError(f"calibrate: unknown model '{name}' (expected one of "
                             f"{', '.join(MODEL_NAMES + NEIGHBOURHOOD_MODELS)} or all)")

@@ -226,13 +226,14 @@ def adapt_mlp(prior, samples: Samples, reference: np.ndarray | None = None, *, s
 
     import torch
 
+    from calibration.models.base import seeded_torch
     from calibration.models.mlp import MLPModel
 
     if not isinstance(prior, MLPModel) or not prior.nets:
         raise UserError(f"adapt_mlp: the prior must be a fitted MLPModel, got {type(prior).__name__}")
     x, y, w = _training_set(prior, samples, seed)
     model = copy.deepcopy(prior)
-    with _torch_settings(seed):
+    with seeded_torch(seed, threads=1):
         xt, yt, wt = torch.from_numpy(x), torch.from_numpy(y), torch.from_numpy(w)[:, None]
         for net in model.nets:
             net.requires_grad_(False)
@@ -256,37 +257,15 @@ def adapt_mlp(prior, samples: Samples, reference: np.ndarray | None = None, *, s
     return model
 
 
-class _torch_settings:
-    """One thread, deterministic algorithms and a seed, restored afterwards."""
-
-    def __init__(self, seed: int):
-        self.seed = seed
-
-    def __enter__(self):
-        import torch
-
-        from pipeline.base.threads import limit_threads
-
-        self.was = torch.are_deterministic_algorithms_enabled()
-        torch.use_deterministic_algorithms(True, warn_only=True)
-        self.threads = limit_threads(torch=1)
-        self.threads.__enter__()
-        torch.manual_seed(self.seed)
-        return self
-
-    def __exit__(self, *exc):
-        import torch
-
-        self.threads.__exit__(*exc)
-        torch.use_deterministic_algorithms(self.was)
-        return False
+def _weighted_l1(nets, xt, yt, wt):
+    """The ensemble's mean ``(n_x, n_y)`` against the targets: weighted L1, as the MLP trains."""
+    out = sum(net(xt) for net in nets) / len(nets)
+    return (wt * (out - yt).abs()).mean()
 
 
 def _loss(nets, adapter, xt, yt, wt):
     T, s = adapter.matrices()
-    xa = xt @ T.T + s
-    out = sum(net(xa) for net in nets) / len(nets)
-    return (wt * (out - yt).abs()).mean()
+    return _weighted_l1(nets, xt @ T.T + s, yt, wt)
 
 
 def _descend(params, steps: int, lr: float, loss_fn) -> None:
@@ -309,9 +288,8 @@ def _finetune(nets, xt, yt, wt, steps: int, lr: float, l2: float) -> None:
         p.requires_grad_(True)
 
     def loss():
-        out = sum(net(xt) for net in nets) / len(nets)
         pull = sum(((p - p0) ** 2).mean() for net, ps in zip(nets, start) for p, p0 in zip(net.parameters(), ps))
-        return (wt * (out - yt).abs()).mean() + l2 * pull
+        return _weighted_l1(nets, xt, yt, wt) + l2 * pull
 
     _descend(params, steps, lr, loss)
 

@@ -344,7 +344,6 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
     return out, report
 
 
-
 def _working_change(frames: np.ndarray, reference: np.ndarray, s: float, exclude, saturation):
     """At working scale ``s``: each press's colour change ``(K, h, w, P*C)``, the reference
     ``(h, w, P*C)`` and where a press's pixels count ``(K, h, w)`` (not saturated, not a marker)."""
@@ -354,7 +353,7 @@ def _working_change(frames: np.ndarray, reference: np.ndarray, s: float, exclude
     ref_img = ref_w[0].transpose(1, 2, 0, 3).reshape(h, w, p * c)
     valid = np.ones((k_all, h, w), bool)
     if saturation is not None:
-        valid &= ~(shrink(frames, s) >= 0.98 * saturation).any(axis=(1, 4))
+        valid &= ~(f_w >= 0.98 * saturation).any(axis=(1, 4))
     if exclude is not None:
         from scipy import ndimage
 
@@ -365,6 +364,7 @@ def _working_change(frames: np.ndarray, reference: np.ndarray, s: float, exclude
         ex_w = shrink(ex[..., None], s)[..., 0] > 0
         valid &= ~ex_w
     return change, ref_img, valid
+
 
 def _support_circle(change_img: np.ndarray, valid: np.ndarray, ball_px: float, near=None) -> tuple[float, float, float]:
     """A model-free start: the disc of the same area and centroid as the region that changed

@@ -106,9 +106,9 @@ def _model_from_arrays(name: str, arrays: dict[str, np.ndarray]):
 
         return LUTModel.from_arrays(arrays)
     if name in ("conv", "conv-fast"):
-        from calibration.models.conv import ConvFastModel, ConvModel
+        from calibration.models.conv import CONV_MODELS
 
-        return (ConvModel if name == "conv" else ConvFastModel).from_arrays(arrays)
+        return CONV_MODELS[name].from_arrays(arrays)
     if name == "mlp":
         from calibration.models.mlp import MLPModel
 

@@ -28,32 +28,15 @@ sensor's) loses little; the network runs on a quarter of the pixels.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 from typing import Any
 
 import numpy as np
 
-from calibration.models.base import CalibrationModel, net_arrays, net_state
+from calibration.models.base import CalibrationModel, ensemble_arrays, ensemble_states, seeded_torch
 from calibration.samples import Samples
 
-__all__ = ["ConvModel", "ConvFastModel", "feature_planes", "block_mean", "upsample_planes"]
-
-
-@contextlib.contextmanager
-def _seeded(seed: int, threads: int | None):
-    import torch
-
-    from pipeline.base.threads import limit_threads
-
-    was = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(True, warn_only=True)
-    try:
-        with limit_threads(torch=int(threads) if threads else None):
-            torch.manual_seed(seed)
-            yield
-    finally:
-        torch.use_deterministic_algorithms(was)
+__all__ = ["ConvModel", "ConvFastModel", "CONV_MODELS", "feature_planes", "block_mean", "upsample_planes"]
 
 
 def block_mean(a: np.ndarray, factor: int) -> np.ndarray:
@@ -176,8 +159,9 @@ class ConvModel(CalibrationModel):
         Torch intra-op threads while fitting and predicting (None: leave torch's setting).
     members : int
         Ensemble size: members differ in seed (initial weights, drawn tiles and their order) and
-        their ``(n_x, n_y)`` are averaged, which takes out most of what one fit's seed decides
-        (fit and per-frame time grow ``members`` times).
+        their ``(n_x, n_y)`` are averaged; fit and per-frame time grow ``members`` times (three
+        did not lower the virtual sensors' error: docs/calibration.md, "The convolutional
+        network").
     downsample : int
         The network runs on the frame shrunk by this factor (:func:`block_mean`; the window,
         ``tile`` and the dilations are then in shrunk pixels) and its answer is brought back to
@@ -320,7 +304,7 @@ class ConvModel(CalibrationModel):
         import torch
 
         w = w / max(float(w.sum()) / max(int((w > 0).sum()), 1), 1e-12)  # mean weight 1 over the sampled pixels
-        with _seeded(seed, self.threads):
+        with seeded_torch(seed, self.threads):
             net = self._build(x.shape[1])
             xt, yt, wt = (torch.from_numpy(a).to(self.device) for a in (x, y, w))
             opt = torch.optim.Adam(net.parameters(), lr=self.lr)
@@ -460,9 +444,7 @@ class ConvModel(CalibrationModel):
         ``input_scale``, ``downsample``, ``members``, ``reference``."""
         if not self.nets:
             raise ValueError("ConvModel: not fitted")
-        arrays: dict[str, np.ndarray] = {}
-        for i, net in enumerate(self.nets):
-            arrays.update(net_arrays(net, "weights" if i == 0 else f"members/{i}"))
+        arrays = ensemble_arrays(self.nets)
         arrays["config"] = np.array([self.width, *self.dilations], dtype=np.int64)
         arrays["input_scale"] = np.asarray(self.input_scale, dtype=np.float64)
         arrays["downsample"] = np.asarray(self.downsample, dtype=np.int64)
@@ -483,8 +465,7 @@ class ConvModel(CalibrationModel):
         model.reference = None if ref is None else np.asarray(ref, np.float32)
         if model.reference is not None:
             model.shape = tuple(model.reference.shape[1:3])
-        for i in range(members):
-            state = net_state(arrays, "weights" if i == 0 else f"members/{i}")
+        for state in ensemble_states(arrays, members):
             net = model._build(int(state["0.weight"].shape[1]))
             net.load_state_dict(state)
             model.nets.append(net.eval())
@@ -504,3 +485,7 @@ class ConvFastModel(ConvModel):
 
     def __init__(self, width: int = 16, dilations: tuple[int, ...] = (1, 2, 4), downsample: int = 2, **options):
         super().__init__(width=width, dilations=dilations, downsample=downsample, **options)
+
+
+#: The networks by model name (``--model``, ``models/<name>/`` in calibration.h5).
+CONV_MODELS = {cls.name: cls for cls in (ConvModel, ConvFastModel)}

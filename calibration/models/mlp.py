@@ -11,12 +11,11 @@ Optionally an ensemble of ``members`` nets (mean prediction, spread as confidenc
 
 from __future__ import annotations
 
-import contextlib
 from typing import Any
 
 import numpy as np
 
-from calibration.models.base import CalibrationModel, net_arrays, net_state
+from calibration.models.base import CalibrationModel, ensemble_arrays, ensemble_states, seeded_torch
 from calibration.models.nearfield import poly_terms
 from calibration.samples import Samples
 from pipeline.base.frames import normals_to_gradients
@@ -26,25 +25,6 @@ __all__ = ["MLPModel", "FEATURES"]
 #: Input features per pixel (besides the position): the colour change and the reference
 #: colour; the change alone; the raw colour (what the GelSight SDK feeds, B, G, R).
 FEATURES = ("change+reference", "change", "colour")
-
-
-@contextlib.contextmanager
-def _deterministic(seed: int, threads: int | None = 1):
-    import torch
-
-    from pipeline.base.threads import limit_threads
-
-    was = torch.are_deterministic_algorithms_enabled()
-    torch.use_deterministic_algorithms(True, warn_only=True)
-    # A net this small gains nothing from intra-op threads, and on a loaded 2-core machine
-    # the spinning workers cost 30x (measured: 150 steps of 2000 samples, 17 s with 2 threads,
-    # 0.5 s with 1).
-    try:
-        with limit_threads(torch=int(threads) if threads else None):
-            torch.manual_seed(seed)
-            yield
-    finally:
-        torch.use_deterministic_algorithms(was)
 
 
 class MLPModel(CalibrationModel):
@@ -192,7 +172,7 @@ class MLPModel(CalibrationModel):
     def _train(self, x: np.ndarray, y: np.ndarray, seed: int, weights: np.ndarray | None = None):
         import torch
 
-        with _deterministic(seed, self.threads):
+        with seeded_torch(seed, self.threads):
             net = self._build(x.shape[1])
             xt = torch.from_numpy(x).to(self.device)
             yt = torch.from_numpy(y).to(self.device)
@@ -221,7 +201,7 @@ class MLPModel(CalibrationModel):
     def _predict_features(self, x: np.ndarray, spread: bool = False):
         import torch
 
-        with torch.no_grad(), _deterministic(self.seed, self.threads):
+        with torch.no_grad(), seeded_torch(self.seed, self.threads):
             xt = torch.from_numpy(x).to(self.device)
             outs = np.stack([net(xt).cpu().numpy().astype(np.float64) for net in self.nets])
         out = outs.mean(axis=0)
@@ -261,9 +241,7 @@ class MLPModel(CalibrationModel):
         ``config = [hidden, layers, position, members, feature index, position degree]``, ``input_scale``,
         ``reference``.
         """
-        arrays = {}
-        for i, net in enumerate(self.nets):
-            arrays.update(net_arrays(net, "weights" if i == 0 else f"members/{i}"))
+        arrays = ensemble_arrays(self.nets)
         arrays["config"] = np.array([self.hidden, self.layers, int(self.position), len(self.nets),
                                      FEATURES.index(self.features), self.position_degree], dtype=np.int64)
         arrays["input_scale"] = np.asarray(self.input_scale, dtype=np.float64)
@@ -287,8 +265,7 @@ class MLPModel(CalibrationModel):
         model.reference = None if ref is None else np.asarray(ref, np.float32)
         if model.reference is not None:
             model.shape = tuple(model.reference.shape[1:3])
-        for i in range(members):
-            state = net_state(arrays, "weights" if i == 0 else f"members/{i}")
+        for state in ensemble_states(arrays, members):
             first = state[min(k for k in state if k.endswith("weight"))]
             net = model._build(int(first.shape[1]))
             net.load_state_dict(state)

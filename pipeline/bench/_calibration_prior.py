@@ -135,9 +135,12 @@ def gelsight_row(npz) -> dict[str, Any]:
     t0 = time.perf_counter()
     cap = load_gelsight_npz(npz)
     mix = np.asarray(OTHER_LEDS)
+
+    def other_leds(images):
+        return np.clip(np.asarray(images, np.float64) @ mix.T + 4.0, 0, 255).astype(np.uint8)
+
     new = cap.select(slice(20, 30))
-    new.frames = np.clip(np.asarray(new.frames, np.float64) @ mix.T + 4.0, 0, 255).astype(np.uint8)
-    new.reference = np.clip(np.asarray(new.reference, np.float64) @ mix.T + 4.0, 0, 255).astype(np.uint8)
+    new.frames, new.reference = other_leds(new.frames), other_leds(new.reference)
     with tempfile.TemporaryDirectory() as d:
         path = Path(d) / "prior.h5"
         prior = calibrate(cap.select(slice(0, 20)), 2.0, cap.mm_per_px, "mlp")

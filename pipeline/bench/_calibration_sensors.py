@@ -44,7 +44,7 @@ import numpy as np
 
 from sim.virtual_sensor import CONTACT_LOOK_EFFECTS
 
-__all__ = ["DIGIT_BALL_MM", "DIGIT_MM_PER_PX", "SENSOR_MODELS", "format_sensors", "run_sensors", "shared_data_dir"]
+__all__ = ["DIGIT_BALL_MM", "DIGIT_MM_PER_PX", "SENSOR_MODELS", "format_sensors", "linked_folder", "run_sensors", "shared_data_dir"]
 
 #: The DIGIT folder's ball and pixel pitch (its README).
 DIGIT_BALL_MM = 3.0
@@ -126,7 +126,7 @@ def _split_row(name: str, cap, ball_mm: float, models, truth=None, test_capture=
     return row
 
 
-def _linked_folder(folder: Path, source: Path, names) -> Path:
+def linked_folder(folder: Path, source: Path, names) -> Path:
     """``folder`` holding links to the files ``names`` of ``source`` (a folder to import, no copies)."""
     folder.mkdir()
     for n in names:
@@ -272,7 +272,7 @@ def run_sensors(quick: bool = False, models=SENSOR_MODELS, log=None) -> dict[str
                 kept, _ = load_images(digit, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, reference=found,
                                       profile="digit")
                 add(_split_row(f"DIGIT, no-contact frame kept (--reference {found})", kept, DIGIT_BALL_MM, models))
-            folder = _linked_folder(tmp / "digit_no_reference", digit, [f.name for f in digit.glob("*.jpg")
+            folder = linked_folder(tmp / "digit_no_reference", digit, [f.name for f in digit.glob("*.jpg")
                                                                          if f.name != found])
             built, brep = load_images(folder, mm_per_px=DIGIT_MM_PER_PX, ball_radius_mm=DIGIT_BALL_MM, profile="digit")
             name = "DIGIT without its no-contact frame (reference built)"
@@ -285,7 +285,7 @@ def run_sensors(quick: bool = False, models=SENSOR_MODELS, log=None) -> dict[str
             add(row)
             # The documented workflow: two folders (presses 0-19, 20-29), each with the
             # no-contact frame, each imported on its own (so each builds its own reference).
-            imported = [load_images(_linked_folder(tmp / f"digit_{part}", digit,
+            imported = [load_images(linked_folder(tmp / f"digit_{part}", digit,
                                                    [f"frame_{i}.jpg" for i in presses] + ([found] if found else [])),
                                     ball_radius_mm=DIGIT_BALL_MM, profile="digit")[0]
                         for part, presses in (("train", range(0, 20)), ("test", range(20, 30)))]

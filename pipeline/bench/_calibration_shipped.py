@@ -84,10 +84,9 @@ def _digit_frames(frames) -> Path:
 
 def _folder(folder: Path, source: Path, presses) -> Path:
     """``folder`` with links to the presses and the no-contact frame of ``source``."""
-    folder.mkdir(parents=True)
-    for name in [f"frame_{i}.jpg" for i in presses] + [CLEAN_FRAME]:
-        (folder / name).symlink_to((source / name).resolve())
-    return folder
+    from pipeline.bench._calibration_sensors import linked_folder
+
+    return linked_folder(folder, source, [f"frame_{i}.jpg" for i in presses] + [CLEAN_FRAME])
 
 
 def _judge(calibration, folder, profile, match_colour: bool = True) -> dict[str, Any]:

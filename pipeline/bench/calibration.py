@@ -56,6 +56,13 @@ def add_arguments(parser) -> None:
                              "presses with the shipped calibration as the prior, beside the shipped one as it is")
 
 
+def _progress(flag: str):
+    """A progress line printer for one of the long runs (stderr, so ``--json`` stays clean)."""
+    import sys
+
+    return lambda m: print(f"iristac bench calibration {flag}: {m}", file=sys.stderr, flush=True)
+
+
 def _rows(res, seconds_total):
     s = res.summary()
     rows = []
@@ -92,26 +99,17 @@ def run(args) -> dict:
 
     quick = bool(getattr(args, "quick", False))
     if getattr(args, "shipped", False) or getattr(args, "rebuild", None):
-        import sys
-
         from pipeline.bench._calibration_shipped import run_shipped
 
-        return run_shipped(args, log=lambda m: print(f"iristac bench calibration --shipped: {m}", file=sys.stderr,
-                                                     flush=True))
+        return run_shipped(args, log=_progress("--shipped"))
     if getattr(args, "sensors", False):
-        import sys
-
         from pipeline.bench._calibration_sensors import run_sensors
 
-        return run_sensors(quick, log=lambda m: print(f"iristac bench calibration --sensors: {m}", file=sys.stderr,
-                                                      flush=True))
+        return run_sensors(quick, log=_progress("--sensors"))
     if getattr(args, "prior", False):
-        import sys
-
         from pipeline.bench._calibration_prior import run_prior
 
-        return run_prior(quick, log=lambda m: print(f"iristac bench calibration --prior: {m}", file=sys.stderr,
-                                                    flush=True))
+        return run_prior(quick, log=_progress("--prior"))
     out: dict = {"cases": [], "rows": []}
     npz = Path(args.npz) if getattr(args, "npz", None) else _shared_data()
     if npz is not None:

@@ -266,11 +266,11 @@ def _run(args) -> dict:
     from pipeline.base.errors import UserError
     from pipeline.base.registry import SOLVERS
 
-    bad = [m for m in models if m not in SOLVERS.names() or not str(SOLVERS.get(m).info.get("needs", "")).startswith(
-        "model:")]
+    calibrated = [n for n in SOLVERS.names() if str(SOLVERS.get(n).info.get("needs", "")).startswith("model:")]
+    bad = [m for m in models if m not in calibrated]
     if bad:
         raise UserError(f"bench live --models: {', '.join(bad)} is no calibrated model's solver (expected some of "
-                        f"{', '.join(n for n in SOLVERS.names() if 'model:' in str(SOLVERS.get(n).info.get('needs')))})")
+                        f"{', '.join(calibrated)})")
     cores = os.cpu_count() or 1
     rows: list[dict] = []
     load = os.getloadavg()

@@ -68,14 +68,20 @@ def shipped_calibration_path(profile) -> Path | None:
     return path if path.is_file() else None
 
 
+def _shipped_path(profile_or_path) -> Path | None:
+    """A shipped calibration's file: the path given (``.h5``), or the one a profile ships with."""
+    if str(profile_or_path).endswith(".h5"):
+        return Path(profile_or_path)
+    return shipped_calibration_path(profile_or_path)
+
+
 def shipped_info(profile_or_path) -> dict[str, Any]:
     """The ``shipped`` attribute of a shipped calibration (a profile name or the file's path);
     a :class:`UserError` when there is none."""
     from pipeline.base.errors import UserError
     from pipeline.base.store import read_record
 
-    path = Path(profile_or_path) if str(profile_or_path).endswith(".h5") else \
-        shipped_calibration_path(profile_or_path)
+    path = _shipped_path(profile_or_path)
     if path is None or not path.is_file():
         raise UserError(f"no calibration ships with sensor profile {profile_or_path!r}")
     info = read_record(path, load=False).meta.get(SHIPPED_ATTR)
@@ -151,8 +157,7 @@ def shipped_note(profile_or_path) -> str:
     shipped DIGIT calibration (.../digit.calibration.h5; built from 20 presses of one unit, MIT licence, ...): on another unit expect about ... deg mean normal error (measured on an altered copy of its 10 held-out presses, colours matched from the no-contact frame: ...; ... deg on the unit itself); calibrate your own unit for better (docs/calibration.md)
     """
     info = shipped_info(profile_or_path)
-    path = Path(profile_or_path) if str(profile_or_path).endswith(".h5") else \
-        shipped_calibration_path(profile_or_path)
+    path = _shipped_path(profile_or_path)
     orig, alt = info["original"], info["altered"]
     return (f"shipped {info['sensor']} calibration ({path}; built from {info['presses']} presses of one unit, "
             f"{info['licence']} licence, {info['attribution']}): on another unit expect about "
