@@ -67,7 +67,13 @@ class ShadingOptions:
     shift_fraction: float = 0.1
     same_size: float = 0.15
     tol_px: float = 0.25
-    ridge: float = 1e-3
+    #: Damping of the forward model's least squares, in units of its normal matrix's mean
+    #: diagonal. The model has 819 terms per pattern-channel and a handful of trusted presses:
+    #: lightly damped (1e-3) it fitted the few wrong circles among them as well as the right ones,
+    #: and each re-detection drifted toward them (soft-look seed 3's calibration circles a median
+    #: 6.7 px off; 1.4 px at 1, 1.1 px at 3, and at 10 it explained too little to trust any press;
+    #: at 3 one DIGIT circle moved 10 px, at 1 every shared GelSight and DIGIT circle is unchanged).
+    ridge: float = 1.0
 
 
 def cap_tilt(shape: tuple[int, int], cx: float, cy: float, r: float, ball_px: float, rows=None, cols=None
@@ -111,7 +117,7 @@ def _features(gx: np.ndarray, gy: np.ndarray, w: np.ndarray, u: np.ndarray, v: n
 class ShadingModel:
     """The forward model of step 1: colour change from the cap's tilt and the image position."""
 
-    def __init__(self, shape: tuple[int, int], ridge: float = 1e-3):
+    def __init__(self, shape: tuple[int, int], ridge: float = 1.0):
         self.shape = shape
         self.ridge = ridge
         self.coef: np.ndarray | None = None
