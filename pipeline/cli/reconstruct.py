@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+
 from pipeline.cli._common import (
     add_heal_flag,
     add_json_flag,
@@ -29,7 +31,8 @@ def register(sub, name, help_text):
     p.add_argument("--profile", default=None, metavar=profile_metavar(),
                    help="sensor profile of the capture (a built-in name or a .yaml): its pixel pitch for a video and, "
                         "without --calibration or --illumination, the calibration shipped with it (digit: solved with "
-                        "--solver mlp; its measured error is printed)")
+                        "--solver mlp; its measured error is printed; the capture's colours are matched to it from its "
+                        "no-contact frame, a chunk at a time)")
     solve = add_solving_group(p)
     p.set_defaults(solver=None)  # lstsq, or mlp with a profile's shipped calibration (_run)
     solve.add_argument("--ratio", action="store_true", help="divide by the no-contact reference first")
@@ -53,17 +56,13 @@ def register(sub, name, help_text):
 
 def _run(args) -> int:
     threads = threads_arg(args)
-    calibration, solver, mm_per_px = args.calibration, args.solver or "lstsq", args.mm_per_px
-    capture, tmp = args.capture, None
-    if args.profile is not None:
-        calibration, solver, mm_per_px = _with_profile(args)
-        if calibration is not None and calibration != args.calibration:
-            capture, tmp = _colour_matched_capture(args.capture, calibration, quiet=args.json)
-    try:
-        res = _reconstruct(args, capture, calibration, solver, mm_per_px, threads)
-    finally:
-        if tmp is not None:
-            tmp.cleanup()
+    # Announced before the run (its measured error on another unit); the workflow uses the same file.
+    shipped_calibration("reconstruct", args.profile, args.calibration, args.illumination)
+    res = _reconstruct(args, threads)
+    if "colour_gain" in res.summary and not args.json:
+        print("iristac reconstruct: colours matched to the " + ("shipped calibration's" if "shipped_calibration" in
+              res.summary else "light model's") + " from the capture's no-contact frame (gain per channel "
+              + " / ".join(f"{g:.3f}" for g in res.summary["colour_gain"]) + ")", file=sys.stderr)
     s = res.summary
     if args.json:
         print_json(s)
@@ -80,76 +79,20 @@ def _run(args) -> int:
     return 0
 
 
-def _reconstruct(args, capture, calibration, solver, mm_per_px, threads):
+def _reconstruct(args, threads):
     from pipeline.workflows.reconstruct import reconstruct
 
-    return reconstruct(capture, calibration=calibration, illumination=args.illumination,
-                     solver=solver, integrator=args.integrator, out=args.out, store=args.cache,
-                     ratio=args.ratio, max_condition=args.max_condition, device=args.device,
-                     images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal, mask=args.mask,
-                     markers=args.markers, threads=threads, drift=args.drift, save=args.save,
-                     precision=args.precision, progress=_bar(args), reference=args.reference,
-                     mm_per_px=mm_per_px)
-
-
-def _colour_matched_capture(capture, calibration, quiet: bool):
-    """``(path, TemporaryDirectory or None)``: the capture with its colours brought to the shipped
-    calibration's (:func:`pipeline.capture.shipped.colour_gain` from its no-contact frame), written
-    to a temporary folder; a video is kept as it is (said on stderr)."""
-    import sys
-    import tempfile
-    from pathlib import Path
-
-    from pipeline.base.capture import read_capture, write_capture
-    from pipeline.capture.shipped import colour_matched_capture
-    from pipeline.capture.video_frames import is_video
-
-    if is_video(capture):
-        print("iristac reconstruct: a video's colours are not matched to the shipped calibration's (import it with "
-              "iristac import images VIDEO --profile NAME --out CAPTURE.h5 for that)", file=sys.stderr)
-        return capture, None
-    cap, gain = colour_matched_capture(read_capture(capture), calibration)
-    if not quiet:
-        print("iristac reconstruct: colours matched to the shipped calibration's from the capture's no-contact frame "
-              "(gain per channel " + " / ".join(f"{g:.3f}" for g in gain) + ")", file=sys.stderr)
-    tmp = tempfile.TemporaryDirectory(prefix="iristac-colour-matched-")
-    path = write_capture(Path(tmp.name) / Path(capture).name, cap)
-    return path, tmp
-
-
-def _with_profile(args):
-    """``(calibration, solver, mm_per_px)`` with ``--profile``: the capture must be of the
-    profile's image size; the profile's shipped calibration when no light model is given."""
-    from pipeline.base.errors import UserError
-    from pipeline.capture.sensor_profiles import load_profile
-    from pipeline.capture.shipped import SHIPPED_SOLVER
-    from pipeline.capture.video_frames import is_video
-
-    prof = load_profile(args.profile)
-    if is_video(args.capture):
-        from pipeline.capture.video_frames import video_frame_count
-
-        h, w = video_frame_count(args.capture)[1]
-    else:
-        from pipeline.base.store import describe_file
-
-        shape = describe_file(args.capture)[0]["datasets"].get("frames", {}).get("shape") or [0] * 5
-        h, w = shape[2], shape[3]
-    if (w, h) != prof.resolution:
-        raise UserError(f"{args.capture}: images are {w} x {h} px, sensor profile {prof.name!r} is for "
-                        f"{prof.resolution[0]} x {prof.resolution[1]} (import the frames with iristac import images SOURCE "
-                        f"--profile {prof.name} --out CAPTURE.h5)")
-    shipped = shipped_calibration("reconstruct", prof, args.calibration, args.illumination)
-    calibration = args.calibration if shipped is None else shipped
-    solver = args.solver or ("lstsq" if shipped is None else SHIPPED_SOLVER)
-    video_pitch = prof.mm_per_px if is_video(args.capture) else None
-    return calibration, solver, args.mm_per_px if args.mm_per_px is not None else video_pitch
+    return reconstruct(args.capture, calibration=args.calibration, illumination=args.illumination,
+                       solver=args.solver, integrator=args.integrator, out=args.out, store=args.cache,
+                       ratio=args.ratio, max_condition=args.max_condition, device=args.device,
+                       images=not args.no_images, force=args.force, compile=args.compile, heal=not args.no_heal,
+                       mask=args.mask, markers=args.markers, threads=threads, drift=args.drift, save=args.save,
+                       precision=args.precision, progress=_bar(args), reference=args.reference,
+                       mm_per_px=args.mm_per_px, profile=args.profile)
 
 
 def _bar(args):
     """A frames progress bar on a terminal (None with --json or when stderr is not one)."""
-    import sys
-
     if args.json or not sys.stderr.isatty():
         return None
     from pipeline.capture.video_frames import is_video, video_frame_count

@@ -254,14 +254,20 @@ def _compute_batched(cap, lights: LightSource, *, max_condition: float, device):
 
 
 def key_params(lights: LightSource, *, solver: str = "lstsq", ratio: bool = False, max_condition: float = 1e3,
-               dtype="float32", mask=None, markers=None, drift: str = "auto", outputs=None) -> dict:
+               dtype="float32", mask=None, markers=None, drift: str = "auto", outputs=None,
+               colour_gain=None) -> dict:
     """The key parameters of the normals of a capture (:func:`params` of the section these
-    arguments make): what :func:`run` and the streamed reconstruction (:mod:`pipeline.streaming`) key on."""
+    arguments make): what :func:`run` and the streamed reconstruction (:mod:`pipeline.streaming`) key on.
+    ``colour_gain``: the per-channel gain the frames were brought to the light model's colours by
+    (:func:`pipeline.streaming.plan.colour_gain_for`), keyed only when given."""
     from pipeline.frame_pipeline.outputs import OutputSpec
 
-    return params({"solver": solver, "ratio": ratio, "max_condition": max_condition, "dtype": dtype,
-                   "lights": lights.source.split(":")[0], "mask": mask, "markers": markers, "drift": drift,
-                   **(outputs or OutputSpec()).key_params()})
+    p = params({"solver": solver, "ratio": ratio, "max_condition": max_condition, "dtype": dtype,
+                "lights": lights.source.split(":")[0], "mask": mask, "markers": markers, "drift": drift,
+                **(outputs or OutputSpec()).key_params()})
+    if colour_gain is not None:
+        p["colour_gain"] = [round(float(g), 6) for g in colour_gain]
+    return p
 
 
 def run(store, cap, cap_key, lights: LightSource, *, solver: str = "lstsq", ratio: bool = False,

@@ -11,7 +11,7 @@ import numpy as np
 from pipeline.base.errors import UserError
 from pipeline.streaming.job import LAZY_BYTES
 
-__all__ = ["read_capture", "load_light_record"]
+__all__ = ["read_capture", "load_light_record", "colour_matched_record", "job_capture"]
 
 
 def read_capture(path, video: dict | None = None) -> Any:
@@ -47,3 +47,22 @@ def load_light_record(path, schema):
     if not Path(path).is_file():
         raise UserError(f"{path}: {schema} file not found")
     return read_record(path, schema=schema)
+
+
+def colour_matched_record(cap, gain):
+    """The capture record with its no-contact reference times ``gain (C,)``, rounded and clipped
+    to its dtype (:func:`pipeline.capture.shipped.colour_matched`); as it is when ``gain`` is None.
+    Its frames stay on disk: the stream matches them a chunk at a time (:func:`pipeline.streaming.frames.run_frames`)."""
+    if gain is None or "reference" not in cap.data:
+        return cap
+    from dataclasses import replace
+
+    from pipeline.capture.shipped import colour_matched
+
+    return replace(cap, data={**cap.data, "reference": colour_matched(np.asarray(cap.data["reference"]), gain)})
+
+
+def job_capture(job) -> Any:
+    """The capture record a worker solves a job's frames with (:func:`read_capture` of its file,
+    the reference colour-matched as the plan did)."""
+    return colour_matched_record(read_capture(job.capture, job.video), job.options.get("colour_gain"))

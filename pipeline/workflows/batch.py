@@ -108,11 +108,11 @@ def _range_task(job, start: int, stop: int, threads) -> dict:
     from pipeline.solving.light_files import capture_lights
     from pipeline.streaming.frame_setup import prepare
     from pipeline.streaming.frames import run_frames
-    from pipeline.streaming.inputs import load_light_record, read_capture
+    from pipeline.streaming.inputs import job_capture, load_light_record
 
     ident = (job.capture, tuple(e["key"].digest for e in job.entries.values()), threads)
     if ident not in _WORKER_JOBS:
-        cap = read_capture(job.capture)
+        cap = job_capture(job)
         lights = capture_lights(cap, load_light_record(job.light_files["calibration"], "calibration"),
                                 load_light_record(job.light_files["illumination"], "illumination"))
         for _, old_pipe in _WORKER_JOBS.values():  # one job's set-up at a time per worker

@@ -63,12 +63,12 @@ class ReconstructResult:
     contact: Any = None
 
 
-def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "lstsq", integrator: str = "dst",
+def reconstruct(capture, *, calibration=None, illumination=None, solver: str | None = None, integrator: str = "dst",
                 out=None, store=None, ratio: bool = False, max_condition: float = 1e3, device="cpu",
                 dtype="float32", threads: int | None = 1, images: bool = True, force: bool = False,
                 compile: bool = False, heal: bool = True, mask=None, markers=None, drift: str = "auto",
                 save: str | None = None, precision: str = "single", progress=None, reference=None,
-                mm_per_px: float | None = None) -> ReconstructResult:
+                mm_per_px: float | None = None, profile=None, match_colours: bool | None = None) -> ReconstructResult:
     """Normals and depth of a capture, through the stage store, a chunk of frames at a time.
 
     Parameters
@@ -77,9 +77,9 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         ``capture.h5`` (a record in memory must carry its path), or a video file (``.mp4``, ``.avi``, ...).
     calibration, illumination : path or Record, optional
         The light model (at most one; see :func:`pipeline.solving.light_files.capture_lights`).
-    solver : str
+    solver : str, optional
         A name in :data:`pipeline.base.registry.SOLVERS` (``iristac reconstruct --help`` lists
-        them all).
+        them all); default ``lstsq``, or the shipped calibration's model (``mlp``) with ``profile``.
     integrator : str
         A name in :data:`pipeline.base.registry.INTEGRATORS` (``fc``, ``dct``, ``dst``, ``sparse``).
     out : path, optional
@@ -124,7 +124,14 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
         ``progress(frames)`` after every chunk.
     reference, mm_per_px : optional
         A video file's no-contact frame (an index, default 0, or ``"build"``) and pixel pitch
-        (default: the light model's): :func:`pipeline.capture.video_frames.video_capture`.
+        (default: the light model's, else the profile's): :func:`pipeline.capture.video_frames.video_capture`.
+    profile : str or SensorProfile, optional
+        The capture's sensor (a built-in name or a ``.yaml``): its images must be of its size;
+        with no light model given, the calibration it ships with is used (:mod:`pipeline.capture.shipped`).
+    match_colours : bool, optional
+        Bring the frames to the light model's colours by one gain per channel from the no-contact
+        frames (:func:`pipeline.streaming.plan.colour_gain_for`), a chunk at a time; the gain is
+        ``summary["colour_gain"]`` and in the normals' key. Default: on with a shipped calibration.
 
     Returns
     -------
@@ -137,13 +144,16 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
 
     t0 = time.perf_counter()
     outputs = OutputSpec.parse(save, precision)
+    shipped, mm_per_px = _with_profile(capture, profile, calibration, illumination, mm_per_px)
+    calibration, solver, match_colours = _light_model(shipped, calibration, solver, match_colours)
     job, streamed = reconstruct_stream(
         capture, threads=threads, progress=progress, calibration=calibration, illumination=illumination, solver=solver,
         integrator=integrator, store=store, ratio=ratio, max_condition=max_condition, device=device, dtype=dtype,
         compile=compile, mask=mask, markers=markers, drift=drift, outputs=outputs, force=force, heal=heal,
-        video={"reference": reference, "mm_per_px": mm_per_px})
+        video={"reference": reference, "mm_per_px": mm_per_px}, match_colours=match_colours)
     recs = {name: read_record(e["path"], e["key"].schema, lazy_bytes=LAZY_BYTES) for name, e in job.entries.items()}
     summary = _summary(job, recs, streamed, solver, integrator)
+    summary.update({} if shipped is None else {"shipped_calibration": str(shipped)})
     files: list[Path] = []
     if out is not None:
         files = _write_out(job, recs, Path(out), images)
@@ -152,6 +162,45 @@ def reconstruct(capture, *, calibration=None, illumination=None, solver: str = "
     contact = recs["contact"].data["contact"] if "contact" in recs else None
     n_rec, d_rec = recs["normals"], recs["depth"]
     return ReconstructResult(normals=n_rec, depth=d_rec, summary=summary, files=files, contact=contact)
+
+
+def _light_model(shipped, calibration, solver, match_colours) -> tuple:
+    """``(calibration, solver, match_colours)``: a shipped calibration is solved with its own model
+    (where no solver is given) and the capture's colours matched to it (where not said otherwise)."""
+    from pipeline.capture.shipped import SHIPPED_SOLVER
+
+    if shipped is None:
+        return calibration, solver or "lstsq", bool(match_colours)
+    return shipped, solver or SHIPPED_SOLVER, True if match_colours is None else bool(match_colours)
+
+
+def _with_profile(capture, profile, calibration, illumination, mm_per_px):
+    """``(shipped calibration or None, mm_per_px)`` of a capture from ``profile`` (None: as given): its images must
+    be of the profile's size; without a light model of the user's, the calibration the profile
+    ships with (None when it ships none: the capture's own lights, as without a profile); a
+    video's pitch, when not given, the profile's."""
+    from pipeline.base.errors import UserError
+    from pipeline.base.store import Record, describe_file
+    from pipeline.capture.sensor_profiles import load_profile
+    from pipeline.capture.shipped import shipped_calibration_path
+    from pipeline.capture.video_frames import is_video, video_frame_count
+
+    if profile is None:
+        return None, mm_per_px
+    prof = load_profile(profile)
+    video = not isinstance(capture, Record) and is_video(capture)
+    if video:
+        h, w = video_frame_count(capture)[1]
+    else:
+        shape = (capture.data["frames"].shape if isinstance(capture, Record) else
+                 describe_file(capture)[0]["datasets"].get("frames", {}).get("shape")) or [0] * 5
+        h, w = shape[2], shape[3]
+    if (w, h) != prof.resolution:
+        raise UserError(f"{capture}: images are {w} x {h} px, sensor profile {prof.name!r} is for "
+                        f"{prof.resolution[0]} x {prof.resolution[1]} (import the frames with iristac import images SOURCE "
+                        f"--profile {prof.name} --out CAPTURE.h5)")
+    shipped = shipped_calibration_path(prof) if calibration is None and illumination is None else None
+    return shipped, mm_per_px if mm_per_px is not None or not video else prof.mm_per_px
 
 
 def _summary(job, recs: dict, streamed: dict, solver: str, integrator: str) -> dict[str, Any]:
@@ -166,6 +215,8 @@ def _summary(job, recs: dict, streamed: dict, solver: str, integrator: str) -> d
     summary.update(_truth(job, n_rec, d_rec, streamed))
     if "contact" in recs:
         summary["contact_fraction"] = float(recs["contact"].meta.get("contact_fraction", 0.0))
+    if job.options.get("colour_gain") is not None:
+        summary["colour_gain"] = list(job.options["colour_gain"])
     return summary
 
 
