@@ -40,7 +40,7 @@ The rules of :func:`calibration.detect.detect_press` (border, size, faint presse
 hold: a faint press stays rejected for its faintness, and a circle the shading finds too close
 to the border is rejected with that reason. A press whose change the model does not explain
 keeps the edge detector's verdict, its reason extended by what the shading found. An accepted
-edge circle near which no cap explains even ``min_support`` of the change (once at least three
+edge circle near which no cap explains even ``min_support`` (5 %) of the change (once at least three
 presses shaped the model) is refused: the edges found noise or a ring of moved dots there, and
 the contact is elsewhere.
 """
@@ -78,11 +78,13 @@ class ShadingOptions:
     #: at 3 one DIGIT circle moved 10 px, at 1 every shared GelSight and DIGIT circle is unchanged).
     ridge: float = 1.0
     #: An accepted edge circle near which the best cap explains less than this share of the
-    #: change above the noise is refused: the contact is not there (measured on the benchmark's
-    #: virtual sensors and the shared frames: the two wrong circles of the moved-marker seeds,
-    #: 147 and 252 px from their contacts, 0 %, one 15.6 px off on plain seed 0 8 %; every right
-    #: circle 12 % or more, on the shared GelSight 46 % and on the DIGIT 67 % or more).
-    min_support: float = 0.1
+    #: change above the noise is refused: no contact is there (measured on the benchmark's
+    #: virtual sensors and the shared frames: the two phantom circles of the moved-marker seeds,
+    #: 147 and 252 px from their contacts, 0 %; every right circle 12 % or more, on the shared
+    #: GelSight 46 % and on the DIGIT 67 % or more). Plain seed 0 has one circle 15.6 px off that
+    #: overlaps its contact, at 8 %: misplaced, not a phantom, and kept (refused at 10 %, the
+    #: network's exact error went from 1.82 to 2.20 deg, within what another training set moves it).
+    min_support: float = 0.05
 
 
 def cap_tilt(shape: tuple[int, int], cx: float, cy: float, r: float, ball_px: float, rows=None, cols=None
