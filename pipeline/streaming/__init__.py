@@ -8,7 +8,10 @@ solved, integrated and written a chunk of frames at a time, so memory does not g
    loaded, and the keys of the results computed as the stages compute them
    (:func:`pipeline.stages.normals.key_params`, :mod:`pipeline.stages.depth`; the contact mask's
    entry on the depth entry and the capture): the same work through ``run``, ``reconstruct`` or
-   ``batch`` is one cache entry. A complete entry is read back, not recomputed.
+   ``batch`` is one cache entry. A complete entry is read back, not recomputed. Another unit's
+   colours (``match_colours``): one gain per channel from the no-contact frames
+   (:func:`~pipeline.streaming.plan.colour_gain_for`), in the normals' key; the reference is matched
+   here, each chunk of frames as it is read.
 2. **frames** (:func:`~pipeline.streaming.frames.run_frames`): what is missing is written into partial store files
    (:class:`pipeline.base.streamed.StreamedFile`) a chunk at a time by the one frame pipeline
    (:class:`pipeline.frame_pipeline.FramePipeline`: the solver's fast path where it has one,
@@ -33,7 +36,8 @@ linked); :mod:`~pipeline.streaming.local` runs them all in one process.
 from pipeline.base.lazy import lazy_names
 
 _WHERE = {"StreamJob": "job", "CONTACT_SPEC": "job", "LAZY_BYTES": "job", "read_capture": "inputs",
-          "load_light_record": "inputs", "plan_stream": "plan", "prepare": "frame_setup", "run_frames": "frames",
+          "load_light_record": "inputs", "colour_matched_record": "inputs", "job_capture": "inputs",
+          "plan_stream": "plan", "colour_gain_for": "plan", "prepare": "frame_setup", "run_frames": "frames",
           "open_files": "files", "finish_stream": "files", "link_outputs": "files", "reconstruct_stream": "local"}
 __getattr__, __dir__ = lazy_names(__name__, _WHERE, globals())
 
