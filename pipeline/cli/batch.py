@@ -27,6 +27,9 @@ def register(sub, name, help_text):
     add_light_flags(p, "shared calibration.h5", "shared illumination.h5")
     solve = add_solving_group(p)
     solve.add_argument("--device", default="cpu", help="torch device of the eager solvers (cpu, cuda)")
+    solve.add_argument("--match-colours", action="store_true",
+                       help="bring each recording's colours to the calibration's by one gain per channel from its "
+                            "no-contact frame (another unit's LEDs; the LUT's or MLP's stored reference)")
     where = p.add_argument_group("where it runs")
     where.add_argument("--threads", type=int, default=0,
                        help="threads of the frame pipeline in each process: frames in parallel (default 0: every "
@@ -65,7 +68,7 @@ def _run(args) -> int:
                               connect_timeout=args.connect_timeout, heal=not args.no_heal, mask=args.mask,
                               markers=args.markers, threads=args.threads or None, drift=args.drift, save=args.save,
                               precision=args.precision, force=args.force, reference=args.reference,
-                              mm_per_px=args.mm_per_px)
+                              mm_per_px=args.mm_per_px, match_colours=args.match_colours)
     summary = summary_json(items, time.perf_counter() - t0)
     if args.json:
         print_json(summary)

@@ -16,7 +16,8 @@ __all__ = ["open_files", "open_ranges", "finish_stream", "link_outputs"]
 def open_files(job: StreamJob) -> dict:
     """The partial files of the entries still to write: created, or opened to resume
     (:class:`pipeline.base.streamed.StreamedFile`). An entry another job of the same work
-    finished meanwhile (its file in place, no partial file left) is marked done instead."""
+    finished meanwhile (its file in place, no partial file left) is marked done instead, unless
+    the job was asked to rewrite it (``force``)."""
     from pipeline.base.streamed import StreamedFile, partial_path
 
     H, W = job.shape
@@ -30,7 +31,7 @@ def open_files(job: StreamJob) -> dict:
                "contact": ("contact", OutputSpec.contact_datasets((H, W)), {})}
     out = {}
     for name, e in job.entries.items():
-        if not e["done"] and Path(e["path"]).is_file() and not partial_path(e["path"]).is_file():
+        if not e["done"] and not e.get("force") and Path(e["path"]).is_file() and not partial_path(e["path"]).is_file():
             e["done"] = True
         if e["done"]:
             continue

@@ -71,7 +71,8 @@ def plan_stream(capture, *, calibration=None, illumination=None, solver: str = "
         path = store.path_for(key)
         load = path.is_file() and path.stat().st_size <= VERIFY_BYTES
         done = not force and store.get(key, recompute_bad=heal, load=load) is not None
-        entries[name] = {"key": key, "path": str(store.path_for(key)), "done": done}
+        # ``force``: rewritten even though the entry is there (the old file stays until the new one replaces it).
+        entries[name] = {"key": key, "path": str(store.path_for(key)), "done": done, "force": bool(force)}
     K, P, H, W, C = cap.data["frames"].shape
     frame_bytes = P * H * W * C * np.dtype(cap.data["frames"].dtype).itemsize + 32 * H * W  # frames, results
     job = StreamJob(capture=str(Path(cap.path).resolve()) if cap.path else "",

@@ -130,7 +130,7 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
                       heal: bool = True, mask: str | None = None, markers: str | None = None,
                       threads: int | None = 1, drift: str = "auto", save: str | None = None,
                       precision: str = "single", force: bool = False, reference=None,
-                      mm_per_px: float | None = None) -> list[BatchItem]:
+                      mm_per_px: float | None = None, match_colours: bool = False) -> list[BatchItem]:
     """Reconstruct every recording with a shared calibration or illumination model.
 
     Parameters
@@ -164,6 +164,10 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
         the light model's): :func:`pipeline.capture.video_frames.video_capture`. A video's frames
         are decoded in order, so a video runs in this process even with ``workers`` or
         ``scheduler`` (frames in parallel on ``threads``).
+    match_colours : bool
+        Bring each recording's frames to the light model's colours by one gain per channel from
+        its own no-contact frames (recordings of other units, or of one unit whose LEDs aged), as
+        :func:`pipeline.workflows.reconstruct.reconstruct` does: the same entries.
 
     Returns
     -------
@@ -191,7 +195,8 @@ def batch_reconstruct(recordings: Sequence[str], *, calibration: str | None = No
     options = dict(calibration=_absolute(calibration), illumination=_absolute(illumination), solver=solver,
                    integrator=integrator, store=store, device=device, mask=_absolute(mask),
                    markers=_absolute(marker_file) if marker_file else markers, drift=drift, outputs=outputs,
-                   heal=heal, force=force, video={"reference": reference, "mm_per_px": mm_per_px})
+                   heal=heal, force=force, video={"reference": reference, "mm_per_px": mm_per_px},
+                   match_colours=bool(match_colours))
     t0 = time.perf_counter()
     planned = [_plan(r, options, threads) for r in recs]
     todo = sum(p["frames"] for p in planned if p.get("job") is not None and not p["job"].cached)

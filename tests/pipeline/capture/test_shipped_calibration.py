@@ -175,3 +175,27 @@ def test_reconstruct_matches_another_units_colours_as_it_streams(digit_frames, t
     # Measured: 0.03 deg matched (uint8 rounding twice), 0.60 deg unmatched.
     assert error_deg(matched) < 0.1 and error_deg(plain) > 5 * error_deg(matched), (error_deg(matched), error_deg(plain))
     assert reconstruct(theirs, profile="digit", store=store, images=False).summary["cached"]
+
+
+def test_batch_matches_colours_in_its_worker_processes(digit_frames, tmp_path):
+    """``batch --match-colours``: each recording's own gain, applied in the worker processes that
+    solve its frame ranges; the entry is the one ``reconstruct(profile=...)`` writes."""
+    from pipeline.base.capture import Capture, write_capture
+    from pipeline.workflows.batch import batch_reconstruct
+    from pipeline.workflows.reconstruct import reconstruct
+
+    other = np.clip(np.rint(digit_frames * np.array(GAIN)), 0, 255).astype(np.uint8)
+    frames = np.concatenate([other[1:]] * 2)  # four presses: a frame range for each worker
+    cap = Capture(frames=frames[:, None], reference=other[:1], drive=np.eye(3, dtype=np.float32)[None],
+                  brightness=np.ones(1, np.float32), mm_per_px=0.0266, meta=META)
+    path = write_capture(tmp_path / "other.h5", cap)
+    store = tmp_path / "cache"
+    ref = reconstruct(path, profile="digit", store=store, images=False, save="none")
+    before = np.array(ref.normals.data["normals"])
+    items = batch_reconstruct([str(path)], calibration=str(PATH), solver="mlp", store=str(store), workers=2,
+                              match_colours=True, force=True)
+    assert items[0].ok and items[0].frames_solved == 4, items[0]
+    again = reconstruct(path, profile="digit", store=store, images=False, save="none")
+    assert again.summary["cached"]  # the entry batch rewrote: same key, gain and all
+    assert items[0].result["normals_key"] in str(again.normals.path)
+    np.testing.assert_allclose(np.asarray(again.normals.data["normals"]), before, atol=1e-5)

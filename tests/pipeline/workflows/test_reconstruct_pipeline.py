@@ -52,6 +52,11 @@ def test_nearfield_from_illumination_writes_everything(files, tmp_path):
                         store=store, save="all")
     assert again.summary["cached"] and not res.summary["cached"]
     np.testing.assert_array_equal(again.depth.data["height"], d.data["height"])
+    # force: solved again although the store has it (the old entry replaced only when the new is whole).
+    forced = reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield", integrator="dst",
+                         store=store, save="all", force=True)
+    assert not forced.summary["cached"] and forced.summary["method"] != "cached"
+    np.testing.assert_array_equal(forced.depth.data["height"], d.data["height"])
 
 
 def test_far_field_gap_and_calibration_lights(files, tmp_path):
