@@ -351,19 +351,24 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
     for k in located:
         x, y, r = to_o(cur[k][0]), to_o(cur[k][1]), cur[k][2] / s
         report["explained"][k] = explained.get(k)
-        if tuple(cur[k]) == tuple(edge[k]):
-            if circles[k].accepted and k in explained and explained[k] < opt.min_support and len(trusted) >= 3:
-                out[k] = replace(circles[k], accepted=False, reason=(
-                    f"no contact at the circle: the shading of the other presses explains {explained[k]:.0%} of the "
-                    f"colour change around it (< {opt.min_support:.0%}); the edges found something else (noise, "
-                    "a ring of moved dots)"))
-            continue  # else the edge circle stands, with the edge detector's verdict
+        if tuple(cur[k]) == tuple(edge[k]):  # the edge circle stands, with the edge detector's verdict
+            out[k] = _phantom(circles[k], explained.get(k), len(trusted), opt)
+            continue
         out[k] = _judged(circles[k], (x, y, r), explained.get(k, 0.0), tuple(frames.shape[2:4]),
                          ball_radius_px, det, opt)
         if out[k] is not circles[k] and np.hypot(x - circles[k].center_xy[0], y - circles[k].center_xy[1]) + \
                 abs(r - circles[k].radius_px) > 0.5:
             report["moved"].append(k)
     return out, report
+
+
+def _phantom(c: Circle, explained: float | None, trusted: int, opt: ShadingOptions) -> Circle:
+    """The edge circle, refused where the model (shaped by three presses or more) finds no contact near it."""
+    if not c.accepted or explained is None or explained >= opt.min_support or trusted < 3:
+        return c
+    return replace(c, accepted=False, reason=(
+        f"no contact at the circle: the shading of the other presses explains {explained:.0%} of the colour "
+        f"change around it (< {opt.min_support:.0%}); the edges found something else (noise, a ring of moved dots)"))
 
 
 def _working_change(frames: np.ndarray, reference: np.ndarray, s: float, exclude, saturation):
