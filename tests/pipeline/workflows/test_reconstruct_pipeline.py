@@ -59,6 +59,14 @@ def test_nearfield_from_illumination_writes_everything(files, tmp_path):
     np.testing.assert_array_equal(forced.depth.data["height"], d.data["height"])
 
 
+def test_matching_colours_needs_both_references(files, tmp_path):
+    """Colours are matched to the reference a light model stores (the LUT's, the MLP's): an
+    illumination model stores none, and the error says which file and what is missing."""
+    with pytest.raises(UserError, match=r"illumination.*no-contact reference .*'nearfield'.*stores"):
+        reconstruct(files["capture"], illumination=files["illumination"], solver="nearfield", store=tmp_path / "c",
+                    match_colours=True, images=False)
+
+
 def test_far_field_gap_and_calibration_lights(files, tmp_path):
     store = StageStore(tmp_path / "cache")
     near = reconstruct(files["capture"], calibration=files["calibration"], solver="nearfield", store=store)
