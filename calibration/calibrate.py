@@ -33,7 +33,7 @@ from calibration.models import (
     check_light_rank,
 )
 from calibration.models.base import fit_tilt_gain, scale_tilt
-from calibration.models.conv import CONV_MODELS
+from calibration.models.conv import CONV_MODELS, ball_downsample
 from calibration.models.led_geometry import geometry_basis
 from calibration.refine import refine_centres
 from calibration.samples import Samples, collect_samples
@@ -251,7 +251,11 @@ def read_illumination(path: str | Path) -> IlluminationModel:
         raise UserError(f"{path}: {exc}") from None
 
 
-def model_factories(names, capture: Capture, illumination, saturation, model_options) -> dict[str, Callable | str]:
+def model_factories(names, capture: Capture, illumination, saturation, model_options, ball_px: float | None = None
+                    ) -> dict[str, Callable | str]:
+    """Name -> a factory of a fresh model with the caller's options (or why the model cannot be
+    fitted here). ``ball_px``: the ball's radius in pixels, which sizes the default network's
+    window (:func:`calibration.models.conv.ball_downsample`) where ``downsample`` is not given."""
     out: dict[str, Callable | str] = {}
     opts = model_options or {}
     p, c = capture.frames.shape[1], capture.frames.shape[4]
@@ -290,6 +294,8 @@ def model_factories(names, capture: Capture, illumination, saturation, model_opt
             out[name] = lambda o=o, scale=scale: MLPModel(**{"input_scale": scale, **o})
         elif name in ("conv", "conv-fast"):
             scale = float(saturation) if saturation else 1.0
+            if name == "conv" and ball_px is not None and "downsample" not in o:
+                o = {**o, "downsample": ball_downsample(ball_px)}  # conv-fast keeps its fixed 2: the live cost
             out[name] = lambda o=o, scale=scale, cls=CONV_MODELS[name]: cls(**{"input_scale": scale, **o})
         else:
             raise UserError(f"calibrate: unknown model '{name}' (expected one of "
@@ -806,7 +812,7 @@ def _calibrate(capture, ball_radius_mm, mm_per_px, models, *, illumination, fold
                                            found.circles, found.samples)
     ball_radius_mm = found.ball_radius_mm
     frames, rank, t_detect, refine_report = found.frames, found.light_rank_ratio, found.detect_seconds, found.refine
-    factories = model_factories(names, cap, illumination, sat, model_options)
+    factories = model_factories(names, cap, illumination, sat, model_options, ball_px=ball_radius_mm / mm)
     fitted: dict[str, CalibrationModel] = {}
     reports: dict[str, dict[str, Any]] = {}
     for name, make in factories.items():

@@ -249,7 +249,8 @@ def fixed_truth_cv(capture: Capture, ball_radius_mm: float, model: str, *, judge
     truth = (dict(TEST_TRUTH) if judge == "detected" else {**TEST_TRUTH, "circles": "labels"})
     ref = find_circles(sub, ball_radius_mm, markers=calibrate_kwargs.get("markers"), **truth)
     make = model_factories([model], found.capture, calibrate_kwargs.get("illumination"), found.saturation,
-                      calibrate_kwargs.get("model_options"))[model]
+                           calibrate_kwargs.get("model_options"),
+                           ball_px=found.ball_radius_mm / found.mm_per_px)[model]
     cv = cross_validate(make, found.samples, found.reference, folds=calibrate_kwargs.get("folds", 5),
                         seed=calibrate_kwargs.get("seed", 0), judge=ref.samples)
     return cv["cv_mean_angular_error_deg"]

@@ -260,3 +260,20 @@ def test_conv_fast_matches_the_full_network_on_a_smooth_scene_and_round_trips(tr
     again = calibration_from_record(rec)[0]["conv-fast"]
     assert (type(again), again.name, again.downsample, again.dilations) == (ConvFastModel, "conv-fast", 2, (1,))
     np.testing.assert_allclose(again.predict(test)[0], nf, atol=1e-6)
+
+
+def test_the_networks_window_is_sized_from_the_ball():
+    """``calibrate`` gives the default network a frame shrunk to the ball's size in pixels
+    (:func:`calibration.models.conv.ball_downsample`); the caller's ``downsample`` wins, and the
+    live variant keeps its fixed factor (its cost is what it is for)."""
+    from calibration.calibrate import model_factories
+
+    cap, _ = synthetic_sphere_capture((40, 50), centers_rc=[(20.0, 25.0)], radii_px=[8.0], ball_radius_mm=1.5,
+                                      num_leds=3)
+
+    def made(name, ball_px, options=None):
+        return model_factories([name], cap, None, 255.0, options, ball_px=ball_px)[name]()
+
+    assert [made("conv", b).downsample for b in (16.0, 54.0, 78.0, 113.0)] == [1, 1, 2, 3]
+    assert made("conv", 113.0, {"conv": {"downsample": 1}}).downsample == 1
+    assert made("conv-fast", 113.0).downsample == 2 and made("conv", None).downsample == 1
