@@ -266,7 +266,7 @@ def key_params(lights: LightSource, *, solver: str = "lstsq", ratio: bool = Fals
                 "lights": lights.source.split(":")[0], "mask": mask, "markers": markers, "drift": drift,
                 **(outputs or OutputSpec()).key_params()})
     if colour_gain is not None:
-        p["colour_gain"] = [round(float(g), 6) for g in colour_gain]
+        p["colour_gain"] = [float(g) for g in colour_gain]  # rounded by colour_gain_for
     return p
 
 

@@ -36,7 +36,7 @@ linked); :mod:`~pipeline.streaming.local` runs them all in one process.
 from pipeline.base.lazy import lazy_names
 
 _WHERE = {"StreamJob": "job", "CONTACT_SPEC": "job", "LAZY_BYTES": "job", "read_capture": "inputs",
-          "load_light_record": "inputs", "colour_matched_record": "inputs", "job_capture": "inputs",
+          "load_light_record": "inputs", "colour_matched_record": "inputs", "job_capture": "inputs", "job_frames": "inputs",
           "plan_stream": "plan", "colour_gain_for": "plan", "prepare": "frame_setup", "run_frames": "frames",
           "open_files": "files", "finish_stream": "files", "link_outputs": "files", "reconstruct_stream": "local"}
 __getattr__, __dir__ = lazy_names(__name__, _WHERE, globals())

@@ -87,13 +87,9 @@ def prepare(job: StreamJob, cap, lights, threads: int | None = 1):
     if pipe.method.startswith("device"):
         job.chunk = max(job.chunk, DEVICE_CHUNK)
     if "groups" not in job.meta and job.frames and not job.entries["normals"]["done"]:
-        first = np.asarray(cap.data["frames"][0:1])
-        gain = job.options.get("colour_gain")
-        if gain is not None:
-            from pipeline.capture.shipped import colour_matched
+        from pipeline.streaming.inputs import job_frames
 
-            first = colour_matched(first, gain)
-        probe = pipe.run(first)
+        probe = pipe.run(job_frames(job, np.asarray(cap.data["frames"][0:1])))
         job.meta["groups"] = int(probe.extras["albedo"].shape[-1]) if "albedo" in probe.extras else 1
         job.meta["confidence"] = probe.confidence is not None
         # What the solver says of itself (its method, what its confidence measures): the record's.

@@ -71,9 +71,8 @@ def _frame_source(job: StreamJob, cap, pipe) -> Any:
 
 def _run_range(job: StreamJob, pipe, reader, writer, truth, stored, a: int, b: int, progress) -> int:
     """Frames ``a:b`` chunk by chunk, the next chunk read while this one is solved."""
-    from pipeline.capture.shipped import colour_matched
+    from pipeline.streaming.inputs import job_frames
 
-    gain = job.options.get("colour_gain")
     shape = (job.chunk,) + tuple(reader.shape[1:])
     bufs = [np.empty(shape, reader.dtype), np.empty(shape, reader.dtype)]
     starts = list(range(a, b, job.chunk))
@@ -90,9 +89,7 @@ def _run_range(job: StreamJob, pipe, reader, writer, truth, stored, a: int, b: i
             # The next chunk goes into the previous chunk's buffer: its solve is done (the writer
             # gets results, never frames).
             nxt = pool.submit(read, i + 1) if i + 1 < len(starts) else None
-            if gain is not None:  # another unit's colours brought to the light model's (the plan's gain)
-                chunk = colour_matched(chunk, gain)
-            out = pipe.run(chunk, *stored.read(s, s + len(chunk)))
+            out = pipe.run(job_frames(job, chunk), *stored.read(s, s + len(chunk)))
             arrays = _arrays(out, job.outputs)
             writer.write(s, arrays, frame_stats(out, arrays, truth, s))
             if progress is not None:

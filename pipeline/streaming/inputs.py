@@ -11,7 +11,7 @@ import numpy as np
 from pipeline.base.errors import UserError
 from pipeline.streaming.job import LAZY_BYTES
 
-__all__ = ["read_capture", "load_light_record", "colour_matched_record", "job_capture"]
+__all__ = ["read_capture", "load_light_record", "colour_matched_record", "job_capture", "job_frames"]
 
 
 def read_capture(path, video: dict | None = None) -> Any:
@@ -66,3 +66,14 @@ def job_capture(job) -> Any:
     """The capture record a worker solves a job's frames with (:func:`read_capture` of its file,
     the reference colour-matched as the plan did)."""
     return colour_matched_record(read_capture(job.capture, job.video), job.options.get("colour_gain"))
+
+
+def job_frames(job, frames: np.ndarray) -> np.ndarray:
+    """Frames as the job solves them: brought to the light model's colours by the plan's gain
+    (:func:`pipeline.capture.shipped.colour_matched`) where it matches them, else as read."""
+    gain = job.options.get("colour_gain")
+    if gain is None:
+        return frames
+    from pipeline.capture.shipped import colour_matched
+
+    return colour_matched(frames, gain)

@@ -16,18 +16,25 @@ def test_noise_variance_of_white_noise_despite_a_contact(sigma):
     np.testing.assert_allclose(var, sigma ** 2, rtol=0.15)
 
 
-def test_a_faint_press_is_judged_on_the_change_above_its_noise():
-    """Small, faint presses at a high noise: the true circles explain nearly all of the change
-    above the noise, so none is refused for a share of the raw change that noise alone caps."""
+def _four_presses(radius_px: float, noise_dn: float):
+    """``(frames, reference, circles)``: four rendered presses of one radius, linear, each with its
+    true circle accepted."""
     from calibration.detect import Circle
     from calibration.synthetic import synthetic_sphere_capture
 
     centres = [(30.0, 30.0), (30.0, 90.0), (60.0, 40.0), (60.0, 100.0)]
-    cap, truth = synthetic_sphere_capture((90, 130), centers_rc=centres, radii_px=[8.0] * 4, ball_radius_mm=1.5,
-                                          num_leds=3, noise_dn=3.0, peak_dn=120.0)
+    cap, _ = synthetic_sphere_capture((90, 130), centers_rc=centres, radii_px=[radius_px] * 4, ball_radius_mm=1.5,
+                                      num_leds=3, noise_dn=noise_dn, peak_dn=120.0)
     f, r = cap.linear()
-    circles = [Circle(center_xy=(c, rr), radius_px=8.0, contact_radius_px=8.0, quality=1.0, accepted=True, reason="ok")
-               for rr, c in centres]
+    circles = [Circle(center_xy=(c, rr), radius_px=radius_px, contact_radius_px=radius_px, quality=1.0,
+                      accepted=True, reason="ok") for rr, c in centres]
+    return f, r, circles
+
+
+def test_a_faint_press_is_judged_on_the_change_above_its_noise():
+    """Small, faint presses at a high noise: the true circles explain nearly all of the change
+    above the noise, so none is refused for a share of the raw change that noise alone caps."""
+    f, r, circles = _four_presses(8.0, 3.0)
     _, report = refit_by_shading(f, r, circles, 15.0)
     assert min(report["explained"]) > 0.9, report["explained"]
 
@@ -38,21 +45,13 @@ def test_an_accepted_circle_with_no_contact_under_it_is_refused():
     and says why; the presses whose circles are right stay accepted where they are."""
     from dataclasses import replace
 
-    from calibration.detect import Circle
-    from calibration.synthetic import synthetic_sphere_capture
-
-    centres = [(30.0, 30.0), (30.0, 90.0), (60.0, 40.0), (60.0, 100.0)]
-    cap, truth = synthetic_sphere_capture((90, 130), centers_rc=centres, radii_px=[9.0] * 4, ball_radius_mm=1.5,
-                                          num_leds=3, noise_dn=2.0, peak_dn=120.0)
-    f, r = cap.linear()
-    circles = [Circle(center_xy=(c, rr), radius_px=9.0, contact_radius_px=9.0, quality=1.0, accepted=True, reason="ok")
-               for rr, c in centres]
-    f = f.copy()
+    frames, r, circles = _four_presses(9.0, 2.0)
+    f = frames.copy()
     f[3] = r  # the fourth press shows no contact: its circle lies on flat gel
     out, report = refit_by_shading(f, r, circles, 15.0)
     assert [c.accepted for c in out] == [True, True, True, False], [c.reason for c in out]
     assert out[3].reason.startswith("no contact at the circle") and report["explained"][3] < 0.05
     assert all(o.center_xy == c.center_xy for o, c in zip(out[:3], circles[:3]))
     # With the contact where its circle is, nothing is refused.
-    kept, _ = refit_by_shading(cap.linear()[0], r, [replace(c) for c in circles], 15.0)
+    kept, _ = refit_by_shading(frames, r, [replace(c) for c in circles], 15.0)
     assert all(c.accepted for c in kept)
