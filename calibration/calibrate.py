@@ -771,7 +771,9 @@ def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: S
     shrinkage toward flat of its out-of-fold predictions
     (:func:`calibration.models.base.fit_tilt_gain`: a least-squares fit dominated by the steep
     rim, where a blurred image shrinks the tilts most; on the DIGIT frames it made the middle of
-    every cap too steep, spheres 13 % too small). The CV report's errors become those of
+    every cap too steep, spheres 13 % too small). A model whose
+    :attr:`~calibration.models.base.CalibrationModel.applies_tilt_gain` is False keeps a gain of 1
+    (``tilt_gain_source`` "none"), both gains still reported. The CV report's errors become those of
     the corrected predictions; the uncorrected mean is kept as
     ``cv_uncorrected_mean_angular_error_deg``, the ball figures as ``ball_gain``.
     """
@@ -781,7 +783,11 @@ def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: S
     model.max_tilt = float(min(0.999, 1.05 * truth_tilt.max())) if truth_tilt.size else None
     regression = fit_tilt_gain(pred[use, :2], samples.normals[use, :2]) if use.any() else 1.0
     ball = balls.gain(model.max_tilt) if balls is not None else None
-    model.tilt_gain = ball["gain"] if ball is not None and ball["gain"] is not None else regression
+    source = "ball" if ball is not None and ball["gain"] is not None else "regression"
+    if not model.applies_tilt_gain:  # measured and reported, not applied (the family's own reason)
+        source = "none"
+    model.tilt_gain = {"ball": ball["gain"] if ball is not None else None, "regression": regression,
+                       "none": 1.0}[source]
     corrected, _ = scale_tilt(pred, model.tilt_gain, model.max_tilt)
     errors = np.full(len(samples), np.nan)
     e = angular_error_deg(corrected, samples.normals)
@@ -789,7 +795,7 @@ def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: S
     out = cv_report(errors, samples, cv["folds"])
     out["cv_uncorrected_mean_angular_error_deg"] = cv["cv_mean_angular_error_deg"]
     out["tilt_gain"] = model.tilt_gain
-    out["tilt_gain_source"] = "ball" if ball is not None and ball["gain"] is not None else "regression"
+    out["tilt_gain_source"] = source
     out["regression_tilt_gain"] = regression
     out["max_tilt"] = model.max_tilt
     if ball is not None:

@@ -184,6 +184,11 @@ class CalibrationModel:
     tilt_gain: float = 1.0
     #: Largest ``|(n_x, n_y)|`` the model may answer (the calibration's truth range); None: no limit.
     max_tilt: float | None = None
+    #: Whether calibrate scales this model's tilts by the gain its held-out presses' spheres ask
+    #: for (:mod:`calibration.ball_gain`). A family whose gain on presses it never saw is smaller
+    #: than that gain's noise and bias sets it False: the gain is still measured and reported, and
+    #: the quality gate still judges the uncorrected spheres.
+    applies_tilt_gain: bool = True
 
     def fit(self, samples: Samples) -> dict[str, Any]:  # pragma: no cover - interface
         raise NotImplementedError

@@ -277,3 +277,18 @@ def test_the_networks_window_is_sized_from_the_ball():
     assert [made("conv", b).downsample for b in (16.0, 54.0, 78.0, 113.0)] == [1, 1, 2, 3]
     assert made("conv", 113.0, {"conv": {"downsample": 1}}).downsample == 1
     assert made("conv-fast", 113.0).downsample == 2 and made("conv", None).downsample == 1
+
+
+def test_the_network_reports_the_balls_tilt_gain_but_does_not_apply_it(trichromatic):
+    """Per-pixel models take the gain their held-out spheres ask for; the network
+    (``applies_tilt_gain = False``) keeps 1, with the gain it would have had still reported."""
+    cap, tr = trichromatic
+    res = calibrate(cap, tr.ball_radius_mm, models=["near", "conv"], folds=2,
+                    model_options={"conv": {"width": 8, "dilations": (1, 2), "epochs": 60, "tiles": 64,
+                                            "batch": 16}})
+    near, conv = res.reports["near"]["cv"], res.reports["conv"]["cv"]
+    assert near["tilt_gain_source"] in ("ball", "regression") and res.models["near"].tilt_gain == near["tilt_gain"]
+    assert near["tilt_gain"] != 1.0
+    assert conv["tilt_gain_source"] == "none" and conv["tilt_gain"] == 1.0 and res.models["conv"].tilt_gain == 1.0
+    assert conv["regression_tilt_gain"] != 1.0 and conv["ball_gain"]["attempted"] > 0
+    assert res.models["conv"].max_tilt is not None  # the tilt clip still applies
