@@ -29,7 +29,9 @@ __all__ = ["SPEC", "RENDER_DEFAULTS", "params", "compute", "run", "rendered", "r
 # Version 4: the near-field model divides by the reference's flat field, light-field models leave
 # dark reference pixels out, the ball fit skips caps that are not round, every model carries its
 # own verdict and the best model is a usable one: other models, other choice.
-SPEC = StageSpec("calibrate", version=4, schema="calibration",
+# Version 5: the contacts re-found from their shading, the default network's window sized from the
+# ball and the networks without the ball's tilt gain: other circles, other networks.
+SPEC = StageSpec("calibrate", version=5, schema="calibration",
                  defaults={"ball_radius_mm": 4.0, "model": "far", "folds": 5})
 
 #: Defaults of a run config's ``calibrate.render`` (the rendered sphere capture).
