@@ -783,11 +783,12 @@ def _correct_output(model: CalibrationModel, cv: dict[str, Any], oof, samples: S
     model.max_tilt = float(min(0.999, 1.05 * truth_tilt.max())) if truth_tilt.size else None
     regression = fit_tilt_gain(pred[use, :2], samples.normals[use, :2]) if use.any() else 1.0
     ball = balls.gain(model.max_tilt) if balls is not None else None
-    source = "ball" if ball is not None and ball["gain"] is not None else "regression"
     if not model.applies_tilt_gain:  # measured and reported, not applied (the family's own reason)
-        source = "none"
-    model.tilt_gain = {"ball": ball["gain"] if ball is not None else None, "regression": regression,
-                       "none": 1.0}[source]
+        source, model.tilt_gain = "none", 1.0
+    elif ball is not None and ball["gain"] is not None:
+        source, model.tilt_gain = "ball", ball["gain"]
+    else:
+        source, model.tilt_gain = "regression", regression
     corrected, _ = scale_tilt(pred, model.tilt_gain, model.max_tilt)
     errors = np.full(len(samples), np.nan)
     e = angular_error_deg(corrected, samples.normals)
@@ -876,7 +877,7 @@ def _ball_summary(best: str | None, reports: dict[str, dict[str, Any]]) -> dict[
     ball = (reports[best].get("cv") or {}).get("ball_gain")
     if not ball or ball.get("raw_radius_error") is None:
         return None
-    return {"model": best, **ball}
+    return {"model": best, **ball, "applied": reports[best]["cv"].get("tilt_gain_source") == "ball"}
 
 
 def _drift_summary(found: CircleFit) -> dict[str, Any]:

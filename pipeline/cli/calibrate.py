@@ -185,7 +185,9 @@ def _print_summary(args, s, refused: bool) -> None:
     if ball:
         print(f"  ball fit ({ball['model']}, {ball['presses']} held-out presses, no circle needed): sphere radius "
               f"{ball['raw_radius_error']:+.1%} off the ball before the tilt gain"
-              + (f", {ball['radius_error']:+.1%} after it" if ball.get("radius_error") is not None else
+              + (f", {ball['radius_error']:+.1%} after it" if ball.get("applied", True) and
+                 ball.get("radius_error") is not None else
+                 f" (its gain {ball['gain']:.3f} measured, not applied to this model)" if ball.get("gain") else
                  f" ({ball['note']})"))
     gate = s.get("quality_gate") or {}
     if gate and not gate["passed"]:

@@ -292,3 +292,8 @@ def test_the_network_reports_the_balls_tilt_gain_but_does_not_apply_it(trichroma
     assert conv["tilt_gain_source"] == "none" and conv["tilt_gain"] == 1.0 and res.models["conv"].tilt_gain == 1.0
     assert conv["regression_tilt_gain"] != 1.0 and conv["ball_gain"]["attempted"] > 0
     assert res.models["conv"].max_tilt is not None  # the tilt clip still applies
+    # What calibrate prints about the best model's spheres says whether their gain was applied.
+    from calibration.calibrate import _ball_summary
+
+    assert _ball_summary("conv", res.reports)["applied"] is False
+    assert _ball_summary("near", res.reports)["applied"] is (near["tilt_gain_source"] == "ball")
