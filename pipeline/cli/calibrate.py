@@ -154,6 +154,16 @@ def _overlay(args, circles) -> None:
     write_overlay(args.overlay, read_capture(args.capture), circles)
 
 
+def _after_gain(ball: dict) -> str:
+    """What the ball-fit line says after the raw figure: the spheres after the applied gain, the
+    gain measured but not applied (the networks), or why there is none."""
+    if ball.get("applied", True) and ball.get("radius_error") is not None:
+        return f", {ball['radius_error']:+.1%} after it"
+    if ball.get("gain"):
+        return f" (its gain {ball['gain']:.3f} measured, not applied to this model)"
+    return f" ({ball['note']})"
+
+
 def _print_summary(args, s, refused: bool) -> None:
     wrote = ("REFUSED, not written (--force writes it)" if refused and not args.force else
              f"wrote {args.out}" + (" (refused by the quality gate; written because of --force)" if refused else ""))
@@ -184,11 +194,7 @@ def _print_summary(args, s, refused: bool) -> None:
     ball = s.get("ball_fit")
     if ball:
         print(f"  ball fit ({ball['model']}, {ball['presses']} held-out presses, no circle needed): sphere radius "
-              f"{ball['raw_radius_error']:+.1%} off the ball before the tilt gain"
-              + (f", {ball['radius_error']:+.1%} after it" if ball.get("applied", True) and
-                 ball.get("radius_error") is not None else
-                 f" (its gain {ball['gain']:.3f} measured, not applied to this model)" if ball.get("gain") else
-                 f" ({ball['note']})"))
+              f"{ball['raw_radius_error']:+.1%} off the ball before the tilt gain{_after_gain(ball)}")
     gate = s.get("quality_gate") or {}
     if gate and not gate["passed"]:
         print(f"  quality gate: {'; '.join(gate['problems'])}")
