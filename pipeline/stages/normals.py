@@ -40,7 +40,8 @@ __all__ = ["SPEC", "params", "key_params", "resolve", "compute", "run", "node"]
 # (per-bin position correction, tilt gain), markers are filled in, confidence and filled are written;
 # 4: illumination drift against the reference removed first (``drift``, default ``auto``).
 # 5: what is written is a choice (``save``, ``precision``: :mod:`pipeline.frame_pipeline.outputs`).
-SPEC = StageSpec("normals", version=5, schema="normals",
+# 6: the networks' (``conv``, ``conv-fast``) confidence is the share of their input window inside the frame.
+SPEC = StageSpec("normals", version=6, schema="normals",
                  defaults={"solver": "lstsq", "ratio": False, "max_condition": 1e3, "dtype": "float32",
                            "drift": "auto", "save": ["confidence"], "precision": "single"})
 

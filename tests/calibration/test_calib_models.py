@@ -176,12 +176,31 @@ def test_conv_learns_is_deterministic_and_predicts_frames_as_samples(trichromati
     maps = a.normal_maps(test.images[k:k + 1], r)
     one = test.subset(test.press == k)
     np.testing.assert_allclose(maps.normals[0][one.rows, one.cols], a.predict(one)[0], atol=1e-5)
+    _check_border_confidence(a, maps, one, radius_px=3)
     again = ConvModel.from_arrays(a.to_arrays())
     np.testing.assert_allclose(again.predict(test)[0], na, atol=1e-6)
     bare = Samples(test.intensities, test.reference, test.rows, test.cols, test.normals, test.press, test.contact,
                    test.shape)
     with pytest.raises(ValueError, match="whole frames"):
         a.predict(bare)
+
+
+def _check_border_confidence(model, maps, samples, radius_px: int):
+    """A network's confidence: 1 where its whole window lies inside the frame, falling toward
+    the border (each axis: the share of ``2 radius_px + 1`` pixels inside), the same on the
+    per-sample path."""
+    conf = maps.confidence[0]
+    h, w = conf.shape
+    r = radius_px
+    assert maps.mask[0].all() and np.all(conf[r:h - r, r:w - r] == 1.0)
+    edge = (r + 1) / (2 * r + 1)
+    np.testing.assert_allclose(conf[h // 2, [0, w - 1]], edge, rtol=1e-6)
+    np.testing.assert_allclose(conf[[0, h - 1], w // 2], edge, rtol=1e-6)
+    np.testing.assert_allclose(conf[0, 0], edge * edge, rtol=1e-6)
+    assert np.all(np.diff(conf[h // 2, :r + 1]) > 0)
+    assert "window" in maps.meta["confidence"]
+    _, _, per_sample = model.predict_with_confidence(samples)
+    np.testing.assert_allclose(per_sample, conf[samples.rows, samples.cols], rtol=1e-6)
 
 
 def test_conv_ensemble_averages_its_members_and_round_trips(trichromatic):
@@ -251,6 +270,7 @@ def test_conv_fast_matches_the_full_network_on_a_smooth_scene_and_round_trips(tr
     maps = fast.normal_maps(test.images[k:k + 1], r)
     one = test.subset(test.press == k)
     np.testing.assert_allclose(maps.normals[0][one.rows, one.cols], fast.predict(one)[0], atol=1e-5)
+    _check_border_confidence(fast, maps, one, radius_px=2)  # a radius of 1 on the frame shrunk by 2
     # as calibration.h5 holds it (models/conv-fast/...), read back as the fast variant
     from types import SimpleNamespace
 
