@@ -35,6 +35,9 @@ its position and size: it is what a ball of known radius pressed there looks lik
    until no circle moves by more than ``tol_px``. The noise is each press's own (from its
    neighbouring pixels' differences, :func:`noise_variance`): measured against the raw change,
    a small press on a noisy sensor could never be explained to half, however right its circle.
+   An edge circle refused as no clear circle (rays that disagree, the strongest change
+   elsewhere: a ring of moved dots) that no other circle explains clearly better, and that
+   explains at least ``min_explained``, is accepted where it is: the shading confirms it.
 
 The rules of :func:`calibration.detect.detect_press` (border, size, faint presses) still
 hold: a faint press stays rejected for its faintness, and a circle the shading finds too close
@@ -351,8 +354,8 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
     for k in located:
         x, y, r = to_o(cur[k][0]), to_o(cur[k][1]), cur[k][2] / s
         report["explained"][k] = explained.get(k)
-        if tuple(cur[k]) == tuple(edge[k]):  # the edge circle stands, with the edge detector's verdict
-            out[k] = _phantom(circles[k], explained.get(k), len(trusted), opt)
+        if tuple(cur[k]) == tuple(edge[k]) and not _confirmed(circles[k], explained.get(k), opt):
+            out[k] = _phantom(circles[k], explained.get(k), len(trusted), opt)  # the edge detector's verdict
             continue
         out[k] = _judged(circles[k], (x, y, r), explained.get(k, 0.0), tuple(frames.shape[2:4]),
                          ball_radius_px, det, opt)
@@ -360,6 +363,14 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
                 abs(r - circles[k].radius_px) > 0.5:
             report["moved"].append(k)
     return out, report
+
+
+def _confirmed(c: Circle, explained: float | None, opt: ShadingOptions) -> bool:
+    """Does the shading confirm an edge circle the detector doubted? It was refused as no clear
+    circle (rays that disagree, the strongest change elsewhere: a ring of moved dots), yet no
+    circle explains the press's change better than it, and it explains enough."""
+    return (not c.accepted and c.reason.startswith("no clear circle") and explained is not None
+            and explained >= opt.min_explained)
 
 
 def _phantom(c: Circle, explained: float | None, trusted: int, opt: ShadingOptions) -> Circle:
@@ -463,5 +474,6 @@ def _judged(edge: Circle, circle, explained: float, shape, ball_px: float, det: 
         reason = edge.reason if moved < 0.5 and abs(r - edge.radius_px) < 0.5 else \
             f"{edge.reason}; moved {moved:.1f} px and r {edge.radius_px:.1f} -> {r:.1f} px by its shading ({note})"
         return replace(edge, **base, reason=reason)
+    how = "confirmed" if moved < 0.5 and abs(r - edge.radius_px) < 0.5 else "found"
     return replace(edge, **base, accepted=True,
-                   reason=f"found by its shading ({note}); the edge detector had: {edge.reason}")
+                   reason=f"{how} by its shading ({note}); the edge detector had: {edge.reason}")

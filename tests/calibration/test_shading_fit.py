@@ -55,3 +55,19 @@ def test_an_accepted_circle_with_no_contact_under_it_is_refused():
     # With the contact where its circle is, nothing is refused.
     kept, _ = refit_by_shading(frames, r, [replace(c) for c in circles], 15.0)
     assert all(c.accepted for c in kept)
+
+
+def test_an_edge_circle_the_detector_doubted_is_accepted_where_the_shading_confirms_it():
+    """A right circle the edge detector refused as no clear circle (its rays disagreed: a ring
+    of moved dots) is accepted where it is, saying so; one refused for its size stays refused."""
+    from dataclasses import replace
+
+    frames, r, circles = _four_presses(9.0, 2.0)
+    doubted = replace(circles[3], accepted=False, reason="no clear circle: 35% of rays agree (< 50%)")
+    out, report = refit_by_shading(frames, r, circles[:3] + [doubted], 15.0)
+    assert out[3].accepted and out[3].reason.startswith("confirmed by its shading"), out[3].reason
+    assert np.hypot(*np.subtract(out[3].center_xy, circles[3].center_xy)) < 0.5
+    assert report["explained"][3] >= 0.5
+    sized = replace(circles[3], accepted=False, reason="far smaller than the ball: r 9 px")
+    out, _ = refit_by_shading(frames, r, circles[:3] + [sized], 15.0)
+    assert not out[3].accepted
