@@ -30,6 +30,35 @@ def test_sensor_rows_show_the_ball_scale_beside_its_scatter():
     assert "9/10" in lines[-1]
 
 
+def test_the_table_ends_with_what_each_target_asks_and_whether_it_is_met():
+    """Real rows by their tag, plain virtual seeds on exact truth, each contact look against the
+    same seeds without it (acceptance over every press, circle centres, the truth's gap)."""
+    from pipeline.bench._calibration_sensors import sensor_targets
+
+    def virtual(seed, look, truth, accepted=(18, 9), centres=(0.5, 0.6)):
+        return _row(sensor=f"virtual seed {seed}", seed=seed, look=look, test_deg_truth=truth,
+                    accepted=list(accepted), centre_error_px=list(centres))
+
+    rows = [_row(sensor="GelSight (shared)", target="GelSight", test_deg=2.19, ball_radius_error=0.005),
+            _row(target="DIGIT", test_deg=1.95, ball_radius_error=0.035), _row(sensor="DIGIT copy", target=None),
+            virtual(0, None, 1.75), virtual(1, None, 2.27),
+            virtual(0, "soft_shading", 3.57, (15, 8)), virtual(1, "soft_shading", 2.40, (18, 9), (1.4, 2.5)),
+            virtual(0, "marker_motion", 2.36, (18, 9)), virtual(1, "marker_motion", 2.29, (18, 9))]
+    lines = sensor_targets(rows)
+    assert lines[0] == "target GelSight: test <= 3.5 deg and ball <= 3 %: met (2.19 deg, 0.5 %)"
+    assert lines[1] == "target DIGIT: test <= 3.5 deg and ball <= 3 %: NOT met (1.95 deg, 3.5 %)"
+    assert lines[2] == "target virtual sensors: truth <= 2.0 deg on every seed: NOT met (seed 0 1.75, seed 1 2.27)"
+    soft = [line for line in lines if line.startswith("target soft_shading")]
+    assert soft == ["target soft_shading: >= 90 % of presses accepted: NOT met (50/60; without the look 54)",
+                    "target soft_shading: circle centres within 2 px: NOT met (row medians 0.50-2.50 px)",
+                    "target soft_shading: truth within 1 deg of the same seed without it: NOT met (seed 0 +1.82, "
+                    "seed 1 +0.13)"]
+    moved = [line for line in lines if line.startswith("target marker_motion")]
+    assert [line.split(": ")[2].split(" (")[0] for line in moved] == ["met", "met", "met"]
+    assert len(lines) == 9
+    assert lines[-1] in format_sensors({"sensors": rows})[-1]
+
+
 def test_rows_are_reported_as_they_land_and_two_captures_give_the_split(tmp_path):
     """The quarter-hour bench says what it finished (the hook hears each row as it is returned), and
     its two-folder row equals the split row on the same presses."""
