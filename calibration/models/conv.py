@@ -131,7 +131,7 @@ def window_share(shape: tuple[int, int], radius_px: int) -> np.ndarray:
     h, w = (int(v) for v in shape)
     if h < 1 or w < 1 or int(radius_px) < 0:
         raise ValueError(f"window_share: a frame of at least 1 x 1 and a radius >= 0 expected, got {shape}, {radius_px}")
-    return np.minimum(np.outer(axis(h), axis(w)), 1.0).astype(np.float32)
+    return np.outer(axis(h), axis(w)).astype(np.float32)
 
 
 def feature_planes(image: np.ndarray, reference: np.ndarray, rows: tuple[int, int], cols: tuple[int, int],

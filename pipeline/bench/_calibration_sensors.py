@@ -321,7 +321,7 @@ LOOK_ACCEPTED, LOOK_CENTRE_PX, LOOK_TRUTH_DEG = 0.9, 2.0, 1.0
 
 
 def sensor_targets(rows: list[dict[str, Any]]) -> list[str]:
-    """One line per target the rows can judge: ``target ...: met`` or ``not met``, with the figures."""
+    """One line per target the rows can judge: ``target ...: met`` or ``NOT met``, with the figures."""
     def verdict(ok: bool) -> str:
         return "met" if ok else "NOT met"
 
