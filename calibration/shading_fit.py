@@ -369,7 +369,7 @@ def _confirmed(c: Circle, explained: float | None, opt: ShadingOptions) -> bool:
     """Does the shading confirm an edge circle the detector doubted? It was refused as no clear
     circle (rays that disagree, the strongest change elsewhere: a ring of moved dots), yet no
     circle explains the press's change better than it, and it explains enough."""
-    return (not c.accepted and c.reason.startswith("no clear circle") and explained is not None
+    return (not c.accepted and c.reason.startswith(_DOUBTED) and explained is not None
             and explained >= opt.min_explained)
 
 
@@ -430,8 +430,10 @@ def _support_circle(change_img: np.ndarray, valid: np.ndarray, ball_px: float, n
     return float(cols.mean()), float(rows.mean()), r
 
 
+#: The edge detector's refusal of a circle it found but doubted (rays that disagree, the strongest change elsewhere).
+_DOUBTED = "no clear circle"
 #: Edge-detector rejections the shading may overturn (not faint presses, not circles over the border).
-_OVERTURNABLE = ("no clear circle", "far smaller than the ball", "larger than the ball")
+_OVERTURNABLE = (_DOUBTED, "far smaller than the ball", "larger than the ball")
 
 
 def _edge_failed(c: Circle, edge, fit, opt: ShadingOptions) -> bool:
@@ -470,10 +472,11 @@ def _judged(edge: Circle, circle, explained: float, shape, ball_px: float, det: 
                        reason=f"touches the border: only {inside:.0%} of its rim lies inside the image (< "
                               f"{det.min_rim_inside:.0%}; circle found by its shading ({x:.1f}, {y:.1f}) r {r:.1f} px): "
                               "press further from the edge")
+    same = moved < 0.5 and abs(r - edge.radius_px) < 0.5  # the edge circle itself
     if edge.accepted:
-        reason = edge.reason if moved < 0.5 and abs(r - edge.radius_px) < 0.5 else \
+        reason = edge.reason if same else \
             f"{edge.reason}; moved {moved:.1f} px and r {edge.radius_px:.1f} -> {r:.1f} px by its shading ({note})"
         return replace(edge, **base, reason=reason)
-    how = "confirmed" if moved < 0.5 and abs(r - edge.radius_px) < 0.5 else "found"
+    how = "confirmed" if same else "found"
     return replace(edge, **base, accepted=True,
                    reason=f"{how} by its shading ({note}); the edge detector had: {edge.reason}")
