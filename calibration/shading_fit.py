@@ -35,12 +35,11 @@ its position and size: it is what a ball of known radius pressed there looks lik
    repeat until no circle moves by more than ``tol_px``. The noise is each press's own (from its
    neighbouring pixels' differences, :func:`noise_variance`): measured against the raw change,
    a small press on a noisy sensor could never be explained to half, however right its circle.
-   A press the edge detector refused needs less, ``min_rescue``: a small shallow press fills a
-   few per cent of the window, and what no cap explains around it (moved dots, a soft gel's
-   broad change) keeps its right circle under half. An edge circle refused as no clear circle
-   (rays that disagree, the strongest change elsewhere: a ring of moved dots) that no other
-   circle explains clearly better, and that explains at least ``min_rescue``, is accepted where
-   it is: the shading confirms it.
+   A press the edge detector refused as no clear circle (rays that disagree, the strongest
+   change elsewhere: rings of moved dots) needs less, ``min_rescue``: a small shallow press
+   fills a few per cent of the window, and the moved dots around it keep its right circle under
+   half. Such an edge circle that no other circle explains clearly better, and that explains at
+   least ``min_rescue``, is accepted where it is: the shading confirms it.
 
 The rules of :func:`calibration.detect.detect_press` (border, size, faint presses) still
 hold: a faint press stays rejected for its faintness, and a circle the shading finds too close
@@ -91,15 +90,17 @@ class ShadingOptions:
     #: overlaps its contact, at 8 %: misplaced, not a phantom, and kept (refused at 10 %, the
     #: network's exact error went from 1.82 to 2.20 deg, within what another training set moves it).
     min_support: float = 0.05
-    #: A press the edge detector refused (no clear circle, a circle too small or too large) is
-    #: taken on the shading's circle, or on its own confirmed edge circle, when that explains at
-    #: least this share of its change above the noise; an accepted edge circle is replaced only
-    #: at ``min_explained``. A small, shallow press fills a few per cent of the window the share
-    #: is measured over, so moved dots and a soft gel's broad change around it leave its right
-    #: circle at 26-45 % (measured on the benchmark's moving-marker and soft virtual sensors: nine
-    #: such presses, their shading circles 0.7-2.4 px from the true ones, and two weaker ones 4.0
-    #: and 6.9 px off at 29 and 33 %); every wrong circle there (90-400 px away, or over the border)
-    #: was at 22 % or less.
+    #: A press the edge detector refused as no clear circle (rays that disagree, the strongest
+    #: change elsewhere: rings of moved dots) is taken on the shading's circle, or on its own edge
+    #: circle confirmed, when that explains at least this share of its change above the noise;
+    #: every other press needs ``min_explained``. A small, shallow press fills a few per cent of
+    #: the window the share is measured over, and the moved dots around it keep its right circle
+    #: under half: on the benchmark's moving-marker virtual sensors five such presses had circles
+    #: 0.7-1.9 px from the true ones at 26-42 %, while every circle found 90-470 px from its
+    #: contact there explained 22 % or less. Presses refused for their size (on a soft gel the
+    #: edges circle a highlight) keep the half: at a quarter, five of them on the soft sensors were
+    #: taken with circles 1.2-6.9 px off, and one, 2.4 px off a 9 px contact, cost soft seed 1
+    #: 0.4 deg (docs/calibration.md, "Contacts found by their shading").
     min_rescue: float = 0.25
 
 
@@ -382,8 +383,12 @@ def _confirmed(c: Circle, explained: float | None, opt: ShadingOptions) -> bool:
     """Does the shading confirm an edge circle the detector doubted? It was refused as no clear
     circle (rays that disagree, the strongest change elsewhere: a ring of moved dots), yet no
     circle explains the press's change better than it, and it explains enough (``min_rescue``)."""
-    return (not c.accepted and c.reason.startswith(_DOUBTED) and explained is not None
-            and explained >= opt.min_rescue)
+    return _doubted(c) and explained is not None and explained >= opt.min_rescue
+
+
+def _doubted(c: Circle) -> bool:
+    """Did the edge detector refuse this press as no clear circle (rays that disagree, the strongest change elsewhere)?"""
+    return not c.accepted and c.reason.startswith(_DOUBTED)
 
 
 def _phantom(c: Circle, explained: float | None, trusted: int, opt: ShadingOptions) -> Circle:
@@ -473,7 +478,7 @@ def _judged(edge: Circle, circle, explained: float, shape, ball_px: float, det: 
     """The shading's circle under the detector's rules, or the edge circle when the shading explains too little."""
     x, y, r = circle
     note = f"shading explains {explained:.0%} of the colour change above the noise"
-    need = opt.min_explained if edge.accepted else opt.min_rescue
+    need = opt.min_rescue if _doubted(edge) else opt.min_explained
     if explained < need:
         return replace(edge, reason=f"{edge.reason}; {note} (< {need:.0%}): edge circle kept")
     contact = float(min(r, det.clamp_fraction * ball_px))
