@@ -96,8 +96,8 @@ class ShadingOptions:
     #: every other press needs ``min_explained``. A small, shallow press fills a few per cent of
     #: the window the share is measured over, and the moved dots around it keep its right circle
     #: under half: on the benchmark's moving-marker virtual sensors five such presses had circles
-    #: 0.7-1.9 px from the true ones at 26-42 %, while every circle found 90-470 px from its
-    #: contact there explained 22 % or less. Presses refused for their size (on a soft gel the
+    #: 0.7-1.9 px from the true ones at 26-42 %, while every circle found 100-470 px from its
+    #: contact on the moving-marker and soft sensors explained 22 % or less. Presses refused for their size (on a soft gel the
     #: edges circle a highlight) keep the half: at a quarter, five of them on the soft sensors were
     #: taken with circles 1.2-6.9 px off, and one, 2.4 px off a 9 px contact, cost soft seed 1
     #: 0.4 deg (docs/calibration.md, "Contacts found by their shading").
