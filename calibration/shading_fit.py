@@ -97,10 +97,10 @@ class ShadingOptions:
     #: the window the share is measured over, and the moved dots around it keep its right circle
     #: under half: on the benchmark's moving-marker virtual sensors five such presses had circles
     #: 0.7-1.9 px from the true ones at 26-42 %, while every circle found 100-470 px from its
-    #: contact on the moving-marker and soft sensors explained 22 % or less. Presses refused for their size (on a soft gel the
-    #: edges circle a highlight) keep the half: at a quarter, five of them on the soft sensors were
-    #: taken with circles 1.2-6.9 px off, and one, 2.4 px off a 9 px contact, cost soft seed 1
-    #: 0.4 deg (docs/calibration.md, "Contacts found by their shading").
+    #: contact on the moving-marker and soft sensors explained 22 % or less. Presses refused for
+    #: their size (on a soft gel the edges circle a highlight) keep the half: at a quarter, five of
+    #: them on the soft sensors were taken with circles 1.2-6.9 px off, and one, 2.4 px off a 9 px
+    #: contact, cost soft seed 1 0.4 deg (docs/calibration.md, "Contacts found by their shading").
     min_rescue: float = 0.25
 
 
@@ -383,12 +383,18 @@ def _confirmed(c: Circle, explained: float | None, opt: ShadingOptions) -> bool:
     """Does the shading confirm an edge circle the detector doubted? It was refused as no clear
     circle (rays that disagree, the strongest change elsewhere: a ring of moved dots), yet no
     circle explains the press's change better than it, and it explains enough (``min_rescue``)."""
-    return _doubted(c) and explained is not None and explained >= opt.min_rescue
+    return _doubted(c) and explained is not None and explained >= _bar(c, opt)
 
 
 def _doubted(c: Circle) -> bool:
-    """Did the edge detector refuse this press as no clear circle (rays that disagree, the strongest change elsewhere)?"""
+    """Did the edge detector refuse this press as no clear circle (rays that disagree, the change elsewhere)?"""
     return not c.accepted and c.reason.startswith(_DOUBTED)
+
+
+def _bar(c: Circle, opt: ShadingOptions) -> float:
+    """The share of its change a circle must explain to stand for the press whose edge circle is ``c``:
+    ``min_rescue`` where the edge detector doubted it, ``min_explained`` elsewhere."""
+    return opt.min_rescue if _doubted(c) else opt.min_explained
 
 
 def _phantom(c: Circle, explained: float | None, trusted: int, opt: ShadingOptions) -> Circle:
@@ -478,7 +484,7 @@ def _judged(edge: Circle, circle, explained: float, shape, ball_px: float, det: 
     """The shading's circle under the detector's rules, or the edge circle when the shading explains too little."""
     x, y, r = circle
     note = f"shading explains {explained:.0%} of the colour change above the noise"
-    need = opt.min_rescue if _doubted(edge) else opt.min_explained
+    need = _bar(edge, opt)
     if explained < need:
         return replace(edge, reason=f"{edge.reason}; {note} (< {need:.0%}): edge circle kept")
     contact = float(min(r, det.clamp_fraction * ball_px))
