@@ -231,6 +231,56 @@ def test_conv_ensemble_averages_its_members_and_round_trips(trichromatic):
         ConvModel(members=0)
 
 
+def test_relative_change_is_blind_to_light_dimmed_alike_in_frame_and_reference():
+    """A gain field common to a frame and its reference (vignetting, an LED's fall-off) scales the
+    plain colour difference but leaves the relative change as it was (to the floor's share), and
+    the relative change is its closed form ``2 (I - I_ref) / (I_ref + floor)``."""
+    from calibration.models.conv import RELATIVE_FLOOR, feature_planes
+
+    rng = np.random.default_rng(3)
+    ref = rng.uniform(80.0, 200.0, (2, 6, 7, 3)).astype(np.float32)
+    img = (ref * rng.uniform(0.7, 1.4, ref.shape)).astype(np.float32)
+    gain = np.linspace(0.4, 1.0, 7, dtype=np.float32)[None, None, :, None]  # dimmer toward one side
+    window = ((0, 6), (0, 7))
+    for scale in (255.0, 1.0):
+        rel = feature_planes(img, ref, *window, scale)[:6]
+        want = 2.0 * (img - ref) / (ref + RELATIVE_FLOOR * scale)
+        np.testing.assert_allclose(rel, want.transpose(0, 3, 1, 2).reshape(6, 6, 7), rtol=1e-5)
+    # input_scale 1: a floor of 0.04 DN, nothing beside 80-200 DN
+    rel, dimmed = (feature_planes(a, b, *window, 1.0)[:6] for a, b in ((img, ref), (img * gain, ref * gain)))
+    np.testing.assert_allclose(dimmed, rel, rtol=1e-3, atol=1e-6)
+    diff, ddim = (feature_planes(a, b, *window, 1.0, change="difference")[:6] for a, b in ((img, ref),
+                                                                                          (img * gain, ref * gain)))
+    np.testing.assert_allclose(ddim[..., 0], 0.4 * diff[..., 0], rtol=1e-4)
+    with pytest.raises(ValueError, match="change must be one of"):
+        feature_planes(img, ref, *window, 255.0, change="ratio")
+
+
+def test_conv_stores_which_change_it_saw_and_older_networks_keep_the_difference(trichromatic):
+    """``change`` travels with a stored network; arrays written before it existed (no ``change``)
+    load as the difference they were trained on, and answer as before."""
+    from calibration.models import ConvModel
+
+    cap, tr = trichromatic
+    s, r = calibration_samples(cap, tr)
+    train, test = s.subset(s.press < 7), s.subset((s.press >= 7) & s.contact)
+    opts = dict(width=4, dilations=(1,), epochs=20, tiles=16, batch=8)
+    old, new = ConvModel(change="difference", **opts), ConvModel(**opts)
+    for m in (old, new):
+        m.fit(train, r)
+    assert new.change == "relative" and ConvModel.from_arrays(new.to_arrays()).change == "relative"
+    arrays = old.to_arrays()
+    del arrays["change"]  # as stored before the relative change
+    again = ConvModel.from_arrays(arrays)
+    assert again.change == "difference"
+    np.testing.assert_allclose(again.predict(test)[0], old.predict(test)[0], atol=1e-6)
+    assert np.abs(new.predict(test)[0] - old.predict(test)[0]).max() > 1e-3
+    with pytest.raises(ValueError, match="'change' must index"):
+        ConvModel.from_arrays({**arrays, "change": np.asarray(5)})
+    with pytest.raises(ValueError, match="change must be one of"):
+        ConvModel(change="ratio")
+
+
 def test_block_mean_and_upsampling_keep_a_ramp_in_place():
     """Shrinking by 2 then bringing back bilinearly returns a linear ramp exactly inside the
     frame (half a pixel off would shift it by 0.5 x the slope), and the block means sit on the
