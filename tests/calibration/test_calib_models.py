@@ -166,7 +166,7 @@ def test_conv_learns_is_deterministic_and_predicts_frames_as_samples(trichromati
     cap, tr = trichromatic
     s, r = calibration_samples(cap, tr)
     train, test = s.subset(s.press < 7), s.subset((s.press >= 7) & s.contact)
-    a, b = (ConvModel(width=8, dilations=(1, 2), epochs=100, tiles=64, batch=16) for _ in range(2))
+    a, b = (ConvModel(width=8, dilations=(1, 2), epochs=100, tiles=64, batch=16, members=1) for _ in range(2))
     a.fit(train, r)
     b.fit(train, r)
     na, ok = a.predict(test)
@@ -204,15 +204,15 @@ def _check_border_confidence(model, maps, samples, radius_px: int):
 
 
 def test_conv_ensemble_averages_its_members_and_round_trips(trichromatic):
-    """An ensemble of two networks: its first member is the single network of the same seed, its
-    answer the mean of its members' raw outputs, and stored and loaded it keeps both members."""
+    """An ensemble of two networks (the default): its first member is the single network of the same
+    seed, its answer the mean of its members' raw outputs, and stored and loaded it keeps both members."""
     from calibration.models import ConvModel
 
     cap, tr = trichromatic
     s, r = calibration_samples(cap, tr)
     train, test = s.subset(s.press < 7), s.subset((s.press >= 7) & s.contact)
     opts = dict(width=8, dilations=(1, 2), epochs=60, tiles=48, batch=16)
-    pair, single, second = ConvModel(members=2, **opts), ConvModel(**opts), ConvModel(seed=1, **opts)
+    pair, single, second = ConvModel(**opts), ConvModel(members=1, **opts), ConvModel(seed=1, members=1, **opts)
     for m in (pair, single, second):
         m.fit(train, r)
     assert len(pair.nets) == 2 and pair.net is pair.nets[0]
@@ -229,6 +229,9 @@ def test_conv_ensemble_averages_its_members_and_round_trips(trichromatic):
     np.testing.assert_allclose(again.predict(test)[0], pair.predict(test)[0], atol=1e-6)
     with pytest.raises(ValueError, match="members must be an integer >= 1, got 0"):
         ConvModel(members=0)
+    from calibration.models import ConvFastModel
+
+    assert (ConvModel().members, ConvFastModel().members) == (2, 1)  # the accurate network, the live one
 
 
 def test_relative_change_is_blind_to_light_dimmed_alike_in_frame_and_reference():
@@ -264,7 +267,7 @@ def test_conv_stores_which_change_it_saw_and_older_networks_keep_the_difference(
     cap, tr = trichromatic
     s, r = calibration_samples(cap, tr)
     train, test = s.subset(s.press < 7), s.subset((s.press >= 7) & s.contact)
-    opts = dict(width=4, dilations=(1,), epochs=20, tiles=16, batch=8)
+    opts = dict(width=4, dilations=(1,), epochs=20, tiles=16, batch=8, members=1)
     old, new = ConvModel(change="difference", **opts), ConvModel(**opts)
     for m in (old, new):
         m.fit(train, r)
@@ -309,7 +312,7 @@ def test_conv_fast_matches_the_full_network_on_a_smooth_scene_and_round_trips(tr
     s, r = calibration_samples(cap, tr)
     train, test = s.subset(s.press < 7), s.subset((s.press >= 7) & s.contact)
     opts = dict(width=8, epochs=100, tiles=64, batch=16)
-    fast, full = ConvFastModel(dilations=(1,), **opts), ConvModel(dilations=(1, 2), **opts)
+    fast, full = ConvFastModel(dilations=(1,), **opts), ConvModel(dilations=(1, 2), members=1, **opts)
     fast.fit(train, r)
     full.fit(train, r)
     nf, ok = fast.predict(test)
@@ -355,7 +358,7 @@ def test_the_network_reports_the_balls_tilt_gain_but_does_not_apply_it(trichroma
     cap, tr = trichromatic
     res = calibrate(cap, tr.ball_radius_mm, models=["near", "conv"], folds=2,
                     model_options={"conv": {"width": 8, "dilations": (1, 2), "epochs": 60, "tiles": 64,
-                                            "batch": 16}})
+                                            "batch": 16, "members": 1}})
     near, conv = res.reports["near"]["cv"], res.reports["conv"]["cv"]
     assert near["tilt_gain_source"] in ("ball", "regression") and res.models["near"].tilt_gain == near["tilt_gain"]
     assert near["tilt_gain"] != 1.0
