@@ -9,8 +9,8 @@ normalised position ``(u, v)``, as image planes. The relative change is the same
 pixel's light is dimmed or brightened by the same factor in the frame and the reference
 (vignetting, an LED's fall-off), so a press at a place the calibration never saw looks like the
 presses it did see. ``change="difference"`` gives the MLP's input (:mod:`calibration.models.mlp`),
-``4 (I - I_ref) / input_scale``, as networks stored before the relative change have it. A stack of 3 x 3
-convolutions with growing dilation (``dilations``, default 1, 2, 4: a 15 x 15 pixel window)
+``4 (I - I_ref) / input_scale``, as networks stored before the relative change have it. A stack
+of 3 x 3 convolutions with growing dilation (``dilations``, default 1, 2, 4, 8: a 31 x 31 pixel window)
 and two 1 x 1 layers give ``(n_x, n_y)`` per pixel, with ``n_z = sqrt(1 - n_x^2 - n_y^2)``.
 Every convolution is "valid"; a frame is padded by the window's radius, repeating its border
 pixels, so a pixel's answer depends on its own window only: training on tiles of the presses
@@ -193,7 +193,9 @@ def feature_planes(image: np.ndarray, reference: np.ndarray, rows: tuple[int, in
     inner = (slice(r0 - a, r1 - a), slice(c0 - d, c1 - d))
     if change == "relative":
         floor = np.float32(RELATIVE_FLOOR * float(input_scale))
-        np.divide(np.float32(2.0) * (img - ref), ref + floor, out=out[(slice(0, p * c), *inner)])
+        # a reference below zero (an offset removed upstream) would flip or blow up the ratio
+        np.divide(np.float32(2.0) * (img - ref), np.maximum(ref, np.float32(0.0)) + floor,
+                  out=out[(slice(0, p * c), *inner)])
     else:
         np.multiply(img - ref, np.float32(4.0 * scale), out=out[(slice(0, p * c), *inner)])
     np.multiply(ref, scale, out=out[(slice(p * c, 2 * p * c), *inner)])
