@@ -190,3 +190,23 @@ def test_cli_mlp_ensemble(tmp_path):
         bad = run_cli("calibrate", cap_path, "--ball-radius", "2.0", *extra, "--out", cal)
         assert bad.returncode == 2 and "--mlp-members" in bad.stderr and words in bad.stderr, bad.stderr
         assert "Traceback" not in bad.stderr and cal.read_bytes() == saved
+
+
+def test_cli_conv_members_refused_before_any_work(tmp_path):
+    """``--conv-members`` sizes the network's ensemble: a count under one, or a model that is no
+    network, is refused naming the flag, before the capture is read (it does not exist here)."""
+    for extra, words in ((["--model", "conv", "--conv-members", "0"], "at least 1"),
+                         (["--model", "mlp", "--conv-members", "2"], "fits no network")):
+        bad = run_cli("calibrate", tmp_path / "missing.h5", "--ball-radius", "2.0", *extra, "--out",
+                      tmp_path / "cal.h5")
+        assert bad.returncode == 2 and "--conv-members" in bad.stderr and words in bad.stderr, bad.stderr
+        assert "Traceback" not in bad.stderr and not (tmp_path / "cal.h5").exists()
+    from types import SimpleNamespace
+
+    from pipeline.cli.calibrate import _ensemble_source
+
+    # The summary line names where an ensemble came from: the network's own default is no profile's doing.
+    none = SimpleNamespace(mlp_members=None, conv_members=None)
+    assert _ensemble_source("conv", none) == ": conv's default, --conv-members sets it"
+    assert _ensemble_source("mlp", none) == ": the sensor profile's calibration_mlp_members"
+    assert _ensemble_source("conv", SimpleNamespace(mlp_members=None, conv_members=2)) == ""
