@@ -191,11 +191,12 @@ def feature_planes(image: np.ndarray, reference: np.ndarray, rows: tuple[int, in
     v = (np.clip(np.arange(a, b), 0, h - 1).astype(np.float32) - (h - 1) / 2.0) / max((h - 1) / 2.0, 1.0)
     out = np.empty((2 * p * c + 2, b - a, e - d), np.float32)
     inner = (slice(r0 - a, r1 - a), slice(c0 - d, c1 - d))
-    if change == "relative":
-        floor = np.float32(RELATIVE_FLOOR * float(input_scale))
+    if change == "relative":  # written in place: this runs on every live frame
+        dest = out[(slice(0, p * c), *inner)]
+        np.subtract(img, ref, out=dest)
+        dest *= np.float32(2.0)
         # a reference below zero (an offset removed upstream) would flip or blow up the ratio
-        np.divide(np.float32(2.0) * (img - ref), np.maximum(ref, np.float32(0.0)) + floor,
-                  out=out[(slice(0, p * c), *inner)])
+        dest /= np.maximum(ref, np.float32(0.0)) + np.float32(RELATIVE_FLOOR * float(input_scale))
     else:
         np.multiply(img - ref, np.float32(4.0 * scale), out=out[(slice(0, p * c), *inner)])
     np.multiply(ref, scale, out=out[(slice(p * c, 2 * p * c), *inner)])

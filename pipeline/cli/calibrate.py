@@ -182,7 +182,7 @@ def _ensemble_source(name: str, args) -> str:
     """Where a model's ensemble size came from, as the summary line says it."""
     if name == "mlp":  # without --mlp-members an MLP ensemble can only have come from the sensor profile
         return "" if args.mlp_members is not None else ": the sensor profile's calibration_mlp_members"
-    return "" if getattr(args, "conv_members", None) is not None else f": {name}'s default, --conv-members sets it"
+    return "" if args.conv_members is not None else f": {name}'s default, --conv-members sets it"
 
 
 def _print_summary(args, s, refused: bool) -> None:
