@@ -37,11 +37,18 @@ def test_detect_known_positions(seed):
         assert abs(c.radius_px - tr.radii_px[k]) < 1.0
 
 
-def test_detect_rejects_press_touching_border():
+def test_detect_keeps_a_press_half_inside_and_rejects_one_mostly_over_the_border():
+    """A half circle pins the circle: 65 % of the rim inside is found within 0.3 px and noted; with its
+    centre on the image edge (under half inside, ``DetectOptions.min_rim_inside``) it is refused, saying so."""
     cap, _ = synthetic_sphere_capture((60, 80), centers_rc=[(30.0, 5.0)], radii_px=[10.0], ball_radius_mm=1.5)
     f, r = cap.linear()
     c = detect_press(f[0], r, 15.0)
-    assert not c.accepted and "border" in c.reason
+    assert c.accepted and "of its rim inside the image" in c.reason, c.reason
+    assert abs(c.center_xy[0] - 5.0) < 0.3 and abs(c.center_xy[1] - 30.0) < 0.3, c.center_xy
+    cap, _ = synthetic_sphere_capture((60, 80), centers_rc=[(30.0, 0.0)], radii_px=[10.0], ball_radius_mm=1.5)
+    f, r = cap.linear()
+    c = detect_press(f[0], r, 15.0)
+    assert not c.accepted and "touches the border" in c.reason and "(< 50%" in c.reason, c.reason
 
 
 def test_detect_rejects_faint_press():
