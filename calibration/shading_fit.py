@@ -22,9 +22,12 @@ its position and size: it is what a ball of known radius pressed there looks lik
 3. The shading's circle replaces the edge circle only where the edge detector failed: it
    rejected the press for want of a clear circle or for its size, or its circle is a small
    one off to the side of the shading's (centre more than ``off_centre`` of the shading's
-   radius away and radius below ``small_fraction`` of it: a highlight at one rim), or one of
-   the same size (within ``same_size``) shifted by more than ``shift_fraction`` of the radius
-   (rays pulled to one side by a ring of moved dots), and the
+   radius away and radius below ``small_fraction`` of it: a highlight at one rim), or one
+   shifted by more than ``shift_fraction`` of the radius (rays pulled to one side by a ring of
+   moved dots, or circling inside a soft gel's broad contact), of the same size (within
+   ``same_size``) or of any size while the shading's circle stays a contact (within the
+   detector's ``clamp_fraction`` of the ball: a cap as wide as the ball is the gel changing
+   around the contact, as on the DIGIT), and the
    shading's circle explains the change clearly better (its squared residual at most
    :attr:`ShadingOptions.keep_edge_ratio` of the edge circle's). Elsewhere the edge circle
    stays: the shading's radius follows wherever the gel changed, and a soft gel changes
@@ -353,7 +356,7 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
             fit, cost = _fit_press(model, win, starts, ball)
             if fit is None:
                 continue
-            failed = _edge_failed(circles[k], edge[k], fit, opt)
+            failed = _edge_failed(circles[k], edge[k], fit, opt, det.clamp_fraction * ball)
             keep_edge = not failed or _cost(model, win, edge[k], ball) * opt.keep_edge_ratio <= cost
             new[k] = edge[k] if keep_edge else fit
             explained[k] = win.explained(cost)
@@ -460,14 +463,19 @@ _DOUBTED = "no clear circle"
 _OVERTURNABLE = (_DOUBTED, "far smaller than the ball", "larger than the ball")
 
 
-def _edge_failed(c: Circle, edge, fit, opt: ShadingOptions) -> bool:
-    """Did the edge detector miss this contact (rejected it for its circle, or drew a small circle off to the side)?"""
+def _edge_failed(c: Circle, edge, fit, opt: ShadingOptions, largest_contact: float) -> bool:
+    """Did the edge detector miss this contact (rejected it for its circle, drew a small circle off to the
+    side, or one shifted from the shading's while that stays smaller than ``largest_contact``)?"""
     if not c.accepted:
         return c.reason.startswith(_OVERTURNABLE)
     off = np.hypot(edge[0] - fit[0], edge[1] - fit[1])
     small_aside = off > opt.off_centre * fit[2] and edge[2] < opt.small_fraction * fit[2]
-    # The same size but shifted: rays pulled to one side (a ring of moved dots, a glint).
-    shifted = off > opt.shift_fraction * fit[2] and abs(edge[2] / fit[2] - 1.0) < opt.same_size
+    # Shifted: rays pulled to one side (a ring of moved dots, a glint), or circling inside a soft
+    # gel's broad contact (soft-look seed 0: edge circles 10-25 % small and up to 8.9 px off, the
+    # shading's 0.5-2.2 px). Of another size only while the shading's circle is a contact: one as
+    # wide as the ball follows the gel changing around it (a DIGIT press: 14.6 px, r 75 -> 110 px).
+    same = abs(edge[2] / fit[2] - 1.0) < opt.same_size
+    shifted = off > opt.shift_fraction * fit[2] and (same or fit[2] <= largest_contact)
     return bool(small_aside or shifted)
 
 

@@ -99,3 +99,26 @@ def test_a_press_refused_for_disagreeing_rays_is_rescued_by_a_weaker_shading_tha
             assert out[3].reason.startswith("confirmed by its shading (shading explains 45%"), out[3].reason
         else:
             assert out[3].reason.startswith(refused.reason)
+
+
+def test_an_accepted_edge_circle_shifted_inside_the_contact_is_moved_by_the_shading():
+    """An accepted edge circle 20 % small and 3 px off its press (a soft gel's edges circling inside a
+    broad contact) is replaced by the shading's circle, within 1 px of the truth; the same circle is
+    kept where the shading's cap is as wide as the ball (the gel changing around a contact, not the
+    contact: :func:`calibration.shading_fit._edge_failed`'s ``largest_contact``)."""
+    from dataclasses import replace
+
+    from calibration.detect import Circle
+    from calibration.shading_fit import ShadingOptions, _edge_failed
+
+    frames, r, circles = _four_presses(10.0, 1.0)
+    x, y = circles[3].center_xy
+    off = replace(circles[3], center_xy=(x + 3.0, y), radius_px=8.0, contact_radius_px=8.0)
+    out, _ = refit_by_shading(frames, r, circles[:3] + [off], 15.0)
+    assert out[3].accepted and "by its shading" in out[3].reason, out[3].reason
+    assert np.hypot(*np.subtract(out[3].center_xy, circles[3].center_xy)) < 1.0, out[3].center_xy
+    edge = Circle((0.0, 0.0), 8.0, 8.0, 1.0, True, "ok")
+    opt = ShadingOptions()
+    assert _edge_failed(edge, (0.0, 0.0, 8.0), (3.0, 0.0, 10.0), opt, largest_contact=14.25)
+    assert not _edge_failed(edge, (0.0, 0.0, 8.0), (3.0, 0.0, 14.5), opt, largest_contact=14.25)
+    assert not _edge_failed(edge, (0.0, 0.0, 8.0), (0.5, 0.0, 10.0), opt, largest_contact=14.25)
