@@ -471,8 +471,8 @@ def _edge_failed(c: Circle, edge, fit, opt: ShadingOptions, largest_contact: flo
     off = np.hypot(edge[0] - fit[0], edge[1] - fit[1])
     small_aside = off > opt.off_centre * fit[2] and edge[2] < opt.small_fraction * fit[2]
     # Shifted: rays pulled to one side (a ring of moved dots, a glint), or circling inside a soft
-    # gel's broad contact (soft-look seed 0: edge circles 10-25 % small and up to 8.9 px off, the
-    # shading's 0.5-2.2 px). Of another size only while the shading's circle is a contact: one as
+    # gel's broad contact (soft-look seed 0: edge circles 7-25 % small and up to 8.9 px off, the
+    # shading's 0.6-2.2 px). Of another size only while the shading's circle is a contact: one as
     # wide as the ball follows the gel changing around it (a DIGIT press: 14.6 px, r 75 -> 110 px).
     same = abs(edge[2] / fit[2] - 1.0) < opt.same_size
     shifted = off > opt.shift_fraction * fit[2] and (same or fit[2] <= largest_contact)
