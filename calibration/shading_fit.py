@@ -376,6 +376,10 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
             continue
         out[k] = _judged(circles[k], (x, y, r), explained.get(k, 0.0), tuple(frames.shape[2:4]),
                          ball_radius_px, det, opt)
+        if out[k].center_xy == circles[k].center_xy:
+            # The shading's circle explained too little to be taken: the edge circle stands, and so
+            # does the test for a phantom (a ring of moved dots whose shifted cap explains nothing).
+            out[k] = _phantom(out[k], explained.get(k), len(trusted), opt)
         if out[k] is not circles[k] and np.hypot(x - circles[k].center_xy[0], y - circles[k].center_xy[1]) + \
                 abs(r - circles[k].radius_px) > 0.5:
             report["moved"].append(k)
