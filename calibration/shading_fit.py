@@ -371,23 +371,15 @@ def refit_by_shading(frames: np.ndarray, reference: np.ndarray, circles: list[Ci
     for k in located:
         x, y, r = to_o(cur[k][0]), to_o(cur[k][1]), cur[k][2] / s
         report["explained"][k] = explained.get(k)
-        if tuple(cur[k]) == tuple(edge[k]) and not _confirmed(circles[k], explained.get(k), opt):
-            out[k] = _phantom(circles[k], explained.get(k), len(trusted), opt)  # the edge detector's verdict
-            continue
-        out[k] = _shading_verdict(circles[k], (x, y, r), explained.get(k), len(trusted),
-                                  tuple(frames.shape[2:4]), ball_radius_px, det, opt)
-        if out[k] is not circles[k] and np.hypot(x - circles[k].center_xy[0], y - circles[k].center_xy[1]) + \
-                abs(r - circles[k].radius_px) > 0.5:
+        kept = tuple(cur[k]) == tuple(edge[k]) and not _confirmed(circles[k], explained.get(k), opt)
+        out[k] = circles[k] if kept else _judged(circles[k], (x, y, r), explained.get(k, 0.0),
+                                                 tuple(frames.shape[2:4]), ball_radius_px, det, opt)
+        if out[k].center_xy == circles[k].center_xy:  # the edge circle stands: is a contact under it?
+            out[k] = _phantom(out[k], explained.get(k), len(trusted), opt)
+        if not kept and out[k] is not circles[k] and \
+                np.hypot(x - circles[k].center_xy[0], y - circles[k].center_xy[1]) + abs(r - circles[k].radius_px) > 0.5:
             report["moved"].append(k)
     return out, report
-
-
-def _shading_verdict(edge: Circle, circle, explained: float | None, trusted: int, shape, ball_px: float,
-                     det: DetectOptions, opt: ShadingOptions) -> Circle:
-    """:func:`_judged`; where the shading's circle explained too little to be taken, the edge circle
-    stands, and so does the test for a phantom (a ring of moved dots whose shifted cap explains nothing)."""
-    out = _judged(edge, circle, 0.0 if explained is None else explained, shape, ball_px, det, opt)
-    return _phantom(out, explained, trusted, opt) if out.center_xy == edge.center_xy else out
 
 
 def _confirmed(c: Circle, explained: float | None, opt: ShadingOptions) -> bool:
