@@ -178,15 +178,17 @@ def test_reconstruct_matches_another_units_colours_as_it_streams(digit_frames, t
     assert reconstruct(theirs, profile="digit", store=store, images=False).summary["cached"]
 
 
-def test_batch_matches_colours_in_its_worker_processes(digit_frames, tmp_path):
-    """``batch --match-colours``: each recording's own gain, applied in the worker processes that
-    solve its frame ranges; the entry is the one ``reconstruct(profile=...)`` writes."""
+def test_batch_matches_colours_in_its_range_tasks(digit_frames, tmp_path):
+    """``batch --match-colours``: each recording's own gain, applied in the range task that the
+    worker processes run on its frame ranges; the entry is the one ``reconstruct(profile=...)`` writes."""
     from pipeline.base.capture import Capture, write_capture
     from pipeline.workflows.batch import batch_reconstruct
     from pipeline.workflows.reconstruct import reconstruct
 
     other = np.clip(np.rint(digit_frames * np.array(GAIN)), 0, 255).astype(np.uint8)
-    frames = other[1:]  # two presses, solved in a worker process (one frame range: ranges hold 16 frames at least)
+    # Two presses: one frame range (ranges hold 16 frames at least), which the task pool runs in this
+    # process through the same range task the worker processes run.
+    frames = other[1:]
     cap = Capture(frames=frames[:, None], reference=other[:1], drive=np.eye(3, dtype=np.float32)[None],
                   brightness=np.ones(1, np.float32), mm_per_px=0.0266, meta=META)
     path = write_capture(tmp_path / "other.h5", cap)
