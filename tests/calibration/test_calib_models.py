@@ -203,6 +203,42 @@ def _check_border_confidence(model, maps, samples, radius_px: int):
     np.testing.assert_allclose(per_sample, conf[samples.rows, samples.cols], rtol=1e-6)
 
 
+def test_conv_lifts_a_weak_shading_for_training_and_stores_its_gain_in_the_first_layer(trichromatic):
+    """A sensor whose presses change the colour three times less than another's (a soft gel's
+    shading: every frame's change from the reference divided by 3), both lifted to one RMS for
+    training, gets the network that answers its frames as the other's answers its own: the gain is
+    three times larger and lives in the first layer, so the network takes the planes unscaled.
+    Without the gain (``change_rms=None``) the two networks differ. Planes already above the floor
+    are left alone: gain 1 and the very network of ``change_rms=None``."""
+    import dataclasses
+
+    from calibration.models import ConvModel
+
+    cap, tr = trichromatic
+    s, r = calibration_samples(cap, tr)
+    weak = dataclasses.replace(s, images=r + (s.images - r) / np.float32(3.0),
+                               intensities=s.reference + (s.intensities - s.reference) / np.float32(3.0))
+    train, test = s.subset(s.press < 7), s.subset((s.press >= 7) & s.contact)
+    weak_train, weak_test = weak.subset(weak.press < 7), weak.subset((weak.press >= 7) & weak.contact)
+    opts = dict(width=8, dilations=(1, 2), epochs=60, tiles=48, batch=16, members=1)
+    strong_fit, weak_fit = ConvModel(change_rms=1.0, **opts), ConvModel(change_rms=1.0, **opts)
+    g_strong = strong_fit.fit(train, r)["change_gain"][0]
+    g_weak = weak_fit.fit(weak_train, r)["change_gain"][0]
+    assert g_strong > 1.0 and g_weak == pytest.approx(3.0 * g_strong, rel=1e-5)
+    n_strong = strong_fit.predict(test)[0]
+    np.testing.assert_allclose(weak_fit.predict(weak_test)[0], n_strong, atol=1e-3)  # rounding, through 60 steps
+    again = ConvModel.from_arrays(weak_fit.to_arrays())  # the stored network: the gain is in its weights
+    np.testing.assert_allclose(again.predict(weak_test)[0], weak_fit.predict(weak_test)[0], atol=1e-6)
+    plain = ConvModel(change_rms=None, **opts)
+    assert plain.fit(weak_train, r)["change_gain"] == [1.0]
+    assert angular_error_deg(plain.predict(weak_test)[0], n_strong).mean() > 0.5
+    above = ConvModel(change_rms=1e-3, **opts)  # a floor every press's change is above
+    assert above.fit(weak_train, r)["change_gain"] == [1.0]
+    np.testing.assert_array_equal(above.predict(weak_test)[0], plain.predict(weak_test)[0])
+    with pytest.raises(ValueError, match="change_rms must be > 0 or None, got 0"):
+        ConvModel(change_rms=0)
+
+
 def test_conv_ensemble_averages_its_members_and_round_trips(trichromatic):
     """An ensemble of two networks (the default): its first member is the single network of the same
     seed, its answer the mean of its members' raw outputs, and stored and loaded it keeps both members."""
