@@ -219,6 +219,12 @@ def feature_planes(image: np.ndarray, reference: np.ndarray, rows: tuple[int, in
     return out
 
 
+def _change_planes(x: np.ndarray) -> int:
+    """How many of the planes of ``x (N, F, ...)`` are the colour change: the first half of all
+    but the last two (:func:`feature_planes`: the change, as many reference planes, then ``u, v``)."""
+    return (x.shape[1] - 2) // 2
+
+
 class ConvModel(CalibrationModel):
     """Fully-convolutional network on a pixel's neighbourhood.
 
@@ -435,18 +441,17 @@ class ConvModel(CalibrationModel):
         """The factor that lifts the colour-change planes of the tiles ``x`` to an RMS of
         :attr:`change_rms` where theirs is lower; 1 where it is not, or is None, or the planes are
         all zero."""
-        n = (x.shape[1] - 2) // 2  # the change planes come first, then as many reference planes, then u, v
-        rms = float(np.sqrt(np.mean(np.square(x[:, :n], dtype=np.float64))))
+        rms = float(np.sqrt(np.mean(np.square(x[:, :_change_planes(x)], dtype=np.float64))))
         return 1.0 if self.change_rms is None or rms <= 0 else max(1.0, float(self.change_rms / rms))
 
     def _train(self, x: np.ndarray, y: np.ndarray, w: np.ndarray, seed: int, change_gain: float = 1.0):
         """One network trained on the tiles ``x`` (targets ``y``, weights ``w``) with ``seed``, its
-        colour-change planes multiplied by ``change_gain`` (folded into the first layer afterwards:
-        the network takes the planes unscaled); and its last loss."""
+        colour-change planes multiplied by ``change_gain`` (in place; folded into the first layer
+        afterwards: the network takes the planes unscaled); and its last loss."""
         import torch
 
         w = w / max(float(w.sum()) / max(int((w > 0).sum()), 1), 1e-12)  # mean weight 1 over the sampled pixels
-        n_change = (x.shape[1] - 2) // 2
+        n_change = _change_planes(x)
         x[:, :n_change] *= np.float32(change_gain)
         with seeded_torch(seed, self.threads):
             net = self._build(x.shape[1])
